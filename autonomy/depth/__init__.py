@@ -1,0 +1,1 @@
+"""Depth: the network's relative disparity, its rescaling to metric depth, and depth metrics."""

@@ -1,0 +1,451 @@
+"""Rescaling relative disparity into metric depth (Yang et al., Section III-B).
+
+A monocular network gives relative disparity x for every pixel; the VINS gives metric depth z
+for a few features. Working in disparity, fit f: x ↦ y = 1/z on the features (the anchors)
+and apply it to every pixel: depth = 1 / f(x).
+
+    >>> model = fit(x_at_features, z_of_features, method="monotone_spline")
+    >>> if model.ok:
+    ...     depth = model.depth(relative_disparity_image)       # float32 metres, NaN invalid
+    ...     trust = model.confidence(relative_disparity_image)  # float32 in [0, 1]
+    ... else:
+    ...     log.warning("no metric depth this frame: %s", model.detail)
+
+Beyond the paper, every method is made safe to apply to a whole image (see
+:class:`~autonomy.depth.curves.GuardedCurve`): residual-based outlier rejection, straight
+tails outside the anchor range (never pushing a near pixel farther away), straight bridges
+across anchor gaps, a per-pixel confidence, and optional temporal blending across frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from enum import Enum
+from typing import ClassVar, Union
+
+import numpy as np
+
+from autonomy.depth import curves
+from autonomy.depth.options import METHODS, MONOTONE_METHODS, RescaleOptions
+
+__all__ = [
+    "METHODS", "MONOTONE_METHODS", "AnchorSummary", "NoFit", "NoFitReason", "RescaleModel",
+    "RescaleOptions", "RescaleResult", "TemporalBlend", "fit",
+]
+
+
+class NoFitReason(str, Enum):
+    """Why a frame got no metric depth."""
+
+    TOO_FEW_ANCHORS = "too_few_anchors"
+    DEGENERATE_DISPARITY = "degenerate_disparity"
+    TOO_FEW_INLIERS = "too_few_inliers"
+    NOT_INCREASING = "not_increasing"
+    FIT_FAILED = "fit_failed"
+
+
+@dataclass(frozen=True)
+class AnchorSummary:
+    """What became of the anchors handed to :func:`fit`."""
+
+    given: int
+    bad_disparity: int = 0  #: relative disparity non-finite or ≤ 0
+    bad_depth: int = 0  #: metric depth non-finite or outside [min_depth, max_depth]
+    outliers: int = 0  #: valid, but rejected by outlier rejection or RANSAC
+    used: int = 0  #: anchors the curve was finally fitted to
+
+    @property
+    def valid(self) -> int:
+        return self.given - self.bad_disparity - self.bad_depth
+
+
+@dataclass(frozen=True)
+class NoFit:
+    """No usable fit this frame, and why. ``ok`` is False; nothing here is a depth."""
+
+    reason: NoFitReason
+    detail: str
+    method: str
+    anchors: AnchorSummary
+    ok: ClassVar[bool] = False
+
+
+@dataclass(frozen=True, eq=False)
+class RescaleModel:
+    """A fitted map from relative disparity to metric depth. ``ok`` is True.
+
+    ``method`` is the family actually fitted (``notes`` says when it differs from the one
+    asked for). ``support`` holds the relative disparities of the anchors used, sorted.
+    """
+
+    method: str
+    curve: curves.GuardedCurve
+    anchors: AnchorSummary
+    support: np.ndarray
+    options: RescaleOptions
+    residual_rms: float  #: RMS of metric-disparity residuals at the anchors used, 1/m
+    notes: tuple[str, ...] = ()
+    ok: ClassVar[bool] = True
+
+    @property
+    def anchor_range(self) -> tuple[float, float]:
+        """Relative disparities of the farthest and nearest anchor used."""
+        return self.curve.x_lo, self.curve.x_hi
+
+    def metric_disparity(self, relative_disparity: np.ndarray) -> np.ndarray:
+        """f(x) in 1/m, evaluated exactly (float64), guards included."""
+        return self.curve(relative_disparity)
+
+    def depth(self, relative_disparity: np.ndarray, *, exact: bool = False) -> np.ndarray:
+        """Metric depth in metres (float32, the input's shape) for every pixel.
+
+        depth = 1 / f(x), clipped to [min_depth, max_depth]; where f(x) ≤ 1/max_depth the
+        pixel is at least max_depth away and reads max_depth. Non-finite or negative x reads
+        NaN. The curve is evaluated once on a ``lut_size`` table over the image's disparity
+        range and applied by indexing (nearest entry); an affine curve is applied directly,
+        which is cheaper. ``exact=True`` evaluates f at every pixel instead: the reference
+        the table is measured against.
+        """
+        image = _as_float32_image(relative_disparity)
+        if exact:
+            valid = np.isfinite(image) & (image >= 0)
+            y = self.curve(np.where(valid, image, 0.0))
+            return np.where(valid, self._depth_from_disparity(y), np.nan).astype(np.float32)
+        affine = self.curve.affine
+        if affine is not None:
+            return _map_blocks(image, _AffineDepth(affine.a, affine.b, self.options))
+        return _lookup(image, lambda grid: self._depth_from_disparity(self.curve(grid)),
+                       self.options.lut_size, fill=np.nan)
+
+    def confidence(self, relative_disparity: np.ndarray) -> np.ndarray:
+        """Per-pixel trust in [0, 1] (float32): how densely anchors support this disparity.
+
+        c(x) = min(1, n(x) / m), where n(x) counts anchors within ±h of x, h = anchor range /
+        segments (one knot spacing) and m = ``confidence_neighbours``. It is 1 inside a densely
+        anchored range, falls to 0 within h of the range's ends (extrapolated pixels) and in
+        the middle of a bridged gap, and is 0 for invalid pixels.
+        """
+        image = _as_float32_image(relative_disparity)
+        return _lookup(image, self._support_confidence, self.options.lut_size, fill=0.0)
+
+    def _support_confidence(self, x: np.ndarray) -> np.ndarray:
+        lo, hi = self.anchor_range
+        half_width = (hi - lo) / self.options.segments
+        count = np.searchsorted(self.support, x + half_width, side="right") \
+            - np.searchsorted(self.support, x - half_width, side="left")
+        return np.minimum(count / self.options.confidence_neighbours, 1.0)
+
+    def _depth_from_disparity(self, y: np.ndarray) -> np.ndarray:
+        near, far = self.options.min_depth, self.options.max_depth
+        with np.errstate(divide="ignore"):
+            depth = np.where(y > 1.0 / far, 1.0 / y, far)
+        return np.maximum(depth, near)
+
+
+RescaleResult = Union[RescaleModel, NoFit]
+
+
+def _as_float32_image(relative_disparity: np.ndarray) -> np.ndarray:
+    """The image as C-contiguous float32; a clear error for anything but real numbers."""
+    image = np.asarray(relative_disparity)
+    if not (np.issubdtype(image.dtype, np.floating) or np.issubdtype(image.dtype, np.integer)):
+        raise TypeError(f"relative disparity must be a real-valued array, got dtype {image.dtype}")
+    return np.ascontiguousarray(image, dtype=np.float32)
+
+
+#: Pixels per block in :func:`_map_blocks`: small enough that the temporaries stay in cache
+#: and are recycled by the allocator instead of being page-faulted in afresh every frame
+#: (measured: half the time of whole-image temporaries at 640x480, docs/benchmarks.md).
+_BLOCK = 32768
+
+
+def _map_blocks(image: np.ndarray, kernel) -> np.ndarray:
+    """Apply ``kernel(block, valid, out)`` to the image in blocks; valid = finite and ≥ 0."""
+    flat = image.reshape(-1)
+    out = np.empty(flat.size, dtype=np.float32)
+    for start in range(0, flat.size, _BLOCK):
+        block = flat[start:start + _BLOCK]
+        valid = np.isfinite(block)
+        valid &= block >= 0
+        kernel(block, valid, out[start:start + _BLOCK])
+    return out.reshape(image.shape)
+
+
+def _valid_range(flat: np.ndarray) -> tuple[float, float] | None:
+    """Smallest and largest finite, non-negative value, or None when there is none."""
+    lo, hi = float(np.fmin.reduce(flat)), float(np.fmax.reduce(flat))  # NaN-ignoring, fast
+    if lo >= 0 and np.isfinite(hi):
+        return lo, hi
+    valid = np.isfinite(flat) & (flat >= 0)  # rare: infinities or negatives present
+    if not valid.any():
+        return None
+    return float(np.min(flat, where=valid, initial=np.inf)), \
+        float(np.max(flat, where=valid, initial=-np.inf))
+
+
+@dataclass(frozen=True)
+class _AffineDepth:
+    """Block kernel: depth = 1 / max(a·x + b, 1/max_depth), at least min_depth."""
+
+    a: float
+    b: float
+    options: RescaleOptions
+
+    def __call__(self, block: np.ndarray, valid: np.ndarray, out: np.ndarray) -> None:
+        np.multiply(block, np.float32(self.a), out=out)
+        out += np.float32(self.b)
+        np.maximum(out, np.float32(1.0 / self.options.max_depth), out=out)
+        np.reciprocal(out, out=out)
+        np.maximum(out, np.float32(self.options.min_depth), out=out)
+        np.copyto(out, np.float32(np.nan), where=~valid)
+
+
+@dataclass(frozen=True)
+class _TableLookup:
+    """Block kernel: each valid pixel takes the nearest of ``table[:-1]``, invalid ones the last."""
+
+    table: np.ndarray
+    lo: float
+    steps_per_unit: float
+
+    def __call__(self, block: np.ndarray, valid: np.ndarray, out: np.ndarray) -> None:
+        size = len(self.table) - 1
+        position = np.multiply(block, np.float32(self.steps_per_unit), dtype=np.float32)
+        position -= np.float32(self.lo * self.steps_per_unit - 0.5)  # + 0.5: round to nearest
+        np.copyto(position, np.float32(size), where=~valid)
+        index = position.astype(np.intp)
+        np.clip(index, 0, size, out=index)
+        self.table.take(index, out=out)
+
+
+def _lookup(image: np.ndarray, table_of, size: int, fill: float) -> np.ndarray:
+    """Apply a function of x to every pixel through a table over the image's valid range.
+
+    ``table_of(grid)`` is evaluated once on ``size`` evenly spaced x from the smallest to the
+    largest valid pixel; each pixel takes its nearest entry, half a step at most
+    (range / (2·(size − 1))) from its own x. Invalid pixels take ``fill``.
+    """
+    bounds = _valid_range(image.reshape(-1))
+    if bounds is None:
+        return np.full(image.shape, fill, dtype=np.float32)
+    lo, hi = bounds
+    table = np.empty(size + 1, dtype=np.float32)
+    table[size] = fill
+    table[:size] = table_of(np.linspace(lo, hi, size))
+    steps_per_unit = (size - 1) / (hi - lo) if hi > lo else 0.0
+    return _map_blocks(image, _TableLookup(table, lo, steps_per_unit))
+
+
+# --------------------------------------------------------------------------------------------
+# Fitting
+
+_DEFAULT_OPTIONS = RescaleOptions()
+
+
+def fit(relative_disparity, metric_depth, method: str | None = None, *,
+        options: RescaleOptions | None = None, **overrides) -> RescaleResult:
+    """Fit the map from relative disparity to metric disparity on anchors.
+
+    ``relative_disparity`` and ``metric_depth`` are 1-D and equally long: the network's
+    value at each feature (see :func:`autonomy.depth.anchors.sample_nearest_surface`) and the
+    feature's metric depth in metres. Anchors with non-finite or non-positive disparity, or
+    depth outside [min_depth, max_depth], are dropped. ``method`` and ``overrides`` replace
+    fields of ``options`` (defaults: :class:`RescaleOptions`).
+
+    Returns a :class:`RescaleModel`, or a :class:`NoFit` saying why: fewer than
+    ``min_anchors`` valid anchors, all disparities equal, a map that does not rise, too few
+    inliers left by outlier rejection. Raises ValueError only for arrays of the wrong shape
+    and :class:`~autonomy.options.OptionError` for a bad option.
+    """
+    opts = options or _DEFAULT_OPTIONS
+    if method is not None:
+        overrides["method"] = method
+    if overrides:
+        opts = dataclasses.replace(opts, **overrides)
+    x, z = _as_anchor_arrays(relative_disparity, metric_depth)
+    keep, summary = _select_anchors(x, z, opts)
+    if summary.valid < opts.min_anchors:
+        return NoFit(NoFitReason.TOO_FEW_ANCHORS, _too_few_detail(summary, opts), opts.method,
+                     summary)
+    order = np.argsort(x[keep], kind="stable")
+    x, y = x[keep][order], 1.0 / z[keep][order]
+    span = x[-1] - x[0]
+    if span <= 1e-9 * abs(x[-1]):
+        return NoFit(NoFitReason.DEGENERATE_DISPARITY, f"all {len(x)} anchors have the same "
+                     f"relative disparity ({x[0]:.6g}); no map can be fitted", opts.method,
+                     summary)
+    try:
+        return _fit_sorted(x, y, opts, summary)
+    except curves.FitFailure as failure:
+        return NoFit(NoFitReason(failure.reason), failure.detail, opts.method, summary)
+    except np.linalg.LinAlgError as error:
+        return NoFit(NoFitReason.FIT_FAILED, f"{opts.method}: linear algebra failed: {error}",
+                     opts.method, summary)
+
+
+def _as_anchor_arrays(relative_disparity, metric_depth) -> tuple[np.ndarray, np.ndarray]:
+    x = np.asarray(relative_disparity, dtype=float)
+    z = np.asarray(metric_depth, dtype=float)
+    if x.ndim != 1 or z.shape != x.shape:
+        raise ValueError("relative_disparity and metric_depth must be 1-D arrays of equal "
+                         f"length, got shapes {x.shape} and {z.shape}")
+    return x, z
+
+
+def _select_anchors(x: np.ndarray, z: np.ndarray, opts: RescaleOptions) -> tuple[np.ndarray, AnchorSummary]:
+    good_disparity = np.isfinite(x) & (x > 0)
+    good_depth = np.isfinite(z) & (z >= opts.min_depth) & (z <= opts.max_depth)
+    summary = AnchorSummary(given=len(x), bad_disparity=int((~good_disparity).sum()),
+                            bad_depth=int((good_disparity & ~good_depth).sum()))
+    return good_disparity & good_depth, summary
+
+
+def _too_few_detail(summary: AnchorSummary, opts: RescaleOptions) -> str:
+    return (f"{summary.valid} valid anchors, need {opts.min_anchors} ({summary.given} given: "
+            f"{summary.bad_disparity} with non-finite or non-positive relative disparity, "
+            f"{summary.bad_depth} with depth outside [{opts.min_depth:g}, {opts.max_depth:g}] m)")
+
+
+def _fit_sorted(x: np.ndarray, y: np.ndarray, opts: RescaleOptions,
+                summary: AnchorSummary) -> RescaleResult:
+    """Fit the family (with outlier rejection), check it rises, and guard it."""
+    family, used, method, notes = _fit_robustly(x, y, opts)
+    if used.sum() < opts.min_anchors:
+        return NoFit(NoFitReason.TOO_FEW_INLIERS, f"{int(used.sum())} inliers after outlier "
+                     f"rejection, need {opts.min_anchors}", opts.method, summary)
+    x_used, y_used = x[used], y[used]
+    reference = curves.fit_affine_least_squares(x_used, y_used)
+    if reference.a <= 0:
+        return NoFit(NoFitReason.NOT_INCREASING, "metric disparity does not rise with relative "
+                     f"disparity (least-squares slope {reference.a:.3g}): the anchors or the "
+                     "network output are wrong", opts.method, summary)
+    curve = curves.guard(family, x_used, reference.a, opts)
+    summary = dataclasses.replace(summary, outliers=int((~used).sum()), used=int(used.sum()))
+    residual_rms = float(np.sqrt(np.mean((curve(x_used) - y_used) ** 2)))
+    return RescaleModel(method, curve, summary, x_used, opts, residual_rms, notes)
+
+
+def _fit_robustly(x, y, opts: RescaleOptions):
+    """(family, used-anchor mask, method fitted, notes), after outlier rejection.
+
+    The first judgement of the anchors is against a curve of fixed flexibility, the
+    monotone P-spline: a flexible family fitted through outliers (FITPACK adds knots until
+    it reaches them) makes every residual small and hides them (measured: 15 % outliers left
+    a smoothing spline 350 % off). Then the method is fitted to the anchors kept, judges them
+    itself, and is refitted until the kept set stops changing (at most
+    ``_REJECTION_ROUNDS`` refits), so a curve dragged by outliers is corrected before it
+    judges again.
+    """
+    if opts.method == "ransac_affine":
+        family, inliers = curves.fit_ransac_affine(x, y, opts)
+        return family, inliers, opts.method, ()
+    if not opts.outlier_rejection:
+        family, method, notes = _fit_family(x, y, opts)
+        return family, np.ones(len(x), dtype=bool), method, notes
+    used = _inliers(x, y, _screening_curve(x, y, opts), opts.outlier_threshold)
+    for round_ in range(_REJECTION_ROUNDS):
+        if used.sum() < opts.min_anchors:
+            return None, used, opts.method, ()
+        family, method, notes = _fit_family(x[used], y[used], opts)
+        judged = _inliers(x, y, family, opts.outlier_threshold)
+        if np.array_equal(judged, used) or round_ == _REJECTION_ROUNDS - 1:
+            return family, used, method, notes
+        used = judged
+
+
+def _screening_curve(x, y, opts: RescaleOptions):
+    if curves.count_distinct(x) < 4:
+        return curves.fit_affine_least_squares(x, y)
+    return curves.fit_monotone_pspline(x, y, opts, smoothing_lambda=0.0)[0]
+
+
+_REJECTION_ROUNDS = 3
+
+
+def _inliers(x, y, family, threshold: float) -> np.ndarray:
+    """Anchors whose residual lies within ``threshold`` robust sigmas of the median residual.
+
+    Triangulated depth errors grow as z², so metric-disparity errors are roughly uniform and
+    one robust sigma serves every anchor. Centring on the median residual keeps the inliers
+    when outliers have shifted the whole curve. A residual under 1 % of the anchor's own
+    disparity (about 1 % in depth) is never an outlier, so noise-free anchors are not split.
+    """
+    residuals = y - family(x)
+    centred = np.abs(residuals - np.median(residuals))
+    limit = np.maximum(threshold * curves.robust_sigma(residuals), 0.01 * np.abs(y))
+    return centred <= limit
+
+
+#: Distinct anchors each family needs; with fewer it falls back to poly1.
+_PARAMETERS = {"poly1": 2, "poly2": 3, "poly3": 4, "poly4": 5, "poly5": 6, "exponential": 2,
+               "smoothing_spline": 4, "monotone_smoothing_spline": 4, "monotone_spline": 4}
+
+
+def _fit_family(x, y, opts: RescaleOptions):
+    """(family, method fitted, notes) for every method but RANSAC."""
+    distinct = curves.count_distinct(x)
+    if distinct < _PARAMETERS[opts.method]:
+        note = (f"{opts.method} needs {_PARAMETERS[opts.method]} distinct relative "
+                f"disparities, got {distinct}: fell back to poly1")
+        return curves.fit_affine_least_squares(x, y), "poly1", (note,)
+    if opts.method == "poly1":
+        return curves.fit_affine_least_squares(x, y), "poly1", ()
+    if opts.method.startswith("poly"):
+        return curves.fit_polynomial(x, y, int(opts.method[4:])), opts.method, ()
+    if opts.method == "exponential":
+        return curves.fit_exponential(x, y), opts.method, ()
+    if opts.method == "smoothing_spline":
+        return curves.fit_smoothing_spline(x, y, opts), opts.method, ()
+    smoothing = opts.smoothing_lambda if opts.method == "monotone_smoothing_spline" else 0.0
+    family, segments = curves.fit_monotone_pspline(x, y, opts, smoothing)
+    notes = () if segments == opts.segments else (
+        f"{distinct} distinct anchors: segments reduced from {opts.segments} to {segments}",)
+    return family, opts.method, notes
+
+
+# --------------------------------------------------------------------------------------------
+# Temporal smoothing
+
+
+class TemporalBlend:
+    """Blend each frame's curve with the previous frame's, for any method.
+
+    y_t(x) = (1 − w)·f_t(x) + w·y_{t−1}(x), sampled at ``grid_points`` relative disparities
+    evenly spread over the new fit's anchor range and carried as straight segments, with
+    tails whose slopes blend the same way. Blending non-decreasing curves keeps them
+    non-decreasing. Weight 0 passes every result through unchanged (the default: off). A
+    frame without a fit passes its :class:`NoFit` through and forgets the history, so a stale
+    curve is never carried over a gap in fits.
+    """
+
+    def __init__(self, weight: float, grid_points: int = 256):
+        if not 0.0 <= weight < 1.0:
+            raise ValueError(f"temporal blend weight must be in [0, 1), got {weight!r}")
+        self.weight = weight
+        self.grid_points = grid_points
+        self._previous: RescaleModel | None = None
+
+    def update(self, result: RescaleResult) -> RescaleResult:
+        if not result.ok:
+            self._previous = None
+            return result
+        if self.weight == 0.0 or self._previous is None:
+            self._previous = result
+            return result
+        blended = self._blend(result, self._previous)
+        self._previous = blended
+        return blended
+
+    def _blend(self, new: RescaleModel, old: RescaleModel) -> RescaleModel:
+        w = self.weight
+        lo, hi = new.anchor_range
+        grid = np.linspace(lo, hi, self.grid_points)
+        values = (1 - w) * new.metric_disparity(grid) + w * old.metric_disparity(grid)
+        old_curve, new_curve = old.curve, new.curve
+        curve = curves.GuardedCurve(
+            curves.PiecewiseLinear(grid, values), lo, hi,
+            slope_far=(1 - w) * new_curve.slope_far + w * old_curve.slope_far,
+            slope_near=(1 - w) * new_curve.slope_near + w * old_curve.slope_near)
+        note = f"blended with the previous frame's curve, weight {w:g}"
+        return dataclasses.replace(new, curve=curve, notes=new.notes + (note,))

@@ -1,0 +1,217 @@
+"""The application's configuration: one typed schema, loaded from TOML plus ``--set`` overrides.
+
+Each TOML table is one section, and each section is an options dataclass (see
+:mod:`autonomy.options`) that owns its defaults and validates itself. This module only finds
+the values, checks that their names exist, and says where a bad one came from: every failure
+is a :class:`ConfigError` reading ``<source>: <section>.<key>: <what is wrong>``, so an
+operator can fix the file without reading a traceback.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple, Sequence
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10
+    import tomli as tomllib
+
+from autonomy.depth.options import RescaleOptions
+from autonomy.options import OptionError, field_types, option, validate
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+
+
+@dataclass(frozen=True)
+class LogOptions:
+    """How the application logs."""
+
+    level: str = option("INFO", choices=LOG_LEVELS, doc="lowest severity written to stderr")
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration: one field per TOML table, each an options dataclass."""
+
+    log: LogOptions = field(default_factory=LogOptions)
+    rescale: RescaleOptions = field(default_factory=RescaleOptions)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+class ConfigError(Exception):
+    """A configuration that cannot be used, naming where the bad value came from.
+
+    ``source`` is the file path or ``--set section.key=value``; ``key`` is the dotted key when
+    the problem belongs to one (``rescale.kappa``), else None.
+    """
+
+    def __init__(self, source: str, message: str, key: str | None = None):
+        self.source = source
+        self.key = key
+        self.message = message
+        where = f"{source}: {key}" if key else source
+        super().__init__(f"{where}: {message}")
+
+
+class Override(NamedTuple):
+    """One ``--set section.key=value``, with the text it came from for error messages."""
+
+    section: str
+    key: str
+    value: Any
+    source: str
+
+
+def parse_override(text: str) -> Override:
+    """Split ``section.key=value`` and read the value as TOML.
+
+    A value that is not valid TOML is kept as a bare string, so that
+    ``rescale.method=monotone_spline`` works without shell-escaped quotes.
+    """
+    source = f"--set {text}"
+    name, equals, raw = text.partition("=")
+    section, dot, key = name.strip().partition(".")
+    if not (equals and dot and section and key) or "." in key:
+        raise ConfigError(source, f"expected SECTION.KEY=VALUE, got {text!r}")
+    return Override(section, key, _parse_toml_value(raw.strip()), source)
+
+
+def _parse_toml_value(raw: str) -> Any:
+    try:
+        document = tomllib.loads(f"value = {raw}")
+    except tomllib.TOMLDecodeError:
+        return raw
+    # A newline in the value could smuggle in more keys; such a value is not one TOML value.
+    return document["value"] if len(document) == 1 else raw
+
+
+#: section -> key -> (value, source it came from); a section's keys are in the order last set.
+_Settings = dict[str, dict[str, tuple[Any, str]]]
+
+
+def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Config:
+    """The configuration from a TOML file (None: all defaults) with overrides applied on top.
+
+    Later sources win: the file over the defaults, each override over the file and the
+    overrides before it. Raises :class:`ConfigError` for anything wrong.
+    """
+    settings: _Settings = {}
+    if path is not None:
+        _add_document(settings, _read_toml(Path(path)), str(path))
+    for text in overrides:
+        override = parse_override(text)
+        _set(settings, override.source, override.section, override.key, override.value)
+    return Config(**{name: _build_section(name, kind, settings.get(name, {}))
+                     for name, kind in field_types(Config).items()})
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    source = str(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(source, "no such file") from None
+    except OSError as error:
+        raise ConfigError(source, f"cannot read: {error.strerror or error}") from None
+    try:
+        return tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as error:
+        problem = f"not UTF-8 text ({error.reason} at byte {error.start})"
+        raise ConfigError(source, problem) from None
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(source, f"invalid TOML: {error}") from None
+
+
+def _add_document(settings: _Settings, document: dict[str, Any], source: str) -> None:
+    for section, table in document.items():
+        _check_known(source, section)
+        if not isinstance(table, dict):
+            raise ConfigError(source, f"must be a table [{section}], got {table!r}", section)
+        for key, value in table.items():
+            _set(settings, source, section, key, value)
+
+
+def _set(settings: _Settings, source: str, section: str, key: str, value: Any) -> None:
+    _check_known(source, section, key)
+    keys = settings.setdefault(section, {})
+    keys.pop(key, None)  # re-insert so the last key set is the last in order
+    keys[key] = (value, source)
+
+
+def _check_known(source: str, section: str, key: str | None = None) -> None:
+    """Reject a section or key that the schema lacks, suggesting the closest known name."""
+    sections = field_types(Config)
+    _reject_unknown(source, "section", section, list(sections), section)
+    if key is not None:
+        keys = [f.name for f in dataclasses.fields(sections[section])]
+        _reject_unknown(source, "key", key, keys, f"{section}.{key}")
+
+
+def _reject_unknown(source: str, what: str, name: str, known: list[str], where: str) -> None:
+    if name in known:
+        return
+    close = difflib.get_close_matches(name, known, n=1)
+    hint = f"did you mean {close[0]!r}?" if close else f"known: {', '.join(known)}"
+    raise ConfigError(source, f"unknown {what}; {hint}", where)
+
+
+def _build_section(section: str, kind: type, values: dict[str, tuple[Any, str]]) -> Any:
+    types = field_types(kind)
+    try:
+        return kind(**{key: _coerce(value, types[key]) for key, (value, _) in values.items()})
+    except OptionError as error:
+        raise ConfigError(_culprit(values, error.key), error.message,
+                          f"{section}.{error.key}") from None
+
+
+def _coerce(value: Any, kind: Any) -> Any:
+    """TOML's ``3`` where a float is expected becomes ``3.0``; a bool is never a number."""
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def _culprit(values: dict[str, tuple[Any, str]], key: str) -> str:
+    """The source to blame for a bad key: the one that set it, else (for a cross-field error
+    such as ``min_depth >= max_depth`` where only the other key was given) the source that
+    set a key of this section last."""
+    if key in values:
+        return values[key][1]
+    return list(values.values())[-1][1]
+
+
+def dump_toml(config: Config) -> str:
+    """The configuration as TOML with every key of every section, readable by
+    :func:`load_config` into an equal ``Config``."""
+    tables = []
+    for section in dataclasses.fields(config):
+        options = getattr(config, section.name)
+        lines = [f"[{section.name}]"]
+        lines += [f"{f.name} = {_toml_value(getattr(options, f.name))}"
+                  for f in dataclasses.fields(options)]
+        tables.append("\n".join(lines) + "\n")
+    return "\n".join(tables)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)  # shortest exact form; also TOML's spelling of inf and nan
+    if isinstance(value, str):
+        # A JSON string is a TOML basic string, except that TOML also forbids a raw DEL.
+        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
+    raise TypeError(f"no TOML form for {value!r}")

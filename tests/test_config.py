@@ -1,0 +1,205 @@
+"""The config loader: what an operator sees for each kind of bad config, and what a good one
+loads to."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from autonomy.depth.options import RescaleOptions
+from autonomy.options import field_types
+from companion.config import Config, ConfigError, dump_toml, load_config, parse_override
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
+
+SIM_TOML = Path(__file__).resolve().parent.parent / "config" / "sim.toml"
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "flight.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def load_error(path: Path, overrides: tuple[str, ...] = ()) -> str:
+    with pytest.raises(ConfigError) as caught:
+        load_config(path, overrides)
+    return str(caught.value)
+
+
+# --- errors in a file: each names the file, the dotted key and what is wrong ----------------
+
+def test_missing_file_is_named(tmp_path):
+    path = tmp_path / "absent.toml"
+    assert load_error(path) == f"{path}: no such file"
+
+
+def test_unreadable_file_is_named(tmp_path):
+    assert load_error(tmp_path).startswith(f"{tmp_path}: cannot read: ")
+
+
+def test_file_that_is_not_utf8_is_named(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes("[log]\nlevel = \"caf\xe9\"\n".encode("latin-1"))
+    assert load_error(path).startswith(f"{path}: not UTF-8 text")
+
+
+def test_toml_syntax_error_keeps_line_and_column(tmp_path):
+    path = write(tmp_path, "[rescale]\nkappa = \n")
+    message = load_error(path)
+    assert message.startswith(f"{path}: invalid TOML: ")
+    assert "line 2, column" in message
+
+
+def test_unknown_section_suggests_the_closest(tmp_path):
+    path = write(tmp_path, "[rescal]\nkappa = 1.0\n")
+    assert load_error(path) == f"{path}: rescal: unknown section; did you mean 'rescale'?"
+
+
+def test_unknown_key_suggests_the_closest(tmp_path):
+    path = write(tmp_path, "[rescale]\nkapa = 1.0\n")
+    assert load_error(path) == f"{path}: rescale.kapa: unknown key; did you mean 'kappa'?"
+
+
+def test_unknown_key_without_a_close_match_lists_the_known_ones(tmp_path):
+    path = write(tmp_path, "[log]\ncolour = true\n")
+    assert load_error(path) == f"{path}: log.colour: unknown key; known: level"
+
+
+def test_section_that_is_not_a_table(tmp_path):
+    path = write(tmp_path, "rescale = 3\n")
+    assert load_error(path) == f"{path}: rescale: must be a table [rescale], got 3"
+
+
+@pytest.mark.parametrize("line, problem", [
+    ('kappa = "big"', "rescale.kappa: must be a number, got 'big'"),
+    ("kappa = true", "rescale.kappa: must be a number, got True"),
+    ("segments = 2.5", "rescale.segments: must be an integer, got 2.5"),
+    ("outlier_rejection = 1", "rescale.outlier_rejection: must be a boolean, got 1"),
+    ("method = 3", "rescale.method: must be a string, got 3"),
+])
+def test_wrong_type(tmp_path, line, problem):
+    path = write(tmp_path, f"[rescale]\n{line}\n")
+    assert load_error(path) == f"{path}: {problem}"
+
+
+@pytest.mark.parametrize("line, problem", [
+    ("kappa = -1", "rescale.kappa: must be >= 0, got -1.0"),
+    ("ransac_threshold = 1.0", "rescale.ransac_threshold: must be < 1, got 1.0"),
+    ("kappa = inf", "rescale.kappa: must be a finite number, got inf"),
+    ('method = "cubic"', "rescale.method: must be one of poly1,"),
+])
+def test_out_of_range(tmp_path, line, problem):
+    path = write(tmp_path, f"[rescale]\n{line}\n")
+    assert load_error(path).startswith(f"{path}: {problem}")
+
+
+def test_bad_log_level(tmp_path):
+    path = write(tmp_path, '[log]\nlevel = "LOUD"\n')
+    assert load_error(path) == (
+        f"{path}: log.level: must be one of DEBUG, INFO, WARNING, ERROR; got 'LOUD'")
+
+
+def test_cross_field_error(tmp_path):
+    path = write(tmp_path, "[rescale]\nmin_depth = 10.0\nmax_depth = 5.0\n")
+    assert load_error(path) == f"{path}: rescale.min_depth: must be < max_depth (5), got 10"
+
+
+# --- overrides -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("text, value", [
+    ("rescale.segments=3", 3),
+    ("rescale.kappa=1e6", 1e6),
+    ("rescale.bridge_gaps=true", True),
+    ('rescale.method="poly1"', "poly1"),
+    ("rescale.method=monotone_spline", "monotone_spline"),
+    ("rescale.method=", ""),
+    (" rescale.kappa = 2.5 ", 2.5),
+    ("rescale.segments=[1, 2]", [1, 2]),
+])
+def test_override_value_is_read_as_toml_or_else_a_bare_string(text, value):
+    assert parse_override(text).value == value
+
+
+def test_override_names_its_section_key_and_source():
+    override = parse_override("rescale.kappa=3")
+    assert override == ("rescale", "kappa", 3, "--set rescale.kappa=3")
+
+
+def test_override_value_with_a_newline_is_one_string_not_two_keys():
+    assert parse_override("rescale.method=poly1\nkappa = 3").value == "poly1\nkappa = 3"
+
+
+@pytest.mark.parametrize("text", ["rescale.kappa", "kappa=3", "rescale.=3", ".kappa=3",
+                                  "rescale.kappa.x=3"])
+def test_malformed_override(text):
+    with pytest.raises(ConfigError) as caught:
+        parse_override(text)
+    assert str(caught.value) == f"--set {text}: expected SECTION.KEY=VALUE, got {text!r}"
+
+
+def test_override_with_unknown_key_names_the_override():
+    message = load_error(None, ("rescale.kapa=3",))
+    assert message == "--set rescale.kapa=3: rescale.kapa: unknown key; did you mean 'kappa'?"
+
+
+def test_override_beats_file_and_later_override_beats_earlier(tmp_path):
+    path = write(tmp_path, "[rescale]\nkappa = 5.0\nsegments = 12\n")
+    config = load_config(path, ["rescale.kappa=7", "rescale.segments=20", "rescale.segments=30"])
+    assert (config.rescale.kappa, config.rescale.segments) == (7.0, 30)
+
+
+def test_bad_override_is_blamed_not_the_file(tmp_path):
+    path = write(tmp_path, "[rescale]\nkappa = 5.0\n")
+    message = load_error(path, ("rescale.kappa=-1",))
+    assert message == "--set rescale.kappa=-1: rescale.kappa: must be >= 0, got -1.0"
+
+
+def test_cross_field_error_on_a_default_key_blames_the_last_source(tmp_path):
+    path = write(tmp_path, "[rescale]\nkappa = 5.0\n")
+    message = load_error(path, ("rescale.max_depth=0.01",))
+    assert message == ("--set rescale.max_depth=0.01: rescale.min_depth: "
+                       "must be < max_depth (0.01), got 0.05")
+
+
+# --- what a good config loads to -----------------------------------------------------------
+
+def test_no_file_gives_the_defaults():
+    assert load_config(None) == Config()
+
+
+def test_integer_is_accepted_where_a_number_is_expected(tmp_path):
+    config = load_config(write(tmp_path, "[rescale]\nmax_depth = 40\n"))
+    assert config.rescale.max_depth == 40.0
+    assert type(config.rescale.max_depth) is float
+
+
+def test_dump_toml_round_trips(tmp_path):
+    config = load_config(None, ["log.level=DEBUG", "rescale.method=poly3", "rescale.ridge=1e-12",
+                                "rescale.bridge_gaps=false", "rescale.segments=17"])
+    assert load_config(write(tmp_path, dump_toml(config))) == config
+
+
+@settings(max_examples=50, deadline=None)
+@given(kappa=st.floats(min_value=0.0, allow_infinity=False),
+       min_depth=st.floats(min_value=1e-300, max_value=64.0))
+def test_dump_toml_keeps_every_float_exactly(kappa, min_depth):
+    config = Config(rescale=RescaleOptions(kappa=kappa, min_depth=min_depth))
+    assert tomllib.loads(dump_toml(config))["rescale"] == dataclasses.asdict(config.rescale)
+
+
+def test_sim_toml_loads_and_lists_every_key_of_every_section():
+    load_config(SIM_TOML)
+    document = tomllib.loads(SIM_TOML.read_text(encoding="utf-8"))
+    assert {section: set(table) for section, table in document.items()} == {
+        section: {f.name for f in dataclasses.fields(kind)}
+        for section, kind in field_types(Config).items()
+    }
