@@ -66,7 +66,7 @@ class RescaleOptions:
                                  "this share of the anchor range is a gap")
     confidence_neighbours: int = option(3, ge=1, doc="anchors within one knot spacing that "
                                         "give full confidence")
-    lut_size: int = option(4096, ge=16, le=1 << 20, doc="entries of the lookup table the "
+    lut_size: int = option(4096, ge=16, le=32766, doc="entries of the lookup table the "
                            "curve is applied through")
     temporal_blend: float = option(0.0, ge=0.0, lt=1.0, doc="weight of the previous frame's "
                                    "curve in a TemporalBlend; 0 turns smoothing off")

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import ClassVar, Union
 
+import cv2
 import numpy as np
 
 from autonomy.depth import curves
@@ -109,12 +110,12 @@ class RescaleModel:
         """
         image = _as_float32_image(relative_disparity)
         if exact:
-            valid = np.isfinite(image) & (image >= 0)
-            y = self.curve(np.where(valid, image, 0.0))
-            return np.where(valid, self._depth_from_disparity(y), np.nan).astype(np.float32)
+            invalid = _invalid(image)
+            y = self.curve(np.where(invalid, 0.0, image))
+            return np.where(invalid, np.nan, self._depth_from_disparity(y)).astype(np.float32)
         affine = self.curve.affine
         if affine is not None:
-            return _map_blocks(image, _AffineDepth(affine.a, affine.b, self.options))
+            return _affine_depth(image, affine.a, affine.b, self.options)
         return _lookup(image, lambda grid: self._depth_from_disparity(self.curve(grid)),
                        self.options.lut_size, fill=np.nan)
 
@@ -154,69 +155,38 @@ def _as_float32_image(relative_disparity: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(image, dtype=np.float32)
 
 
-#: Pixels per block in :func:`_map_blocks`: small enough that the temporaries stay in cache
-#: and are recycled by the allocator instead of being page-faulted in afresh every frame
-#: (measured: half the time of whole-image temporaries at 640x480, docs/benchmarks.md).
-_BLOCK = 32768
-
-
-def _map_blocks(image: np.ndarray, kernel) -> np.ndarray:
-    """Apply ``kernel(block, valid, out)`` to the image in blocks; valid = finite and ≥ 0."""
-    flat = image.reshape(-1)
-    out = np.empty(flat.size, dtype=np.float32)
-    for start in range(0, flat.size, _BLOCK):
-        block = flat[start:start + _BLOCK]
-        valid = np.isfinite(block)
-        valid &= block >= 0
-        kernel(block, valid, out[start:start + _BLOCK])
-    return out.reshape(image.shape)
-
-
-def _valid_range(flat: np.ndarray) -> tuple[float, float] | None:
+def _valid_range(image: np.ndarray) -> tuple[float, float] | None:
     """Smallest and largest finite, non-negative value, or None when there is none."""
-    lo, hi = float(np.fmin.reduce(flat)), float(np.fmax.reduce(flat))  # NaN-ignoring, fast
-    if lo >= 0 and np.isfinite(hi):
+    lo, hi = float(np.fmin.reduce(image, axis=None)), float(np.fmax.reduce(image, axis=None))
+    if lo >= 0 and np.isfinite(hi):  # NaN-ignoring reductions: the fast, common case
         return lo, hi
-    valid = np.isfinite(flat) & (flat >= 0)  # rare: infinities or negatives present
+    valid = np.isfinite(image) & (image >= 0)  # rare: infinities or negatives present
     if not valid.any():
         return None
-    return float(np.min(flat, where=valid, initial=np.inf)), \
-        float(np.max(flat, where=valid, initial=-np.inf))
+    return float(np.min(image, where=valid, initial=np.inf)), \
+        float(np.max(image, where=valid, initial=-np.inf))
 
 
-@dataclass(frozen=True)
-class _AffineDepth:
-    """Block kernel: depth = 1 / max(a·x + b, 1/max_depth), at least min_depth."""
-
-    a: float
-    b: float
-    options: RescaleOptions
-
-    def __call__(self, block: np.ndarray, valid: np.ndarray, out: np.ndarray) -> None:
-        np.multiply(block, np.float32(self.a), out=out)
-        out += np.float32(self.b)
-        np.maximum(out, np.float32(1.0 / self.options.max_depth), out=out)
-        np.reciprocal(out, out=out)
-        np.maximum(out, np.float32(self.options.min_depth), out=out)
-        np.copyto(out, np.float32(np.nan), where=~valid)
+def _invalid(image: np.ndarray) -> np.ndarray:
+    """Pixels that carry no relative disparity: NaN, ±∞ or negative."""
+    invalid = ~np.isfinite(image)
+    invalid |= image < 0
+    return invalid
 
 
-@dataclass(frozen=True)
-class _TableLookup:
-    """Block kernel: each valid pixel takes the nearest of ``table[:-1]``, invalid ones the last."""
+def _affine_depth(image: np.ndarray, a: float, b: float, options: RescaleOptions) -> np.ndarray:
+    """depth = 1 / max(a·x + b, 1/max_depth), at least min_depth, in place on one buffer."""
+    depth = np.multiply(image, np.float32(a))
+    depth += np.float32(b)
+    np.maximum(depth, np.float32(1.0 / options.max_depth), out=depth)
+    np.reciprocal(depth, out=depth)
+    np.maximum(depth, np.float32(options.min_depth), out=depth)
+    np.copyto(depth, np.float32(np.nan), where=_invalid(image))
+    return depth
 
-    table: np.ndarray
-    lo: float
-    steps_per_unit: float
 
-    def __call__(self, block: np.ndarray, valid: np.ndarray, out: np.ndarray) -> None:
-        size = len(self.table) - 1
-        position = np.multiply(block, np.float32(self.steps_per_unit), dtype=np.float32)
-        position -= np.float32(self.lo * self.steps_per_unit - 0.5)  # + 0.5: round to nearest
-        np.copyto(position, np.float32(size), where=~valid)
-        index = position.astype(np.intp)
-        np.clip(index, 0, size, out=index)
-        self.table.take(index, out=out)
+#: OpenCV's remap handles images and tables up to this many rows and columns.
+_REMAP_LIMIT = 32767
 
 
 def _lookup(image: np.ndarray, table_of, size: int, fill: float) -> np.ndarray:
@@ -224,17 +194,42 @@ def _lookup(image: np.ndarray, table_of, size: int, fill: float) -> np.ndarray:
 
     ``table_of(grid)`` is evaluated once on ``size`` evenly spaced x from the smallest to the
     largest valid pixel; each pixel takes its nearest entry, half a step at most
-    (range / (2·(size − 1))) from its own x. Invalid pixels take ``fill``.
+    (range / (2·(size − 1))) from its own x, and invalid pixels take ``fill``. The gather is
+    OpenCV's nearest-neighbour remap over a one-row table, which runs on every core: three
+    times faster than numpy's take at 640x480 (docs/benchmarks.md).
     """
-    bounds = _valid_range(image.reshape(-1))
+    bounds = _valid_range(image)
     if bounds is None:
         return np.full(image.shape, fill, dtype=np.float32)
     lo, hi = bounds
-    table = np.empty(size + 1, dtype=np.float32)
-    table[size] = fill
-    table[:size] = table_of(np.linspace(lo, hi, size))
-    steps_per_unit = (size - 1) / (hi - lo) if hi > lo else 0.0
-    return _map_blocks(image, _TableLookup(table, lo, steps_per_unit))
+    table = np.empty((1, size + 1), dtype=np.float32)
+    table[0, :size] = table_of(np.linspace(lo, hi, size))
+    table[0, size] = fill
+    steps = np.float32((size - 1) / (hi - lo) if hi > lo else 0.0)
+    # Column of each pixel's entry. Subtracting lo first keeps the smallest pixel at exactly
+    # 0; +∞ is capped to the fill column, NaN and negative pixels (−∞ too) sent there
+    # explicitly, so no NaN ever reaches OpenCV's float-to-int rounding, which differs
+    # between CPUs.
+    columns = np.subtract(image, np.float32(lo), dtype=np.float32)
+    columns *= steps
+    np.minimum(columns, np.float32(size), out=columns)
+    no_disparity = image >= 0
+    np.logical_not(no_disparity, out=no_disparity)
+    np.copyto(columns, np.float32(size), where=no_disparity)
+    return _remap_nearest(table, columns).reshape(image.shape)
+
+
+def _remap_nearest(table: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """table[0, round(columns)] for every element, through cv2.remap on a 2-D view."""
+    if columns.ndim == 2 and max(columns.shape) < _REMAP_LIMIT:
+        grid = columns
+    else:  # any other shape: rows of 1024 columns, the last one padded with the fill column
+        flat = columns.reshape(-1)
+        grid = np.full((-(-flat.size // 1024), 1024), table.shape[1] - 1, dtype=np.float32)
+        grid.reshape(-1)[:flat.size] = flat
+    rows = np.zeros_like(grid)
+    looked_up = cv2.remap(table, grid, rows, interpolation=cv2.INTER_NEAREST)
+    return looked_up.reshape(-1)[:columns.size]
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,7 +367,7 @@ def _inliers(x, y, family, threshold: float) -> np.ndarray:
     disparity (about 1 % in depth) is never an outlier, so noise-free anchors are not split.
     """
     residuals = y - family(x)
-    centred = np.abs(residuals - np.median(residuals))
+    centred = np.abs(residuals - curves.median(residuals))
     limit = np.maximum(threshold * curves.robust_sigma(residuals), 0.01 * np.abs(y))
     return centred <= limit
 
