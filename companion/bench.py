@@ -72,7 +72,7 @@ def median_ms(call: Callable[[], object], repeats: int) -> float:
     return 1e3 * statistics.median(samples)
 
 
-def _interleaved_medians_ms(calls: list[Callable[[], object]], repeats: int) -> list[float]:
+def interleaved_medians_ms(calls: list[Callable[[], object]], repeats: int) -> list[float]:
     """Median times of several calls, run in turn each repeat so load drifts hit all alike."""
     for call in calls:
         call()
@@ -103,7 +103,7 @@ def run_rescale_benchmark(options: RescaleOptions, *, anchors: int = 150,
         model = fit(scene.anchor_disparity, scene.anchor_depth, options=method_options)
         if not model.ok:
             raise BenchmarkError(f"{method} found no fit on the benchmark scene: {model.detail}")
-        depth_ms, direct_ms = _interleaved_medians_ms(
+        depth_ms, direct_ms = interleaved_medians_ms(
             [lambda: model.depth(scene.relative_disparity),
              lambda: model.depth(scene.relative_disparity, exact=True)], repeats)
         results[method] = {"fit_ms": round(fit_ms, 4), "depth_ms": round(depth_ms, 4),

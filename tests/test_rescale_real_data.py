@@ -69,6 +69,6 @@ def test_every_method_gives_usable_metric_depth_on_real_frames(method, frames):
 def test_monotone_spline_is_accurate_and_rarely_overestimates_on_real_frames(frames):
     for depth, relative, x, z in frames:
         result = metrics.evaluate(fit(x, z, "monotone_spline").depth(relative), depth)
-        assert result.abs_rel < 0.05, result  # 2 % pixel noise alone gives about 0.016
+        assert result.abs_rel < 0.05, result  # measured 0.031-0.035
         assert result.delta1 > 0.99, result
         assert result.overestimate_rate < 0.01, result
