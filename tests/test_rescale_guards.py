@@ -129,6 +129,7 @@ def test_depth_of_an_image_without_valid_pixels_is_all_nan():
     model = fit(*anchors_at_depths(rng.uniform(1.0, 10.0, 50), rng), "poly3")
     assert np.all(np.isnan(model.depth(np.full((4, 5), np.nan))))
     assert np.all(model.confidence(np.full((4, 5), -1.0)) == 0.0)
+    assert model.depth(np.empty((0, 640), dtype=np.float32)).shape == (0, 640)
 
 
 def test_depth_accepts_integer_images_and_rejects_non_numbers():

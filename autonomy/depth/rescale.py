@@ -157,6 +157,8 @@ def _as_float32_image(relative_disparity: np.ndarray) -> np.ndarray:
 
 def _valid_range(image: np.ndarray) -> tuple[float, float] | None:
     """Smallest and largest finite, non-negative value, or None when there is none."""
+    if image.size == 0:
+        return None
     lo, hi = float(np.fmin.reduce(image, axis=None)), float(np.fmax.reduce(image, axis=None))
     if lo >= 0 and np.isfinite(hi):  # NaN-ignoring reductions: the fast, common case
         return lo, hi
