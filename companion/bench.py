@@ -61,19 +61,9 @@ def synthetic_scene(shape: tuple[int, int], anchors: int, seed: int = 0) -> Resc
                         anchor_depth)
 
 
-def median_ms(call: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``call`` in milliseconds, after one warm-up call."""
-    call()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        call()
-        samples.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(samples)
-
-
 def interleaved_medians_ms(calls: list[Callable[[], object]], repeats: int) -> list[float]:
-    """Median times of several calls, run in turn each repeat so load drifts hit all alike."""
+    """Median times in ms of several calls, after one warm-up call each; the calls run in
+    turn each repeat so load drifts hit all alike."""
     for call in calls:
         call()
     samples: list[list[float]] = [[] for _ in calls]
@@ -98,8 +88,8 @@ def run_rescale_benchmark(options: RescaleOptions, *, anchors: int = 150,
     results = {}
     for method in METHODS:
         method_options = dataclasses.replace(options, method=method)
-        fit_ms = median_ms(lambda: fit(scene.anchor_disparity, scene.anchor_depth,
-                                       options=method_options), repeats)
+        fit_ms, = interleaved_medians_ms([lambda: fit(scene.anchor_disparity, scene.anchor_depth,
+                                                      options=method_options)], repeats)
         model = fit(scene.anchor_disparity, scene.anchor_depth, options=method_options)
         if not model.ok:
             raise BenchmarkError(f"{method} found no fit on the benchmark scene: {model.detail}")

@@ -165,10 +165,9 @@ def fit_smoothing_spline(x: np.ndarray, y: np.ndarray, options: RescaleOptions) 
 
     FITPACK finds the smoothest spline with Σ (w_i r_i)² ≤ s. With weights w_i = 1/σ it
     recommends s = m, the number of points, so s = smoothing_factor · m and the factor is
-    unit-free. σ̂ comes from :func:`local_noise_sigma`, free of the curve's shape; estimated
-    from ~150 anchors it is ±15 % uncertain, and an underestimate makes s = m chase the
-    noise, hence the default factor 1.5 (measured on random smooth maps: worst error 9.5 σ at
-    1.0, 3.6 σ at 1.5). When FITPACK reports s too small for its knot budget (ier 1–3: it
+    unit-free; ``python benchmarks/smoothing_factor.py`` compares factors on random smooth
+    maps (docs/benchmarks.md). σ̂ comes from :func:`local_noise_sigma`, free of the curve's
+    shape. When FITPACK reports s too small for its knot budget (ier 1–3: it
     would return a near-interpolating spline) s is doubled and the fit retried. Duplicate x
     are merged, their weights scaled by √count.
     """
@@ -249,7 +248,6 @@ class UniformSpline:
     def __call__(self, x: np.ndarray) -> np.ndarray:
         first, weights = _uniform_cubic_pieces(np.asarray(x, dtype=float), self.knots)
         return sum(self.coef[first + k] * weight for k, weight in enumerate(weights))
-
 
 
 @functools.lru_cache(maxsize=8)
@@ -334,54 +332,63 @@ def fit_ransac_affine(x: np.ndarray, y: np.ndarray, options: RescaleOptions) -> 
 
 
 @dataclass(frozen=True)
+class Bridge:
+    """The straight line across an anchor-free gap (a, b), from g(a) to g(b)."""
+
+    a: float
+    b: float
+    y_a: float
+    y_b: float
+
+
+@dataclass(frozen=True)
 class GuardedCurve:
     """A fitted family made safe to apply to every pixel of an image.
 
     Inside the anchor range [x_lo, x_hi] it is the family's curve g, except across gaps —
     anchor-free stretches (a_k, b_k) — where it is the straight bridge from g(a_k) to g(b_k)
-    (gap guard). Outside the range it continues as straight tails,
-    y = g(x_hi) + s_near·(x − x_hi) on the near side (larger disparity) and
-    y = g(x_lo) + s_far·(x − x_lo) on the far side. :func:`guard` sets both slopes to the
-    anchors' least-squares affine slope, which is > 0, so a pixel nearer than the nearest
-    anchor is never pushed farther away (near-side guard). Clamping instead (both slopes 0,
-    the reference port's behaviour) gives every nearer pixel the nearest anchor's depth.
+    (gap guard). Outside the range it continues as straight tails of one slope s,
+    y = g(x_hi) + s·(x − x_hi) on the near side (larger disparity) and
+    y = g(x_lo) + s·(x − x_lo) on the far side. :func:`guard` sets s to the anchors'
+    least-squares affine slope, which is > 0, so a pixel nearer than the nearest anchor is
+    never pushed farther away (near-side guard). Clamping instead (s = 0, the reference
+    port's behaviour) gives every nearer pixel the nearest anchor's depth.
     """
 
     family: object
     x_lo: float
     x_hi: float
-    slope_far: float
-    slope_near: float
-    bridges: tuple[tuple[float, float], ...] = ()
+    tail_slope: float
+    bridges: tuple[Bridge, ...] = ()
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Metric disparity y at relative disparity x (float64, any shape)."""
         x = np.asarray(x, dtype=float)
         inside = np.minimum(np.maximum(x, self.x_lo), self.x_hi)
         y = self.family(inside)
-        for a, b in self.bridges:
-            in_gap = (inside > a) & (inside < b)
-            if in_gap.any():
-                y_a, y_b = self.family(np.array([a, b]))
-                y[in_gap] = y_a + (inside[in_gap] - a) * (y_b - y_a) / (b - a)
-        return y + self.slope_near * np.maximum(x - self.x_hi, 0.0) \
-            + self.slope_far * np.minimum(x - self.x_lo, 0.0)
+        for bridge in self.bridges:
+            in_gap = (inside > bridge.a) & (inside < bridge.b)
+            y[in_gap] = bridge.y_a + (inside[in_gap] - bridge.a) \
+                * (bridge.y_b - bridge.y_a) / (bridge.b - bridge.a)
+        return y + self.tail_slope * (x - inside)
 
     @property
     def affine(self) -> Affine | None:
         """The curve as one affine map when it is one everywhere, else None."""
-        if isinstance(self.family, Affine) and not self.bridges \
-                and self.slope_far == self.slope_near == self.family.a:
+        if isinstance(self.family, Affine) and self.tail_slope == self.family.a:
             return self.family
         return None
 
 
-def find_gaps(x_sorted: np.ndarray, gap_fraction: float) -> tuple[tuple[float, float], ...]:
-    """Anchor-free stretches wider than ``gap_fraction`` of the anchor range, as (a, b) pairs."""
-    widths = np.diff(x_sorted)
+def find_gaps(family, x_sorted: np.ndarray, gap_fraction: float) -> tuple[Bridge, ...]:
+    """Bridges over the anchor-free stretches wider than ``gap_fraction`` of the anchor range."""
     limit = gap_fraction * (x_sorted[-1] - x_sorted[0])
-    return tuple((float(x_sorted[i]), float(x_sorted[i + 1]))
-                 for i in np.flatnonzero(widths > limit))
+    starts = np.flatnonzero(np.diff(x_sorted) > limit)
+    if len(starts) == 0:
+        return ()
+    ends = family(np.concatenate([x_sorted[starts], x_sorted[starts + 1]]))
+    return tuple(Bridge(float(x_sorted[i]), float(x_sorted[i + 1]), float(y_a), float(y_b))
+                 for i, y_a, y_b in zip(starts, ends[:len(starts)], ends[len(starts):]))
 
 
 def guard(family, x_sorted: np.ndarray, reference_slope: float,
@@ -390,13 +397,11 @@ def guard(family, x_sorted: np.ndarray, reference_slope: float,
 
     The tails take ``reference_slope``, the least-squares affine slope of the anchors used,
     not the family's own slope at the range's ends: a relative-disparity network is ideally
-    affine in true disparity, and an end derivative rests on the few anchors near the end
-    (measured: a monotone spline's end slope read an obstacle at 1 m as 0.55 m, where the
-    affine slope reads it within 15 %).
+    affine in true disparity, and an end derivative rests on the few anchors near the end.
+    An affine family needs no bridges; it stays one affine map when its tails share its slope.
     """
     x_lo, x_hi = float(x_sorted[0]), float(x_sorted[-1])
     slope = reference_slope if options.extrapolation == "linear" else 0.0
-    if isinstance(family, Affine):
-        return GuardedCurve(family, x_lo, x_hi, slope, slope)
-    bridges = find_gaps(x_sorted, options.gap_fraction) if options.bridge_gaps else ()
-    return GuardedCurve(family, x_lo, x_hi, slope, slope, bridges)
+    if isinstance(family, Affine) or not options.bridge_gaps:
+        return GuardedCurve(family, x_lo, x_hi, slope)
+    return GuardedCurve(family, x_lo, x_hi, slope, find_gaps(family, x_sorted, options.gap_fraction))

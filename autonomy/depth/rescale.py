@@ -329,8 +329,7 @@ def _fit_robustly(x, y, opts: RescaleOptions):
 
     The first judgement of the anchors is against a curve of fixed flexibility, the
     monotone P-spline: a flexible family fitted through outliers (FITPACK adds knots until
-    it reaches them) makes every residual small and hides them (measured: 15 % outliers left
-    a smoothing spline 350 % off). Then the method is fitted to the anchors kept, judges them
+    it reaches them) makes every residual small and hides them. Then the method is fitted to the anchors kept, judges them
     itself, and is refitted until the kept set stops changing (at most
     ``_REJECTION_ROUNDS`` refits), so a curve dragged by outliers is corrected before it
     judges again.
@@ -374,8 +373,7 @@ def _inliers(x, y, family, threshold: float) -> np.ndarray:
     Two noise models are both plausible for VINS depths: triangulation error grows as z², so
     metric-disparity noise is uniform (σ in 1/m); other errors are proportional to depth (σ
     relative to y). An anchor is rejected only when it is an outlier under both, so neither
-    far nor near anchors are thrown out wholesale when the other model holds (measured on the
-    benchmark scene: the uniform model alone rejected 32 of 148 anchors for 7 true outliers).
+    far nor near anchors are thrown out wholesale when the other model holds.
     Centring on the median residual keeps the inliers when outliers have shifted the whole
     curve. A residual under 1 % of the anchor's own disparity is never an outlier, so
     noise-free anchors are not split in half.
@@ -453,10 +451,8 @@ class TemporalBlend:
         lo, hi = new.anchor_range
         grid = np.linspace(lo, hi, self.grid_points)
         values = (1 - w) * new.metric_disparity(grid) + w * old.metric_disparity(grid)
-        old_curve, new_curve = old.curve, new.curve
         curve = curves.GuardedCurve(
             curves.PiecewiseLinear(grid, values), lo, hi,
-            slope_far=(1 - w) * new_curve.slope_far + w * old_curve.slope_far,
-            slope_near=(1 - w) * new_curve.slope_near + w * old_curve.slope_near)
+            tail_slope=(1 - w) * new.curve.tail_slope + w * old.curve.tail_slope)
         note = f"blended with the previous frame's curve, weight {w:g}"
         return dataclasses.replace(new, curve=curve, notes=new.notes + (note,))
