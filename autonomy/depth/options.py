@@ -50,7 +50,7 @@ class RescaleOptions:
                           "regular where no anchor constrains a basis")
     max_iterations: int = option(30, ge=1, le=1000, doc="most re-weightings of the asymmetric "
                                  "penalty")
-    smoothing_factor: float = option(1.5, ge=0.0, doc="smoothing_spline: FITPACK s = "
+    smoothing_factor: float = option(1.0, ge=0.0, doc="smoothing_spline: FITPACK s = "
                                      "factor x anchors, with weights 1/noise")
     ransac_iterations: int = option(100, ge=1, le=100000, doc="hypotheses drawn by "
                                     "ransac_affine")
