@@ -1,0 +1,1 @@
+"""Recorded datasets on disk, in the EuRoC/ASL folder layout (DESIGN.md)."""

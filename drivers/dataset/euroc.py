@@ -1,0 +1,276 @@
+"""Read and write datasets in the EuRoC MAV / ASL folder layout, plus a ``depth0`` stream.
+
+    mav0/cam0/data/<t_ns>.png, cam0/data.csv, cam0/sensor.yaml      camera images
+    mav0/depth0/data/<t_ns>.png, depth0/data.csv, depth0/sensor.yaml  ground-truth depth,
+                                                  uint16 millimetres, 0 = invalid, cam0's times
+    mav0/imu0/data.csv, imu0/sensor.yaml             gyro (rad/s) then accel (m/s^2), body frame
+    mav0/state_groundtruth_estimate0/data.csv        p, q (w first), v, gyro bias, accel bias
+
+Timestamps are integer nanoseconds. The body frame is the IMU's; each ``sensor.yaml`` holds
+``T_BS``, the sensor's pose in the body frame, as in the original dataset (Burri et al., "The
+EuRoC micro aerial vehicle datasets", IJRR 2016). The same reader serves real recordings and
+the simulator's, so evaluation code cannot tell them apart.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from autonomy.geometry import PinholeCamera
+
+IMU_HEADER = (
+    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
+)
+GROUNDTRUTH_HEADER = "#time(ns),px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz"
+FRAMES_HEADER = "#timestamp [ns],filename"
+MAX_DEPTH_MM = 65535
+
+
+class DatasetError(ValueError):
+    """A dataset folder that cannot be read, naming the file and what is wrong with it."""
+
+
+@dataclass(frozen=True)
+class ImuTable:
+    """IMU samples: times (N,) int64 ns, gyro (N, 3) rad/s and accel (N, 3) m/s^2, body frame."""
+
+    t_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+
+
+@dataclass(frozen=True)
+class GroundTruthTable:
+    """Body poses in the world frame with velocity and the IMU's true biases, (N, k) arrays."""
+
+    t_ns: np.ndarray
+    position: np.ndarray
+    q_W_B: np.ndarray
+    velocity: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+
+
+@dataclass(frozen=True)
+class CameraStream:
+    """One image stream: times (N,) int64 ns, image paths, intrinsics and mounting."""
+
+    t_ns: np.ndarray
+    paths: tuple[Path, ...]
+    camera: PinholeCamera
+    distortion: tuple[float, ...]
+    T_B_C: np.ndarray
+    rate_hz: float
+
+
+# ---------------------------------------------------------------- depth PNG convention
+
+
+def depth_to_millimetres(depth_m: np.ndarray) -> np.ndarray:
+    """Float metres (NaN = unknown) as uint16 millimetres, 0 where unknown, non-positive or
+    beyond the 65.535 m the format can hold."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    mm = np.rint(depth * 1000.0)
+    valid = np.isfinite(mm) & (mm > 0) & (mm <= MAX_DEPTH_MM)
+    return np.where(valid, mm, 0).astype(np.uint16)
+
+
+def millimetres_to_depth(mm: np.ndarray, *, invalid: tuple[int, ...] = (0,)) -> np.ndarray:
+    """uint16 millimetres as float32 metres, NaN at the ``invalid`` codes."""
+    depth = mm.astype(np.float32) / 1000.0
+    depth[np.isin(mm, invalid)] = np.nan
+    return depth
+
+
+def read_depth_png(path: Path) -> np.ndarray:
+    """A depth PNG (uint16 mm, 0 = invalid) as float32 metres with NaN where invalid."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DatasetError(f"{path}: not a readable image")
+    if image.dtype != np.uint16 or image.ndim != 2:
+        raise DatasetError(f"{path}: depth must be one-channel uint16, got {image.dtype} "
+                           f"with shape {image.shape}")
+    return millimetres_to_depth(image)
+
+
+# ---------------------------------------------------------------- writing
+
+
+class EurocWriter:
+    """Writes a dataset sample by sample; use as a context manager so the CSVs are closed.
+
+    The camera and depth streams share timestamps; the writer creates the folder tree and the
+    ``sensor.yaml`` files up front from the sensors' descriptions.
+    """
+
+    def __init__(self, root: Path, camera: PinholeCamera, T_B_C: np.ndarray, camera_rate_hz: float,
+                 imu_yaml: dict[str, float], png_compression: int = 1):
+        self.mav0 = Path(root) / "mav0"
+        self._png = [cv2.IMWRITE_PNG_COMPRESSION, png_compression]
+        for name in ("cam0", "depth0"):
+            (self.mav0 / name / "data").mkdir(parents=True, exist_ok=True)
+            comment = "rendered colour image" if name == "cam0" else "ground-truth z-depth, uint16 mm, 0 = invalid"
+            _write_camera_yaml(self.mav0 / name / "sensor.yaml", camera, T_B_C, camera_rate_hz, comment)
+        (self.mav0 / "imu0").mkdir(parents=True, exist_ok=True)
+        (self.mav0 / "state_groundtruth_estimate0").mkdir(parents=True, exist_ok=True)
+        _write_imu_yaml(self.mav0 / "imu0" / "sensor.yaml", imu_yaml)
+        self._files = {
+            "cam0": self._open("cam0/data.csv", FRAMES_HEADER),
+            "depth0": self._open("depth0/data.csv", FRAMES_HEADER),
+            "imu0": self._open("imu0/data.csv", IMU_HEADER),
+            "gt": self._open("state_groundtruth_estimate0/data.csv", GROUNDTRUTH_HEADER),
+        }
+
+    def _open(self, relative: str, header: str):
+        handle = open(self.mav0 / relative, "w", encoding="ascii", newline="\n")
+        handle.write(header + "\n")
+        return handle
+
+    def add_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        self._files["imu0"].write(_row(t_ns, gyro, accel))
+
+    def add_groundtruth(self, t_ns: int, position, q_W_B, velocity, gyro_bias, accel_bias) -> None:
+        self._files["gt"].write(_row(t_ns, position, q_W_B, velocity, gyro_bias, accel_bias))
+
+    def add_frame(self, t_ns: int, rgb: np.ndarray, depth_m: np.ndarray) -> None:
+        """One camera frame (RGB uint8) and its ground-truth depth (float metres, NaN unknown)."""
+        name = f"{t_ns}.png"
+        if not cv2.imwrite(str(self.mav0 / "cam0" / "data" / name),
+                           cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), self._png):
+            raise OSError(f"could not write {self.mav0 / 'cam0' / 'data' / name}")
+        if not cv2.imwrite(str(self.mav0 / "depth0" / "data" / name),
+                           depth_to_millimetres(depth_m), self._png):
+            raise OSError(f"could not write {self.mav0 / 'depth0' / 'data' / name}")
+        self._files["cam0"].write(f"{t_ns},{name}\n")
+        self._files["depth0"].write(f"{t_ns},{name}\n")
+
+    def close(self) -> None:
+        for handle in self._files.values():
+            handle.close()
+
+    def __enter__(self) -> "EurocWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _row(t_ns: int, *vectors) -> str:
+    values = np.concatenate([np.asarray(v, dtype=float).ravel() for v in vectors])
+    return f"{t_ns}," + ",".join(f"{x:.9g}" for x in values) + "\n"
+
+
+def _yaml_matrix(T: np.ndarray) -> str:
+    rows = [", ".join(f"{x:.12g}" for x in row) for row in np.asarray(T, dtype=float)]
+    return "  cols: 4\n  rows: 4\n  data: [" + ",\n         ".join(rows) + "]\n"
+
+
+def _write_camera_yaml(path: Path, camera: PinholeCamera, T_B_C: np.ndarray, rate_hz: float,
+                       comment: str) -> None:
+    path.write_text(
+        "%YAML:1.0\n"
+        "sensor_type: camera\n"
+        f"comment: {comment}\n"
+        "# Sensor extrinsics wrt. the body-frame.\n"
+        "T_BS:\n" + _yaml_matrix(T_B_C) +
+        f"rate_hz: {rate_hz:g}\n"
+        f"resolution: [{camera.width}, {camera.height}]\n"
+        "camera_model: pinhole\n"
+        f"intrinsics: [{camera.fx:.12g}, {camera.fy:.12g}, {camera.cx:.12g}, {camera.cy:.12g}] #fu, fv, cu, cv\n"
+        "distortion_model: radial-tangential\n"
+        "distortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n",
+        encoding="ascii",
+    )
+
+
+def _write_imu_yaml(path: Path, noise: dict[str, float]) -> None:
+    keys = ("gyroscope_noise_density", "gyroscope_random_walk",
+            "accelerometer_noise_density", "accelerometer_random_walk")
+    lines = "".join(f"{key}: {noise[key]:.6g}\n" for key in keys)
+    path.write_text(
+        "%YAML:1.0\nsensor_type: imu\ncomment: simulated IMU, body frame\n"
+        "T_BS:\n" + _yaml_matrix(np.eye(4)) + f"rate_hz: {noise['rate_hz']:g}\n" + lines,
+        encoding="ascii",
+    )
+
+
+# ---------------------------------------------------------------- reading
+
+
+def read_imu(root: Path) -> ImuTable:
+    """``mav0/imu0/data.csv`` of the dataset at ``root``."""
+    t_ns, values = _read_table(Path(root) / "mav0" / "imu0" / "data.csv", 6)
+    return ImuTable(t_ns, values[:, 0:3], values[:, 3:6])
+
+
+def read_groundtruth(root: Path) -> GroundTruthTable:
+    """``mav0/state_groundtruth_estimate0/data.csv`` of the dataset at ``root``."""
+    t_ns, v = _read_table(Path(root) / "mav0" / "state_groundtruth_estimate0" / "data.csv", 16)
+    return GroundTruthTable(t_ns, v[:, 0:3], v[:, 3:7], v[:, 7:10], v[:, 10:13], v[:, 13:16])
+
+
+def read_camera(root: Path, name: str = "cam0") -> CameraStream:
+    """The image stream ``mav0/<name>``: its timestamps, file paths and ``sensor.yaml``."""
+    folder = Path(root) / "mav0" / name
+    rows = _read_rows(folder / "data.csv")
+    try:
+        t_ns = np.array([int(row[0]) for row in rows], dtype=np.int64)
+    except ValueError as error:
+        raise DatasetError(f"{folder / 'data.csv'}: bad timestamp ({error})") from None
+    paths = tuple(folder / "data" / row[1].strip() for row in rows)
+    camera, distortion, T_B_C, rate = _read_camera_yaml(folder / "sensor.yaml")
+    return CameraStream(t_ns, paths, camera, distortion, T_B_C, rate)
+
+
+def _read_rows(path: Path) -> list[list[str]]:
+    try:
+        with open(path, newline="", encoding="ascii") as handle:
+            return [row for row in csv.reader(handle) if row and not row[0].startswith("#")]
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no such file") from None
+
+
+def _read_table(path: Path, columns: int) -> tuple[np.ndarray, np.ndarray]:
+    rows = _read_rows(path)
+    if not rows:
+        raise DatasetError(f"{path}: no samples")
+    bad = next((i for i, row in enumerate(rows) if len(row) != columns + 1), None)
+    if bad is not None:
+        raise DatasetError(f"{path}: sample {bad + 1} has {len(rows[bad])} columns, "
+                           f"expected {columns + 1}")
+    try:
+        t_ns = np.array([int(row[0]) for row in rows], dtype=np.int64)
+        values = np.array([[float(x) for x in row[1:]] for row in rows])
+    except ValueError as error:
+        raise DatasetError(f"{path}: {error}") from None
+    if np.any(np.diff(t_ns) <= 0):
+        raise DatasetError(f"{path}: timestamps are not strictly increasing")
+    return t_ns, values
+
+
+def _read_camera_yaml(path: Path):
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such file")
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        def numbers(key: str) -> list[float]:
+            node = storage.getNode(key)
+            if node.empty():
+                raise DatasetError(f"{path}: missing {key}")
+            return [node.at(i).real() for i in range(node.size())]
+
+        fu, fv, cu, cv = numbers("intrinsics")
+        width, height = (int(x) for x in numbers("resolution"))
+        T_BS = storage.getNode("T_BS").getNode("data")
+        T_B_C = np.array([T_BS.at(i).real() for i in range(16)]).reshape(4, 4)
+        distortion = tuple(numbers("distortion_coefficients"))
+        rate = storage.getNode("rate_hz").real()
+    finally:
+        storage.release()
+    return PinholeCamera(width, height, fu, fv, cu, cv), distortion, T_B_C, rate

@@ -1,0 +1,78 @@
+"""The EuRoC/ASL reader and writer: our recordings read back exactly, and so does the real one."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose
+from drivers.dataset.euroc import (
+    DatasetError, EurocWriter, depth_to_millimetres, read_camera, read_depth_png,
+    read_groundtruth, read_imu,
+)
+
+EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_01"
+NOISE = {"rate_hz": 200.0, "gyroscope_noise_density": 1e-4, "gyroscope_random_walk": 1e-5,
+         "accelerometer_noise_density": 1e-3, "accelerometer_random_walk": 1e-4}
+
+
+def test_depth_millimetres_mark_unknown_and_out_of_range_as_zero():
+    depth = np.array([[np.nan, -1.0, 0.0, 0.0004], [0.0006, 1.2345, 65.535, 65.6]])
+    assert depth_to_millimetres(depth).tolist() == [[0, 0, 0, 0], [1, 1234, 65535, 0]]
+
+
+def test_written_dataset_reads_back(tmp_path):
+    camera = PinholeCamera.from_hfov(64, 48, 1.5)
+    T_B_C = make_pose(R_BODY_CAMERA, np.array([0.1, 0.0, 0.05]))
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 20.0, (48, 64)).astype(np.float32)
+    depth[0, 0] = np.nan
+    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    with EurocWriter(tmp_path, camera, T_B_C, 20.0, NOISE) as writer:
+        for k in range(3):
+            t_ns = 5_000_000 * k
+            writer.add_imu(t_ns, [0.1, 0.2, 0.3 + k], [0.0, 0.0, 9.8])
+            writer.add_groundtruth(t_ns, [k, 0, 1], [1, 0, 0, 0], [1, 0, 0], [0] * 3, [0] * 3)
+        writer.add_frame(0, rgb, depth)
+
+    imu, truth, stream = read_imu(tmp_path), read_groundtruth(tmp_path), read_camera(tmp_path)
+    assert imu.t_ns.tolist() == [0, 5_000_000, 10_000_000]
+    assert np.allclose(imu.gyro[2], [0.1, 0.2, 2.3]) and np.allclose(imu.accel[0], [0, 0, 9.8])
+    assert np.allclose(truth.position[:, 0], [0, 1, 2]) and np.allclose(truth.q_W_B[1], [1, 0, 0, 0])
+    read_back = stream.camera
+    assert (read_back.width, read_back.height) == (64, 48)
+    assert [read_back.fx, read_back.fy, read_back.cx, read_back.cy] == pytest.approx(
+        [camera.fx, camera.fy, camera.cx, camera.cy], rel=1e-11)
+    assert np.allclose(stream.T_B_C, T_B_C) and stream.rate_hz == 20.0
+    depth_back = read_depth_png(read_camera(tmp_path, "depth0").paths[0])
+    assert np.isnan(depth_back[0, 0])
+    assert np.allclose(depth_back[1:], depth[1:], atol=0.0005)
+
+
+def test_reading_the_real_euroc_recording():
+    if not EUROC.is_dir():
+        pytest.skip(f"real EuRoC data not found at {EUROC}")
+    imu, truth, cam = read_imu(EUROC), read_groundtruth(EUROC), read_camera(EUROC)
+    assert len(imu.t_ns) == 29120 and np.median(np.diff(imu.t_ns)) == pytest.approx(5e6, rel=1e-3)
+    # At rest on the ground the accelerometer reads gravity's magnitude.
+    assert np.linalg.norm(imu.accel[:100].mean(axis=0)) == pytest.approx(9.81, abs=0.1)
+    assert np.allclose(np.linalg.norm(truth.q_W_B, axis=1), 1.0, atol=1e-4)
+    assert cam.camera.width == 752 and cam.distortion[0] == pytest.approx(-0.28340811)
+    assert all(path.is_file() for path in cam.paths)
+
+
+def test_malformed_files_are_named_with_the_problem(tmp_path):
+    (tmp_path / "mav0" / "imu0").mkdir(parents=True)
+    csv = tmp_path / "mav0" / "imu0" / "data.csv"
+    csv.write_text("#header\n0,1,2,3,4,5,6\n5,1,2,3\n")
+    with pytest.raises(DatasetError, match=r"data.csv: sample 2 has 4 columns"):
+        read_imu(tmp_path)
+    csv.write_text("#header\n5,1,2,3,4,5,6\n5,1,2,3,4,5,6\n")
+    with pytest.raises(DatasetError, match="not strictly increasing"):
+        read_imu(tmp_path)
+    with pytest.raises(DatasetError, match="no such file"):
+        read_groundtruth(tmp_path)
+    bad_png = tmp_path / "depth.png"
+    bad_png.write_bytes(b"not a png")
+    with pytest.raises(DatasetError, match="not a readable image"):
+        read_depth_png(bad_png)
