@@ -8,9 +8,12 @@ every command: one line on stderr and exit status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
+import math
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from companion import __version__
@@ -84,6 +87,7 @@ def _build_parser() -> argparse.ArgumentParser:
              "the last one wins")
     _add_config_commands(commands, overrides)
     _add_bench_commands(commands, overrides)
+    _add_sim_commands(commands, overrides)
     return parser
 
 
@@ -137,6 +141,123 @@ def _add_bench_commands(commands: argparse._SubParsersAction,
     rescale.add_argument("--size", type=_image_size, default=(480, 640), metavar="HxW",
                          help="image height x width in pixels (default: 480x640)")
     rescale.set_defaults(command=_bench_rescale)
+
+
+def _add_sim_commands(commands: argparse._SubParsersAction,
+                       overrides: argparse.ArgumentParser) -> None:
+    from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
+
+    group = commands.add_parser("sim", help="run the simulated vehicle",
+                                description="The simulated vehicle: a mock PX4 over real "
+                                            "MAVLink, a rendered camera and a synthetic IMU.")
+    actions = _add_command_group(group)
+    world = argparse.ArgumentParser(add_help=False)
+    world.add_argument("--config", dest="config_path", metavar="FILE",
+                       help="TOML config file (default: none, all defaults)")
+    world.add_argument("--world", choices=WORLD_NAMES,
+                       help="the world (default: [sim] world of the config)")
+    world.add_argument("--seed", type=_non_negative_int,
+                       help="seed of the world, the noise and the path (default: [sim] seed)")
+
+    serve = actions.add_parser(
+        "serve", parents=[overrides, world], help="serve the vehicle to any MAVLink client",
+        description="Run the simulated PX4 quadrotor alone for any MAVLink client (MAVSDK, "
+                    "QGroundControl, mavproxy) until interrupted. With --mavlink pty the "
+                    "pseudo-terminal's path is printed; open it like a serial port.")
+    serve.add_argument("--mavlink", default="udpin://127.0.0.1:14540", metavar="URL",
+                       help="udpin://HOST:PORT, udpout://HOST:PORT, tcp://HOST:PORT or pty "
+                            "(default: %(default)s)")
+    serve.add_argument("--clock", choices=CLOCK_MODES,
+                       help="realtime for outside clients, lockstep for as fast as the CPU "
+                            "allows (default: [sim] clock)")
+    serve.add_argument("--duration", type=_positive_float, metavar="SECONDS",
+                       help="stop after this much simulated time (default: run until "
+                            "interrupted)")
+    serve.set_defaults(command=_sim_serve)
+
+    record = actions.add_parser(
+        "record", parents=[overrides, world], help="record a flight as a EuRoC dataset",
+        description="Fly a smooth collision-free path through the world and write camera "
+                    "images, ground-truth depth, IMU and ground truth in the EuRoC/ASL "
+                    "layout (mav0/cam0, depth0, imu0, state_groundtruth_estimate0).")
+    record.add_argument("--duration", type=_positive_float, default=40.0, metavar="SECONDS",
+                        help="simulated seconds to record (default: %(default)s)")
+    record.add_argument("--out", required=True, type=Path, metavar="DIR",
+                        help="dataset folder to create (must be new or empty)")
+    record.set_defaults(command=_sim_record)
+
+
+def _sim_options(args: argparse.Namespace, config: Config):
+    """The [sim] section with the command line's --world, --seed and --clock on top."""
+    changes = {key: getattr(args, key) for key in ("world", "seed", "clock")
+               if getattr(args, key, None) is not None}
+    return dataclasses.replace(config.sim, **changes)
+
+
+def _sim_serve(args: argparse.Namespace, config: Config) -> int:
+    import asyncio
+
+    from drivers.sim import serve as sim_serve
+    from drivers.sim.world import build_world
+
+    sim = _sim_options(args, config)
+    world = build_world(sim.world, sim.seed)
+
+    def ready(vehicle) -> None:
+        where = vehicle.px4.link.pty_path or args.mavlink
+        print(f"serving a simulated PX4 quadrotor in {sim.world} (seed {sim.seed}, "
+              f"{sim.clock} clock) on {where}", flush=True)
+
+    try:
+        summary = asyncio.run(sim_serve.serve(
+            args.mavlink, world, seed=sim.seed, clock_mode=sim.clock,
+            vehicle_options=config.vehicle, imu_options=config.imu, px4_options=config.px4,
+            duration=args.duration, on_ready=ready))
+    except KeyboardInterrupt:
+        return EXIT_OK
+    except (ValueError, OSError) as error:
+        print(f"sim serve: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    print(f"served {summary.sim_time:.1f} s of simulated flight"
+          + (f"; collision at t={summary.collision.time:.2f} s" if summary.collision else ""))
+    return EXIT_OK
+
+
+def _sim_record(args: argparse.Namespace, config: Config) -> int:
+    from drivers.sim import record
+    from drivers.sim.render import RenderError
+
+    sim = _sim_options(args, config)
+    try:
+        summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
+                                        config.imu, duration=args.duration)
+    except (record.RecordError, RenderError, OSError) as error:
+        print(f"sim record: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    print(f"recorded {summary.duration:g} s of {summary.world} route {summary.route} "
+          f"({summary.frames} frames, {summary.imu_samples} IMU samples, path "
+          f"{summary.path_length:.1f} m) into {args.out}")
+    return EXIT_OK
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
 
 
 def _positive_int(text: str) -> int:

@@ -24,6 +24,11 @@ else:  # Python 3.10
 
 from autonomy.depth.options import RescaleOptions
 from autonomy.options import OptionError, field_types, option, validate
+from drivers.camera.options import CameraOptions
+from drivers.sim.imu import ImuOptions
+from drivers.sim.options import SimOptions
+from drivers.sim.px4 import Px4Options
+from drivers.sim.vehicle import VehicleOptions
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
@@ -44,6 +49,11 @@ class Config:
 
     log: LogOptions = field(default_factory=LogOptions)
     rescale: RescaleOptions = field(default_factory=RescaleOptions)
+    camera: CameraOptions = field(default_factory=CameraOptions)
+    sim: SimOptions = field(default_factory=SimOptions)
+    vehicle: VehicleOptions = field(default_factory=VehicleOptions)
+    imu: ImuOptions = field(default_factory=ImuOptions)
+    px4: Px4Options = field(default_factory=Px4Options)
 
     def __post_init__(self) -> None:
         validate(self)

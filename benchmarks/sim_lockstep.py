@@ -1,0 +1,94 @@
+"""Lockstep speed of the simulator: simulated seconds per wall-clock second.
+
+    python benchmarks/sim_lockstep.py [--duration 60] [--repeats 3] [--worlds mine sewer dome]
+
+Three loops over the same simulated minute, each timed ``--repeats`` times per world,
+interleaved, medians reported:
+
+- ``flight``: the recording flight (quadrotor dynamics and controller, IMU model at 200 Hz)
+  with the camera rendered and read back at 20 Hz (RGB + depth, 640x480), samples discarded
+  instead of written to disk;
+- ``physics``: the same flight without the camera, the baseline in the same run;
+- ``serve``: the MAVLink vehicle in lockstep (dynamics, IMU, mock PX4 streaming HIGHRES_IMU at
+  200 Hz and its other telemetry to a UDP peer on loopback), no camera.
+
+Prints one JSON object: speed = simulated seconds / wall seconds for each, per world.
+"""
+
+import argparse
+import asyncio
+import json
+import statistics
+import time
+
+import numpy as np
+
+from drivers.camera.options import CameraOptions
+from drivers.sim import record
+from drivers.sim.imu import ImuOptions
+from drivers.sim.px4 import Px4Options
+from drivers.sim.render import Renderer
+from drivers.sim.serve import serve
+from drivers.sim.vehicle import VehicleOptions
+from drivers.sim.world import WORLD_NAMES, build_world
+
+
+class Discard:
+    """A sink that keeps nothing: the benchmark times the simulation, not the disk."""
+
+    def add_imu(self, *sample) -> None: ...
+    def add_groundtruth(self, *sample) -> None: ...
+    def add_frame(self, *sample) -> None: ...
+
+
+class NoCamera:
+    """A renderer stand-in for the physics-only baseline: empty images, no OpenGL."""
+
+    def __init__(self, camera):
+        self.rgb = np.zeros((camera.height, camera.width, 3), np.uint8)
+        self.depth = np.zeros((camera.height, camera.width), np.float32)
+
+    def render(self, T_W_C):
+        return self.rgb, self.depth
+
+
+def time_flight(world, renderer, duration: float) -> float:
+    start = time.perf_counter()
+    record.fly(world, world.routes[0], Discard(), duration=duration, seed=0,
+               camera=CameraOptions(), vehicle=VehicleOptions(), imu=ImuOptions(),
+               renderer=renderer)
+    return time.perf_counter() - start
+
+
+def time_serve(world, duration: float) -> float:
+    start = time.perf_counter()
+    asyncio.run(serve("udpout://127.0.0.1:14999", world, clock_mode="lockstep",
+                      px4_options=Px4Options(imu_rate_hz=200.0), duration=duration))
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--worlds", nargs="+", default=list(WORLD_NAMES), choices=WORLD_NAMES)
+    args = parser.parse_args()
+    camera = CameraOptions()
+    result = {"simulated_seconds": args.duration, "camera_hz": camera.rate_hz,
+              "imu_hz": ImuOptions().rate_hz, "image": [camera.height, camera.width]}
+    for name in args.worlds:
+        world = build_world(name, 0)
+        walls = {"flight": [], "physics": [], "serve": []}
+        with Renderer(world, camera.pinhole()) as renderer:
+            time_flight(world, renderer, 1.0)  # warm-up: shader compilation, first uploads
+            for _ in range(args.repeats):
+                walls["flight"].append(time_flight(world, renderer, args.duration))
+                walls["physics"].append(time_flight(world, NoCamera(camera), args.duration))
+                walls["serve"].append(time_serve(world, args.duration))
+        result[name] = {f"{loop}_speed": round(args.duration / statistics.median(times), 2)
+                        for loop, times in walls.items()}
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

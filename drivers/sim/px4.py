@@ -1,0 +1,762 @@
+"""A mock PX4 flight controller around the simulated quadrotor, speaking real MAVLink 2.
+
+The flight-controller side of the link, close enough to PX4 (v1.14+) that MAVSDK, QGroundControl
+or our own companion driver cannot tell the difference for what they use: heartbeat and
+status streams, commands with COMMAND_ACK, message intervals, HIGHRES_IMU at up to the physics
+rate, a stand-in state estimate, TIMESYNC, offboard control with PX4's entry and loss rules,
+take-off, land and hold, optional MAVLink 2 signing.
+
+It never blocks: :meth:`MockPx4.update` is called once per physics tick with the IMU sample
+of the step that just ended; it reads every pending byte, applies commands to the vehicle
+and sends whatever streams are due at that time. Time is the simulator's (seconds since the
+mock "booted"); PX4 boot time on the wire is that in µs/ms, as PX4 stamps ``hrt_absolute_time``.
+
+Frames: the vehicle lives in world ENU with an FLU body; everything on the wire is local NED
+and body FRD (PX4's), converted by :mod:`drivers.mavlink.frames`.
+
+Ground truth goes to the stand-in estimator only: what leaves the mock is that estimate
+(ground truth plus white noise, or shifted onto the companion's external-vision ODOMETRY while
+it arrives), and IMU samples from the IMU model, as PX4 SITL's simulated sensors would give.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from autonomy.geometry import GRAVITY, quat_multiply, quat_to_rot, rot_to_quat, so3_exp, yaw_of
+from autonomy.options import option, validate
+from drivers.mavlink import px4
+from drivers.mavlink.frames import (enu_to_ned, flu_to_frd, ned_to_enu,
+                                    quat_enu_flu_to_ned_frd)
+from drivers.mavlink.link import MavlinkLink, mavlink
+from drivers.sim.vehicle import ControlTarget, Quadrotor
+
+log = logging.getLogger(__name__)
+
+OFFBOARD_LOSS_ACTIONS = ("hold", "land")
+
+#: PX4 SITL's default home (the PX4 "Zurich" origin), degrees and metres AMSL.
+HOME_LATITUDE_DEG, HOME_LONGITUDE_DEG, HOME_ALTITUDE_M = 47.397742, 8.545594, 488.0
+
+#: Default stream rates in Hz (PX4's "onboard" MAVLink mode, mavlink_main.cpp), before any
+#: MAV_CMD_SET_MESSAGE_INTERVAL.
+DEFAULT_STREAM_RATES_HZ = {
+    mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
+    mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 50.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 50.0,
+    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
+    mavlink.MAVLINK_MSG_ID_ODOMETRY: 30.0,
+    mavlink.MAVLINK_MSG_ID_TIMESYNC: 1.0,
+}
+
+#: HIGHRES_IMU.fields_updated: xacc..zgyro (bits 0-5) and temperature (bit 12).
+HIGHRES_IMU_FIELDS = 0b111111 | (1 << 12)
+
+CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+                | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
+
+#: PX4 v1.15.0 as AUTOPILOT_VERSION.flight_sw_version packs it (major, minor, patch, type=255).
+FLIGHT_SW_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255
+
+#: A gap between setpoints longer than this breaks the stream offboard needs (2 Hz, PX4 docs:
+#: "the vehicle must be already be receiving a stream of target setpoints (>2Hz)").
+OFFBOARD_MAX_SETPOINT_GAP = 0.5
+#: How long that stream must have lasted before offboard is accepted.
+OFFBOARD_MIN_STREAM_TIME = 1.0
+#: External-vision ODOMETRY older than this no longer feeds the estimate.
+EXTERNAL_VISION_TIMEOUT = 0.5
+
+
+@dataclass(frozen=True)
+class Px4Options:
+    """The mock flight controller's settings; PX4 parameter names in brackets."""
+
+    system_id: int = option(1, ge=1, le=255, doc="MAVLink system id [MAV_SYS_ID]")
+    component_id: int = option(1, ge=1, le=255, doc="MAVLink component id [MAV_COMP_ID]")
+    offboard_loss_timeout: float = option(
+        1.0, gt=0.0, le=60.0,
+        doc="seconds without a setpoint before the offboard-loss failsafe [COM_OF_LOSS_T]")
+    offboard_loss_action: str = option(
+        "hold", choices=OFFBOARD_LOSS_ACTIONS,
+        doc="mode the offboard-loss failsafe switches to: hold (AUTO.LOITER) or land "
+            "(AUTO.LAND) [COM_OBL_RC_ACT 5 / 4]")
+    takeoff_altitude: float = option(
+        2.5, gt=0.0, le=100.0, doc="take-off height above home, metres [MIS_TAKEOFF_ALT]")
+    takeoff_speed: float = option(1.5, gt=0.0, le=10.0,
+                                  doc="climb rate of take-off, m/s [MPC_TKO_SPEED]")
+    land_speed: float = option(0.7, gt=0.0, le=5.0,
+                               doc="descent rate of Land, m/s [MPC_LAND_SPEED]")
+    disarm_after_land: float = option(
+        2.0, ge=0.0, le=60.0,
+        doc="seconds on the ground after landing before auto-disarm [COM_DISARM_LAND]")
+    imu_rate_hz: float = option(
+        50.0, gt=0.0, le=1000.0,
+        doc="HIGHRES_IMU rate before any SET_MESSAGE_INTERVAL, Hz (capped by the physics rate)")
+    position_noise: float = option(
+        0.02, ge=0.0, le=10.0,
+        doc="white noise (1 sigma, metres) of the stand-in estimator's position")
+    velocity_noise: float = option(
+        0.02, ge=0.0, le=10.0,
+        doc="white noise (1 sigma, m/s) of the stand-in estimator's velocity")
+    attitude_noise: float = option(
+        0.002, ge=0.0, le=1.0,
+        doc="white noise (1 sigma, radians per axis) of the stand-in estimator's attitude")
+    signing_key: str = option(
+        "", doc="MAVLink 2 signing secret as 64 hex digits; empty: signing off. When set, "
+                "unsigned messages are ignored except PX4's allowlist [MAV_SIGN_CFG]")
+
+    def __post_init__(self) -> None:
+        validate(self)
+        if self.signing_key:
+            try:
+                key = bytes.fromhex(self.signing_key)
+            except ValueError:
+                key = b""
+            if len(key) != 32:
+                raise ValueError("signing_key: must be 64 hex digits (a 32-byte key), "
+                                 f"got {len(self.signing_key)} characters")
+
+    @property
+    def signing_secret(self) -> bytes | None:
+        return bytes.fromhex(self.signing_key) if self.signing_key else None
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """An accepted SET_POSITION_TARGET_LOCAL_NED in the world frame (ENU), NaN = ignored."""
+
+    time: float
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    yaw: float
+    yaw_rate: float
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The stand-in estimator's output in the world frame (ENU, FLU body)."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+    q_W_B: np.ndarray
+    angular_velocity_B: np.ndarray
+
+
+class MockPx4:
+    """The flight controller: MAVLink in and out, modes and failsafes, targets to the vehicle."""
+
+    def __init__(self, link: MavlinkLink, vehicle: Quadrotor, options: Px4Options | None = None,
+                 *, rng: np.random.Generator | None = None, physics_rate_hz: float = 200.0):
+        self.link = link
+        self.vehicle = vehicle
+        self.options = options or Px4Options()
+        self._rng = rng if rng is not None else np.random.default_rng(0)
+        self._min_interval = 1.0 / physics_rate_hz
+        if self.options.signing_secret is not None:
+            link.setup_signing(self.options.signing_secret, accept_unsigned=px4.accept_unsigned)
+        self.mode = px4.AUTO_LOITER
+        self.time = float(vehicle.state.time)
+        self._intervals: dict[int, float | None] = {}
+        self._next_due = {}
+        for message_id, rate in DEFAULT_STREAM_RATES_HZ.items():
+            self._set_rate(message_id, rate)
+        self._set_rate(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, self.options.imu_rate_hz)
+        self._setpoint: Setpoint | None = None
+        self._stream_start: float | None = None
+        self._hold_position: np.ndarray | None = None
+        self._hold_yaw = 0.0
+        self._takeoff_height = self.options.takeoff_altitude
+        self._landed_since: float | None = None
+        self._collision_reported = False
+        self._statustext_id = 0
+        self._builders: dict | None = None
+        self._ev_offset = np.zeros(3)
+        self._ev_time: float | None = None
+        self._timesync_sent_ns: int | None = None
+        self.timesync_offset_ns: int | None = None
+        self._home = np.array(vehicle.state.position, dtype=float)
+        self._imu = (np.zeros(3), np.array([0.0, 0.0, GRAVITY]))
+        self.estimate = self._estimate()
+        self._enter_hold()
+
+    # ---------------------------------------------------------------- the tick
+
+    def update(self, t: float, gyro_B=None, accel_B=None) -> None:
+        """One physics tick at time ``t`` (s since boot), with the IMU sample (FLU) ending at t."""
+        self.time = float(t)
+        if gyro_B is not None and accel_B is not None:
+            self._imu = (np.asarray(gyro_B, dtype=float), np.asarray(accel_B, dtype=float))
+        self.estimate = self._estimate()
+        for message in self.link.receive_pending():
+            self._handle(message)
+        self._check_collision()
+        self._fly()
+        self._send_due_streams()
+
+    # ---------------------------------------------------------------- estimator
+
+    def _estimate(self) -> Estimate:
+        state = self.vehicle.state
+        if self._ev_time is not None and self.time - self._ev_time > EXTERNAL_VISION_TIMEOUT:
+            self._ev_time = None  # offset kept: the estimate stays where vision left it
+        noise = self._rng.standard_normal(9)
+        rotation_noise = rot_to_quat(so3_exp(noise[6:9] * self.options.attitude_noise))
+        return Estimate(
+            position=np.asarray(state.position) + self._ev_offset
+            + noise[0:3] * self.options.position_noise,
+            velocity=np.asarray(state.velocity) + noise[3:6] * self.options.velocity_noise,
+            q_W_B=quat_multiply(np.asarray(state.q_W_B), rotation_noise),
+            angular_velocity_B=self._imu[0],
+        )
+
+    def _to_vehicle_frame(self, position: np.ndarray) -> np.ndarray:
+        """A position in the estimator's frame as the vehicle (ground truth) sees it."""
+        return position - self._ev_offset
+
+    def _handle_odometry(self, message) -> None:
+        if message.frame_id not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD):
+            self._statustext(mavlink.MAV_SEVERITY_WARNING,
+                             f"ODOMETRY frame {message.frame_id} unsupported")
+            return
+        position = ned_to_enu((message.x, message.y, message.z))
+        if not np.all(np.isfinite(position)):
+            return
+        self._ev_offset = position - np.asarray(self.vehicle.state.position)
+        self._ev_time = self.time
+
+    @property
+    def external_vision_active(self) -> bool:
+        return self._ev_time is not None
+
+    # ---------------------------------------------------------------- incoming
+
+    def _handle(self, message) -> None:
+        kind = message.get_type()
+        handler = {
+            "COMMAND_LONG": self._handle_command_long,
+            "COMMAND_INT": self._handle_command_int,
+            "SET_POSITION_TARGET_LOCAL_NED": self._handle_setpoint,
+            "TIMESYNC": self._handle_timesync,
+            "ODOMETRY": self._handle_odometry,
+        }.get(kind)
+        if handler is None:
+            return
+        try:
+            handler(message)
+        except (ValueError, TypeError, OverflowError) as error:
+            # A well-framed message with nonsense in it (NaN where an integer belongs, ...)
+            log.warning("ignored %s: %s", kind, error)
+
+    def _for_me(self, message) -> bool:
+        return (message.target_system in (0, self.options.system_id)
+                and message.target_component in (0, self.options.component_id))
+
+    def _handle_command_long(self, message) -> None:
+        if not self._for_me(message):
+            return
+        params = (message.param1, message.param2, message.param3, message.param4,
+                  message.param5, message.param6, message.param7)
+        self._command(message, message.command, params)
+
+    def _handle_command_int(self, message) -> None:
+        if not self._for_me(message):
+            return
+        params = (message.param1, message.param2, message.param3, message.param4,
+                  float(message.x), float(message.y), message.z)
+        self._command(message, message.command, params)
+
+    def _command(self, message, command: int, params) -> None:
+        handler = {
+            mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
+            mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
+            mavlink.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
+            mavlink.MAV_CMD_NAV_LAND: lambda p: self._change_mode(px4.AUTO_LAND),
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
+            mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
+            mavlink.MAV_CMD_REQUEST_MESSAGE: lambda p: self._cmd_request_message(int(p[0])),
+            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: lambda p: self._cmd_request_message(
+                mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION),
+        }.get(command)
+        try:
+            result = mavlink.MAV_RESULT_UNSUPPORTED if handler is None else handler(params)
+        except ValueError as error:  # e.g. NaN where the command needs a number
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, f"Command {command} denied: {error}")
+            result = mavlink.MAV_RESULT_DENIED
+        ack = self.link.mav.command_ack_encode(command, result, 0, 0,
+                                               message.get_srcSystem(),
+                                               message.get_srcComponent())
+        self.link.send(ack)
+        if command == mavlink.MAV_CMD_REQUEST_MESSAGE and result == mavlink.MAV_RESULT_ACCEPTED:
+            self._send_message(int(params[0]))
+        if (command == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL
+                and result == mavlink.MAV_RESULT_ACCEPTED):
+            self._send_message_interval(int(params[0]))
+        if (command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES
+                and result == mavlink.MAV_RESULT_ACCEPTED):
+            self._send_message(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+
+    def _cmd_arm_disarm(self, params) -> int:
+        action = _round(params[0])
+        # MAVSDK sends NaN for unused params; anything but the magic number is "not forced"
+        forced = math.isfinite(params[1]) and _round(params[1]) == px4.FORCE_ARM_DISARM_MAGIC
+        if action == 1:
+            return self._arm()
+        if action == 0:
+            return self._disarm(forced)
+        self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                         f"Unsupported ARM_DISARM param: {params[0]:.3f}")
+        return mavlink.MAV_RESULT_UNSUPPORTED
+
+    def _arm(self) -> int:
+        # Commands from MAVLink always run the preflight checks, forced or not (Commander.cpp).
+        if self.vehicle.armed:
+            return mavlink.MAV_RESULT_ACCEPTED
+        if self.vehicle.collision is not None:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: vehicle crashed")
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        if self.mode == px4.OFFBOARD and not self._offboard_stream_ok():
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no offboard signal")
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        self.vehicle.arm()
+        self._home = np.array(self.estimate.position)
+        self._landed_since = None
+        if self.mode == px4.AUTO_LOITER:
+            self._enter_hold()
+        self._statustext(mavlink.MAV_SEVERITY_INFO, "Armed by external command")
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _disarm(self, forced: bool, reason: str = "external command") -> int:
+        if not self.vehicle.armed:
+            return mavlink.MAV_RESULT_ACCEPTED
+        if not forced and not self.vehicle.landed:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "Disarming denied: not landed")
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        self.vehicle.disarm()
+        self._statustext(mavlink.MAV_SEVERITY_INFO, f"Disarmed by {reason}")
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_set_mode(self, params) -> int:
+        base_mode = _round(params[0])
+        if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        try:
+            mode = px4.Px4Mode.from_numbers(_round(params[1]), _round(params[2]))
+        except ValueError as error:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, str(error))
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        return self._change_mode(mode)
+
+    def _cmd_takeoff(self, params) -> int:
+        altitude_amsl = params[6]
+        if math.isfinite(altitude_amsl):
+            self._takeoff_height = max(0.5, altitude_amsl - HOME_ALTITUDE_M)
+        else:
+            self._takeoff_height = self.options.takeoff_altitude
+        return self._change_mode(px4.AUTO_TAKEOFF)
+
+    SUPPORTED_MODES = (px4.OFFBOARD, px4.AUTO_LOITER, px4.AUTO_LAND, px4.AUTO_TAKEOFF)
+
+    def _change_mode(self, mode: px4.Px4Mode) -> int:
+        """PX4's mode-change rules as far as the mock flies them; rejected: TEMPORARILY_REJECTED."""
+        if mode not in self.SUPPORTED_MODES:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                             f"Switching to {mode.name} is not supported here")
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        if mode == px4.OFFBOARD and not self._offboard_stream_ok():
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                             "Switching to Offboard is currently not available")
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        if mode != self.mode:
+            self._set_mode(mode)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _set_mode(self, mode: px4.Px4Mode) -> None:
+        self.mode = mode
+        if mode == px4.AUTO_LOITER:
+            self._enter_hold()
+        log.info("mode %s at t=%.3f", mode.name, self.time)
+
+    def _cmd_set_message_interval(self, params) -> int:
+        message_id, interval_us = _round(params[0]), _round(params[1])
+        if message_id not in DEFAULT_STREAM_RATES_HZ:
+            return mavlink.MAV_RESULT_DENIED
+        if interval_us == 0:
+            rate = DEFAULT_STREAM_RATES_HZ[message_id]
+            if message_id == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU:
+                rate = self.options.imu_rate_hz
+        elif interval_us < 0:
+            rate = 0.0
+        else:
+            rate = 1e6 / interval_us
+        self._set_rate(message_id, rate)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_get_message_interval(self, params) -> int:
+        return (mavlink.MAV_RESULT_ACCEPTED if _round(params[0]) in DEFAULT_STREAM_RATES_HZ
+                else mavlink.MAV_RESULT_DENIED)
+
+    def _cmd_request_message(self, message_id: int) -> int:
+        return (mavlink.MAV_RESULT_ACCEPTED if message_id in self._message_builders()
+                else mavlink.MAV_RESULT_DENIED)
+
+    def _set_rate(self, message_id: int, rate_hz: float) -> None:
+        """Stream at ``rate_hz`` (0: off), no faster than the physics tick."""
+        if rate_hz <= 0.0:
+            self._intervals[message_id] = None
+            return
+        self._intervals[message_id] = max(1.0 / rate_hz, self._min_interval)
+        self._next_due[message_id] = self.time
+
+    def message_rate_hz(self, message_id: int) -> float:
+        """The rate a stream is sent at now (0 when off)."""
+        interval = self._intervals.get(message_id)
+        return 0.0 if interval is None else 1.0 / interval
+
+    def _handle_setpoint(self, message) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED as mavlink_receiver.cpp takes it."""
+        if not self._for_me(message):
+            return
+        setpoint = self._decode_setpoint(message)
+        if setpoint is None:
+            return
+        previous = self._setpoint
+        if previous is None or setpoint.time - previous.time > OFFBOARD_MAX_SETPOINT_GAP:
+            self._stream_start = setpoint.time
+        self._setpoint = setpoint
+
+    def _decode_setpoint(self, message) -> Setpoint | None:
+        mask = message.type_mask
+        frame = message.coordinate_frame
+        if frame not in px4.SUPPORTED_SETPOINT_FRAMES:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                             f"SET_POSITION_TARGET_LOCAL_NED coordinate frame {frame} unsupported")
+            return None
+        position = _masked((message.x, message.y, message.z), mask, px4.IGNORE_POSITION)
+        velocity = _masked((message.vx, message.vy, message.vz), mask, px4.IGNORE_VELOCITY)
+        acceleration = _masked((message.afx, message.afy, message.afz), mask,
+                               px4.IGNORE_ACCELERATION)
+        if frame == mavlink.MAV_FRAME_BODY_NED:
+            R_NED_FRD = quat_to_rot(quat_enu_flu_to_ned_frd(self.estimate.q_W_B))
+            position = np.full(3, np.nan)
+            velocity = _rotate_body(R_NED_FRD, velocity)
+            acceleration = _rotate_body(R_NED_FRD, acceleration)
+        has_acceleration = bool(np.isfinite(acceleration).any())
+        if has_acceleration and mask & px4.FORCE_SET:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                             "SET_POSITION_TARGET_LOCAL_NED force not supported")
+            return None
+        if not (np.isfinite(position).any() or np.isfinite(velocity).any() or has_acceleration):
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_LOCAL_NED invalid")
+            return None
+        yaw_ned = math.nan if mask & px4.IGNORE_YAW else float(message.yaw)
+        yaw_rate_ned = math.nan if mask & px4.IGNORE_YAW_RATE else float(message.yaw_rate)
+        return Setpoint(
+            time=self.time,
+            position=ned_to_enu(position),
+            velocity=ned_to_enu(velocity),
+            acceleration=ned_to_enu(acceleration),
+            yaw=math.pi / 2 - yaw_ned,    # NED heading (from north, clockwise) -> ENU yaw
+            yaw_rate=-yaw_rate_ned,       # about down -> about up
+        )
+
+    def _offboard_stream_ok(self) -> bool:
+        """Setpoints have streamed at >= 2 Hz for more than a second, the last one fresh."""
+        if self._setpoint is None or self._stream_start is None:
+            return False
+        fresh = self.time - self._setpoint.time <= min(OFFBOARD_MAX_SETPOINT_GAP,
+                                                       self.options.offboard_loss_timeout)
+        return fresh and self._setpoint.time - self._stream_start > OFFBOARD_MIN_STREAM_TIME
+
+    def _handle_timesync(self, message) -> None:
+        """Answer requests (tc1 == 0) with our boot time; use answers to our own requests."""
+        now_ns = self._boot_ns()
+        if message.tc1 == 0:
+            self.link.send(self.link.mav.timesync_encode(now_ns, message.ts1))
+        elif message.ts1 == self._timesync_sent_ns:
+            # offset = remote - local, with the remote stamp taken halfway through the round trip
+            self.timesync_offset_ns = (2 * message.tc1 - message.ts1 - now_ns) // 2
+
+    # ---------------------------------------------------------------- flying
+
+    def _check_collision(self) -> None:
+        collision = self.vehicle.collision
+        if collision is None or self._collision_reported:
+            return
+        self._collision_reported = True
+        if self.vehicle.armed:
+            self.vehicle.disarm()
+        self._statustext(mavlink.MAV_SEVERITY_EMERGENCY,
+                         f"Collision at t={collision.time:.2f}s: flight ended, disarmed")
+        log.warning("collision at t=%.3f position %s", collision.time, collision.position)
+
+    def _fly(self) -> None:
+        if self.mode == px4.OFFBOARD:
+            self._fly_offboard()
+        elif self.mode == px4.AUTO_TAKEOFF:
+            self._fly_takeoff()
+        elif self.mode == px4.AUTO_LAND:
+            self._fly_land()
+        else:
+            self._fly_hold()
+        self._auto_disarm()
+
+    def _fly_offboard(self) -> None:
+        setpoint = self._setpoint
+        if setpoint is None or self.time - setpoint.time > self.options.offboard_loss_timeout:
+            action = self.options.offboard_loss_action
+            mode = px4.AUTO_LAND if action == "land" else px4.AUTO_LOITER
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                             f"Failsafe activated: offboard lost, switching to {mode.name}")
+            self._set_mode(mode)
+            self._fly()
+            return
+        self.vehicle.set_target(self._offboard_target(setpoint))
+
+    def _offboard_target(self, setpoint: Setpoint) -> ControlTarget:
+        """PX4's per-axis rule (PositionControl): a position axis is tracked with the velocity as
+        feed-forward; an axis with only a velocity tracks that velocity; an axis with neither
+        holds where it is. The vehicle's controller takes whole vectors, so a velocity-only axis
+        of a mixed setpoint becomes "stay at the current position plus that feed-forward",
+        re-anchored every tick, which gives the same velocity setpoint."""
+        position = self._to_vehicle_frame(setpoint.position)
+        velocity, acceleration = setpoint.velocity, setpoint.acceleration
+        yaw = None if math.isnan(setpoint.yaw) else setpoint.yaw
+        yaw_rate = None if math.isnan(setpoint.yaw_rate) else setpoint.yaw_rate
+        acceleration_ff = np.nan_to_num(acceleration)
+        if np.isnan(position).all() and np.isfinite(velocity).all():
+            return ControlTarget(velocity=velocity, acceleration=acceleration_ff,
+                                 yaw=yaw, yaw_rate=yaw_rate)
+        here = np.asarray(self.vehicle.state.position)
+        free_axes = np.isnan(position)
+        velocity_ff = np.where(np.isnan(velocity), 0.0, velocity)
+        velocity_ff = np.where(free_axes & np.isnan(velocity) & np.isfinite(acceleration),
+                               self.vehicle.state.velocity, velocity_ff)
+        return ControlTarget(position=np.where(free_axes, here, position), velocity=velocity_ff,
+                             acceleration=acceleration_ff, yaw=yaw, yaw_rate=yaw_rate)
+
+    def _enter_hold(self) -> None:
+        self._hold_position = np.array(self.estimate.position)
+        self._hold_yaw = yaw_of(quat_to_rot(self.estimate.q_W_B))
+
+    def _fly_hold(self) -> None:
+        if self.vehicle.landed:
+            # PX4's land detector keeps a landed vehicle at idle in Hold: never lift off because
+            # the estimate's noise put the hold point a few centimetres above the ground.
+            self.vehicle.set_target(ControlTarget(
+                velocity=np.array([0.0, 0.0, -self.options.land_speed]), yaw=self._hold_yaw))
+            return
+        self.vehicle.set_target(ControlTarget(
+            position=self._to_vehicle_frame(self._hold_position),
+            velocity=np.zeros(3), yaw=self._hold_yaw))
+
+    def _fly_takeoff(self) -> None:
+        if not self.vehicle.armed:
+            return
+        goal = np.array([self._hold_position[0], self._hold_position[1],
+                         self._home[2] + self._takeoff_height])
+        if self.estimate.position[2] >= goal[2] - 0.1:
+            self._set_mode(px4.AUTO_LOITER)
+            self._hold_position = goal
+            self._fly_hold()
+            return
+        self.vehicle.set_target(ControlTarget(
+            velocity=np.array([0.0, 0.0, self.options.takeoff_speed]), yaw=self._hold_yaw))
+
+    def _fly_land(self) -> None:
+        self.vehicle.set_target(ControlTarget(
+            velocity=np.array([0.0, 0.0, -self.options.land_speed]), yaw=self._hold_yaw))
+
+    def _auto_disarm(self) -> None:
+        """Disarm COM_DISARM_LAND seconds after touching down (Land, or armed and left idle)."""
+        if not self.vehicle.armed or not self.vehicle.landed or self.mode != px4.AUTO_LAND:
+            self._landed_since = None
+            return
+        if self._landed_since is None:
+            self._landed_since = self.time
+        if self.time - self._landed_since >= self.options.disarm_after_land:
+            self._disarm(forced=True, reason="landing")
+            self._set_mode(px4.AUTO_LOITER)
+
+    # ---------------------------------------------------------------- outgoing
+
+    def _boot_ns(self) -> int:
+        return int(round(self.time * 1e9))
+
+    def _boot_ms(self) -> int:
+        return int(round(self.time * 1e3))
+
+    def _send_due_streams(self) -> None:
+        for message_id, interval in self._intervals.items():
+            if interval is None:
+                continue
+            due = self._next_due.get(message_id, self.time)
+            if self.time + 1e-9 < due:
+                continue
+            # keep the phase while on time; after a stall, restart from now (no burst)
+            next_due = due + interval
+            self._next_due[message_id] = next_due if next_due > self.time else self.time + interval
+            if message_id == mavlink.MAVLINK_MSG_ID_TIMESYNC:
+                self._send_timesync_request()
+            else:
+                self._send_message(message_id)
+
+    def _send_timesync_request(self) -> None:
+        self._timesync_sent_ns = self._boot_ns()
+        self.link.send(self.link.mav.timesync_encode(0, self._timesync_sent_ns))
+
+    def _message_builders(self) -> dict:
+        if self._builders is not None:
+            return self._builders
+        self._builders = {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
+            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._extended_sys_state,
+            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
+            mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: self._highres_imu,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self._attitude_quaternion,
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
+            mavlink.MAVLINK_MSG_ID_ODOMETRY: self._odometry,
+        }
+        return self._builders
+
+    def _send_message(self, message_id: int) -> None:
+        builder = self._message_builders().get(message_id)
+        if builder is not None:
+            self.link.send(builder())
+
+    def _send_message_interval(self, message_id: int) -> None:
+        interval = self._intervals.get(message_id)
+        interval_us = -1 if interval is None else int(round(interval * 1e6))
+        self.link.send(self.link.mav.message_interval_encode(message_id, interval_us))
+
+    def _statustext(self, severity: int, text: str) -> None:
+        """STATUSTEXT, split into 50-byte chunks sharing an id when longer (MAVLink 2)."""
+        log.info("STATUSTEXT %s", text)
+        data = text.encode()
+        chunks = [data[i:i + 50] for i in range(0, len(data), 50)] or [b""]
+        if len(chunks) == 1:
+            self.link.send(self.link.mav.statustext_encode(severity, chunks[0]))
+            return
+        self._statustext_id = self._statustext_id % 65535 + 1
+        for seq, chunk in enumerate(chunks):
+            self.link.send(self.link.mav.statustext_encode(severity, chunk,
+                                                           self._statustext_id, seq))
+
+    def _heartbeat(self):
+        base_mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.vehicle.armed:
+            base_mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        # every mode the mock flies (AUTO.*, OFFBOARD) is auto + guided + stabilised, as PX4's
+        # get_mavlink_navigation_mode() reports them (mavlink_main.cpp)
+        base_mode |= (mavlink.MAV_MODE_FLAG_AUTO_ENABLED | mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+                      | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED)
+        if self.vehicle.collision is not None:
+            status = mavlink.MAV_STATE_EMERGENCY
+        elif self.vehicle.armed:
+            status = mavlink.MAV_STATE_ACTIVE
+        else:
+            status = mavlink.MAV_STATE_STANDBY
+        return self.link.mav.heartbeat_encode(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base_mode,
+            self.mode.custom_mode, status)
+
+    def _sys_status(self):
+        sensors = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+                   | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+                   | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
+                   | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
+                   | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+        bad_data = min(self.link.bad_data_count, 65535)
+        return self.link.mav.sys_status_encode(sensors, sensors, sensors, 250, 16200, 500, 90,
+                                               0, bad_data, 0, 0, 0, 0)
+
+    def _landed_state(self) -> int:
+        if self.vehicle.landed:
+            return mavlink.MAV_LANDED_STATE_ON_GROUND
+        if self.mode == px4.AUTO_TAKEOFF:
+            return mavlink.MAV_LANDED_STATE_TAKEOFF
+        if self.mode == px4.AUTO_LAND:
+            return mavlink.MAV_LANDED_STATE_LANDING
+        return mavlink.MAV_LANDED_STATE_IN_AIR
+
+    def _extended_sys_state(self):
+        return self.link.mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED,
+                                                       self._landed_state())
+
+    def _autopilot_version(self):
+        return self.link.mav.autopilot_version_encode(
+            CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
+            self.options.system_id)
+
+    def _home_position(self):
+        x, y, z = enu_to_ned(self._home)
+        return self.link.mav.home_position_encode(
+            int(HOME_LATITUDE_DEG * 1e7), int(HOME_LONGITUDE_DEG * 1e7),
+            int(HOME_ALTITUDE_M * 1e3), x, y, z, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+            self._boot_ns() // 1000)
+
+    def _highres_imu(self):
+        gyro, accel = flu_to_frd(self._imu[0]), flu_to_frd(self._imu[1])
+        return self.link.mav.highres_imu_encode(
+            self._boot_ns() // 1000, *accel, *gyro, 0.0, 0.0, 0.0, 1013.25, 0.0, 0.0, 25.0,
+            HIGHRES_IMU_FIELDS)
+
+    def _attitude_quaternion(self):
+        q = quat_enu_flu_to_ned_frd(self.estimate.q_W_B)
+        rates = flu_to_frd(self.estimate.angular_velocity_B)
+        return self.link.mav.attitude_quaternion_encode(self._boot_ms(), *q, *rates)
+
+    def _local_position_ned(self):
+        return self.link.mav.local_position_ned_encode(
+            self._boot_ms(), *enu_to_ned(self.estimate.position),
+            *enu_to_ned(self.estimate.velocity))
+
+    def _odometry(self):
+        q = quat_enu_flu_to_ned_frd(self.estimate.q_W_B)
+        rates = flu_to_frd(self.estimate.angular_velocity_B)
+        nan_covariance = [math.nan] + [0.0] * 20
+        return self.link.mav.odometry_encode(
+            self._boot_ns() // 1000, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
+            *enu_to_ned(self.estimate.position), q, *enu_to_ned(self.estimate.velocity),
+            *rates, nan_covariance, nan_covariance, 0, mavlink.MAV_ESTIMATOR_TYPE_NAIVE, 100)
+
+
+def _round(value: float) -> int:
+    """A float parameter that encodes an integer, rounded half away from zero as PX4's
+    ``lroundf``; ValueError for NaN or infinity."""
+    if not math.isfinite(value):
+        raise ValueError(f"parameter {value} is not a finite number")
+    return int(math.copysign(math.floor(abs(value) + 0.5), value))
+
+
+def _masked(values, type_mask: int, bits: int) -> np.ndarray:
+    """The three components of one field, NaN where type_mask says ignore (x, y, z bits)."""
+    out = np.array(values, dtype=float)
+    axis_bits = [b for b in (1, 2, 4, 8, 16, 32, 64, 128, 256) if b & bits]
+    for i, bit in enumerate(axis_bits):
+        if type_mask & bit:
+            out[i] = np.nan
+    return out
+
+
+def _rotate_body(R_NED_FRD: np.ndarray, v_FRD: np.ndarray) -> np.ndarray:
+    """A body-frame (FRD) vector into NED as mavlink_receiver.cpp does for MAV_FRAME_BODY_NED:
+    if any axis is ignored the whole vector is ignored (NaN), else it is rotated."""
+    if np.isnan(v_FRD).any():
+        return np.full(3, np.nan)
+    return R_NED_FRD @ v_FRD

@@ -1,0 +1,232 @@
+"""Fly a smooth path through a world and record it as a EuRoC/ASL dataset.
+
+The flight is the one a careful pilot would give a visual-inertial estimator: a few seconds
+standing still on the ground (for a static initialisation), a vertical take-off to cruise
+height, then the route's collision-free path at constant speed, facing along it, back and
+forth until the duration is spent. The vehicle is the simulated quadrotor with its PX4-like
+controller, so the motion is smooth and dynamically feasible; the IMU is sampled from the
+same dynamics, so a noiseless recording integrates back onto its own ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from autonomy.geometry import R_BODY_CAMERA, make_pose, quat_to_rot
+from drivers.camera.options import CameraOptions
+from drivers.dataset.euroc import EurocWriter
+from drivers.sim.imu import ImuModel, ImuOptions
+from drivers.sim.options import SimOptions
+from drivers.sim.render import Renderer
+from drivers.sim.vehicle import ControlTarget, Quadrotor, VehicleOptions
+from drivers.sim.world import Route, World, build_world
+
+#: Camera mounting: optical frame looking along body x, 10 cm ahead of the body origin and
+#: 5 cm above it.
+T_BODY_CAMERA = make_pose(R_BODY_CAMERA, np.array([0.10, 0.0, 0.05]))
+
+ROBOT_RADIUS = 1.0
+"""Clearance the recorded path keeps from every obstacle, metres (the paper's robot radius)."""
+
+SPEED = 1.0
+"""Cruise speed along the path, m/s: gentle enough that consecutive 20 Hz frames overlap."""
+
+STATIC_SECONDS = 2.0
+"""Time standing still on the ground before take-off, for static initialisation."""
+
+
+class RecordError(RuntimeError):
+    """A recording that could not be made or was cut short, with the reason."""
+
+
+@dataclass(frozen=True)
+class RecordSummary:
+    """What a recording holds."""
+
+    world: str
+    route: str
+    duration: float
+    imu_samples: int
+    frames: int
+    path_length: float
+
+
+class Sink(Protocol):
+    """Where the flight's samples go: a :class:`EurocWriter`, or nowhere when benchmarking."""
+
+    def add_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None: ...
+    def add_groundtruth(self, t_ns: int, position, q_W_B, velocity, gyro_bias, accel_bias) -> None: ...
+    def add_frame(self, t_ns: int, rgb: np.ndarray, depth_m: np.ndarray) -> None: ...
+
+
+def smooth_path(polyline: np.ndarray, spacing: float = 0.1, passes: int = 4) -> np.ndarray:
+    """A polyline resampled every ``spacing`` metres with its corners rounded.
+
+    Chaikin's corner cutting (each pass replaces every segment ``PQ`` by the points at 1/4 and
+    3/4 of it) converges to a quadratic B-spline inside the polyline's convex hull, so the
+    rounded path never strays outside the corridor the polyline's corners span.
+    """
+    points = np.asarray(polyline, dtype=float)
+    for _ in range(passes):
+        if len(points) < 3:
+            break
+        inner = np.empty((2 * (len(points) - 1), points.shape[1]))
+        inner[0::2] = 0.75 * points[:-1] + 0.25 * points[1:]
+        inner[1::2] = 0.25 * points[:-1] + 0.75 * points[1:]
+        points = np.vstack([points[:1], inner, points[-1:]])
+    return resample(points, spacing)
+
+
+def resample(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Points along the polyline every ``spacing`` metres of arc length, ends included."""
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    samples = np.linspace(0.0, arc[-1], max(2, int(math.ceil(arc[-1] / spacing)) + 1))
+    return np.stack([np.interp(samples, arc, points[:, k]) for k in range(points.shape[1])], axis=1)
+
+
+class PathFollower:
+    """Targets that move along a path at constant speed, back and forth, facing the way ahead.
+
+    At time ``t`` the target is the point at arc length ``s(t) = speed * t`` folded onto
+    ``[0, L]`` (a triangle wave, so the vehicle turns round at each end), with the path's
+    tangent times the speed as velocity feed-forward and the tangent's heading as yaw.
+    """
+
+    def __init__(self, path_xy: np.ndarray, height: float, speed: float):
+        self.points = np.asarray(path_xy, dtype=float)
+        steps = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        self.arc = np.concatenate([[0.0], np.cumsum(steps)])
+        self.length = float(self.arc[-1])
+        self.height = height
+        self.speed = speed
+        if self.length <= 0.0:
+            raise RecordError("the route's path has no length")
+
+    def target(self, t: float) -> ControlTarget:
+        travelled = self.speed * max(t, 0.0)
+        lap, s = divmod(travelled, self.length)
+        backwards = int(lap) % 2 == 1
+        if backwards:
+            s = self.length - s
+        x, y = (np.interp(s, self.arc, self.points[:, k]) for k in range(2))
+        i = min(int(np.searchsorted(self.arc, s, side="right")), len(self.points) - 1)
+        tangent = self.points[i] - self.points[i - 1]
+        tangent /= np.linalg.norm(tangent)
+        if backwards:
+            tangent = -tangent
+        return ControlTarget(
+            position=np.array([x, y, self.height]),
+            velocity=np.array([tangent[0], tangent[1], 0.0]) * self.speed,
+            yaw=math.atan2(tangent[1], tangent[0]),
+        )
+
+
+def route_path(world: World, route: Route) -> np.ndarray:
+    """The smoothed collision-free path of ``route`` in the horizontal plane, (M, 2)."""
+    polyline = world.find_path(route.start[:2], route.goal[:2], ROBOT_RADIUS)
+    if polyline is None:
+        raise RecordError(f"{world.name}: no path with {ROBOT_RADIUS} m clearance "
+                          f"for route {route.name}")
+    return smooth_path(polyline)
+
+
+def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
+        camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
+        renderer: Renderer | None = None) -> RecordSummary:
+    """Fly ``route`` for ``duration`` simulated seconds, sending every sample to ``sink``.
+
+    Physics and IMU tick at ``imu.rate_hz``; a frame is rendered at the first tick at or after
+    each multiple of the camera period, and stamped with that tick's time.
+    """
+    dt = 1.0 / imu.rate_hz
+    path = route_path(world, route)
+    follower = PathFollower(path, route.cruise_height, SPEED)
+    quad = Quadrotor(vehicle, world.obstacle_clearance,
+                     position=np.array([route.start[0], route.start[1], 0.0]),
+                     yaw=_heading(path))
+    sensor = ImuModel(imu, np.random.default_rng([seed, 1]))
+    owned = renderer is None
+    renderer = renderer or Renderer(world, camera.pinhole())
+    climb_seconds = route.cruise_height / 1.0 + 2.0
+    ticks = int(round(duration * imu.rate_hz))
+    next_frame, frames = 0.0, 0
+    try:
+        for k in range(ticks + 1):
+            t = k * dt
+            t_ns = int(round(t * 1e9))
+            state = quad.state
+            if t >= next_frame - 1e-9:
+                T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ T_BODY_CAMERA
+                sink.add_frame(t_ns, *renderer.render(T_W_C))
+                frames += 1
+                next_frame += 1.0 / camera.rate_hz
+            _command(quad, follower, t, route, climb_seconds)
+            truth = quad.step(dt)
+            gyro, accel = sensor.measure(truth, dt)
+            # The sample describes [t, t + dt); ground truth is the state at t.
+            sink.add_groundtruth(t_ns, state.position, state.q_W_B, state.velocity,
+                                 sensor.gyro_bias, sensor.accel_bias)
+            sink.add_imu(t_ns, gyro, accel)
+            if quad.collision is not None:
+                c = quad.collision
+                raise RecordError(f"{world.name}: collided at t={c.time:.2f} s at "
+                                  f"{np.round(c.position, 2).tolist()} (clearance {c.clearance:.2f} m)")
+    finally:
+        if owned:
+            renderer.close()
+    return RecordSummary(world.name, route.name, duration, ticks + 1, frames, follower.length)
+
+
+def _command(quad: Quadrotor, follower: PathFollower, t: float, route: Route,
+             climb_seconds: float) -> None:
+    """Stand still, then climb over the start, then follow the path."""
+    if t < STATIC_SECONDS:
+        return
+    if not quad.armed:
+        quad.arm()
+    if t < STATIC_SECONDS + climb_seconds:
+        start = follower.target(0.0)
+        quad.set_target(ControlTarget(position=start.position, yaw=start.yaw))
+    else:
+        quad.set_target(follower.target(t - STATIC_SECONDS - climb_seconds))
+
+
+def _heading(path: np.ndarray) -> float:
+    step = path[min(5, len(path) - 1)] - path[0]
+    return math.atan2(step[1], step[0])
+
+
+def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: VehicleOptions,
+                   imu: ImuOptions, *, duration: float) -> RecordSummary:
+    """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``.
+
+    The seed also picks the route and seeds the IMU noise, so one seed gives one dataset.
+    """
+    if not (math.isfinite(duration) and duration > 0.0):
+        raise RecordError(f"duration must be a positive number of seconds, got {duration}")
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise RecordError(f"{out}: exists and is not empty; choose a new folder")
+    world = build_world(sim.world, sim.seed)
+    route = world.routes[sim.seed % len(world.routes)]
+    with EurocWriter(out, camera.pinhole(), T_BODY_CAMERA, camera.rate_hz, _euroc_noise(imu)) as writer:
+        return fly(world, route, writer, duration=duration, seed=sim.seed,
+                   camera=camera, vehicle=vehicle, imu=imu)
+
+
+def _euroc_noise(imu: ImuOptions) -> dict[str, float]:
+    """The IMU's noise model under the names of EuRoC's ``imu0/sensor.yaml`` (zero when the
+    recording is noiseless, so estimators read what the data holds)."""
+    scale = 1.0 if imu.enabled else 0.0
+    return {
+        "rate_hz": imu.rate_hz,
+        "gyroscope_noise_density": scale * imu.gyro_noise_density,
+        "gyroscope_random_walk": scale * imu.gyro_bias_random_walk,
+        "accelerometer_noise_density": scale * imu.accel_noise_density,
+        "accelerometer_random_walk": scale * imu.accel_bias_random_walk,
+    }

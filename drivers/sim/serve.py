@@ -1,0 +1,146 @@
+"""Serve the simulated vehicle over MAVLink: quadrotor + IMU model + mock PX4, one physics loop.
+
+Physics runs at the IMU rate (``dt = 1 / ImuOptions.rate_hz``); each tick steps the vehicle,
+samples the IMU over that step, and lets the mock PX4 read its link, fly and send. Two clocks:
+
+- ``realtime``: ticks are paced by the wall clock (``MonotonicClock``), for outside MAVLink
+  clients (MAVSDK, QGroundControl, the companion on another machine). A late tick is run at
+  once, without sleeping, until the loop has caught up.
+- ``lockstep``: a ``SimClock`` is advanced one tick at a time, as fast as the CPU allows;
+  everything sleeping on that clock in the same event loop wakes in simulated time, so a run
+  is deterministic and can be much faster than real time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from drivers.clock import MonotonicClock, SimClock
+from drivers.mavlink.link import open_link
+from drivers.sim.imu import ImuModel, ImuOptions
+from drivers.sim.options import CLOCK_MODES
+from drivers.sim.px4 import MockPx4, Px4Options
+from drivers.sim.vehicle import Collision, Quadrotor, VehicleOptions
+
+log = logging.getLogger(__name__)
+
+
+class StopSignal(Protocol):
+    """Anything with ``is_set()``: ``asyncio.Event`` or ``threading.Event``."""
+
+    def is_set(self) -> bool: ...
+
+
+@dataclass(frozen=True)
+class ServeSummary:
+    """How a served run ended."""
+
+    sim_time: float               # simulated seconds flown
+    steps: int                    # physics ticks
+    collision: Collision | None   # the collision that ended the flight, if any
+    pty_path: str | None          # the pseudo-terminal served on, for url "pty"
+
+
+def start_position(world) -> np.ndarray:
+    """Where the vehicle starts: the first route's start of the world, else the origin."""
+    routes = getattr(world, "routes", ()) if world is not None else ()
+    return np.array(routes[0].start, dtype=float) if routes else np.zeros(3)
+
+
+class SimulatedVehicle:
+    """The vehicle, its IMU and the mock PX4 on one link, stepped together."""
+
+    def __init__(self, link, world, *, seed: int = 0,
+                 vehicle_options: VehicleOptions | None = None,
+                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None):
+        self.imu_options = imu_options or ImuOptions()
+        self.dt = 1.0 / self.imu_options.rate_hz
+        clearance = getattr(world, "obstacle_clearance", None) if world is not None else None
+        imu_seed, estimator_seed = np.random.SeedSequence(seed).spawn(2)
+        self.vehicle = Quadrotor(vehicle_options or VehicleOptions(), clearance,
+                                 position=start_position(world))
+        self.imu = ImuModel(self.imu_options, np.random.default_rng(imu_seed))
+        self.px4 = MockPx4(link, self.vehicle, px4_options or Px4Options(),
+                           rng=np.random.default_rng(estimator_seed),
+                           physics_rate_hz=self.imu_options.rate_hz)
+        self.steps = 0
+
+    @property
+    def time(self) -> float:
+        return self.vehicle.state.time
+
+    def tick(self) -> None:
+        """One physics step of dt, its IMU sample, then the flight controller at the new time."""
+        truth = self.vehicle.step(self.dt)
+        gyro, accel = self.imu.measure(truth, self.dt)
+        self.steps += 1
+        self.px4.update(self.vehicle.state.time, gyro, accel)
+
+
+async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realtime",
+                vehicle_options: VehicleOptions | None = None,
+                imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
+                duration: float | None = None, stop: StopSignal | None = None,
+                sim_clock: SimClock | None = None, stop_on_collision: bool = False,
+                on_ready=None) -> ServeSummary:
+    """Serve the vehicle on ``url`` until ``duration`` simulated seconds, ``stop`` is set, or
+    (with ``stop_on_collision``) a collision; returns a :class:`ServeSummary`.
+
+    ``world`` is a ``drivers.sim.world.World`` (anything with ``obstacle_clearance`` and
+    ``routes``) or None for open space. ``sim_clock`` is advanced in lockstep mode (one is made
+    if not given). ``on_ready(sim)`` is called with the :class:`SimulatedVehicle` once the link
+    is open (e.g. to print the pty path).
+    """
+    if clock_mode not in CLOCK_MODES:
+        raise ValueError(f"clock_mode must be one of {', '.join(CLOCK_MODES)}, got {clock_mode!r}")
+    if duration is not None and not duration > 0:
+        raise ValueError(f"duration must be positive seconds, got {duration!r}")
+    link = open_link(url, source_system=(px4_options or Px4Options()).system_id,
+                     source_component=(px4_options or Px4Options()).component_id)
+    try:
+        sim = SimulatedVehicle(link, world, seed=seed, vehicle_options=vehicle_options,
+                               imu_options=imu_options, px4_options=px4_options)
+        if link.pty_path is not None:
+            log.info("serving MAVLink on pseudo-terminal %s", link.pty_path)
+        if on_ready is not None:
+            on_ready(sim)
+        run = _run_realtime if clock_mode == "realtime" else _run_lockstep
+        await run(sim, lambda: _finished(sim, duration, stop, stop_on_collision), sim_clock)
+        return ServeSummary(sim.time, sim.steps, sim.vehicle.collision, link.pty_path)
+    finally:
+        link.close()
+
+
+def _finished(sim: SimulatedVehicle, duration, stop, stop_on_collision) -> bool:
+    if duration is not None and sim.time >= duration - 0.5 * sim.dt:
+        return True
+    if stop is not None and stop.is_set():
+        return True
+    return stop_on_collision and sim.vehicle.collision is not None
+
+
+async def _run_realtime(sim: SimulatedVehicle, finished, _sim_clock) -> None:
+    clock = MonotonicClock()
+    start_wall, start_sim = clock.now(), sim.time
+    while not finished():
+        sim.tick()
+        await clock.sleep(start_wall + (sim.time - start_sim) - clock.now())
+
+
+#: Ticks between yields to the event loop in lockstep when nobody sleeps on the clock.
+LOCKSTEP_YIELD_EVERY = 10
+
+
+async def _run_lockstep(sim: SimulatedVehicle, finished, sim_clock) -> None:
+    clock = sim_clock or SimClock(sim.time)
+    await asyncio.sleep(0)  # let tasks started before us begin at the first simulated instant
+    while not finished():
+        sim.tick()
+        clock.advance_to(sim.time)
+        if clock.next_deadline is not None or sim.steps % LOCKSTEP_YIELD_EVERY == 0:
+            await asyncio.sleep(0)

@@ -1,0 +1,420 @@
+"""The mock PX4 over real MAVLink: a pymavlink client on a loopback UDP socket (or a pty) talks
+to MockPx4 flying the real Quadrotor, stepped here in lockstep so simulated time is exact."""
+
+import math
+import socket
+
+import numpy as np
+import pytest
+
+from drivers.mavlink import px4
+from drivers.mavlink.link import mavlink, open_link
+from drivers.sim.px4 import MockPx4, Px4Options
+from drivers.sim.vehicle import Quadrotor
+
+DT = 0.005  # 200 Hz physics, the IMU rate
+KEY = bytes(range(100, 132))
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Bench:
+    """Vehicle + mock PX4 on one end of a link, a ground-station client on the other."""
+
+    def __init__(self, options=None, *, url=None, obstacle_clearance=None):
+        port = free_udp_port()
+        self.server = open_link(url or f"udpin://127.0.0.1:{port}")
+        client_url = (f"serial://{self.server.pty_path}:57600" if self.server.pty_path
+                      else f"udpout://127.0.0.1:{port}")
+        self.client = open_link(client_url, source_system=255, source_component=190)
+        self.vehicle = Quadrotor(obstacle_clearance=obstacle_clearance)
+        self.px4 = MockPx4(self.server, self.vehicle, options or Px4Options())
+        self.received = []
+        self.client.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                       0, 0, 0)
+
+    def close(self):
+        self.client.close()
+        self.server.close()
+
+    @property
+    def time(self):
+        return self.vehicle.state.time
+
+    def run(self, seconds, each_tick=None):
+        """Fly ``seconds`` of simulated time; return the client's messages of that span."""
+        start = len(self.received)
+        for _ in range(int(round(seconds / DT))):
+            truth = self.vehicle.step(DT)
+            self.px4.update(self.time, truth.angular_velocity, truth.specific_force)
+            if each_tick is not None:
+                each_tick()
+            self.received += self.client.receive_pending()
+        return self.received[start:]
+
+    def command(self, command, *params, link=None):
+        """Send COMMAND_LONG; return the COMMAND_ACK's result (None if none came)."""
+        params = list(params) + [0.0] * (7 - len(params))
+        (link or self.client).mav.command_long_send(1, 1, command, 0, *params)
+        acks = [m for m in self.run(0.02) if m.get_type() == "COMMAND_ACK"
+                and m.command == command]
+        return acks[-1].result if acks else None
+
+    def set_mode(self, mode: px4.Px4Mode):
+        return self.command(mavlink.MAV_CMD_DO_SET_MODE,
+                            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode.main, mode.sub)
+
+    def arm(self):
+        return self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+
+    def send_velocity(self, v_ned, frame=mavlink.MAV_FRAME_LOCAL_NED, yaw=0.0):
+        """A velocity setpoint with an absolute yaw (NED heading), or a zero yaw rate if None."""
+        type_mask = (px4.TYPE_MASK_VELOCITY_YAW if yaw is not None
+                     else px4.TYPE_MASK_VELOCITY_YAW_RATE)
+        self.client.mav.set_position_target_local_ned_send(
+            0, 1, 1, frame, type_mask, 0, 0, 0, *v_ned, 0, 0, 0, yaw or 0.0, 0.0)
+
+    def stream_velocity(self, v_ned, seconds, rate_hz=20, **kwargs):
+        every = int(round(1 / (rate_hz * DT)))
+        ticks = iter(range(10**9))
+        return self.run(seconds, lambda: next(ticks) % every == 0
+                        and self.send_velocity(v_ned, **kwargs))
+
+    def last(self, kind):
+        found = [m for m in self.received if m.get_type() == kind]
+        return found[-1] if found else None
+
+    def texts(self, messages=None):
+        return [m.text for m in (messages or self.received) if m.get_type() == "STATUSTEXT"]
+
+
+@pytest.fixture
+def bench():
+    b = Bench()
+    yield b
+    b.close()
+
+
+def test_heartbeat_shows_a_px4_quadrotor_in_hold(bench):
+    bench.run(1.1)
+    heartbeat = bench.last("HEARTBEAT")
+    assert heartbeat.autopilot == mavlink.MAV_AUTOPILOT_PX4
+    assert heartbeat.type == mavlink.MAV_TYPE_QUADROTOR
+    assert heartbeat.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert not heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert heartbeat.system_status == mavlink.MAV_STATE_STANDBY
+    assert px4.Px4Mode.from_custom_mode(heartbeat.custom_mode).name == "AUTO.LOITER"
+    assert heartbeat.custom_mode == (4 << 16) | (3 << 24)
+    assert heartbeat.get_srcSystem() == 1 and heartbeat.get_srcComponent() == 1
+    for kind in ("SYS_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION", "LOCAL_POSITION_NED",
+                 "ATTITUDE_QUATERNION", "ODOMETRY", "HIGHRES_IMU", "TIMESYNC"):
+        assert bench.last(kind) is not None, kind
+    assert bench.last("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+
+
+def test_arming_is_acknowledged_and_shown_in_the_heartbeat(bench):
+    assert bench.arm() == mavlink.MAV_RESULT_ACCEPTED
+    bench.run(1.1)
+    heartbeat = bench.last("HEARTBEAT")
+    assert heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert heartbeat.system_status == mavlink.MAV_STATE_ACTIVE
+    assert bench.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mavlink.MAV_RESULT_ACCEPTED
+    assert not bench.vehicle.armed
+
+
+def test_unknown_commands_are_unsupported_and_bad_arm_params_too(bench):
+    assert bench.command(mavlink.MAV_CMD_DO_SET_SERVO, 1, 1500) == mavlink.MAV_RESULT_UNSUPPORTED
+    assert bench.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 3) == mavlink.MAV_RESULT_UNSUPPORTED
+    assert bench.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 42, 0) == \
+        mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+
+
+def test_in_flight_disarm_needs_px4s_force_magic(bench):
+    bench.arm()
+    assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF) == mavlink.MAV_RESULT_ACCEPTED
+    bench.run(2.0)
+    assert not bench.vehicle.landed
+    assert bench.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0) == \
+        mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert "Disarming denied: not landed" in bench.texts()
+    assert bench.vehicle.armed
+    assert bench.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                         px4.FORCE_ARM_DISARM_MAGIC) == mavlink.MAV_RESULT_ACCEPTED
+    assert not bench.vehicle.armed
+
+
+def test_highres_imu_rate_follows_set_message_interval(bench):
+    def rate(messages):
+        stamps = [m.time_usec for m in messages if m.get_type() == "HIGHRES_IMU"]
+        return (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-6)
+
+    assert rate(bench.run(1.0)) == pytest.approx(50, rel=0.05)
+    assert bench.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                         mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 5000) == mavlink.MAV_RESULT_ACCEPTED
+    messages = bench.run(1.0)
+    assert rate(messages) == pytest.approx(200, rel=0.02)
+    imu = [m for m in messages if m.get_type() == "HIGHRES_IMU"][-1]
+    # PX4 semantics: FRD body, specific force: at rest on the ground z reads -g
+    assert imu.zacc == pytest.approx(-9.80665, abs=0.05)
+    assert abs(imu.xacc) < 0.05 and abs(imu.ygyro) < 1e-3
+    assert imu.fields_updated & 0b111111 == 0b111111
+    assert imu.time_usec == pytest.approx(bench.time * 1e6, abs=DT * 1e6)
+    assert bench.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                         mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1) == mavlink.MAV_RESULT_ACCEPTED
+    assert not [m for m in bench.run(0.5) if m.get_type() == "HIGHRES_IMU"]
+
+
+def test_request_message_sends_autopilot_version_with_capabilities(bench):
+    assert bench.command(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                         mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == mavlink.MAV_RESULT_ACCEPTED
+    version = bench.last("AUTOPILOT_VERSION")
+    for capability in (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2,
+                       mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED,
+                       mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT,
+                       mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT):
+        assert version.capabilities & capability
+    assert bench.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 9999) == mavlink.MAV_RESULT_DENIED
+
+
+def test_offboard_is_refused_without_a_setpoint_stream(bench):
+    bench.arm()
+    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    bench.stream_velocity((0, 0, 0), 0.6)  # streaming, but not yet for a second
+    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    bench.stream_velocity((0, 0, 0), 0.6, rate_hz=1)  # for long enough, but below 2 Hz
+    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert bench.px4.mode == px4.AUTO_LOITER
+
+
+def test_offboard_after_streaming_flies_the_velocity_in_ned(bench):
+    bench.arm()
+    bench.stream_velocity((1.0, 0.0, -0.5), 1.2)
+    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_ACCEPTED
+    bench.stream_velocity((1.0, 0.0, -0.5), 3.0)
+    bench.run(1.1)
+    assert px4.Px4Mode.from_custom_mode(bench.last("HEARTBEAT").custom_mode) == px4.OFFBOARD
+    position = bench.last("LOCAL_POSITION_NED")
+    assert position.x > 1.5 and position.z < -0.8 and abs(position.y) < 0.2  # north and up
+    assert bench.vehicle.state.position[1] > 1.5  # north is the world's +y (ENU)
+
+
+def test_body_ned_velocity_is_rotated_by_the_attitude(bench):
+    bench.arm()
+    body = {"frame": mavlink.MAV_FRAME_BODY_NED, "yaw": None}
+    bench.stream_velocity((1.0, 0.0, -0.5), 1.2, **body)
+    bench.set_mode(px4.OFFBOARD)
+    bench.stream_velocity((1.0, 0.0, -0.5), 3.0, **body)
+    x, y, z = bench.vehicle.state.position
+    assert x > 1.5 and abs(y) < 0.2 and z > 0.5  # yaw 0 faces east: body forward is +x ENU
+
+
+@pytest.mark.parametrize("action, mode", [("hold", px4.AUTO_LOITER), ("land", px4.AUTO_LAND)])
+def test_offboard_loss_failsafe_after_com_of_loss_t(action, mode):
+    bench = Bench(Px4Options(offboard_loss_action=action, disarm_after_land=0.5))
+    try:
+        bench.arm()
+        bench.stream_velocity((0.0, 0.0, -1.0), 1.2)
+        bench.set_mode(px4.OFFBOARD)
+        bench.stream_velocity((0.0, 0.0, -1.0), 1.0)
+        bench.run(0.9)
+        assert bench.px4.mode == px4.OFFBOARD
+        bench.run(0.2)
+        assert bench.px4.mode == mode
+        assert any("offboard lost" in text for text in bench.texts())
+        if action == "land":
+            bench.run(6.0)
+            assert bench.vehicle.landed and not bench.vehicle.armed
+    finally:
+        bench.close()
+
+
+def test_unsupported_frames_are_rejected_and_do_not_move_the_vehicle(bench):
+    bench.arm()
+    start = bench.vehicle.state.position
+    messages = bench.stream_velocity((1.0, 0.0, -1.0), 1.2, frame=mavlink.MAV_FRAME_LOCAL_ENU)
+    assert any("coordinate frame 4" in text
+               for text in bench.texts(messages))
+    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert np.linalg.norm(bench.vehicle.state.position - start) < 0.01
+
+
+def test_takeoff_climbs_to_the_takeoff_altitude_then_holds_and_land_disarms(bench):
+    bench.arm()
+    assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
+                         math.nan) == mavlink.MAV_RESULT_ACCEPTED
+    bench.run(4.0)
+    assert bench.px4.mode == px4.AUTO_LOITER
+    assert bench.vehicle.state.position[2] == pytest.approx(2.5, abs=0.3)
+    assert bench.last("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+    assert bench.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
+    bench.run(2.0)
+    assert -bench.vehicle.state.velocity[2] == pytest.approx(0.7, abs=0.1)  # MPC_LAND_SPEED
+    bench.run(4.0)
+    assert bench.vehicle.landed and not bench.vehicle.armed
+
+
+def test_signing_ignores_unsigned_commands_and_accepts_signed_ones():
+    bench = Bench(Px4Options(signing_key=KEY.hex()))
+    try:
+        assert bench.arm() is None  # unsigned: ignored, no ACK
+        assert not bench.vehicle.armed
+        bench.client.setup_signing(KEY)
+        assert bench.arm() == mavlink.MAV_RESULT_ACCEPTED
+        assert bench.vehicle.armed
+        assert bench.last("COMMAND_ACK").get_signed()
+    finally:
+        bench.close()
+
+
+def test_garbage_bytes_neither_crash_the_mock_nor_change_its_state(bench):
+    bench.arm()
+    rng = np.random.default_rng(7)
+    before = (bench.px4.mode, bench.vehicle.armed, bench.px4.message_rate_hz(
+        mavlink.MAVLINK_MSG_ID_HIGHRES_IMU))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+        target = (bench.server.address.host, bench.server.address.port)
+        for size in rng.integers(1, 300, size=200):
+            raw.sendto(rng.integers(0, 256, size=size, dtype=np.uint8).tobytes(), target)
+        # and frames that look like MAVLink 2 but are corrupt
+        raw.sendto(bytes([0xFD, 33, 0, 0, 0, 255, 190, 76, 0, 0]) + bytes(40), target)
+        bench.run(0.1)
+    assert bench.server.bad_data_count > 0
+    assert (bench.px4.mode, bench.vehicle.armed, bench.px4.message_rate_hz(
+        mavlink.MAVLINK_MSG_ID_HIGHRES_IMU)) == before
+    assert bench.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mavlink.MAV_RESULT_ACCEPTED
+
+
+def test_timesync_is_answered_and_the_mock_uses_answers_to_its_own():
+    bench = Bench()
+    try:
+        bench.run(0.5)
+        bench.client.mav.timesync_send(0, 123456789)
+        reply = [m for m in bench.run(0.02) if m.get_type() == "TIMESYNC" and m.tc1 != 0][-1]
+        assert reply.ts1 == 123456789
+        assert reply.tc1 == pytest.approx(bench.time * 1e9, abs=0.03e9)
+
+        offset_ns = 5_000_000_000  # the client's clock runs 5 s ahead of the mock's boot time
+
+        def answer():
+            for m in bench.client.receive_pending():
+                bench.received.append(m)
+                if m.get_type() == "TIMESYNC" and m.tc1 == 0:
+                    bench.client.mav.timesync_send(int(bench.time * 1e9) + offset_ns, m.ts1)
+        bench.run(1.1, answer)
+        assert bench.px4.timesync_offset_ns == pytest.approx(offset_ns, abs=0.01e9)
+    finally:
+        bench.close()
+
+
+def test_pty_link_serves_the_same_px4():
+    bench = Bench(url="pty")
+    try:
+        bench.run(0.1)
+        heartbeat = bench.last("HEARTBEAT")
+        assert heartbeat.autopilot == mavlink.MAV_AUTOPILOT_PX4
+        assert bench.arm() == mavlink.MAV_RESULT_ACCEPTED
+    finally:
+        bench.close()
+
+
+def test_a_collision_ends_the_flight():
+    def wall(points):  # a wall across the world at x = 2 m
+        return 2.0 - np.asarray(points)[:, 0]
+    bench = Bench(obstacle_clearance=wall)
+    try:
+        bench.arm()
+        bench.stream_velocity((0.0, 2.0, -0.5), 1.2)  # NED east = ENU +x, towards the wall
+        bench.set_mode(px4.OFFBOARD)
+        bench.stream_velocity((0.0, 2.0, -0.5), 3.0)
+        assert bench.vehicle.collision is not None and not bench.vehicle.armed
+        assert any("Collision" in text for text in bench.texts())
+        bench.run(1.0)
+        assert bench.last("HEARTBEAT").system_status == mavlink.MAV_STATE_EMERGENCY
+        assert bench.arm() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    finally:
+        bench.close()
+
+
+def test_external_vision_odometry_moves_the_estimate_not_the_truth(bench):
+    def send_vision():
+        bench.client.mav.odometry_send(int(bench.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED,
+                                       mavlink.MAV_FRAME_BODY_FRD, 3.0, 4.0, 0.0,
+                                       [1, 0, 0, 0], 0, 0, 0, 0, 0, 0,
+                                       [math.nan] + [0] * 20, [math.nan] + [0] * 20)
+    bench.run(0.5, send_vision)
+    position = bench.last("LOCAL_POSITION_NED")
+    assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1), pytest.approx(4.0, abs=0.1))
+    assert np.linalg.norm(bench.vehicle.state.position) < 0.01
+
+
+def test_options_reject_bad_values():
+    with pytest.raises(ValueError, match="offboard_loss_action"):
+        Px4Options(offboard_loss_action="terminate")
+    with pytest.raises(ValueError, match="64 hex digits"):
+        Px4Options(signing_key="abcd")
+    with pytest.raises(ValueError, match="offboard_loss_timeout"):
+        Px4Options(offboard_loss_timeout=0.0)
+
+
+def test_commands_with_nan_where_a_number_is_needed_are_denied(bench):
+    assert bench.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, math.nan, 5000) == \
+        mavlink.MAV_RESULT_DENIED
+    assert bench.command(mavlink.MAV_CMD_DO_SET_MODE, 1, math.nan, 0) == \
+        mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert bench.px4.mode == px4.AUTO_LOITER
+
+
+def test_serve_in_lockstep_runs_simulated_time_and_wakes_sleepers_on_it():
+    import asyncio
+
+    from drivers.clock import SimClock
+    from drivers.sim.serve import serve
+
+    clock = SimClock()
+    woke_at = []
+
+    async def main():
+        async def sleeper():
+            await clock.sleep(0.5)
+            woke_at.append(clock.now())
+        task = asyncio.create_task(sleeper())
+        summary = await serve("pty", None, clock_mode="lockstep", duration=1.0, sim_clock=clock,
+                              seed=3)
+        await task
+        return summary
+
+    summary = asyncio.run(main())
+    assert summary.steps == 200 and summary.sim_time == pytest.approx(1.0)
+    assert summary.collision is None and summary.pty_path.startswith("/dev/")
+    assert woke_at == [pytest.approx(0.5)]
+
+
+def test_serve_rejects_bad_arguments():
+    import asyncio
+
+    from drivers.sim.serve import serve
+
+    with pytest.raises(ValueError, match="clock_mode"):
+        asyncio.run(serve("pty", None, clock_mode="fast"))
+    with pytest.raises(ValueError, match="duration"):
+        asyncio.run(serve("pty", None, duration=-1.0))
+    with pytest.raises(ValueError, match="scheme"):
+        asyncio.run(serve("udp://127.0.0.1:1", None, duration=1.0))
+
+
+def test_serve_starts_the_vehicle_at_the_worlds_first_route():
+    import asyncio
+
+    from drivers.sim.serve import serve
+    from drivers.sim.world import build_world
+
+    world = build_world("dome", seed=0)
+    served = []
+    summary = asyncio.run(serve("pty", world, clock_mode="lockstep", duration=0.1,
+                                on_ready=served.append))
+    assert summary.collision is None
+    assert served[0].vehicle.state.position[:2] == pytest.approx(world.routes[0].start[:2])

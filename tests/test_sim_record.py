@@ -1,0 +1,134 @@
+"""A recorded dataset is self-consistent: its IMU integrates onto its ground truth, its depth
+lies on the world's surfaces, and the same seed records the same flight."""
+
+import hashlib
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import GRAVITY, make_pose, quat_to_rot, so3_exp
+from companion.cli import main
+from drivers.camera.options import CameraOptions
+from drivers.dataset.euroc import read_camera, read_depth_png, read_groundtruth, read_imu
+from drivers.sim.imu import ImuOptions
+from drivers.sim.options import SimOptions
+from drivers.sim.record import RecordError, record_dataset
+from drivers.sim.render import RenderError, Renderer
+from drivers.sim.vehicle import VehicleOptions
+from drivers.sim.world import build_world
+
+DURATION = 9.0  # 2 s on the ground, a climb, and the start of the path
+
+
+def _egl_available() -> bool:
+    try:
+        Renderer(build_world("dome", 0), CameraOptions(width=16, height=16).pinhole()).close()
+    except RenderError:
+        return False
+    return True
+
+
+pytestmark = pytest.mark.skipif(not _egl_available(), reason="EGL/OpenGL unavailable here")
+
+
+@pytest.fixture(scope="module")
+def noiseless(tmp_path_factory):
+    out = tmp_path_factory.mktemp("noiseless")
+    sim = SimOptions(world="mine", seed=3)
+    record_dataset(out, sim, CameraOptions(), VehicleOptions(), ImuOptions(enabled=False),
+                   duration=DURATION)
+    return out, sim
+
+
+def test_layout_holds_every_stream_at_its_rate(noiseless):
+    out, _ = noiseless
+    imu, truth = read_imu(out), read_groundtruth(out)
+    cam, depth = read_camera(out, "cam0"), read_camera(out, "depth0")
+    assert len(imu.t_ns) == len(truth.t_ns) == DURATION * 200 + 1
+    assert np.all(np.diff(imu.t_ns) == 5_000_000)
+    assert len(cam.t_ns) == DURATION * 20 + 1
+    assert np.array_equal(cam.t_ns, depth.t_ns)
+    assert all(path.is_file() for path in cam.paths + depth.paths)
+    expected = CameraOptions().pinhole()
+    assert (cam.camera.width, cam.camera.height) == (expected.width, expected.height)
+    assert [cam.camera.fx, cam.camera.cx, cam.camera.cy] == pytest.approx(
+        [expected.fx, expected.cx, expected.cy], rel=1e-11)
+    assert cam.rate_hz == 20.0
+    # The flight leaves the ground: at least a metre of height is reached.
+    assert truth.position[:, 2].max() > 1.0
+
+
+def _integrate(imu, truth, first: int, samples: int):
+    """Strapdown integration of body-frame IMU samples from the true state at ``first``."""
+    R = quat_to_rot(truth.q_W_B[first])
+    v, p = truth.velocity[first].copy(), truth.position[first].copy()
+    gravity = np.array([0.0, 0.0, -GRAVITY])
+    for k in range(first, first + samples):
+        dt = (imu.t_ns[k + 1] - imu.t_ns[k]) * 1e-9
+        a = R @ imu.accel[k] + gravity
+        p += v * dt + 0.5 * a * dt * dt
+        v += a * dt
+        R = R @ so3_exp(imu.gyro[k] * dt)
+    return p
+
+
+@pytest.mark.parametrize("start_s", [0.5, 3.0, 5.5, 7.5])
+def test_noiseless_imu_integrates_onto_ground_truth_for_a_second(noiseless, start_s):
+    out, _ = noiseless
+    imu, truth = read_imu(out), read_groundtruth(out)
+    first = int(start_s * 200)
+    end = _integrate(imu, truth, first, 200)
+    assert np.linalg.norm(end - truth.position[first + 200]) < 0.05
+
+
+def test_depth_images_lie_on_the_worlds_surfaces(noiseless):
+    out, sim = noiseless
+    world = build_world(sim.world, sim.seed)
+    truth, depth_stream = read_groundtruth(out), read_camera(out, "depth0")
+    rays = depth_stream.camera.rays()
+    for index in (40, 120, 170):
+        depth = read_depth_png(depth_stream.paths[index])
+        row = np.searchsorted(truth.t_ns, depth_stream.t_ns[index])
+        assert truth.t_ns[row] == depth_stream.t_ns[index]
+        T_W_C = make_pose(quat_to_rot(truth.q_W_B[row]), truth.position[row]) @ depth_stream.T_B_C
+        valid = np.isfinite(depth)
+        assert valid.mean() > 0.99  # a mine has no sky
+        points_C = (depth[..., None] * rays)[valid][::97]
+        points_W = points_C @ T_W_C[:3, :3].T + T_W_C[:3, 3]
+        on_floor = points_W[:, 2] < 0.02
+        # Floor points sit on z = 0; every other point is on a wall, ceiling or pillar.
+        assert np.all(np.abs(points_W[on_floor, 2]) < 0.02)
+        assert np.all(world.obstacle_clearance(points_W[~on_floor]) < 0.02)
+
+
+def test_the_same_seed_records_the_same_flight(tmp_path):
+    digests = []
+    for name, seed in (("a", 5), ("b", 5), ("c", 6)):
+        record_dataset(tmp_path / name, SimOptions(world="dome", seed=seed), CameraOptions(),
+                       VehicleOptions(), ImuOptions(), duration=0.5)
+        files = ["imu0/data.csv", "state_groundtruth_estimate0/data.csv", "cam0/data/0.png"]
+        digests.append([hashlib.sha256((tmp_path / name / "mav0" / f).read_bytes()).hexdigest()
+                        for f in files])
+    assert digests[0] == digests[1]
+    assert digests[0][0] != digests[2][0]  # another seed: other noise (and another world)
+
+
+def test_recording_refuses_a_folder_in_use_and_a_bad_duration(tmp_path):
+    (tmp_path / "keep.txt").write_text("mine")
+    with pytest.raises(RecordError, match="not empty"):
+        record_dataset(tmp_path, SimOptions(), CameraOptions(), VehicleOptions(), ImuOptions(),
+                       duration=1.0)
+    with pytest.raises(RecordError, match="positive"):
+        record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
+                       ImuOptions(), duration=float("nan"))
+
+
+def test_record_command_writes_a_dataset_and_reports_it(tmp_path, capsys):
+    out = tmp_path / "set"
+    status = main(["sim", "record", "--world", "sewer", "--seed", "2", "--duration", "0.5",
+                   "--out", str(out), "--set", "camera.width=320", "--set", "camera.height=240"])
+    assert status == 0
+    assert "recorded 0.5 s of sewer" in capsys.readouterr().out
+    assert read_camera(out).camera.width == 320
+    assert main(["sim", "record", "--duration", "0.5", "--out", str(out)]) == 1
+    assert "not empty" in capsys.readouterr().err
