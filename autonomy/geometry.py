@@ -47,15 +47,70 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return quat_to_rotvec(rot_to_quat(R))
 
 
-def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
+def quat_to_rotvec(q) -> np.ndarray:
     """Rotation vector of a unit quaternion, taking the short way round (``|phi| <= pi``)."""
-    w, v = float(q[0]), np.asarray(q[1:], dtype=float)
+    return np.array(quat_log(q))
+
+
+# Plain-float forms of the quaternion maps, for inner loops (the simulator steps the vehicle
+# every 5 ms and a numpy call costs microseconds); the array forms above and below wrap them.
+
+
+def quat_log(q) -> tuple[float, float, float]:
+    """``Log`` of SO(3) on a unit quaternion: its rotation vector, the short way round."""
+    w, x, y, z = (float(c) for c in q)
     if w < 0.0:
-        w, v = -w, -v
-    s = float(np.linalg.norm(v))
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
     if s < 1e-12:
-        return 2.0 * v
-    return (2.0 * math.atan2(s, w) / s) * v
+        return (2.0 * x, 2.0 * y, 2.0 * z)
+    k = 2.0 * math.atan2(s, w) / s
+    return (k * x, k * y, k * z)
+
+
+def quat_exp(phi) -> tuple[float, float, float, float]:
+    """``Exp`` of SO(3) as a unit quaternion: ``(cos(|phi|/2), sin(|phi|/2) phi/|phi|)``."""
+    x, y, z = (float(c) for c in phi)
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < 1e-12:
+        return (1.0, 0.5 * x, 0.5 * y, 0.5 * z)
+    s = math.sin(0.5 * angle) / angle
+    return (math.cos(0.5 * angle), s * x, s * y, s * z)
+
+
+def hamilton_product(a, b) -> tuple[float, float, float, float]:
+    """Hamilton product ``a * b`` of quaternions ``(w, x, y, z)``."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def quat_from_axes(x, y, z) -> tuple[float, float, float, float]:
+    """Unit quaternion of the rotation whose matrix has columns ``x, y, z`` (Shepperd's
+    method: divide by the largest of the four squared components, for accuracy)."""
+    r00, r10, r20 = x
+    r01, r11, r21 = y
+    r02, r12, r22 = z
+    trace = r00 + r11 + r22
+    if trace > 0.0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
+    elif r00 > r11 and r00 > r22:
+        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
+        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
+    elif r11 > r22:
+        s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
+        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
+        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
@@ -71,37 +126,15 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
 
 
 def rot_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix (Shepperd's method)."""
-    trace = R[0, 0] + R[1, 1] + R[2, 2]
-    if trace > 0.0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
+    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix."""
+    R = np.asarray(R, dtype=float)
+    q = np.array(quat_from_axes(R[:, 0], R[:, 1], R[:, 2]))
     return -q if q[0] < 0.0 else q
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def quat_multiply(a, b) -> np.ndarray:
     """Hamilton product ``a * b``: ``quat_to_rot(a * b) == quat_to_rot(a) @ quat_to_rot(b)``."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
+    return np.array(hamilton_product(a, b))
 
 
 def rot_z(yaw: float) -> np.ndarray:

@@ -44,7 +44,7 @@ from typing import Callable
 
 import numpy as np
 
-from autonomy.geometry import GRAVITY
+from autonomy.geometry import GRAVITY, hamilton_product, quat_exp, quat_from_axes, quat_log
 from autonomy.options import option, validate
 
 #: ``obstacle_clearance(points (N, 3)) -> (N,)`` metres to the nearest solid surface other than
@@ -259,64 +259,9 @@ def _rotate_inverse(q, v):
     return _rotate((q[0], -q[1], -q[2], -q[3]), v)
 
 
-def _multiply(a, b):
-    """Hamilton product ``a * b``."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-def _exp(phi):
-    """Unit quaternion of the rotation vector ``phi`` (``Exp`` of SO(3))."""
-    x, y, z = phi
-    angle = math.sqrt(x * x + y * y + z * z)
-    if angle < 1e-12:
-        return (1.0, 0.5 * x, 0.5 * y, 0.5 * z)
-    s = math.sin(0.5 * angle) / angle
-    return (math.cos(0.5 * angle), s * x, s * y, s * z)
-
-
-def _log(q):
-    """Rotation vector of a unit quaternion, the short way round."""
-    w, x, y, z = q
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    s = math.sqrt(x * x + y * y + z * z)
-    if s < 1e-12:
-        return (2.0 * x, 2.0 * y, 2.0 * z)
-    k = 2.0 * math.atan2(s, w) / s
-    return (k * x, k * y, k * z)
-
-
 def _normalised(q):
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-
-
-def _quat_from_columns(x, y, z):
-    """Unit quaternion of the rotation matrix with columns ``x, y, z`` (Shepperd's method)."""
-    r00, r10, r20 = x
-    r01, r11, r21 = y
-    r02, r12, r22 = z
-    trace = r00 + r11 + r22
-    if trace > 0.0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
-    elif r00 > r11 and r00 > r22:
-        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
-        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
-    elif r11 > r22:
-        s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
-        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
-    else:
-        s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
-        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
-    return _normalised(q)
 
 
 def _attitude_from_body_z(bz, yaw):
@@ -330,7 +275,7 @@ def _attitude_from_body_z(bz, yaw):
     n = math.sqrt(yx * yx + yy * yy + yz * yz)
     yx, yy, yz = yx / n, yy / n, yz / n
     x = (yy * bz[2] - yz * bz[1], yz * bz[0] - yx * bz[2], yx * bz[1] - yy * bz[0])
-    return _quat_from_columns(x, (yx, yy, yz), bz)
+    return quat_from_axes(x, (yx, yy, yz), bz)
 
 
 def _yaw_of(q):
@@ -413,7 +358,7 @@ class Quadrotor:
         self._p = p
         self._v = (0.0, 0.0, 0.0)
         self._a = (0.0, 0.0, 0.0)
-        self._q = _exp((0.0, 0.0, yaw))
+        self._q = quat_exp((0.0, 0.0, yaw))
         self._w = (0.0, 0.0, 0.0)
         self._on_ground = p[2] == 0.0
         self._thrust_lifts = False
@@ -611,7 +556,7 @@ class Quadrotor:
         """First-order attitude tracking: body rates ``P log(q^-1 q_sp)`` plus the feed-forward,
         clipped per axis (MC_*RATE_MAX)."""
         o = self.options
-        e = _log(_multiply((self._q[0], -self._q[1], -self._q[2], -self._q[3]), q_sp))
+        e = quat_log(hamilton_product((self._q[0], -self._q[1], -self._q[2], -self._q[3]), q_sp))
         ff = _rotate_inverse(self._q, (0.0, 0.0, yaw_rate_ff))
         gains = (o.attitude_p, o.attitude_p, o.yaw_p)
         return tuple(_clip(gains[i] * e[i] + ff[i], self._rate_max[i]) for i in range(3))
@@ -690,7 +635,7 @@ class Quadrotor:
         self._p = self._integrate_position(a, dt)
         v = self._v
         self._v = (v[0] + a[0] * dt, v[1] + a[1] * dt, v[2] + a[2] * dt)
-        self._q = _normalised(_multiply(q0, _exp((w[0] * dt, w[1] * dt, w[2] * dt))))
+        self._q = _normalised(hamilton_product(q0, quat_exp((w[0] * dt, w[1] * dt, w[2] * dt))))
         self._w = w
         self._a = a
         self._on_ground = on_ground

@@ -1,0 +1,25 @@
+"""`companion sim serve` as a user runs it: it says where to connect, and refuses bad links."""
+
+from companion.cli import main
+
+
+def test_serve_on_a_pty_in_lockstep_prints_the_device_and_the_flight(capsys):
+    status = main(["sim", "serve", "--world", "sewer", "--seed", "1", "--mavlink", "pty",
+                   "--clock", "lockstep", "--duration", "2"])
+    out = capsys.readouterr().out
+    assert status == 0
+    assert "serving a simulated PX4 quadrotor in sewer (seed 1, lockstep clock) on /dev/" in out
+    assert "served 2.0 s of simulated flight" in out
+
+
+def test_serve_refuses_a_malformed_link_url(capsys):
+    status = main(["sim", "serve", "--mavlink", "udpin://nowhere", "--duration", "1"])
+    assert status == 1
+    assert capsys.readouterr().err.startswith("sim serve: ")
+
+
+def test_sim_commands_reject_unknown_worlds_and_negative_seeds(capsys):
+    assert main(["sim", "record", "--world", "moon", "--out", "x"]) == 2
+    assert "invalid choice: 'moon'" in capsys.readouterr().err
+    assert main(["sim", "serve", "--seed", "-3"]) == 2
+    assert "non-negative integer" in capsys.readouterr().err
