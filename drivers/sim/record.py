@@ -39,6 +39,12 @@ SPEED = 1.0
 STATIC_SECONDS = 2.0
 """Time standing still on the ground before take-off, for static initialisation."""
 
+CLIMB_SECONDS_PER_METRE = 1.0
+SETTLE_SECONDS = 2.0
+"""The climb over the start is given ``cruise_height * CLIMB_SECONDS_PER_METRE +
+SETTLE_SECONDS`` (the controller climbs at about 1 m/s from rest and settles) before the path
+begins."""
+
 
 class RecordError(RuntimeError):
     """A recording that could not be made or was cut short, with the reason."""
@@ -152,7 +158,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     sensor = ImuModel(imu, np.random.default_rng([seed, 1]))
     owned = renderer is None
     renderer = renderer or Renderer(world, camera.pinhole())
-    climb_seconds = route.cruise_height / 1.0 + 2.0
+    climb_seconds = route.cruise_height * CLIMB_SECONDS_PER_METRE + SETTLE_SECONDS
     ticks = int(round(duration * imu.rate_hz))
     next_frame, frames = 0.0, 0
     try:
