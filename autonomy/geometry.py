@@ -212,3 +212,99 @@ class PinholeCamera:
         v = (np.arange(self.height) - self.cy) / self.fy
         uu, vv = np.meshgrid(u, v)
         return np.stack([uu, vv, np.ones_like(uu)], axis=-1)
+
+
+# ---------------------------------------------------------------- lens distortion
+#
+# The radial-tangential ("plumb bob") model of OpenCV and the EuRoC/Kalibr ``radtan`` model,
+# coefficients in OpenCV's order ``(k1, k2, p1, p2[, k3])``. A point with normalised image
+# coordinates ``(x, y) = (X/Z, Y/Z)`` appears at the distorted normalised coordinates
+#
+#     r^2 = x^2 + y^2,   a = 1 + k1 r^2 + k2 r^4 + k3 r^6
+#     x_d = a x + 2 p1 x y + p2 (r^2 + 2 x^2)
+#     y_d = a y + p1 (r^2 + 2 y^2) + 2 p2 x y
+#
+# and its pixel is ``(fx x_d + cx, fy y_d + cy)``. Undistortion inverts this map numerically.
+
+
+def _distortion_coefficients(distortion) -> tuple[float, float, float, float, float]:
+    """``(k1, k2, p1, p2, k3)`` of 0, 4 or 5 OpenCV-order coefficients (missing ones are 0)."""
+    coefficients = tuple(float(c) for c in np.asarray(distortion, dtype=float).ravel())
+    if len(coefficients) not in (0, 4, 5):
+        raise ValueError("radial-tangential distortion takes 0, 4 or 5 coefficients "
+                         f"(k1, k2, p1, p2[, k3]), got {len(coefficients)}")
+    if not all(math.isfinite(c) for c in coefficients):
+        raise ValueError(f"distortion coefficients must be finite, got {coefficients}")
+    return (coefficients + (0.0,) * 5)[:5]  # type: ignore[return-value]
+
+
+def _as_points(points, name: str) -> np.ndarray:
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2), got {p.shape}")
+    return p
+
+
+def distort_normalised(distortion, normalised) -> np.ndarray:
+    """Distorted normalised coordinates ``(N, 2)`` of undistorted ones ``(N, 2)`` (model above)."""
+    k1, k2, p1, p2, k3 = _distortion_coefficients(distortion)
+    xy = _as_points(normalised, "normalised coordinates")
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return np.stack([a * x + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                     a * y + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y], axis=1)
+
+
+def distort_points(camera: PinholeCamera, distortion, normalised) -> np.ndarray:
+    """Pixels ``(N, 2)`` at which a distorting lens images normalised coordinates ``(N, 2)``."""
+    d = distort_normalised(distortion, normalised)
+    return np.stack([camera.fx * d[:, 0] + camera.cx, camera.fy * d[:, 1] + camera.cy], axis=1)
+
+
+def undistort_normalised(distortion, distorted, *, iterations: int = 20,
+                         tolerance: float = 1e-12) -> np.ndarray:
+    """Invert :func:`distort_normalised` by Newton's method on the 2x2 Jacobian.
+
+    Starts from the distorted point itself and stops once every point moves less than
+    ``tolerance``; for the moderate distortion of real lenses (EuRoC: k1 = -0.28) it converges
+    in about five steps to machine precision inside the image. Points where the model folds
+    over (Jacobian singular, far outside any real image) come back as NaN.
+    """
+    k1, k2, p1, p2, k3 = _distortion_coefficients(distortion)
+    target = _as_points(distorted, "distorted coordinates")
+    if not (k1 or k2 or p1 or p2 or k3) or len(target) == 0:
+        return target.copy()
+    x, y = target[:, 0].copy(), target[:, 1].copy()
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d a / d r^2
+        ex = a * x + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - target[:, 0]
+        ey = a * y + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - target[:, 1]
+        jxx = a + 2.0 * x * x * da + 2.0 * p1 * y + 6.0 * p2 * x
+        jxy = 2.0 * x * y * da + 2.0 * p1 * x + 2.0 * p2 * y
+        jyx = 2.0 * x * y * da + 2.0 * p1 * x + 2.0 * p2 * y
+        jyy = a + 2.0 * y * y * da + 6.0 * p1 * y + 2.0 * p2 * x
+        det = jxx * jyy - jxy * jyx
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step_x = (jyy * ex - jxy * ey) / det
+            step_y = (jxx * ey - jyx * ex) / det
+        x -= step_x
+        y -= step_y
+        if not np.any(np.abs(step_x) + np.abs(step_y) > tolerance):
+            break
+    out = np.stack([x, y], axis=1)
+    residual = distort_normalised((k1, k2, p1, p2, k3), out) - target
+    out[~(np.abs(residual).max(axis=1) < 1e-9)] = np.nan
+    return out
+
+
+def undistort_points(camera: PinholeCamera, distortion, pixels) -> np.ndarray:
+    """Undistorted normalised image coordinates ``(N, 2)`` (``X/Z, Y/Z``) of distorted pixels
+    ``(N, 2)`` seen through ``camera`` with radial-tangential ``distortion`` (model above);
+    NaN where the model cannot be inverted."""
+    uv = _as_points(pixels, "pixels")
+    distorted = np.stack([(uv[:, 0] - camera.cx) / camera.fx,
+                          (uv[:, 1] - camera.cy) / camera.fy], axis=1)
+    return undistort_normalised(distortion, distorted)

@@ -78,3 +78,34 @@ def test_pinhole_rejects_impossible_intrinsics(kwargs, message):
 def test_field_of_view_outside_the_open_half_turn_is_rejected():
     with pytest.raises(ValueError, match="field of view"):
         PinholeCamera.from_hfov(640, 480, math.pi)
+
+
+def test_undistortion_inverts_the_radial_tangential_model_and_matches_opencv():
+    import cv2
+
+    from autonomy.geometry import distort_points, undistort_points
+
+    camera = PinholeCamera(752, 480, 458.654, 457.296, 367.215, 248.375)
+    euroc = (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
+    u, v = np.meshgrid(np.linspace(0, 751, 12), np.linspace(0, 479, 9))
+    pixels = np.column_stack([u.ravel(), v.ravel()])
+    for distortion in (euroc, euroc + (0.01,), ()):
+        xy = undistort_points(camera, distortion, pixels)
+        assert np.allclose(distort_points(camera, distortion, xy), pixels, atol=1e-8)
+        expected = cv2.undistortPoints(
+            pixels.reshape(-1, 1, 2), camera.K, np.array(distortion, dtype=float), None, None,
+            None, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)).reshape(-1, 2)
+        assert np.allclose(xy, expected, atol=1e-7)
+
+
+def test_undistortion_rejects_bad_coefficients_and_shapes():
+    from autonomy.geometry import undistort_points
+
+    camera = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
+    with pytest.raises(ValueError, match="coefficients"):
+        undistort_points(camera, (0.1, 0.2), np.zeros((1, 2)))
+    with pytest.raises(ValueError, match="finite"):
+        undistort_points(camera, (np.nan, 0.0, 0.0, 0.0), np.zeros((1, 2)))
+    with pytest.raises(ValueError, match="shape"):
+        undistort_points(camera, (), np.zeros((3,)))
+    assert undistort_points(camera, (-0.3, 0.1, 0.0, 0.0), np.zeros((0, 2))).shape == (0, 2)

@@ -1,0 +1,245 @@
+"""The VINS front-end: sparse corners tracked from frame to frame with persistent ids.
+
+The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracker.cpp):
+
+1. optional CLAHE on the grey image;
+2. pyramidal Lucas-Kanade from the previous frame's features into this one, then back again;
+   a feature survives when both directions converge, it lands inside the image and the
+   round trip returns within ``forward_backward_threshold`` pixels of where it started;
+3. RANSAC on the fundamental matrix between the two frames' *undistorted* positions, expressed
+   as pixels of the camera's ideal pinhole (so the threshold means pixels);
+4. features are ranked by age; walking from the oldest, each one that is not within
+   ``min_distance`` of an older kept feature is kept and masks a disc of that radius;
+5. Shi-Tomasi corners fill the unmasked image up to ``max_features``, each with a new id.
+
+Ids are integers that increase and are never reused within one tracker. Pixel coordinates
+follow OpenCV (pixel centres at integers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from autonomy.geometry import PinholeCamera, undistort_points
+from autonomy.options import OptionError, option, validate
+
+
+@dataclass(frozen=True)
+class FrontendOptions:
+    """How features are detected, tracked and checked (defaults as VINS-Mono's EuRoC config)."""
+
+    max_features: int = option(150, ge=1, le=10000, doc="most features tracked at once")
+    min_distance: int = option(30, ge=1, le=1000, doc="least distance between features, pixels")
+    quality_level: float = option(0.01, gt=0.0, lt=1.0, doc="Shi-Tomasi corner threshold as a "
+                                  "share of the strongest corner's response")
+    block_size: int = option(3, ge=3, le=31, doc="Shi-Tomasi structure-tensor window, pixels")
+    lk_window: int = option(21, ge=3, le=101, doc="Lucas-Kanade window side, pixels (odd)")
+    pyramid_levels: int = option(3, ge=1, le=8, doc="Lucas-Kanade pyramid levels including "
+                                 "full resolution (OpenCV maxLevel = levels - 1)")
+    lk_iterations: int = option(30, ge=1, le=1000, doc="most Lucas-Kanade iterations per level")
+    lk_epsilon: float = option(0.01, gt=0.0, doc="Lucas-Kanade stops when a step is below "
+                               "this, pixels")
+    forward_backward_threshold: float = option(1.0, gt=0.0, doc="largest forward-backward "
+                                               "round-trip error kept, pixels")
+    ransac: bool = option(True, doc="reject tracks that break the epipolar geometry "
+                          "(fundamental-matrix RANSAC)")
+    ransac_threshold: float = option(1.0, gt=0.0, doc="RANSAC epipolar distance limit, "
+                                     "undistorted pixels")
+    ransac_confidence: float = option(0.99, gt=0.0, lt=1.0, doc="RANSAC confidence")
+    border: int = option(1, ge=0, le=100, doc="tracks closer than this to the image edge are "
+                         "dropped, pixels")
+    clahe: bool = option(False, doc="equalise contrast with CLAHE before tracking")
+    clahe_clip_limit: float = option(3.0, gt=0.0, doc="CLAHE contrast limit")
+    clahe_tiles: int = option(8, ge=1, le=64, doc="CLAHE tiles along each image side")
+
+    def __post_init__(self) -> None:
+        validate(self)
+        if self.lk_window % 2 == 0:
+            raise OptionError("lk_window", f"must be odd, got {self.lk_window}")
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """The features of one frame, row ``i`` of every array describing feature ``ids[i]``.
+
+    ``ages[i]`` is how many frames the feature has been seen in, this one included (1 for a
+    feature detected in this frame). ``pixels`` are distorted image positions, ``normalised``
+    the undistorted ``(X/Z, Y/Z)``. The counters say what happened to the previous frame's
+    features: lost by Lucas-Kanade or the forward-backward check, rejected by RANSAC, dropped
+    for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
+    of new features.
+    """
+
+    frame: int
+    ids: np.ndarray
+    pixels: np.ndarray
+    normalised: np.ndarray
+    ages: np.ndarray
+    lost: int = 0
+    rejected: int = 0
+    crowded: int = 0
+    detected: int = 0
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def fundamental_inliers(camera: PinholeCamera, previous_normalised: np.ndarray,
+                        current_normalised: np.ndarray, threshold: float,
+                        confidence: float = 0.99) -> np.ndarray:
+    """Boolean inlier mask of RANSAC on the fundamental matrix between two views' undistorted
+    normalised coordinates, measured in pixels of ``camera``'s focal length.
+
+    Fewer than 8 correspondences, non-finite coordinates or a degenerate fit (OpenCV finds no
+    model) keep every finite correspondence: with too little data there is nothing to test.
+    """
+    a = np.asarray(previous_normalised, dtype=float)
+    b = np.asarray(current_normalised, dtype=float)
+    finite = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+    if finite.sum() < 8:
+        return finite
+    scale = np.array([camera.fx, camera.fy])
+    offset = np.array([camera.cx, camera.cy])
+    pa = (a[finite] * scale + offset).astype(np.float32)
+    pb = (b[finite] * scale + offset).astype(np.float32)
+    try:
+        F, mask = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, threshold, confidence)
+    except cv2.error:
+        return finite
+    if F is None or mask is None or F.shape != (3, 3):
+        return finite
+    inliers = finite.copy()
+    inliers[finite] = mask.ravel().astype(bool)
+    return inliers
+
+
+def _gray(image, camera: PinholeCamera) -> np.ndarray:
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.size == 0:
+        raise ValueError(f"image is empty (shape {image.shape})")
+    if image.dtype != np.uint8:
+        raise ValueError(f"image must be uint8, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+    elif image.ndim != 2:
+        raise ValueError(f"image must be (H, W) grey or (H, W, 3) RGB, got shape {image.shape}")
+    if image.shape != (camera.height, camera.width):
+        raise ValueError(f"image is {image.shape[1]}x{image.shape[0]} but the camera is "
+                         f"{camera.width}x{camera.height}")
+    return np.ascontiguousarray(image)
+
+
+class FeatureTracker:
+    """Tracks corners through a monocular image sequence; one instance per camera stream."""
+
+    def __init__(self, camera: PinholeCamera, distortion=(), options: FrontendOptions | None = None):
+        self.camera = camera
+        self.distortion = tuple(float(c) for c in np.asarray(distortion, dtype=float).ravel())
+        undistort_points(camera, self.distortion, np.zeros((0, 2)))  # validates the coefficients
+        self.options = options or FrontendOptions()
+        o = self.options
+        self._window = (o.lk_window, o.lk_window)
+        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, o.lk_iterations,
+                          o.lk_epsilon)
+        self._clahe = (cv2.createCLAHE(o.clahe_clip_limit, (o.clahe_tiles, o.clahe_tiles))
+                       if o.clahe else None)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every track (ids keep increasing, so none is ever reused)."""
+        self._previous: np.ndarray | None = None
+        self._pixels = np.zeros((0, 2), np.float32)
+        self._normalised = np.zeros((0, 2))
+        self._ids = np.zeros(0, np.int64)
+        self._ages = np.zeros(0, np.int64)
+        if not hasattr(self, "_next_id"):
+            self._next_id = 0
+            self._frame = -1
+
+    def _lk(self, prev_image, next_image, points: np.ndarray):
+        moved, status, _ = cv2.calcOpticalFlowPyrLK(
+            prev_image, next_image, points.reshape(-1, 1, 2), None, winSize=self._window,
+            maxLevel=self.options.pyramid_levels - 1, criteria=self._criteria)
+        return moved.reshape(-1, 2), status.ravel().astype(bool)
+
+    def track(self, image) -> Tracks:
+        """Track the previous frame's features into ``image`` (uint8 grey or RGB, the camera's
+        size) and top them up with new corners. Raises ValueError on an unusable image."""
+        o = self.options
+        gray = _gray(image, self.camera)
+        if self._clahe is not None:
+            gray = self._clahe.apply(gray)
+        self._frame += 1
+        h, w = gray.shape
+        pixels, ids, ages = self._pixels, self._ids, self._ages
+        normalised_prev = self._normalised
+        lost = rejected = 0
+        if len(ids) and self._previous is not None:
+            forward, ok = self._lk(self._previous, gray, pixels)
+            backward, ok_back = self._lk(gray, self._previous, forward)
+            round_trip = np.linalg.norm(backward - pixels, axis=1)
+            b = o.border
+            inside = ((forward[:, 0] >= b) & (forward[:, 0] <= w - 1 - b)
+                      & (forward[:, 1] >= b) & (forward[:, 1] <= h - 1 - b))
+            keep = ok & ok_back & inside & (round_trip <= o.forward_backward_threshold)
+            lost = int(len(ids) - keep.sum())
+            pixels, ids, ages = forward[keep], ids[keep], ages[keep] + 1
+            normalised_prev = normalised_prev[keep]
+            normalised = undistort_points(self.camera, self.distortion, pixels)
+            if o.ransac:
+                inl = fundamental_inliers(self.camera, normalised_prev, normalised,
+                                          o.ransac_threshold, o.ransac_confidence)
+            else:
+                inl = np.isfinite(normalised).all(axis=1)
+            rejected = int(len(ids) - inl.sum())
+            pixels, ids, ages, normalised = pixels[inl], ids[inl], ages[inl], normalised[inl]
+        else:
+            pixels = np.zeros((0, 2), np.float32)
+            ids = np.zeros(0, np.int64)
+            ages = np.zeros(0, np.int64)
+            normalised = np.zeros((0, 2))
+
+        # Oldest first; each kept feature masks a disc of min_distance (VINS-Mono's setMask).
+        mask = np.zeros((h, w), np.uint8)
+        b = o.border
+        mask[b:h - b, b:w - b] = 255
+        order = np.argsort(-ages, kind="stable")
+        keep = np.zeros(len(ids), bool)
+        centres = np.rint(pixels).astype(np.int64)
+        for i in order:
+            x, y = centres[i]
+            if mask[y, x]:
+                keep[i] = True
+                cv2.circle(mask, (int(x), int(y)), o.min_distance, 0, -1)
+        crowded = int(len(ids) - keep.sum())
+        pixels, ids, ages, normalised = pixels[keep], ids[keep], ages[keep], normalised[keep]
+
+        wanted = o.max_features - len(ids)
+        detected = 0
+        if wanted > 0:
+            corners = cv2.goodFeaturesToTrack(gray, wanted, o.quality_level, o.min_distance,
+                                              mask=mask, blockSize=o.block_size)
+            if corners is not None and len(corners):
+                new = corners.reshape(-1, 2).astype(np.float32)
+                detected = len(new)
+                new_ids = np.arange(self._next_id, self._next_id + detected, dtype=np.int64)
+                self._next_id += detected
+                pixels = np.concatenate([pixels.astype(np.float32), new])
+                ids = np.concatenate([ids, new_ids])
+                ages = np.concatenate([ages, np.ones(detected, np.int64)])
+                normalised = np.concatenate(
+                    [normalised, undistort_points(self.camera, self.distortion, new)])
+
+        self._previous = gray
+        self._pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+        self._normalised = normalised
+        self._ids, self._ages = ids, ages
+        return Tracks(frame=self._frame, ids=ids.copy(), pixels=pixels.astype(float),
+                      normalised=normalised.copy(), ages=ages.copy(), lost=lost,
+                      rejected=rejected, crowded=crowded, detected=detected)

@@ -1,0 +1,59 @@
+"""Speed of the VINS front-end on one core: median milliseconds per 640x480 frame.
+
+    python benchmarks/vins_frontend.py [--frames 95] [--dataset ../shared/data/euroc_v1_01]
+
+Feeds the EuRoC V1_01 cam0 images, cropped to their central 640x480 (principal point moved
+to match), through FeatureTracker.track with cv2.setNumThreads(1). Baseline in the same run:
+goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames. Prints one JSON object.
+"""
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from autonomy.vins import FeatureTracker
+from drivers.dataset.euroc import read_camera
+
+DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_01"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=95)
+    parser.add_argument("--dataset", type=Path, default=DEFAULT)
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    stream = read_camera(args.dataset)
+    x0 = (stream.camera.width - 640) // 2
+    y0 = (stream.camera.height - 480) // 2
+    camera = replace(stream.camera, width=640, height=480, cx=stream.camera.cx - x0,
+                     cy=stream.camera.cy - y0)
+    frames = [np.ascontiguousarray(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)[y0:y0 + 480, x0:x0 + 640])
+              for p in stream.paths[:args.frames]]
+    tracker = FeatureTracker(camera, stream.distortion)
+    tracker.track(frames[0])  # warm-up: first-call allocations
+    track_ms, gftt_ms, counts, detected = [], [], [], 0
+    for frame in frames[1:]:
+        t0 = time.perf_counter()
+        tracks = tracker.track(frame)
+        t1 = time.perf_counter()
+        cv2.goodFeaturesToTrack(frame, 150, 0.01, 30)
+        t2 = time.perf_counter()
+        track_ms.append((t1 - t0) * 1e3)
+        gftt_ms.append((t2 - t1) * 1e3)
+        counts.append(len(tracks))
+        detected += tracks.detected
+    print(json.dumps({"image": [480, 640], "frames": len(track_ms), "threads": 1,
+                      "track_ms_median": round(float(np.median(track_ms)), 3),
+                      "track_ms_p95": round(float(np.percentile(track_ms, 95)), 3),
+                      "gftt_only_ms_median": round(float(np.median(gftt_ms)), 3),
+                      "features_median": int(np.median(counts)), "new_features": detected}))
+
+
+if __name__ == "__main__":
+    main()
