@@ -88,6 +88,7 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_config_commands(commands, overrides)
     _add_bench_commands(commands, overrides)
     _add_sim_commands(commands, overrides)
+    _add_eval_commands(commands, overrides)
     return parser
 
 
@@ -185,6 +186,44 @@ def _add_sim_commands(commands: argparse._SubParsersAction,
     record.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="dataset folder to create (must be new or empty)")
     record.set_defaults(command=_sim_record)
+
+
+def _add_eval_commands(commands: argparse._SubParsersAction,
+                       overrides: argparse.ArgumentParser) -> None:
+    group = commands.add_parser("eval", help="measure the accuracy of the algorithms",
+                                description="Measure the accuracy of the algorithms against "
+                                            "a dataset's ground truth.")
+    actions = _add_command_group(group)
+    vio = actions.add_parser(
+        "vio", parents=[overrides], help="score the VINS on a EuRoC dataset",
+        description="Run the VINS, with the [vins], [vins_frontend] and [vins_init] options of "
+                    "the config, over a EuRoC/ASL dataset (real, or recorded by 'companion sim "
+                    "record') and compare it with the ground truth: trajectory error after "
+                    "SE(3) alignment, scale error, landmark depth error against depth0 when the "
+                    "dataset has it, the static initialisation, and the time per stage.")
+    vio.add_argument("dataset", type=Path, metavar="DATASET",
+                     help="dataset folder, the one holding mav0/")
+    vio.add_argument("--config", dest="config_path", metavar="FILE",
+                     help="TOML config file (default: none, all defaults)")
+    vio.add_argument("--json", action="store_true",
+                     help="print the result as one JSON object instead of a report")
+    vio.add_argument("--max-frames", type=_positive_int, metavar="N",
+                     help="stop after N camera frames (default: all)")
+    vio.set_defaults(command=_eval_vio)
+
+
+def _eval_vio(args: argparse.Namespace, config: Config) -> int:
+    # Imported here: the evaluation pulls in the dataset readers and the estimator.
+    from companion import evaluation
+
+    try:
+        result = evaluation.evaluate_vio(args.dataset, config.vins, frontend=config.vins_frontend,
+                                         static=config.vins_init, max_frames=args.max_frames)
+    except evaluation.EvaluationError as error:
+        print(f"eval vio: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    print(json.dumps(result) if args.json else evaluation.format_vio_report(result))
+    return EXIT_OK
 
 
 def _sim_options(args: argparse.Namespace, config: Config):

@@ -24,6 +24,9 @@ else:  # Python 3.10
 
 from autonomy.depth.options import RescaleOptions
 from autonomy.options import OptionError, field_types, option, validate
+from autonomy.vins.frontend import FrontendOptions
+from autonomy.vins.options import VinsOptions
+from autonomy.vins.static_init import StaticInitOptions
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
@@ -54,6 +57,9 @@ class Config:
     vehicle: VehicleOptions = field(default_factory=VehicleOptions)
     imu: ImuOptions = field(default_factory=ImuOptions)
     px4: Px4Options = field(default_factory=Px4Options)
+    vins: VinsOptions = field(default_factory=VinsOptions)
+    vins_frontend: FrontendOptions = field(default_factory=FrontendOptions)
+    vins_init: StaticInitOptions = field(default_factory=StaticInitOptions)
 
     def __post_init__(self) -> None:
         validate(self)

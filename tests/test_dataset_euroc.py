@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose
+from autonomy.vins.preintegration import ImuNoise
 from drivers.dataset.euroc import (
     DatasetError, EurocWriter, depth_to_millimetres, read_camera, read_depth_png,
-    read_groundtruth, read_imu,
+    read_groundtruth, read_imu, read_imu_noise,
 )
 
 EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_01"
@@ -76,3 +77,27 @@ def test_malformed_files_are_named_with_the_problem(tmp_path):
     bad_png.write_bytes(b"not a png")
     with pytest.raises(DatasetError, match="not a readable image"):
         read_depth_png(bad_png)
+
+
+def test_imu_noise_reads_back_and_names_a_missing_key(tmp_path):
+    with EurocWriter(tmp_path, PinholeCamera.from_hfov(64, 48, 1.5), np.eye(4), 20.0, NOISE):
+        pass
+    assert read_imu_noise(tmp_path) == ImuNoise(gyro_noise_density=1e-4, gyro_random_walk=1e-5,
+                                                accel_noise_density=1e-3, accel_random_walk=1e-4)
+    if EUROC.is_dir():  # the real file, with its comments, reads as the documented defaults
+        assert read_imu_noise(EUROC) == ImuNoise()
+    yaml = tmp_path / "mav0" / "imu0" / "sensor.yaml"
+    text = yaml.read_text()
+    yaml.write_text(text.replace("gyroscope_random_walk", "gyro_walk"))
+    with pytest.raises(DatasetError, match="sensor.yaml: missing gyroscope_random_walk"):
+        read_imu_noise(tmp_path)
+    yaml.write_text(text.replace("accelerometer_random_walk: 0.0001",
+                                 "accelerometer_random_walk: -1"))
+    with pytest.raises(DatasetError, match="accel_random_walk: must be a finite number >= 0"):
+        read_imu_noise(tmp_path)
+    yaml.write_text("%YAML:1.0\n[unclosed: {\n")
+    with pytest.raises(DatasetError, match="sensor.yaml"):
+        read_imu_noise(tmp_path)
+    yaml.unlink()
+    with pytest.raises(DatasetError, match="sensor.yaml: no such file"):
+        read_imu_noise(tmp_path)

@@ -15,6 +15,7 @@ the simulator's, so evaluation code cannot tell them apart.
 from __future__ import annotations
 
 import csv
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,7 @@ import cv2
 import numpy as np
 
 from autonomy.geometry import PinholeCamera
+from autonomy.vins.preintegration import ImuNoise
 
 IMU_HEADER = (
     "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
@@ -29,6 +31,13 @@ IMU_HEADER = (
 )
 GROUNDTRUTH_HEADER = "#time(ns),px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz"
 FRAMES_HEADER = "#timestamp [ns],filename"
+#: ``imu0/sensor.yaml`` keys and the :class:`ImuNoise` fields they fill.
+IMU_NOISE_KEYS = {
+    "gyroscope_noise_density": "gyro_noise_density",
+    "gyroscope_random_walk": "gyro_random_walk",
+    "accelerometer_noise_density": "accel_noise_density",
+    "accelerometer_random_walk": "accel_random_walk",
+}
 MAX_DEPTH_MM = 65535
 
 
@@ -190,9 +199,7 @@ def _write_camera_yaml(path: Path, camera: PinholeCamera, T_B_C: np.ndarray, rat
 
 
 def _write_imu_yaml(path: Path, noise: dict[str, float]) -> None:
-    keys = ("gyroscope_noise_density", "gyroscope_random_walk",
-            "accelerometer_noise_density", "accelerometer_random_walk")
-    lines = "".join(f"{key}: {noise[key]:.6g}\n" for key in keys)
+    lines = "".join(f"{key}: {noise[key]:.6g}\n" for key in IMU_NOISE_KEYS)
     path.write_text(
         "%YAML:1.0\nsensor_type: imu\ncomment: simulated IMU, body frame\n"
         "T_BS:\n" + _yaml_matrix(np.eye(4)) + f"rate_hz: {noise['rate_hz']:g}\n" + lines,
@@ -254,15 +261,21 @@ def _read_table(path: Path, columns: int) -> tuple[np.ndarray, np.ndarray]:
     return t_ns, values
 
 
-def _read_camera_yaml(path: Path):
-    if not path.is_file():
-        raise DatasetError(f"{path}: no such file")
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+def read_imu_noise(root: Path) -> ImuNoise:
+    """The IMU noise model of ``mav0/imu0/sensor.yaml`` (Kalibr's continuous-time densities)."""
+    path = Path(root) / "mav0" / "imu0" / "sensor.yaml"
+    with _yaml(path) as storage:
+        values = {field: _number(storage, path, key) for key, field in IMU_NOISE_KEYS.items()}
     try:
+        return ImuNoise(**values)
+    except ValueError as error:
+        raise DatasetError(f"{path}: {error}") from None
+
+
+def _read_camera_yaml(path: Path):
+    with _yaml(path) as storage:
         def numbers(key: str) -> list[float]:
-            node = storage.getNode(key)
-            if node.empty():
-                raise DatasetError(f"{path}: missing {key}")
+            node = _node(storage, path, key)
             return [node.at(i).real() for i in range(node.size())]
 
         fu, fv, cu, cv = numbers("intrinsics")
@@ -271,6 +284,33 @@ def _read_camera_yaml(path: Path):
         T_B_C = np.array([T_BS.at(i).real() for i in range(16)]).reshape(4, 4)
         distortion = tuple(numbers("distortion_coefficients"))
         rate = storage.getNode("rate_hz").real()
+    return PinholeCamera(width, height, fu, fv, cu, cv), distortion, T_B_C, rate
+
+
+@contextmanager
+def _yaml(path: Path):
+    """An OpenCV ``FileStorage`` on the YAML file ``path``, released on leaving."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such file")
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError):  # OpenCV's parse error surfaces as either
+        raise DatasetError(f"{path}: not readable as YAML") from None
+    try:
+        yield storage
     finally:
         storage.release()
-    return PinholeCamera(width, height, fu, fv, cu, cv), distortion, T_B_C, rate
+
+
+def _node(storage: cv2.FileStorage, path: Path, key: str) -> cv2.FileNode:
+    node = storage.getNode(key)
+    if node.empty():
+        raise DatasetError(f"{path}: missing {key}")
+    return node
+
+
+def _number(storage: cv2.FileStorage, path: Path, key: str) -> float:
+    node = _node(storage, path, key)
+    if not (node.isReal() or node.isInt()):
+        raise DatasetError(f"{path}: {key} is not a number")
+    return node.real()

@@ -1,0 +1,63 @@
+"""The typed messages the stages pass to each other (DESIGN.md, "The process").
+
+Frozen dataclasses of numpy arrays, SI units, times in float seconds on the companion's
+monotonic clock, frames as DESIGN.md names them (world ``W`` gravity-aligned z up, body ``B``
+FLU, camera ``C`` optical).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One IMU sample at time ``t``: body-frame angular rate (rad/s) and specific force (m/s^2).
+
+    The sample holds over ``[t, t_next)`` (zero-order hold), the convention of the
+    preintegration and of the simulator's recordings.
+    """
+
+    t: float
+    gyro: np.ndarray
+    accel: np.ndarray
+
+
+@dataclass(frozen=True)
+class SparseMap:
+    """The VINS landmarks at one frame time, expressed in that frame's camera coordinates.
+
+    Row ``i`` describes track ``ids[i]``: ``points_C[i]`` is its position in the camera frame
+    (metres; ``z`` is the depth along the optical axis, always positive here), and
+    ``depth_sigma[i]`` the one-sigma uncertainty of that depth in metres. ``tracked[i]`` is True
+    when the front-end saw the track in this very frame, and ``pixels[i]`` is then where it saw
+    it (distorted image coordinates); otherwise ``pixels[i]`` is the point's projection.
+    """
+
+    t: float
+    ids: np.ndarray
+    points_C: np.ndarray
+    depth_sigma: np.ndarray
+    pixels: np.ndarray
+    tracked: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """The body's state at time ``t`` in the world frame.
+
+    ``T_W_B`` (4x4) pose, ``velocity_W`` (m/s, world frame), ``angular_velocity_B`` (rad/s,
+    bias-corrected, body frame), and ``pose_covariance`` (6x6, rotation then position, right
+    perturbation of the pose) when the estimator has one (NaN-filled otherwise).
+    """
+
+    t: float
+    T_W_B: np.ndarray
+    velocity_W: np.ndarray
+    angular_velocity_B: np.ndarray
+    pose_covariance: np.ndarray

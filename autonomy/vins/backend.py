@@ -1,0 +1,370 @@
+"""The VINS back-end: a GTSAM fixed-lag smoother over keyframes and landmarks.
+
+Variables, per keyframe ``k``: the body pose ``X(k) = T_W_B``, the velocity ``V(k)`` and the IMU
+biases ``B(k)``; per landmark: its world position ``L(id)``, keyed by the front-end's track id.
+Factors:
+
+- ``CombinedImuFactor`` between consecutive keyframes: the 200 Hz IMU preintegrated on the
+  manifold (Forster et al., TRO 2017) with the biases' random walk (GTSAM's combined form);
+- ``GenericProjectionFactor`` from every keyframe to every landmark it sees, on the undistorted
+  feature position in pixels of the ideal pinhole, under a Huber loss, through the camera
+  mounting ``T_B_C``;
+- priors on the first keyframe (from static initialisation) or, after a rebuild, on the last
+  good estimate.
+
+``IncrementalFixedLagSmoother`` (iSAM2 underneath) marginalises every variable whose time
+stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's stamp is the
+time of the last keyframe that saw it. Landmarks enter only through the gate of
+:mod:`autonomy.vins.landmarks`. An update that throws, or that leaves a state no vehicle can be
+in (speed, bias magnitudes), is thrown away: the smoother cannot be copied, so a new one is built
+from the last good keyframe's estimate, the keyframe is added again with its IMU factor only, and
+the event counts as a reset.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, L, V, X
+
+from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
+from autonomy.vins.landmarks import Gate, depth_sigma, gate_candidates, widest_ray_angle
+from autonomy.vins.options import VinsOptions
+from autonomy.vins.preintegration import ImuNoise
+
+#: Floors under the IMU densities, so a noiseless recording still gives a well-posed problem.
+_DENSITY_FLOOR = {"gyro": 1e-5, "accel": 1e-4, "gyro_walk": 1e-7, "accel_walk": 1e-6}
+
+
+#: Prior widths on the last good keyframe when the smoother is rebuilt: its pose is kept nearly
+#: fixed (position and yaw are unobservable, so the rebuilt window must not move them), its
+#: tilt and velocity may be corrected by what follows.
+REBUILD_ROTATION_SIGMAS = (0.02, 0.02, 0.005)
+REBUILD_POSITION_SIGMA = 0.01
+REBUILD_VELOCITY_SIGMA = 0.1
+
+
+@dataclass(frozen=True)
+class KeyframeState:
+    """The estimate of one keyframe: pose ``T_W_B`` (4x4), velocity, gyro and accel biases."""
+
+    index: int
+    t: float
+    T_W_B: np.ndarray
+    velocity: np.ndarray
+    bias_g: np.ndarray
+    bias_a: np.ndarray
+
+
+@dataclass(frozen=True)
+class PriorSigmas:
+    """One-sigma priors for a (re)start: rotation ``(roll, pitch, yaw)`` about the body axes
+    (radians), position (m), velocity (m/s), biases (rad/s, m/s^2)."""
+
+    rotation: tuple[float, float, float]
+    position: float
+    velocity: float
+    gyro_bias: float
+    accel_bias: float
+
+
+@dataclass(frozen=True)
+class Landmarks:
+    """The window's landmarks: track ``ids`` (N,), world ``points_W`` (N, 3), the depth
+    uncertainty geometry ``parallax_rad`` (N,) and ``observations`` (N,) keyframe counts."""
+
+    ids: np.ndarray
+    points_W: np.ndarray
+    parallax_rad: np.ndarray
+    observations: np.ndarray
+
+
+class BackendError(RuntimeError):
+    """The smoother could not take a keyframe even after a rebuild."""
+
+
+@dataclass(frozen=True)
+class _Keyframe:
+    """A keyframe's observations, ``ids`` sorted, ``normalised`` undistorted in the same order."""
+
+    index: int
+    t: float
+    ids: np.ndarray
+    normalised: np.ndarray
+
+
+def imu_params(noise: ImuNoise, scale: float) -> gtsam.PreintegrationCombinedParams:
+    """GTSAM preintegration parameters for a z-up world from continuous noise densities."""
+    params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
+    eye = np.eye(3)
+    params.setGyroscopeCovariance(
+        (scale * max(noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye)
+    params.setAccelerometerCovariance(
+        (scale * max(noise.accel_noise_density, _DENSITY_FLOOR["accel"])) ** 2 * eye)
+    params.setIntegrationCovariance(1e-8 * eye)
+    params.setBiasOmegaCovariance(
+        (scale * max(noise.gyro_random_walk, _DENSITY_FLOOR["gyro_walk"])) ** 2 * eye)
+    params.setBiasAccCovariance(
+        (scale * max(noise.accel_random_walk, _DENSITY_FLOOR["accel_walk"])) ** 2 * eye)
+    return params
+
+
+def _bias(bias_g: np.ndarray, bias_a: np.ndarray) -> gtsam.imuBias.ConstantBias:
+    return gtsam.imuBias.ConstantBias(np.asarray(bias_a, float), np.asarray(bias_g, float))
+
+
+class SlidingWindowSmoother:
+    """Keyframes and landmarks in a GTSAM ``IncrementalFixedLagSmoother`` (module docstring)."""
+
+    def __init__(self, camera: PinholeCamera, T_B_C: np.ndarray, noise: ImuNoise,
+                 options: VinsOptions):
+        self.options = options
+        self.camera = camera
+        self.params = imu_params(noise, options.imu_noise_scale)
+        self._T_B_C = np.asarray(T_B_C, dtype=float)
+        self._T_C_B = invert_pose(self._T_B_C)
+        self._body_P_camera = gtsam.Pose3(self._T_B_C)
+        self._K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
+        self._pixel_noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, options.pixel_sigma))
+        focal = math.sqrt(camera.fx * camera.fy)
+        self.gate = Gate(options.min_observations, math.radians(options.min_parallax_deg),
+                         options.min_depth, options.max_depth, options.max_reprojection_px, focal)
+        self.resets = 0
+        self.last_failure = ""
+        self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        self._latest: KeyframeState | None = None
+        self._window: list[_Keyframe] = []
+        self._poses: dict[int, np.ndarray] = {}
+        self._retired = np.zeros(0, np.int64)
+        self._landmarks = Landmarks(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0),
+                                    np.zeros(0, np.int64))
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def started(self) -> bool:
+        return self._latest is not None
+
+    @property
+    def latest(self) -> KeyframeState:
+        if self._latest is None:
+            raise RuntimeError("the smoother has not been started")
+        return self._latest
+
+    @property
+    def landmarks(self) -> Landmarks:
+        return self._landmarks
+
+    @property
+    def window_size(self) -> int:
+        return len(self._window)
+
+    def preintegration(self) -> gtsam.PreintegratedCombinedMeasurements:
+        """An empty preintegration at the latest keyframe's biases."""
+        s = self.latest
+        return gtsam.PreintegratedCombinedMeasurements(self.params, _bias(s.bias_g, s.bias_a))
+
+    def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None) -> None:
+        """Begin a new smoother at ``state`` with priors ``sigmas``; ``ids``/``normalised`` are
+        that keyframe's observations (kept for later triangulation)."""
+        self._smoother = self._new_smoother()
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        k = state.index
+        pose = gtsam.Pose3(state.T_W_B)
+        values.insert(X(k), pose)
+        values.insert(V(k), np.asarray(state.velocity, float))
+        values.insert(B(k), _bias(state.bias_g, state.bias_a))
+        pose_sigmas = np.r_[sigmas.rotation, [sigmas.position] * 3]
+        graph.add(gtsam.PriorFactorPose3(X(k), pose, gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)))
+        graph.add(gtsam.PriorFactorVector(V(k), np.asarray(state.velocity, float),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, sigmas.velocity)))
+        bias_sigmas = np.r_[[sigmas.accel_bias] * 3, [sigmas.gyro_bias] * 3]
+        graph.add(gtsam.PriorFactorConstantBias(B(k), _bias(state.bias_g, state.bias_a),
+                                                gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
+        self._smoother.update(graph, values, {X(k): state.t, V(k): state.t, B(k): state.t})
+        self._latest = state
+        self._window = [self._keyframe(k, state.t, ids, normalised)]
+        self._poses = {k: np.asarray(state.T_W_B, float)}
+        self._landmarks = Landmarks(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0),
+                                    np.zeros(0, np.int64))
+
+    def add_keyframe(self, t: float, pim: gtsam.PreintegratedCombinedMeasurements, ids,
+                     normalised) -> bool:
+        """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
+        features it sees. Returns True when the update was used, False when it failed and the
+        smoother was rebuilt (a reset). Raises :class:`BackendError` when even the rebuilt
+        smoother refuses the keyframe."""
+        good, good_keyframe = self.latest, self._window[-1]
+        keyframe = self._keyframe(good.index + 1, t, ids, normalised)
+        try:
+            self._update_with_vision(keyframe, pim)
+            self._check_sane(self.latest)
+            return True
+        except (RuntimeError, ValueError) as error:
+            self.resets += 1
+            self.last_failure = f"keyframe {keyframe.index} at t={keyframe.t:.3f}: {error}"
+            self._rebuild(good, good_keyframe, keyframe, pim)
+            return False
+
+    def _rebuild(self, good: KeyframeState, good_keyframe: _Keyframe, keyframe: _Keyframe,
+                 pim: gtsam.PreintegratedCombinedMeasurements) -> None:
+        """Start over from ``good`` with its uncertainty widened, then add ``keyframe`` with its
+        IMU factor only (the observations of both are kept for later landmarks)."""
+        o = self.options
+        sigmas = PriorSigmas(REBUILD_ROTATION_SIGMAS, REBUILD_POSITION_SIGMA,
+                             REBUILD_VELOCITY_SIGMA, o.prior_gyro_bias_sigma,
+                             o.prior_accel_bias_sigma)
+        try:
+            self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised)
+            graph, values, stamps = self._imu_step(keyframe, pim)
+            self._smoother.update(graph, values, stamps)
+            self._read_estimate(keyframe, self._window + [keyframe])
+        except (RuntimeError, ValueError) as error:
+            raise BackendError(f"the rebuilt smoother refused keyframe {keyframe.index} at "
+                               f"t={keyframe.t:.3f}: {error}") from error
+
+    def pose_covariance(self) -> np.ndarray:
+        """The latest keyframe pose's marginal covariance (6x6, rotation then position)."""
+        return np.asarray(self._smoother.marginalCovariance(X(self.latest.index)))
+
+    def depth_sigma(self, depths: np.ndarray) -> np.ndarray:
+        """One-sigma depth uncertainty of the landmarks at ``depths`` (same order)."""
+        return depth_sigma(depths, self._landmarks.parallax_rad, self.options.pixel_sigma,
+                           self.gate.focal_px)
+
+    # ------------------------------------------------------------------ internals
+
+    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.options.relinearize_threshold)
+        params.relinearizeSkip = 1
+        params.findUnusedFactorSlots = True
+        return gtsam.IncrementalFixedLagSmoother(self.options.smoother_lag_s, params)
+
+    @staticmethod
+    def _keyframe(index: int, t: float, ids, normalised) -> _Keyframe:
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        normalised = (np.zeros((0, 2)) if normalised is None
+                      else np.asarray(normalised, dtype=float).reshape(-1, 2))
+        order = np.argsort(ids)
+        return _Keyframe(index, float(t), ids[order], normalised[order])
+
+    def _imu_step(self, keyframe: _Keyframe, pim):
+        good = self.latest
+        k, i = keyframe.index, good.index
+        predicted = pim.predict(gtsam.NavState(gtsam.Pose3(good.T_W_B), good.velocity),
+                                _bias(good.bias_g, good.bias_a))
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        values.insert(X(k), predicted.pose())
+        values.insert(V(k), predicted.velocity())
+        values.insert(B(k), _bias(good.bias_g, good.bias_a))
+        graph.add(gtsam.CombinedImuFactor(X(i), V(i), X(k), V(k), B(i), B(k), pim))
+        self._poses[k] = predicted.pose().matrix()
+        return graph, values, {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
+
+    def _update_with_vision(self, keyframe: _Keyframe, pim) -> None:
+        graph, values, stamps = self._imu_step(keyframe, pim)
+        window = self._window + [keyframe]
+        seen = np.isin(keyframe.ids, self._landmarks.ids)
+        for track, xy in self._consistent_observations(keyframe, seen):
+            graph.add(self._projection(keyframe.index, int(track), xy))
+            stamps[L(int(track))] = keyframe.t
+        fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
+        self._add_new_landmarks(window, keyframe.ids[fresh], graph, values, stamps)
+        self._smoother.update(graph, values, stamps)
+        for _ in range(self.options.extra_iterations):
+            self._smoother.update()
+        self._read_estimate(keyframe, window)
+
+    def _consistent_observations(self, keyframe: _Keyframe, seen: np.ndarray):
+        """The observations of known landmarks that reproject within ``max_observation_px`` at
+        the IMU-predicted pose, as ``(track, xy)`` pairs. A landmark seen further away (a track
+        that slid onto another surface) is retired: it takes no more observations and no track
+        of its id becomes a landmark again."""
+        tracks, xy = keyframe.ids[seen], keyframe.normalised[seen]
+        rows = np.searchsorted(self._landmarks.ids, tracks)
+        T_C_W = invert_pose(self._poses[keyframe.index] @ self._T_B_C)
+        p_C = self._landmarks.points_W[rows] @ T_C_W[:3, :3].T + T_C_W[:3, 3]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            error_px = self.gate.focal_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:] - xy, axis=1)
+            good = (p_C[:, 2] > self.options.min_depth) & (
+                error_px <= self.options.max_observation_px)
+        self._retired = np.union1d(self._retired, tracks[~good])
+        return zip(tracks[good], xy[good])
+
+    def _projection(self, index: int, track: int, xy: np.ndarray):
+        measured = np.array([self.camera.fx * xy[0] + self.camera.cx,
+                             self.camera.fy * xy[1] + self.camera.cy])
+        return gtsam.GenericProjectionFactorCal3_S2(measured, self._pixel_noise, X(index),
+                                                    L(track), self._K, False, False,
+                                                    self._body_P_camera)
+
+    def _observations(self, window: list[_Keyframe], tracks: np.ndarray):
+        """Gather the window's observations of ``tracks``: ``mask`` (M, K), ``normalised``
+        (M, K, 2), and the cameras' ``R_W_C`` (M, K, 3, 3) and centres (M, K, 3)."""
+        M, K = len(tracks), len(window)
+        mask = np.zeros((M, K), bool)
+        normalised = np.zeros((M, K, 2))
+        for j, kf in enumerate(window):
+            if len(kf.ids) == 0:
+                continue
+            pos = np.minimum(np.searchsorted(kf.ids, tracks), len(kf.ids) - 1)
+            mask[:, j] = kf.ids[pos] == tracks
+            normalised[mask[:, j], j] = kf.normalised[pos[mask[:, j]]]
+        T_W_C = np.stack([self._poses[kf.index] @ self._T_B_C for kf in window])
+        R_W_C = np.broadcast_to(T_W_C[:, :3, :3], (M, K, 3, 3))
+        centres = np.broadcast_to(T_W_C[:, :3, 3], (M, K, 3))
+        return mask, normalised, R_W_C, centres
+
+    def _add_new_landmarks(self, window, candidates, graph, values, stamps) -> None:
+        if len(candidates) == 0:
+            return
+        mask, normalised, R_W_C, centres = self._observations(window, candidates)
+        result = gate_candidates(R_W_C, centres, normalised, mask, self.gate)
+        t = window[-1].t
+        for m in np.flatnonzero(result.accepted):
+            track = int(candidates[m])
+            values.insert(L(track), result.points[m])
+            stamps[L(track)] = t
+            for j in np.flatnonzero(mask[m]):
+                graph.add(self._projection(window[j].index, track, normalised[m, j]))
+
+    def _read_estimate(self, keyframe: _Keyframe, window: list[_Keyframe]) -> None:
+        estimate = self._smoother.calculateEstimate()
+        k = keyframe.index
+        self._latest = KeyframeState(
+            k, keyframe.t, estimate.atPose3(X(k)).matrix(), np.asarray(estimate.atVector(V(k))),
+            np.asarray(estimate.atConstantBias(B(k)).gyroscope()),
+            np.asarray(estimate.atConstantBias(B(k)).accelerometer()))
+        self._window = [kf for kf in window if estimate.exists(X(kf.index))]
+        self._poses = {kf.index: estimate.atPose3(X(kf.index)).matrix() for kf in self._window}
+        known = np.concatenate([self._landmarks.ids, window[-1].ids])
+        alive = np.array(sorted({int(i) for i in known if estimate.exists(L(int(i)))}),
+                         dtype=np.int64)
+        gone = np.setdiff1d(self._landmarks.ids, alive)
+        if len(gone):
+            self._retired = np.union1d(self._retired, gone)
+        points = (np.array([estimate.atPoint3(L(int(i))) for i in alive]).reshape(-1, 3))
+        mask, _, _, centres = self._observations(self._window, alive)
+        rays = points[:, None, :] - centres
+        rays /= np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-12)
+        self._landmarks = Landmarks(alive, points, widest_ray_angle(rays, mask), mask.sum(axis=1))
+
+    def _check_sane(self, state: KeyframeState) -> None:
+        o = self.options
+        problems = []
+        if not (np.isfinite(state.T_W_B).all() and np.isfinite(state.velocity).all()):
+            problems.append("non-finite state")
+        if np.linalg.norm(state.velocity) > o.max_speed:
+            problems.append(f"speed {np.linalg.norm(state.velocity):.1f} m/s")
+        if np.linalg.norm(state.bias_g) > o.max_gyro_bias:
+            problems.append(f"gyro bias {np.linalg.norm(state.bias_g):.3f} rad/s")
+        if np.linalg.norm(state.bias_a) > o.max_accel_bias:
+            problems.append(f"accel bias {np.linalg.norm(state.bias_a):.2f} m/s^2")
+        if problems:
+            raise ValueError("diverged: " + ", ".join(problems))

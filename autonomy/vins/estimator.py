@@ -1,0 +1,315 @@
+"""The monocular VINS: front-end, static initialisation, keyframes, smoother, propagation, map.
+
+One :class:`Vins` per camera + IMU pair. The caller feeds every IMU sample (:meth:`Vins.add_imu`)
+and every frame: first :meth:`Vins.track` (the front-end, image work only), then
+:meth:`Vins.add_frame` with the frame's time (everything else). The two are separate so that the
+application can time and schedule them apart; nothing here reads a clock.
+
+Per frame, once initialised:
+
+1. the body state at the frame time is the last keyframe's smoothed estimate carried forward
+   through the IMU (:func:`autonomy.vins.imu_buffer.propagate`);
+2. the frame becomes a keyframe when ``keyframe_interval_s`` has passed since the last one, or
+   sooner (not before ``keyframe_min_interval_s``) when the features have moved by
+   ``keyframe_parallax_px`` on average; a keyframe goes to the smoother with the IMU
+   preintegrated since the last;
+3. the sparse map is the window's landmarks carried into this frame's camera through the
+   paper's chain (Yang et al., Section III-A): ``p_C = T_C_B T_B_W(t) p_W``, with
+   ``T_W_B(t)`` from step 1 (or the smoothed keyframe itself) and ``T_B_C`` the camera mounting.
+
+Initialisation is static (:mod:`autonomy.vins.static_init`): the first frame after a still IMU
+window becomes keyframe 0 with gravity-aligned attitude, zero position and velocity, and the
+window's mean gyro as bias; the take-off's acceleration then makes the scale metric. When the
+estimate is LOST, the estimator keeps propagating the IMU and, as soon as tracking is back,
+re-initialises in flight from the propagated state with a wide velocity prior (a reset).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from autonomy.geometry import PinholeCamera, distort_points, invert_pose, make_pose
+from autonomy.messages import ImuSample, Odometry, SparseMap
+from autonomy.vins.backend import BackendError, KeyframeState, PriorSigmas, SlidingWindowSmoother
+from autonomy.vins.frontend import FeatureTracker, FrontendOptions, Tracks
+from autonomy.vins.health import Health, HealthInputs, HealthState, assess
+from autonomy.vins.imu_buffer import ImuBuffer, NavState, propagate
+from autonomy.vins.options import VinsOptions
+from autonomy.vins.preintegration import ImuNoise
+from autonomy.vins.static_init import NotStill, StaticInit, StaticInitOptions, static_initialise
+
+#: The yaw and position priors of a (re)start: the world frame's gauge, fixed at the start.
+_GAUGE_YAW_SIGMA = 1e-3
+_GAUGE_POSITION_SIGMA = 1e-3
+
+
+@dataclass(frozen=True)
+class FrameUpdate:
+    """What one frame produced.
+
+    ``keyframe``: the smoother was updated with this frame. ``T_W_B``/``velocity_W``: the body
+    state at ``t`` (None until initialised, or when the IMU does not reach ``t``).
+    ``sparse_map``: the window's landmarks in this frame's camera (None until there is an
+    estimate, and while LOST).
+    """
+
+    t: float
+    keyframe: bool
+    T_W_B: np.ndarray | None
+    velocity_W: np.ndarray | None
+    sparse_map: SparseMap | None
+    health: Health
+
+
+@dataclass(frozen=True)
+class _Anchor:
+    """The state propagation starts from, with the biases to propagate with."""
+
+    state: NavState
+    bias_g: np.ndarray
+    bias_a: np.ndarray
+
+
+class Vins:
+    """Monocular visual-inertial odometry with a metric sparse map (module docstring)."""
+
+    def __init__(self, camera: PinholeCamera, distortion, T_B_C, noise: ImuNoise,
+                 options: VinsOptions | None = None, *, frontend: FrontendOptions | None = None,
+                 static: StaticInitOptions | None = None):
+        self.options = options or VinsOptions()
+        self.camera = camera
+        self.distortion = tuple(distortion)
+        self.T_B_C = np.asarray(T_B_C, dtype=float)
+        if self.T_B_C.shape != (4, 4) or not np.isfinite(self.T_B_C).all():
+            raise ValueError(f"T_B_C must be a finite 4x4 pose, got shape {self.T_B_C.shape}")
+        self._T_C_B = invert_pose(self.T_B_C)
+        self.static_options = static or StaticInitOptions()
+        self.tracker = FeatureTracker(camera, self.distortion, frontend)
+        self.backend = SlidingWindowSmoother(camera, self.T_B_C, noise, self.options)
+        self.static_init: StaticInit | None = None
+        self.reinitialisations = 0
+        self._imu = ImuBuffer()
+        self._anchor: _Anchor | None = None
+        self._last_frame_t = -math.inf
+        self._keyframe_tracks: Tracks | None = None
+        self._lost_reason = ""
+        self._starved_since: float | None = None
+        self._last_reset_t = -math.inf
+        self._moved = False
+        self._update_ms: float | None = None
+
+    # ------------------------------------------------------------------ inputs
+
+    @property
+    def resets(self) -> int:
+        """Smoother rebuilds plus in-flight re-initialisations."""
+        return self.backend.resets + self.reinitialisations
+
+    def add_imu(self, sample: ImuSample) -> None:
+        """One IMU sample, in time order; ValueError for a bad one (the sample is not used)."""
+        self._imu.add(sample)
+
+    def track(self, image) -> Tracks:
+        """The front-end on one image (uint8 grey or RGB, the camera's size)."""
+        return self.tracker.track(image)
+
+    def report_update_ms(self, milliseconds: float) -> None:
+        """The caller's measurement of the last :meth:`add_frame`, judged by the health."""
+        self._update_ms = float(milliseconds)
+
+    def add_frame(self, t: float, tracks: Tracks) -> FrameUpdate:
+        """Everything after the front-end for the frame at ``t`` (module docstring)."""
+        t = float(t)
+        if not math.isfinite(t) or t <= self._last_frame_t:
+            raise ValueError(f"frame time {t} is not after the previous frame "
+                             f"({self._last_frame_t})")
+        self._last_frame_t = t
+        if self.static_init is None:
+            return self._try_static_init(t, tracks)
+        gap = self._imu_gap(t)
+        if gap:
+            return self._lost(t, tracks, gap)
+        self._update_starvation(t, tracks)
+        if self._lost_reason:
+            if len(tracks) < self.options.min_tracked_ok:
+                return self._lost(t, tracks, self._lost_reason)
+            self._reinitialise(t, tracks)
+        return self._track_frame(t, tracks)
+
+    # ------------------------------------------------------------------ outputs
+
+    def odometry(self) -> Odometry | None:
+        """The body state at the newest IMU sample (None until initialised)."""
+        if self._anchor is None or self._imu.last_time is None:
+            return None
+        t = max(self._imu.last_time, self._anchor.state.t)
+        state = self._propagate_to(t)
+        rate = self._imu.last_gyro - self._anchor.bias_g
+        covariance = (self.backend.pose_covariance() if self.backend.started and not
+                      self._lost_reason else np.full((6, 6), np.nan))
+        return Odometry(t, make_pose(state.R_W_B, state.position), state.velocity, rate,
+                        covariance)
+
+    # ------------------------------------------------------------------ steps
+
+    def _try_static_init(self, t: float, tracks: Tracks) -> FrameUpdate:
+        o = self.static_options
+        window = self._imu.window(t - o.window_s * (1.0 + 1e-6), t)
+        result = (static_initialise(*window, o) if len(window[0]) >= 2
+                  else NotStill("waiting for IMU samples", t, t))
+        self._imu.discard_before(t - o.window_s * 2.0)
+        if isinstance(result, NotStill):
+            return FrameUpdate(t, False, None, None, None, Health(
+                HealthState.INITIALISING, f"static initialisation: {result.reason}",
+                tracked=len(tracks)))
+        self.static_init = result
+        zero = np.zeros(3)
+        state = KeyframeState(0, t, make_pose(result.R_W_B, zero), zero, result.gyro_bias, zero)
+        o = self.options
+        tilt = math.radians(o.prior_tilt_sigma_deg)
+        sigmas = PriorSigmas((tilt, tilt, _GAUGE_YAW_SIGMA), _GAUGE_POSITION_SIGMA,
+                             o.prior_velocity_sigma, o.prior_gyro_bias_sigma,
+                             o.prior_accel_bias_sigma)
+        self._start(state, sigmas, tracks)
+        return self._result(t, tracks, True, self._anchor.state)
+
+    def _start(self, state: KeyframeState, sigmas: PriorSigmas, tracks: Tracks) -> None:
+        self.backend.start(state, sigmas, tracks.ids, tracks.normalised)
+        self._keyframe_tracks = tracks
+        self._set_anchor_from_backend()
+
+    def _reinitialise(self, t: float, tracks: Tracks) -> None:
+        """Start a new smoother at the IMU-propagated state (in flight: wide velocity prior)."""
+        state = self._propagate_to(t)
+        a = self._anchor
+        o = self.options
+        tilt = math.radians(o.prior_tilt_sigma_deg)
+        index = self.backend.latest.index + 1
+        keyframe = KeyframeState(index, t, make_pose(state.R_W_B, state.position),
+                                 state.velocity, a.bias_g, a.bias_a)
+        self._start(keyframe, PriorSigmas((tilt, tilt, _GAUGE_YAW_SIGMA), _GAUGE_POSITION_SIGMA,
+                                          o.reinit_velocity_sigma, o.prior_gyro_bias_sigma,
+                                          o.prior_accel_bias_sigma), tracks)
+        self.reinitialisations += 1
+        self._last_reset_t = t
+        self._lost_reason = ""
+        self._starved_since = None
+
+    def _track_frame(self, t: float, tracks: Tracks) -> FrameUpdate:
+        keyframe = self.backend.latest.t < t and self._is_keyframe(t, tracks)
+        if keyframe:
+            try:
+                self._add_keyframe(t, tracks)
+            except BackendError as error:
+                return self._lost(t, tracks, str(error))
+            state = self._anchor.state
+        else:
+            state = self._propagate_to(t)
+        speed = float(np.linalg.norm(state.velocity))
+        self._moved = self._moved or speed > self.options.moving_speed
+        return self._result(t, tracks, keyframe, state)
+
+    def _is_keyframe(self, t: float, tracks: Tracks) -> bool:
+        since = t - self.backend.latest.t
+        if since < self.options.keyframe_min_interval_s:
+            return False
+        return (since >= self.options.keyframe_interval_s
+                or self._parallax_px(tracks) >= self.options.keyframe_parallax_px)
+
+    def _add_keyframe(self, t: float, tracks: Tracks) -> None:
+        latest = self.backend.latest
+        pim = self.backend.preintegration()
+        pieces = self._imu.pieces(latest.t, t)
+        for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
+            pim.integrateMeasurement(accel, gyro, dt)
+        resets = self.backend.resets
+        self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised)
+        if self.backend.resets != resets:
+            self._last_reset_t = t
+        self._keyframe_tracks = tracks
+        self._set_anchor_from_backend()
+
+    def _set_anchor_from_backend(self) -> None:
+        s = self.backend.latest
+        self._anchor = _Anchor(NavState(s.t, s.T_W_B[:3, :3], s.T_W_B[:3, 3], s.velocity),
+                               s.bias_g, s.bias_a)
+        self._imu.discard_before(s.t)
+
+    def _propagate_to(self, t: float) -> NavState:
+        a = self._anchor
+        return propagate(a.state, self._imu.pieces(a.state.t, t), a.bias_g, a.bias_a)
+
+    def _imu_gap(self, t: float) -> str:
+        last = self._imu.last_time
+        if last is None or last < t - self.options.max_imu_gap_s:
+            return f"IMU silent: last sample at {last}, frame at {t:.3f}"
+        return ""
+
+    def _update_starvation(self, t: float, tracks: Tracks) -> None:
+        if len(tracks) >= self.options.min_tracked_lost:
+            self._starved_since = None
+            return
+        if self._starved_since is None:
+            self._starved_since = t
+        if t - self._starved_since >= self.options.lost_after_s:
+            self._lost_reason = (f"only {len(tracks)} features tracked for "
+                                 f"{t - self._starved_since:.2f} s")
+
+    def _lost(self, t: float, tracks: Tracks, reason: str) -> FrameUpdate:
+        """LOST: keep the state propagated (when the IMU reaches ``t``), no map."""
+        self._lost_reason = reason
+        pose = velocity = None
+        if not self._imu_gap(t):
+            state = self._propagate_to(t)
+            self._anchor = _Anchor(state, self._anchor.bias_g, self._anchor.bias_a)
+            self._imu.discard_before(t)
+            pose, velocity = make_pose(state.R_W_B, state.position), state.velocity
+        health = Health(HealthState.LOST, reason, tracked=len(tracks), resets=self.resets,
+                        update_ms=self._update_ms)
+        return FrameUpdate(t, False, pose, velocity, None, health)
+
+    # ------------------------------------------------------------------ results
+
+    def _parallax_px(self, tracks: Tracks) -> float:
+        """Mean displacement, pixels, of the features common to this frame and the last
+        keyframe."""
+        reference = self._keyframe_tracks
+        if reference is None or len(tracks) == 0 or len(reference) == 0:
+            return 0.0
+        common, here, there = np.intersect1d(tracks.ids, reference.ids, return_indices=True)
+        if len(common) == 0:
+            return 0.0
+        return float(np.linalg.norm(tracks.pixels[here] - reference.pixels[there], axis=1).mean())
+
+    def _result(self, t: float, tracks: Tracks, keyframe: bool, state: NavState) -> FrameUpdate:
+        T_W_B = make_pose(state.R_W_B, state.position)
+        sparse_map = self._sparse_map(t, T_W_B, tracks)
+        latest = self.backend.latest
+        health = assess(HealthInputs(
+            tracked=len(tracks), landmarks=len(sparse_map), parallax_px=self._parallax_px(tracks),
+            speed=float(np.linalg.norm(state.velocity)),
+            gyro_bias=float(np.linalg.norm(latest.bias_g)),
+            accel_bias=float(np.linalg.norm(latest.bias_a)), resets=self.resets,
+            update_ms=self._update_ms, moved=self._moved,
+            starved_s=0.0 if self._starved_since is None else t - self._starved_since,
+            since_reset_s=t - self._last_reset_t), self.options)
+        return FrameUpdate(t, keyframe, T_W_B, state.velocity, sparse_map, health)
+
+    def _sparse_map(self, t: float, T_W_B: np.ndarray, tracks: Tracks) -> SparseMap:
+        """The window's landmarks in the camera at ``t``: ``p_C = T_C_B T_B_W(t) p_W``."""
+        landmarks = self.backend.landmarks
+        T_C_W = self._T_C_B @ invert_pose(T_W_B)
+        points_C = landmarks.points_W @ T_C_W[:3, :3].T + T_C_W[:3, 3]
+        sigma = self.backend.depth_sigma(points_C[:, 2])
+        o = self.options
+        keep = (points_C[:, 2] >= o.min_depth) & (points_C[:, 2] <= o.max_depth)
+        ids, points_C, sigma = landmarks.ids[keep], points_C[keep], sigma[keep]
+        pixels = distort_points(self.camera, self.distortion, points_C[:, :2] / points_C[:, 2:])
+        _, here, there = np.intersect1d(ids, tracks.ids, return_indices=True)
+        tracked = np.zeros(len(ids), bool)
+        tracked[here] = True
+        pixels[here] = tracks.pixels[there]
+        return SparseMap(t, ids, points_C, sigma, pixels, tracked)

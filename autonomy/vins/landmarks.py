@@ -1,0 +1,113 @@
+"""Triangulating tracks into landmarks, and the gate a landmark must pass to enter the smoother.
+
+Each candidate track ``m`` has up to ``K`` observations: the camera centre ``c_mk`` and the unit
+viewing ray ``d_mk`` in the world frame (``mask[m, k]`` says which exist). The point closest to
+all rays in the least-squares sense (the midpoint method, Hartley & Sturm 1997) solves
+
+    sum_k (I - d_mk d_mk^T) p = sum_k (I - d_mk d_mk^T) c_mk.
+
+The gate (why: forward flight puts many features near the focus of expansion, where the rays
+are nearly parallel and depth is unobservable; a smoother given such a point is pulled apart
+by it) keeps a point only if
+
+- it has at least ``min_observations`` observations,
+- the widest angle between two of its rays is at least ``min_parallax`` (rotation is already
+  compensated: the rays are in the world frame),
+- it lies between ``min_depth`` and ``max_depth`` in front of every observing camera, and
+- it reprojects within ``max_reprojection_px`` of every observation.
+
+The depth uncertainty of a triangulated point follows from the observation geometry: an angular
+error ``sigma_px / f`` on a ray, over a baseline that subtends ``parallax`` at the point, moves
+it along the ray by about ``z * (sigma_px / f) / sin(parallax)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Gate:
+    """The landmark gate's limits (see the module docstring)."""
+
+    min_observations: int
+    min_parallax_rad: float
+    min_depth: float
+    max_depth: float
+    max_reprojection_px: float
+    focal_px: float
+
+
+@dataclass(frozen=True)
+class Triangulated:
+    """Gate results for ``M`` candidates: ``points`` (M, 3) world (NaN where unsolved),
+    ``parallax_rad`` (M,), ``accepted`` (M,) bool."""
+
+    points: np.ndarray
+    parallax_rad: np.ndarray
+    accepted: np.ndarray
+
+
+def world_rays(R_W_C: np.ndarray, normalised: np.ndarray) -> np.ndarray:
+    """Unit world-frame rays ``R_W_C [x, y, 1]`` for (..., 3, 3) rotations and (..., 2) points."""
+    bearing = np.concatenate([normalised, np.ones(normalised.shape[:-1] + (1,))], axis=-1)
+    rays = np.einsum("...ij,...j->...i", R_W_C, bearing)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+
+def widest_ray_angle(rays: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The largest angle between any two present rays of each candidate, radians (0 when fewer
+    than two)."""
+    cosines = np.einsum("mki,mli->mkl", rays, rays)
+    pair = mask[:, :, None] & mask[:, None, :]
+    cosines = np.where(pair, cosines, 1.0)
+    return np.arccos(np.clip(cosines.min(axis=(1, 2)), -1.0, 1.0))
+
+
+def midpoint_triangulate(centres: np.ndarray, rays: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Least-squares closest points to each candidate's rays (module docstring), (M, 3); NaN
+    for candidates whose rays are (numerically) parallel."""
+    weights = mask[:, :, None, None].astype(float)
+    projectors = np.eye(3) - rays[..., :, None] * rays[..., None, :]
+    A = (weights * projectors).sum(axis=1)
+    b = np.einsum("mkij,mkj->mi", weights * projectors, centres)
+    points = np.full((len(A), 3), np.nan)
+    solvable = np.linalg.cond(A) < 1e10
+    if solvable.any():
+        points[solvable] = np.linalg.solve(A[solvable], b[solvable][..., None])[..., 0]
+    return points
+
+
+def gate_candidates(R_W_C: np.ndarray, centres: np.ndarray, normalised: np.ndarray,
+                    mask: np.ndarray, gate: Gate) -> Triangulated:
+    """Triangulate and gate ``M`` candidates of up to ``K`` observations each.
+
+    ``R_W_C`` (M, K, 3, 3) and ``centres`` (M, K, 3) are the observing cameras' orientations
+    and positions in the world, ``normalised`` (M, K, 2) the undistorted observations, ``mask``
+    (M, K) which exist.
+    """
+    rays = world_rays(R_W_C, normalised)
+    parallax = widest_ray_angle(rays, mask)
+    enough = (mask.sum(axis=1) >= gate.min_observations) & (parallax >= gate.min_parallax_rad)
+    points = np.full((len(mask), 3), np.nan)
+    if enough.any():
+        points[enough] = midpoint_triangulate(centres[enough], rays[enough], mask[enough])
+    p_C = np.einsum("mkji,mkj->mki", R_W_C, points[:, None, :] - centres)
+    depth = p_C[..., 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        error_px = gate.focal_px * np.linalg.norm(p_C[..., :2] / depth[..., None] - normalised,
+                                                  axis=-1)
+        good = (depth >= gate.min_depth) & (depth <= gate.max_depth) & (
+            error_px <= gate.max_reprojection_px)
+    accepted = enough & np.where(mask, good, True).all(axis=1)
+    return Triangulated(points, parallax, accepted)
+
+
+def depth_sigma(depth: np.ndarray, parallax_rad: np.ndarray, pixel_sigma: float,
+                focal_px: float) -> np.ndarray:
+    """One-sigma depth uncertainty from the observation geometry (module docstring)."""
+    sin_parallax = np.maximum(np.sin(parallax_rad), math.sin(math.radians(0.1)))
+    return depth * (pixel_sigma / focal_px) / sin_parallax

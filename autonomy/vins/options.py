@@ -1,0 +1,95 @@
+"""Options of the VINS back-end, keyframe selection, landmark gate and health monitor.
+
+One flat options object (a config section, ``[vins]``); the front-end and the static
+initialisation keep their own (``[vins_frontend]``, ``[vins_init]``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from autonomy.options import OptionError, option, validate
+
+
+@dataclass(frozen=True)
+class VinsOptions:
+    """How the sliding-window smoother is built and judged."""
+
+    # --- smoother
+    smoother_lag_s: float = option(1.5, gt=0.0, le=30.0, doc="fixed-lag smoother window, "
+                                   "seconds: older keyframes and landmarks are marginalised")
+    relinearize_threshold: float = option(0.05, gt=0.0, doc="iSAM2 relinearises a variable "
+                                          "whose update exceeds this (tangent-space norm)")
+    extra_iterations: int = option(0, ge=0, le=10, doc="extra iSAM2 iterations after each "
+                                   "keyframe's update (each relinearises what moved)")
+    # --- keyframes
+    keyframe_interval_s: float = option(0.1, gt=0.0, le=5.0, doc="a frame this long after the "
+                                        "last keyframe becomes one, seconds")
+    keyframe_min_interval_s: float = option(0.045, ge=0.0, le=5.0, doc="no keyframe sooner "
+                                            "than this after the last, seconds")
+    keyframe_parallax_px: float = option(10.0, gt=0.0, doc="mean feature displacement since "
+                                         "the last keyframe that makes a frame a keyframe "
+                                         "sooner, pixels")
+    # --- measurement noise
+    pixel_sigma: float = option(1.0, gt=0.0, le=20.0, doc="feature position noise, pixels")
+    huber_k: float = option(1.345, gt=0.0, doc="Huber threshold on the whitened "
+                            "reprojection error (in pixel_sigma units)")
+    imu_noise_scale: float = option(2.0, ge=1.0, le=100.0, doc="multiplies the IMU's white-noise"
+                                    " and random-walk densities (datasheet values are "
+                                    "optimistic on a vehicle with rotors)")
+    # --- initial state uncertainty (one sigma)
+    prior_tilt_sigma_deg: float = option(1.0, gt=0.0, le=30.0, doc="roll/pitch after static "
+                                         "initialisation, degrees")
+    prior_velocity_sigma: float = option(0.02, gt=0.0, doc="velocity at static "
+                                         "initialisation, m/s")
+    prior_gyro_bias_sigma: float = option(0.005, gt=0.0, doc="gyro bias after static "
+                                          "initialisation, rad/s")
+    prior_accel_bias_sigma: float = option(0.1, gt=0.0, doc="accelerometer bias (static "
+                                           "initialisation assumes zero), m/s^2")
+    reinit_velocity_sigma: float = option(0.5, gt=0.0, doc="velocity after an in-flight "
+                                          "re-initialisation from IMU propagation, m/s")
+    # --- landmark gate
+    min_observations: int = option(3, ge=2, le=100, doc="keyframes a track must be seen in "
+                                   "before it becomes a landmark")
+    min_parallax_deg: float = option(2.0, ge=0.0, lt=90.0, doc="least angle between a "
+                                     "landmark's viewing rays, degrees")
+    max_reprojection_px: float = option(3.0, gt=0.0, doc="largest reprojection error of a "
+                                        "triangulated landmark in any of its keyframes, pixels")
+    max_observation_px: float = option(5.0, gt=0.0, doc="a landmark observed further than this"
+                                       " from its projection at the IMU-predicted pose is "
+                                       "retired, pixels")
+    min_depth: float = option(0.2, gt=0.0, doc="nearest landmark depth accepted, metres")
+    max_depth: float = option(40.0, gt=0.0, doc="farthest landmark depth accepted, metres")
+    # --- health
+    min_tracked_ok: int = option(40, ge=0, doc="fewer tracked features than this is DEGRADED")
+    min_tracked_lost: int = option(10, ge=0, doc="fewer tracked features than this for "
+                                   "lost_after_s is LOST")
+    min_landmarks_ok: int = option(15, ge=0, doc="fewer landmarks in the window than this is "
+                                   "DEGRADED once the vehicle has moved")
+    lost_after_s: float = option(0.5, gt=0.0, doc="how long tracking may starve before LOST, "
+                                 "seconds")
+    max_speed: float = option(15.0, gt=0.0, doc="a faster velocity estimate is divergence, m/s")
+    max_gyro_bias: float = option(0.3, gt=0.0, doc="a larger gyro bias estimate is divergence, "
+                                  "rad/s")
+    max_accel_bias: float = option(2.0, gt=0.0, doc="a larger accelerometer bias estimate is "
+                                   "divergence, m/s^2")
+    max_imu_gap_s: float = option(0.1, gt=0.0, doc="an IMU gap longer than this before a frame "
+                                  "is LOST (nothing to propagate with), seconds")
+    degraded_after_reset_s: float = option(1.0, ge=0.0, doc="DEGRADED for this long after a "
+                                           "reset, seconds")
+    max_update_ms: float = option(50.0, gt=0.0, doc="a back-end update slower than this is "
+                                  "DEGRADED, milliseconds")
+    moving_speed: float = option(0.2, gt=0.0, doc="speed above which the vehicle counts as "
+                                 "moving (landmarks are then expected), m/s")
+
+    def __post_init__(self) -> None:
+        validate(self)
+        if self.min_depth >= self.max_depth:
+            raise OptionError("max_depth", f"must exceed min_depth ({self.min_depth}), "
+                              f"got {self.max_depth}")
+        if self.keyframe_min_interval_s > self.keyframe_interval_s:
+            raise OptionError("keyframe_min_interval_s", "must not exceed keyframe_interval_s "
+                              f"({self.keyframe_interval_s}), got {self.keyframe_min_interval_s}")
+        if self.min_tracked_lost > self.min_tracked_ok:
+            raise OptionError("min_tracked_lost", "must not exceed min_tracked_ok "
+                              f"({self.min_tracked_ok}), got {self.min_tracked_lost}")

@@ -1,0 +1,344 @@
+"""Accuracy of the VINS on a recorded dataset, behind ``companion eval vio``.
+
+The estimator runs frame by frame on a EuRoC/ASL dataset, real or simulated, exactly as it
+would in flight (IMU samples up to each frame's time, then the frame), into a
+:class:`VioTrace` (:func:`run_vins`), and the trace is scored against the dataset's ground
+truth (:func:`score_vio`): trajectory error after alignment, scale, the depth of its sparse
+landmarks against the ``depth0`` images, and its static initialisation. The time each stage
+takes is measured here, never in ``autonomy/``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Iterator
+
+import cv2
+import numpy as np
+
+from autonomy.geometry import PinholeCamera, quat_to_rot
+from autonomy.messages import ImuSample, SparseMap
+from autonomy.trajectory import align_umeyama, ate_rmse, interpolate_poses, path_length
+from autonomy.vins.preintegration import ImuNoise
+from drivers.dataset.euroc import (
+    CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
+    read_groundtruth, read_imu, read_imu_noise,
+)
+
+if TYPE_CHECKING:
+    from autonomy.vins.estimator import FrameUpdate
+    from autonomy.vins.frontend import FrontendOptions
+    from autonomy.vins.options import VinsOptions
+    from autonomy.vins.static_init import StaticInit, StaticInitOptions
+
+
+class EvaluationError(Exception):
+    """The dataset cannot be evaluated; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class VioDataset:
+    """The streams of a dataset the evaluation needs, checked for use.
+
+    ``depth`` maps a camera timestamp (ns) to its ground-truth depth image; it is None when the
+    dataset has no ``depth0`` stream (the real EuRoC recordings).
+    """
+
+    root: Path
+    camera: CameraStream
+    imu: ImuTable
+    truth: GroundTruthTable
+    noise: ImuNoise
+    depth: dict[int, Path] | None
+
+
+@dataclass(frozen=True)
+class VioFrame:
+    """One camera frame as the estimator takes it in flight: ``imu``, the IMU samples after the
+    previous frame up to and including ``t`` (seconds since the first IMU sample), then
+    ``image`` (uint8 grey or RGB); ``depth_path``, its ground-truth depth image or None."""
+
+    t: float
+    imu: list[ImuSample]
+    image: np.ndarray
+    depth_path: Path | None
+
+
+@dataclass
+class VioTrace:
+    """What the estimator produced over a dataset, one entry per frame in each list.
+
+    ``t``: frame time, seconds since the dataset's first IMU sample. ``positions``: the body
+    position in the world, None while the estimator has no pose. ``keyframe``: the smoother
+    ran on the frame. ``frontend_ms``/``backend_ms``: wall time of tracking and of the frame
+    update. ``health``: the name of the health state. ``depth_errors``: one array of
+    :func:`depth_relative_errors` per frame with both a sparse map and a depth image (so not
+    one per frame). ``static_init``: the estimator's static initialisation (None if it never
+    initialised); ``resets``: how many times it reset.
+    """
+
+    t: list[float] = field(default_factory=list)
+    positions: list[np.ndarray | None] = field(default_factory=list)
+    keyframe: list[bool] = field(default_factory=list)
+    frontend_ms: list[float] = field(default_factory=list)
+    backend_ms: list[float] = field(default_factory=list)
+    health: list[str] = field(default_factory=list)
+    depth_errors: list[np.ndarray] = field(default_factory=list)
+    static_init: StaticInit | None = None
+    resets: int = 0
+
+
+def read_vio_dataset(root: Path) -> VioDataset:
+    """The camera, IMU, ground truth, IMU noise model and (if present) depth of ``root``."""
+    root = Path(root)
+    if not root.is_dir():
+        raise EvaluationError(f"{root}: no such folder")
+    try:
+        camera, imu, truth = read_camera(root), read_imu(root), read_groundtruth(root)
+        noise = read_imu_noise(root)
+        has_depth = (root / "mav0" / "depth0").is_dir()
+        depth = read_camera(root, "depth0") if has_depth else None
+    except DatasetError as error:
+        raise EvaluationError(str(error)) from None
+    if len(camera.t_ns) == 0:
+        raise EvaluationError(f"{root / 'mav0' / 'cam0' / 'data.csv'}: no frames")
+    if len(truth.t_ns) < 2:
+        raise EvaluationError(f"{root / 'mav0' / 'state_groundtruth_estimate0' / 'data.csv'}: "
+                              "ground truth needs at least 2 samples")
+    depth_paths = dict(zip(depth.t_ns.tolist(), depth.paths)) if depth is not None else None
+    return VioDataset(root, camera, imu, truth, noise, depth_paths)
+
+
+def evaluate_vio(root: Path, options: VinsOptions, *, frontend: FrontendOptions | None = None,
+                 static: StaticInitOptions | None = None,
+                 max_frames: int | None = None) -> dict:
+    """Run the VINS over the dataset at ``root`` (:func:`run_vins`) and score it
+    (:func:`score_vio`)."""
+    data = read_vio_dataset(root)
+    trace = run_vins(data, options, frontend=frontend, static=static, max_frames=max_frames)
+    return score_vio(trace, data)
+
+
+def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
+             static: StaticInitOptions | None = None,
+             max_frames: int | None = None) -> VioTrace:
+    """Run a :class:`Vins` built with ``options``, ``frontend`` and ``static`` over the frames
+    of ``data`` (:func:`vio_frames`) and trace its output, timing each stage."""
+    # Imported here: reading and checking a dataset does not need the whole estimator.
+    from autonomy.vins.estimator import Vins
+
+    stream = data.camera
+    vins = Vins(stream.camera, stream.distortion, stream.T_B_C, data.noise, options,
+                frontend=frontend, static=static)
+    trace = VioTrace()
+    for frame in vio_frames(data, max_frames):
+        for sample in frame.imu:
+            vins.add_imu(sample)
+        start = time.perf_counter()
+        tracks = vins.track(frame.image)
+        middle = time.perf_counter()
+        update = vins.add_frame(frame.t, tracks)
+        _record(trace, update, 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle))
+        if update.sparse_map is not None and frame.depth_path is not None:
+            depth = _read_depth(frame.depth_path, stream.camera)
+            trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
+    trace.static_init, trace.resets = vins.static_init, int(vins.resets)
+    return trace
+
+
+def vio_frames(data: VioDataset, max_frames: int | None = None) -> Iterator[VioFrame]:
+    """The camera frames of ``data`` in order (the first ``max_frames``), each with the IMU
+    samples to feed before it; an image of the wrong size or format raises
+    :class:`EvaluationError` naming its file."""
+    stream, imu = data.camera, data.imu
+    imu_t = _seconds(imu.t_ns, imu.t_ns[0])
+    frame_t = _seconds(stream.t_ns, imu.t_ns[0])
+    fed = 0
+    count = len(stream.paths) if max_frames is None else min(max_frames, len(stream.paths))
+    for k in range(count):
+        t = float(frame_t[k])
+        upto = max(fed, int(np.searchsorted(imu_t, t, side="right")))
+        samples = [ImuSample(float(imu_t[i]), imu.gyro[i], imu.accel[i]) for i in range(fed, upto)]
+        depth_path = data.depth.get(int(stream.t_ns[k])) if data.depth is not None else None
+        yield VioFrame(t, samples, _read_image(stream.paths[k], stream.camera), depth_path)
+        fed = upto
+
+
+def score_vio(trace: VioTrace, data: VioDataset) -> dict:
+    """Score ``trace`` against the ground truth of ``data``; a dict of plain numbers (None where
+    a metric cannot be computed), ready for JSON.
+
+    ``ate_rmse_m``: RMS position error of the traced body positions against the ground truth
+    interpolated at the frame times, after the best rigid (SE(3)) alignment; ``scale_error``:
+    ``|s - 1|`` of the best similarity (Sim(3)) alignment of the same positions;
+    ``distance_m``: ground-truth path length over those frames. ``depth_rel_err_median``:
+    median of the traced depth errors (None when the dataset has no ``depth0``). Back-end times
+    are over the keyframes (where the smoother ran). ``init`` compares the static
+    initialisation with the ground truth at its end: the angle between the estimated and true
+    up-vectors in the body, and the relative gyro-bias error.
+    """
+    truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
+    backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
+    depth_errors = np.concatenate(trace.depth_errors) if trace.depth_errors else np.empty(0)
+    return {
+        "dataset": str(data.root),
+        "frames": len(trace.t),
+        "keyframes": sum(trace.keyframe),
+        **_trajectory_metrics(trace, truth_t, data.truth),
+        "depth_rel_err_median": None if data.depth is None else _median(depth_errors),
+        "depth_points": len(depth_errors),
+        "resets": int(trace.resets),
+        "frontend_ms_median": _median(trace.frontend_ms),
+        "backend_ms_median": _median(backend),
+        "backend_ms_p95": _finite(np.percentile(backend, 95)) if backend else None,
+        "health": dict(Counter(trace.health)),
+        "init": _init_metrics(trace.static_init, truth_t, data.truth),
+    }
+
+
+def _seconds(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
+    """Dataset nanoseconds as float seconds since ``t0_ns`` (subtracted in integers first, so
+    the float keeps nanosecond precision)."""
+    return (np.asarray(t_ns, dtype=np.int64) - np.int64(t0_ns)) * 1e-9
+
+
+def _record(trace: VioTrace, update: FrameUpdate, frontend_ms: float, backend_ms: float) -> None:
+    """Append one frame's update and stage times to ``trace``."""
+    trace.t.append(update.t)
+    trace.positions.append(None if update.T_W_B is None else np.array(update.T_W_B[:3, 3]))
+    trace.keyframe.append(bool(update.keyframe))
+    trace.frontend_ms.append(frontend_ms)
+    trace.backend_ms.append(backend_ms)
+    trace.health.append(update.health.state.name)
+
+
+def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
+    """A camera image as the front-end takes it: uint8 grey, or RGB (OpenCV reads BGR)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise EvaluationError(f"{path}: not a readable image")
+    if image.dtype != np.uint8 or not (image.ndim == 2 or image.shape[2] == 3):
+        raise EvaluationError(f"{path}: expected 8-bit grey or colour, got {image.dtype} "
+                              f"with shape {image.shape}")
+    _check_size(path, image, camera)
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _read_depth(path: Path, camera: PinholeCamera) -> np.ndarray:
+    try:
+        depth = read_depth_png(path)
+    except DatasetError as error:
+        raise EvaluationError(str(error)) from None
+    _check_size(path, depth, camera)
+    return depth
+
+
+def _check_size(path: Path, image: np.ndarray, camera: PinholeCamera) -> None:
+    height, width = image.shape[:2]
+    if (width, height) != (camera.width, camera.height):
+        raise EvaluationError(f"{path}: image is {width}x{height}, the camera's sensor.yaml "
+                              f"says {camera.width}x{camera.height}")
+
+
+def depth_relative_errors(sparse_map: SparseMap, depth: np.ndarray) -> np.ndarray:
+    """``|z_i - z_gt| / z_gt`` for each tracked landmark ``i`` of ``sparse_map``, ``z_i`` its
+    depth (``points_C[i, 2]``) and ``z_gt`` the ground-truth ``depth`` (metres, NaN unknown)
+    at the nearest pixel to where it was seen; landmarks off the image or on unknown depth are
+    left out."""
+    tracked = np.asarray(sparse_map.tracked, dtype=bool)
+    u, v = np.rint(np.asarray(sparse_map.pixels, dtype=float)[tracked]).T
+    z = np.asarray(sparse_map.points_C, dtype=float)[tracked, 2]
+    height, width = depth.shape
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    z_gt = depth[v[inside].astype(int), u[inside].astype(int)].astype(float)
+    known = np.isfinite(z_gt)
+    return np.abs(z[inside][known] - z_gt[known]) / z_gt[known]
+
+
+def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruthTable) -> dict:
+    """ATE (SE(3)), scale error (Sim(3)) and distance over the frames with a pose inside the
+    ground truth's time span."""
+    chosen = [k for k, p in enumerate(trace.positions)
+              if p is not None and truth_t[0] <= trace.t[k] <= truth_t[-1]]
+    estimated = np.array([trace.positions[k] for k in chosen]).reshape(-1, 3)
+    true_positions, _ = interpolate_poses([trace.t[k] for k in chosen], truth_t,
+                                          truth.position, truth.q_W_B)
+    distance = path_length(true_positions)
+    try:
+        ate = ate_rmse(estimated, true_positions)
+        scale = align_umeyama(estimated, true_positions, with_scale=True).s
+    except ValueError as error:
+        return {"ate_rmse_m": None, "distance_m": distance, "ate_over_distance": None,
+                "scale_error": None,
+                "note": f"no trajectory error from {len(chosen)} poses: {error}"}
+    return {"ate_rmse_m": ate, "distance_m": distance,
+            "ate_over_distance": ate / distance if distance > 0.0 else None,
+            "scale_error": _finite(abs(scale - 1.0))}
+
+
+def _init_metrics(static_init: StaticInit | None, truth_t: np.ndarray,
+                  truth: GroundTruthTable) -> dict | None:
+    """The static initialisation against the ground truth at its end time ``t_end``: angle
+    between the estimated up-vector in the body and the true one, ``R_W_B^T e_z``, and
+    ``|b - b_true| / |b_true|`` of the gyro bias (None for a bias-free IMU)."""
+    if static_init is None:
+        return None
+    t = float(static_init.t_end)
+    try:
+        _, q = interpolate_poses([t], truth_t, truth.position, truth.q_W_B)
+    except ValueError:  # initialised outside the ground truth's span: nothing to compare
+        return {"t": t, "gravity_err_deg": None, "gyro_bias_err_rel": None}
+    up_true = quat_to_rot(q[0]).T @ np.array([0.0, 0.0, 1.0])
+    bias_true = np.array([np.interp(t, truth_t, column) for column in truth.gyro_bias.T])
+    bias_norm = float(np.linalg.norm(bias_true))
+    bias_error = float(np.linalg.norm(np.asarray(static_init.gyro_bias) - bias_true))
+    return {"t": t, "gravity_err_deg": math.degrees(_angle(static_init.gravity_B, up_true)),
+            "gyro_bias_err_rel": bias_error / bias_norm if bias_norm > 0.0 else None}
+
+
+def _angle(a, b) -> float:
+    """The angle between two vectors, ``atan2(|a x b|, a . b)`` (accurate near zero)."""
+    return math.atan2(float(np.linalg.norm(np.cross(a, b))), float(np.dot(a, b)))
+
+
+def _median(values) -> float | None:
+    return _finite(np.median(values)) if len(values) else None
+
+
+def _finite(value) -> float | None:
+    """A plain float for JSON, None for NaN or infinity."""
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def format_vio_report(result: dict) -> str:
+    """The evaluation result as a few lines a person reads."""
+    init = result["init"]
+    note = f"; {result['note']}" if "note" in result else ""
+    lines = [
+        f"{result['dataset']}: {result['frames']} frames, {result['keyframes']} keyframes, "
+        f"{result['resets']} resets",
+        f"trajectory: ATE {_show(result['ate_rmse_m'], '.3f', ' m')} over "
+        f"{_show(result['distance_m'], '.1f', ' m')} "
+        f"({_show(result['ate_over_distance'], '.2%')}), scale error "
+        f"{_show(result['scale_error'], '.2%')}{note}",
+        f"depth: median relative error {_show(result['depth_rel_err_median'], '.1%')} over "
+        f"{result['depth_points']} landmarks",
+        "init: none" if init is None else
+        f"init at t={init['t']:.2f} s: gravity error "
+        f"{_show(init['gravity_err_deg'], '.2f', ' deg')}, gyro bias error "
+        f"{_show(init['gyro_bias_err_rel'], '.1%')}",
+        f"time: front-end {_show(result['frontend_ms_median'], '.1f', ' ms')} median, back-end "
+        f"{_show(result['backend_ms_median'], '.1f', ' ms')} median and "
+        f"{_show(result['backend_ms_p95'], '.1f', ' ms')} p95 per keyframe",
+        "health: " + ", ".join(f"{name} {count}" for name, count in result["health"].items()),
+    ]
+    return "\n".join(lines)
+
+
+def _show(value: float | None, spec: str, unit: str = "") -> str:
+    return "n/a" if value is None else f"{value:{spec}}{unit}"

@@ -1,0 +1,223 @@
+"""`companion eval vio`: unusable datasets are named in one line, the frames are fed as in
+flight, and the scoring gives the known answers for a trace with known errors (the true pose
+moved by a fixed rigid motion, landmarks 10 % too deep)."""
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from autonomy.geometry import PinholeCamera, rot_to_quat, rot_z, so3_exp
+from autonomy.messages import SparseMap
+from autonomy.vins.options import VinsOptions
+from autonomy.vins.static_init import StaticInit
+from companion.cli import main
+from companion.evaluation import (
+    EvaluationError, VioTrace, depth_relative_errors, evaluate_vio, format_vio_report,
+    read_vio_dataset, score_vio, vio_frames,
+)
+from drivers.dataset.euroc import EurocWriter, read_depth_png
+
+NOISE = {"rate_hz": 200.0, "gyroscope_noise_density": 1e-4, "gyroscope_random_walk": 1e-5,
+         "accelerometer_noise_density": 1e-3, "accelerometer_random_walk": 1e-4}
+T0_NS = 1_403_715_273_262_142_976  # a EuRoC-sized epoch: float seconds would lose the ns
+CAMERA = PinholeCamera.from_hfov(32, 24, 1.5)
+GYRO_BIAS = np.array([0.01, 0.0, 0.0])
+
+
+def _position(t: float) -> np.ndarray:
+    """A climbing helix of radius 3 m."""
+    return np.array([3.0 * math.cos(t), 3.0 * math.sin(t), 0.5 * t])
+
+
+def _write_dataset(root, seconds: float = 4.0, image_size: tuple[int, int] = (24, 32)):
+    """IMU and ground truth at 200 Hz, frames with a 2 m depth image (NaN on the left 4
+    columns) at 20 Hz."""
+    rng = np.random.default_rng(0)
+    depth = np.full((24, 32), 2.0, dtype=np.float32)
+    depth[:, :4] = np.nan
+    with EurocWriter(root, CAMERA, np.eye(4), 20.0, NOISE) as writer:
+        for k in range(int(seconds * 200) + 1):
+            t_ns, t = T0_NS + 5_000_000 * k, 0.005 * k
+            writer.add_imu(t_ns, [0.0, 0.0, 1.0], [0.0, 0.0, 9.8])
+            writer.add_groundtruth(t_ns, _position(t), rot_to_quat(rot_z(t)), [0.0] * 3,
+                                   GYRO_BIAS, [0.0] * 3)
+            if k % 10 == 0:
+                writer.add_frame(t_ns, rng.integers(0, 256, (*image_size, 3), dtype=np.uint8),
+                                 depth)
+
+
+def _landmark_errors(data) -> np.ndarray:
+    """The depth errors of five landmarks at 2.2 m against the dataset's first depth image:
+    two usable, one untracked, one on unknown depth, one off the image."""
+    pixels = np.array([[10.0, 10.0], [20.2, 5.4], [10.0, 10.0], [1.0, 1.0], [-5.0, 3.0]])
+    sparse = SparseMap(0.0, np.arange(5), np.column_stack([np.zeros((5, 2)), [2.2] * 5]),
+                       np.full(5, 0.1), pixels, np.array([True, True, False, True, True]))
+    return depth_relative_errors(sparse, read_depth_png(next(iter(data.depth.values()))))
+
+
+def _known_trace(data, frames: int) -> VioTrace:
+    """A trace with no pose for 5 frames, then the true pose moved by a fixed rigid motion, a
+    keyframe every other frame, and the landmarks of :func:`_landmark_errors`; initialised
+    at 1 s with the up-vector 0.5 deg off and the gyro bias 10 % too large."""
+    R, offset = so3_exp(np.array([0.2, -0.1, 1.0])), np.array([5.0, -2.0, 1.0])
+    t = [0.05 * k for k in range(frames)]
+    posed = [k >= 5 for k in range(frames)]
+    up = so3_exp(np.radians([0.5, 0.0, 0.0])) @ [0.0, 0.0, 1.0]
+    init = StaticInit(np.eye(3), 1.1 * GYRO_BIAS, up, 9.8, 0.0, 1.0, 200, 0.0, 0.0)
+    return VioTrace(
+        t=t,
+        positions=[R @ _position(tk) + offset if p else None for tk, p in zip(t, posed)],
+        keyframe=[p and k % 2 == 1 for k, p in enumerate(posed)],
+        frontend_ms=[0.1 * k for k in range(frames)],
+        backend_ms=[10.0 if k % 2 == 1 else 0.5 for k in range(frames)],
+        health=["TRACKING" if p else "INITIALISING" for p in posed],
+        depth_errors=[_landmark_errors(data) for p in posed if p],
+        static_init=init, resets=2)
+
+
+def test_landmarks_are_compared_only_where_tracked_seen_and_known(tmp_path):
+    _write_dataset(tmp_path, seconds=0.1)
+    errors = _landmark_errors(read_vio_dataset(tmp_path))
+    assert errors == pytest.approx([0.1, 0.1], rel=1e-6)
+
+
+def test_a_rigidly_moved_ground_truth_scores_zero_error_and_the_known_offsets(tmp_path):
+    _write_dataset(tmp_path)
+    data = read_vio_dataset(tmp_path)
+    result = score_vio(_known_trace(data, 81), data)
+    assert result["frames"] == 81 and result["keyframes"] == 38 and result["resets"] == 2
+    assert result["ate_rmse_m"] < 1e-6 and result["scale_error"] < 1e-6
+    tracked = [_position(0.05 * k) for k in range(5, 81)]
+    assert result["distance_m"] == pytest.approx(
+        np.sum(np.linalg.norm(np.diff(tracked, axis=0), axis=1)))
+    assert result["depth_rel_err_median"] == pytest.approx(0.1, rel=1e-3)
+    assert result["depth_points"] == 2 * 76
+    assert result["frontend_ms_median"] == pytest.approx(4.0)
+    assert result["backend_ms_median"] == 10.0 and result["backend_ms_p95"] == 10.0
+    assert result["health"] == {"INITIALISING": 5, "TRACKING": 76}
+    assert result["init"]["t"] == 1.0
+    assert result["init"]["gravity_err_deg"] == pytest.approx(0.5)
+    assert result["init"]["gyro_bias_err_rel"] == pytest.approx(0.1)
+    assert json.loads(json.dumps(result)) == result
+    assert "ATE 0.000 m" in format_vio_report(result)
+
+
+def test_too_few_poses_give_no_trajectory_error_and_say_why(tmp_path):
+    _write_dataset(tmp_path, seconds=0.3)
+    data = read_vio_dataset(tmp_path)
+    result = score_vio(_known_trace(data, 6), data)
+    assert result["frames"] == 6 and result["ate_rmse_m"] is None
+    assert result["note"] == ("no trajectory error from 1 poses: alignment needs at least 3 "
+                              "points, got 1")
+    assert "n/a" in format_vio_report(result)
+
+
+def test_no_initialisation_and_no_keyframes_score_as_none(tmp_path):
+    _write_dataset(tmp_path, seconds=0.3)
+    result = score_vio(VioTrace(t=[0.0], positions=[None], keyframe=[False], frontend_ms=[1.0],
+                                backend_ms=[1.0], health=["INITIALISING"]),
+                       read_vio_dataset(tmp_path))
+    assert result["init"] is None and result["backend_ms_p95"] is None
+    assert result["depth_rel_err_median"] is None and result["depth_points"] == 0
+    assert "init: none" in format_vio_report(result)
+
+
+def test_each_frame_comes_after_every_imu_sample_up_to_its_time(tmp_path):
+    _write_dataset(tmp_path, seconds=1.0)
+    data = read_vio_dataset(tmp_path)
+    frames = list(vio_frames(data, max_frames=5))
+    assert [frame.t for frame in frames] == pytest.approx([0.0, 0.05, 0.1, 0.15, 0.2])
+    fed = [sample.t for frame in frames for sample in frame.imu]
+    assert fed == pytest.approx([0.005 * i for i in range(41)])
+    for frame, path in zip(frames, data.camera.paths):
+        assert frame.imu[-1].t <= frame.t < frame.imu[-1].t + 0.005
+        assert frame.image.shape == (24, 32, 3) and frame.image.dtype == np.uint8
+        assert np.array_equal(frame.image, cv2.imread(str(path))[..., ::-1])  # RGB, not BGR
+        assert frame.depth_path is not None and frame.depth_path.is_file()
+
+
+def test_an_image_of_the_wrong_size_is_named(tmp_path):
+    _write_dataset(tmp_path, seconds=0.1, image_size=(12, 16))
+    with pytest.raises(EvaluationError, match=r"\.png: image is 16x12, the camera's "
+                                              r"sensor.yaml says 32x24"):
+        evaluate_vio(tmp_path, VinsOptions())
+
+
+def _eval_vio(capsys, *args):
+    status = main(["eval", "vio", *map(str, args)])
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    return status, captured
+
+
+def test_a_missing_folder_fails_in_one_line(tmp_path, capsys):
+    status, captured = _eval_vio(capsys, tmp_path / "nowhere")
+    assert (status, captured.err) == (1, f"eval vio: {tmp_path / 'nowhere'}: no such folder\n")
+
+
+def test_a_folder_without_a_camera_is_named(tmp_path, capsys):
+    status, captured = _eval_vio(capsys, tmp_path)
+    assert status == 1
+    assert captured.err == f"eval vio: {tmp_path / 'mav0' / 'cam0' / 'data.csv'}: no such file\n"
+
+
+def test_a_garbage_csv_is_named_with_its_problem(tmp_path, capsys):
+    _write_dataset(tmp_path, seconds=0.1)
+    (tmp_path / "mav0" / "imu0" / "data.csv").write_text("#header\n12,garbage\n")
+    status, captured = _eval_vio(capsys, tmp_path)
+    assert status == 1
+    assert captured.err.startswith("eval vio: ") and captured.err.count("\n") == 1
+    assert "imu0/data.csv: sample 1 has 2 columns, expected 7" in captured.err
+
+
+@pytest.mark.parametrize("args, complaint", [
+    (("--max-frames", "0"), "expected a positive integer"),
+    ((), "the following arguments are required: DATASET"),
+])
+def test_bad_arguments_exit_2(capsys, args, complaint):
+    status, captured = _eval_vio(capsys, *args)
+    assert status == 2 and complaint in captured.err
+
+
+def test_eval_has_help_and_wants_an_action(capsys):
+    assert main(["eval", "vio", "--help"]) == 0
+    assert "--max-frames N" in capsys.readouterr().out
+    assert main(["eval"]) == 2
+    assert capsys.readouterr().err.startswith("usage: companion eval")
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    from drivers.camera.options import CameraOptions
+    from drivers.sim.imu import ImuOptions
+    from drivers.sim.options import SimOptions
+    from drivers.sim.record import record_dataset
+    from drivers.sim.render import RenderError
+    from drivers.sim.vehicle import VehicleOptions
+
+    out = tmp_path_factory.mktemp("sim")
+    try:
+        record_dataset(out, SimOptions(world="mine", seed=0), CameraOptions(), VehicleOptions(),
+                       ImuOptions(), duration=8.0)
+    except RenderError as error:
+        pytest.skip(f"EGL/OpenGL unavailable here: {error}")
+    return out
+
+
+def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
+    status, captured = _eval_vio(capsys, simulated, "--json")
+    assert status == 0, captured.err
+    result = json.loads(captured.out)
+    numbers = ("ate_rmse_m", "distance_m", "ate_over_distance", "scale_error",
+               "depth_rel_err_median", "frontend_ms_median", "backend_ms_median",
+               "backend_ms_p95")
+    assert set(result) >= {"dataset", "frames", "keyframes", "depth_points", "resets",
+                           "health", "init", *numbers}
+    assert result["frames"] == 161 and 0 < result["keyframes"] <= 161
+    assert all(isinstance(result[key], float) and result[key] >= 0.0 for key in numbers)
+    assert sum(result["health"].values()) == 161
+    assert result["depth_points"] > 0 and result["resets"] >= 0
+    assert result["init"]["gravity_err_deg"] < 1.0
