@@ -7,8 +7,37 @@ keep exploring new examples and its database replays any failure found.
 
 import os
 
+import pytest
 from hypothesis import settings
 
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+
+@pytest.fixture(scope="session")
+def record_flight(tmp_path_factory):
+    """``record_flight(world, seconds)``: the folder of a simulated flight (seed 0) recorded
+    once per test session; skips the test when OpenGL is unavailable here."""
+    from drivers.camera.options import CameraOptions
+    from drivers.sim.imu import ImuOptions
+    from drivers.sim.options import SimOptions
+    from drivers.sim.record import record_dataset
+    from drivers.sim.render import RenderError
+    from drivers.sim.vehicle import VehicleOptions
+
+    recorded = {}
+
+    def record(world: str, seconds: float):
+        key = (world, seconds)
+        if key not in recorded:
+            root = tmp_path_factory.mktemp(f"flight_{world}_{seconds:g}s")
+            try:
+                record_dataset(root, SimOptions(world=world, seed=0), CameraOptions(),
+                               VehicleOptions(), ImuOptions(), duration=seconds)
+            except RenderError as error:
+                pytest.skip(f"EGL/OpenGL unavailable here: {error}")
+            recorded[key] = root
+        return recorded[key]
+
+    return record

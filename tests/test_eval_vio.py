@@ -190,21 +190,8 @@ def test_eval_has_help_and_wants_an_action(capsys):
 
 
 @pytest.fixture(scope="module")
-def simulated(tmp_path_factory):
-    from drivers.camera.options import CameraOptions
-    from drivers.sim.imu import ImuOptions
-    from drivers.sim.options import SimOptions
-    from drivers.sim.record import record_dataset
-    from drivers.sim.render import RenderError
-    from drivers.sim.vehicle import VehicleOptions
-
-    out = tmp_path_factory.mktemp("sim")
-    try:
-        record_dataset(out, SimOptions(world="mine", seed=0), CameraOptions(), VehicleOptions(),
-                       ImuOptions(), duration=8.0)
-    except RenderError as error:
-        pytest.skip(f"EGL/OpenGL unavailable here: {error}")
-    return out
+def simulated(record_flight):
+    return record_flight("mine", 8.0)
 
 
 def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):

@@ -123,7 +123,9 @@ class Vins:
     def add_frame(self, t: float, tracks: Tracks) -> FrameUpdate:
         """Everything after the front-end for the frame at ``t`` (module docstring)."""
         t = float(t)
-        if not math.isfinite(t) or t <= self._last_frame_t:
+        if not math.isfinite(t):
+            raise ValueError(f"frame time must be a finite number of seconds, got {t}")
+        if t <= self._last_frame_t:
             raise ValueError(f"frame time {t} is not after the previous frame "
                              f"({self._last_frame_t})")
         self._last_frame_t = t
