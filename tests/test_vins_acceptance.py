@@ -5,9 +5,6 @@ the world's route; ``companion eval vio``'s library call scores it against the g
 The goal: trajectory error at most 1 % of the distance flown (after SE(3) alignment, so scale
 error counts), median landmark depth error at most 3 %, and never LOST (no unrecovered
 divergence).
-
-dome misses the goal (docs/vins.md, "Known limitation": scale drifts during constant-velocity
-cruise). Its test is a strict expected failure, so it reports when a change fixes it.
 """
 
 import pytest
@@ -17,15 +14,8 @@ from companion.evaluation import evaluate_vio
 
 SECONDS = 40.0
 
-WORLDS = [
-    "mine",
-    "sewer",
-    pytest.param("dome", marks=pytest.mark.xfail(
-        strict=True, reason="scale drifts ~4 % in constant-velocity cruise (docs/vins.md)")),
-]
 
-
-@pytest.mark.parametrize("world", WORLDS)
+@pytest.mark.parametrize("world", ["mine", "sewer", "dome"])
 def test_a_forty_second_flight_stays_within_one_percent_and_three_percent_depth(
         world, record_flight):
     result = evaluate_vio(record_flight(world, SECONDS), VinsOptions())
