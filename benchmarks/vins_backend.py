@@ -17,10 +17,9 @@ import tempfile
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from autonomy.vins import VinsOptions
-from companion.evaluation import read_vio_dataset, run_vins
+from companion.evaluation import read_vio_dataset, run_vins, score_vio
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import WORLD_NAMES, SimOptions
@@ -29,18 +28,14 @@ from drivers.sim.vehicle import VehicleOptions
 
 
 def measure(root: Path) -> dict:
-    trace = run_vins(read_vio_dataset(root), VinsOptions())
-    backend = np.array([ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key])
-    flight = np.array(trace.t) - trace.t[0]
-    return {
-        "dataset": str(root),
-        "keyframes": int(len(backend)),
-        "keyframe_rate_hz": round(len(backend) / float(flight[-1]), 2),
-        "backend_ms_median": round(float(np.median(backend)), 2),
-        "backend_ms_p95": round(float(np.percentile(backend, 95)), 2),
-        "frontend_ms_median": round(float(np.median(trace.frontend_ms)), 2),
-        "resets": trace.resets,
-    }
+    data = read_vio_dataset(root)
+    trace = run_vins(data, VinsOptions())
+    score = score_vio(trace, data)
+    timing = {key: round(score[key], 2)
+              for key in ("backend_ms_median", "backend_ms_p95", "frontend_ms_median")}
+    return {"dataset": str(root), "keyframes": score["keyframes"],
+            "keyframe_rate_hz": round(score["keyframes"] / (trace.t[-1] - trace.t[0]), 2),
+            **timing, "resets": score["resets"]}
 
 
 def main() -> None:

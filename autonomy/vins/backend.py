@@ -70,6 +70,13 @@ class PriorSigmas:
     gyro_bias: float
     accel_bias: float
 
+    @classmethod
+    def with_bias_priors(cls, options: VinsOptions, rotation: tuple[float, float, float],
+                         position: float, velocity: float) -> "PriorSigmas":
+        """Priors whose bias widths are the options' static-initialisation ones."""
+        return cls(rotation, position, velocity, options.prior_gyro_bias_sigma,
+                   options.prior_accel_bias_sigma)
+
 
 @dataclass(frozen=True)
 class Landmarks:
@@ -80,6 +87,10 @@ class Landmarks:
     points_W: np.ndarray
     parallax_rad: np.ndarray
     observations: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "Landmarks":
+        return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
 
 
 class BackendError(RuntimeError):
@@ -141,8 +152,8 @@ class SlidingWindowSmoother:
         self._window: list[_Keyframe] = []
         self._poses: dict[int, np.ndarray] = {}
         self._retired = np.zeros(0, np.int64)
-        self._landmarks = Landmarks(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0),
-                                    np.zeros(0, np.int64))
+        self._pose_covariance: tuple[int, np.ndarray] | None = None
+        self._landmarks = Landmarks.empty()
 
     # ------------------------------------------------------------------ public
 
@@ -160,10 +171,6 @@ class SlidingWindowSmoother:
     def landmarks(self) -> Landmarks:
         return self._landmarks
 
-    @property
-    def window_size(self) -> int:
-        return len(self._window)
-
     def preintegration(self) -> gtsam.PreintegratedCombinedMeasurements:
         """An empty preintegration at the latest keyframe's biases."""
         s = self.latest
@@ -173,6 +180,7 @@ class SlidingWindowSmoother:
         """Begin a new smoother at ``state`` with priors ``sigmas``; ``ids``/``normalised`` are
         that keyframe's observations (kept for later triangulation)."""
         self._smoother = self._new_smoother()
+        self._pose_covariance = None
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         k = state.index
         pose = gtsam.Pose3(state.T_W_B)
@@ -190,14 +198,13 @@ class SlidingWindowSmoother:
         self._latest = state
         self._window = [self._keyframe(k, state.t, ids, normalised)]
         self._poses = {k: np.asarray(state.T_W_B, float)}
-        self._landmarks = Landmarks(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0),
-                                    np.zeros(0, np.int64))
+        self._landmarks = Landmarks.empty()
 
     def add_keyframe(self, t: float, pim: gtsam.PreintegratedCombinedMeasurements, ids,
                      normalised) -> bool:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
         features it sees. Returns True when the update was used, False when it failed and the
-        smoother was rebuilt (a reset). Raises :class:`BackendError` when even the rebuilt
+        smoother was rebuilt (a reset; ``last_failure`` says why). Raises :class:`BackendError` when even the rebuilt
         smoother refuses the keyframe."""
         good, good_keyframe = self.latest, self._window[-1]
         keyframe = self._keyframe(good.index + 1, t, ids, normalised)
@@ -215,10 +222,8 @@ class SlidingWindowSmoother:
                  pim: gtsam.PreintegratedCombinedMeasurements) -> None:
         """Start over from ``good`` with its uncertainty widened, then add ``keyframe`` with its
         IMU factor only (the observations of both are kept for later landmarks)."""
-        o = self.options
-        sigmas = PriorSigmas(REBUILD_ROTATION_SIGMAS, REBUILD_POSITION_SIGMA,
-                             REBUILD_VELOCITY_SIGMA, o.prior_gyro_bias_sigma,
-                             o.prior_accel_bias_sigma)
+        sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
+                                              REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
         try:
             self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised)
             graph, values, stamps = self._imu_step(keyframe, pim)
@@ -229,8 +234,13 @@ class SlidingWindowSmoother:
                                f"t={keyframe.t:.3f}: {error}") from error
 
     def pose_covariance(self) -> np.ndarray:
-        """The latest keyframe pose's marginal covariance (6x6, rotation then position)."""
-        return np.asarray(self._smoother.marginalCovariance(X(self.latest.index)))
+        """The latest keyframe pose's marginal covariance (6x6, rotation then position),
+        computed once per keyframe (odometry asks for it at the IMU rate)."""
+        index = self.latest.index
+        if self._pose_covariance is None or self._pose_covariance[0] != index:
+            covariance = np.asarray(self._smoother.marginalCovariance(X(index)))
+            self._pose_covariance = (index, covariance)
+        return self._pose_covariance[1]
 
     def depth_sigma(self, depths: np.ndarray) -> np.ndarray:
         """One-sigma depth uncertainty of the landmarks at ``depths`` (same order)."""

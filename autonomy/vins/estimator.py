@@ -170,13 +170,15 @@ class Vins:
         self.static_init = result
         zero = np.zeros(3)
         state = KeyframeState(0, t, make_pose(result.R_W_B, zero), zero, result.gyro_bias, zero)
-        o = self.options
-        tilt = math.radians(o.prior_tilt_sigma_deg)
-        sigmas = PriorSigmas((tilt, tilt, _GAUGE_YAW_SIGMA), _GAUGE_POSITION_SIGMA,
-                             o.prior_velocity_sigma, o.prior_gyro_bias_sigma,
-                             o.prior_accel_bias_sigma)
-        self._start(state, sigmas, tracks)
+        self._start(state, self._start_sigmas(self.options.prior_velocity_sigma), tracks)
         return self._result(t, tracks, True, self._anchor.state)
+
+    def _start_sigmas(self, velocity_sigma: float) -> PriorSigmas:
+        """Priors of a (re)start: the options' tilt, the world's gauge fixed in yaw and
+        position."""
+        tilt = math.radians(self.options.prior_tilt_sigma_deg)
+        return PriorSigmas.with_bias_priors(self.options, (tilt, tilt, _GAUGE_YAW_SIGMA),
+                                            _GAUGE_POSITION_SIGMA, velocity_sigma)
 
     def _start(self, state: KeyframeState, sigmas: PriorSigmas, tracks: Tracks) -> None:
         self.backend.start(state, sigmas, tracks.ids, tracks.normalised)
@@ -187,14 +189,10 @@ class Vins:
         """Start a new smoother at the IMU-propagated state (in flight: wide velocity prior)."""
         state = self._propagate_to(t)
         a = self._anchor
-        o = self.options
-        tilt = math.radians(o.prior_tilt_sigma_deg)
-        index = self.backend.latest.index + 1
-        keyframe = KeyframeState(index, t, make_pose(state.R_W_B, state.position),
-                                 state.velocity, a.bias_g, a.bias_a)
-        self._start(keyframe, PriorSigmas((tilt, tilt, _GAUGE_YAW_SIGMA), _GAUGE_POSITION_SIGMA,
-                                          o.reinit_velocity_sigma, o.prior_gyro_bias_sigma,
-                                          o.prior_accel_bias_sigma), tracks)
+        keyframe = KeyframeState(self.backend.latest.index + 1, t,
+                                 make_pose(state.R_W_B, state.position), state.velocity,
+                                 a.bias_g, a.bias_a)
+        self._start(keyframe, self._start_sigmas(self.options.reinit_velocity_sigma), tracks)
         self.reinitialisations += 1
         self._last_reset_t = t
         self._lost_reason = ""
@@ -227,9 +225,7 @@ class Vins:
         pieces = self._imu.pieces(latest.t, t)
         for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
             pim.integrateMeasurement(accel, gyro, dt)
-        resets = self.backend.resets
-        self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised)
-        if self.backend.resets != resets:
+        if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised):
             self._last_reset_t = t
         self._keyframe_tracks = tracks
         self._set_anchor_from_backend()
