@@ -16,7 +16,7 @@ import pytest
 
 from autonomy.geometry import PinholeCamera, quat_to_rot, rot_z, yaw_of
 from autonomy.messages import ImuSample
-from autonomy.vins import HealthState, ImuNoise, Tracks, Vins
+from autonomy.vins import HealthState, ImuNoise, Tracks, Vins, VinsOptions
 from drivers.dataset.euroc import (read_camera, read_depth_png, read_groundtruth, read_imu,
                                    read_imu_noise)
 
@@ -174,6 +174,7 @@ def test_odometry_is_the_state_at_the_newest_imu_sample(flight, run):
 
 
 def test_the_sparse_map_is_in_front_of_the_camera_with_the_tracked_pixels(run):
+    """The map also fills the smoother's landmark budget, and never exceeds it."""
     sizes = []
     for u, tracks in zip(run.updates, run.tracks):
         m = u.sparse_map
@@ -188,7 +189,7 @@ def test_the_sparse_map_is_in_front_of_the_camera_with_the_tracked_pixels(run):
         seen = dict(zip(tracks.ids.tolist(), tracks.pixels))
         for i in np.flatnonzero(m.tracked):
             np.testing.assert_array_equal(m.pixels[i], seen[int(m.ids[i])])
-    assert max(sizes) >= 100
+    assert max(sizes) == VinsOptions().max_landmarks
 
 
 def test_landmark_depths_match_the_rendered_depth(flight, run):

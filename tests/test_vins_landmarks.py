@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from autonomy.geometry import so3_exp
 from autonomy.vins.landmarks import (Gate, depth_sigma, gate_candidates, midpoint_triangulate,
-                                     widest_ray_angle, world_rays)
+                                     spread_choice, widest_ray_angle, world_rays)
 
 FOCAL = 400.0
 GATE = Gate(min_observations=3, min_parallax_rad=math.radians(2.0), min_depth=0.2,
@@ -211,6 +211,42 @@ def test_candidates_are_gated_independently_in_one_batch():
     result = gate_candidates(R_W_C, centres, normalised, mask, GATE)
     assert result.accepted.tolist() == [True, False, False, False]
     np.testing.assert_allclose(result.points[0], POINT, atol=1e-9)
+
+
+# ------------------------------------------------------------------ spending the budget
+
+SIZE, GRID = (640, 480), (4, 4)  # cells of 160 x 120 px
+
+
+def test_new_landmarks_go_to_empty_cells_before_crowded_ones():
+    occupied = np.array([[50.0, 50.0], [60.0, 70.0], [100.0, 40.0]])  # three in the top-left cell
+    candidates = np.array([[40.0, 30.0], [600.0, 400.0], [70.0, 90.0], [300.0, 200.0]])
+    parallax = np.array([0.9, 0.1, 0.8, 0.2])  # the crowded cell's are the best conditioned
+    chosen = spread_choice(candidates, parallax, occupied, SIZE, GRID, 2)
+    assert sorted(chosen.tolist()) == [1, 3]
+    # with room for all, all are taken, the empty cells' first
+    assert sorted(spread_choice(candidates, parallax, occupied, SIZE, GRID, 10).tolist()) == [
+        0, 1, 2, 3]
+
+
+def test_one_cell_is_filled_round_robin_with_the_widest_parallax_first():
+    candidates = np.array([[10.0, 10.0], [20.0, 20.0], [30.0, 30.0], [500.0, 300.0]])
+    parallax = np.array([0.1, 0.3, 0.2, 0.05])
+    chosen = spread_choice(candidates, parallax, np.zeros((0, 2)), SIZE, GRID, 3)
+    assert chosen.tolist() == [1, 3, 2]  # turn 0: 1 (wider) then 3; turn 1: 2
+
+
+@pytest.mark.parametrize("count", [0, -3])
+def test_no_room_chooses_nothing(count):
+    assert spread_choice(np.array([[5.0, 5.0]]), np.array([0.1]), np.zeros((0, 2)), SIZE, GRID,
+                         count).tolist() == []
+
+
+def test_pixels_off_the_image_count_in_the_nearest_cell():
+    occupied = np.array([[-3.0, -2.0]])  # just off the top-left corner: the top-left cell
+    candidates = np.array([[5.0, 5.0], [645.0, 485.0]])  # top-left, just off the bottom-right
+    chosen = spread_choice(candidates, np.array([0.5, 0.1]), occupied, SIZE, GRID, 1)
+    assert chosen.tolist() == [1]
 
 
 # ------------------------------------------------------------------ depth uncertainty

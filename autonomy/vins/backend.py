@@ -31,7 +31,9 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
-from autonomy.vins.landmarks import Gate, depth_sigma, gate_candidates, widest_ray_angle
+from autonomy.vins.landmarks import (
+    Gate, depth_sigma, gate_candidates, spread_choice, widest_ray_angle,
+)
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 
@@ -45,6 +47,12 @@ _DENSITY_FLOOR = {"gyro": 1e-5, "accel": 1e-4, "gyro_walk": 1e-7, "accel_walk": 
 REBUILD_ROTATION_SIGMAS = (0.02, 0.02, 0.005)
 REBUILD_POSITION_SIGMA = 0.01
 REBUILD_VELOCITY_SIGMA = 0.1
+
+#: Columns and rows of the image grid over which new landmarks are spread.
+LANDMARK_GRID = (4, 4)
+
+#: GTSAM keys (``gtsam.Symbol``) hold the character in the top byte and the index below it.
+_SYMBOL_INDEX_BITS = 56
 
 
 @dataclass(frozen=True)
@@ -121,6 +129,13 @@ def imu_params(noise: ImuNoise, scale: float) -> gtsam.PreintegrationCombinedPar
     params.setBiasAccCovariance(
         (scale * max(noise.accel_random_walk, _DENSITY_FLOOR["accel_walk"])) ** 2 * eye)
     return params
+
+
+def _symbol_indices(keys: np.ndarray, char: str) -> np.ndarray:
+    """The sorted indices of the ``char`` symbols among GTSAM ``keys`` (uint64, sorted)."""
+    chars = keys >> np.uint64(_SYMBOL_INDEX_BITS)
+    index_mask = np.uint64((1 << _SYMBOL_INDEX_BITS) - 1)
+    return (keys[chars == ord(char)] & index_mask).astype(np.int64)
 
 
 def _bias(bias_g: np.ndarray, bias_a: np.ndarray) -> gtsam.imuBias.ConstantBias:
@@ -204,8 +219,8 @@ class SlidingWindowSmoother:
                      normalised) -> bool:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
         features it sees. Returns True when the update was used, False when it failed and the
-        smoother was rebuilt (a reset; ``last_failure`` says why). Raises :class:`BackendError` when even the rebuilt
-        smoother refuses the keyframe."""
+        smoother was rebuilt (a reset; ``last_failure`` says why). Raises
+        :class:`BackendError` when even the rebuilt smoother refuses the keyframe."""
         good, good_keyframe = self.latest, self._window[-1]
         keyframe = self._keyframe(good.index + 1, t, ids, normalised)
         try:
@@ -281,11 +296,12 @@ class SlidingWindowSmoother:
         graph, values, stamps = self._imu_step(keyframe, pim)
         window = self._window + [keyframe]
         seen = np.isin(keyframe.ids, self._landmarks.ids)
-        for track, xy in self._consistent_observations(keyframe, seen):
+        observed = self._consistent_observations(keyframe, seen)
+        for track, xy in zip(*observed):
             graph.add(self._projection(keyframe.index, int(track), xy))
             stamps[L(int(track))] = keyframe.t
         fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
-        self._add_new_landmarks(window, keyframe.ids[fresh], graph, values, stamps)
+        self._add_new_landmarks(window, keyframe.ids[fresh], observed[1], graph, values, stamps)
         self._smoother.update(graph, values, stamps)
         for _ in range(self.options.extra_iterations):
             self._smoother.update()
@@ -293,9 +309,9 @@ class SlidingWindowSmoother:
 
     def _consistent_observations(self, keyframe: _Keyframe, seen: np.ndarray):
         """The observations of known landmarks that reproject within ``max_observation_px`` at
-        the IMU-predicted pose, as ``(track, xy)`` pairs. A landmark seen further away (a track
-        that slid onto another surface) is retired: it takes no more observations and no track
-        of its id becomes a landmark again."""
+        the IMU-predicted pose: their ``tracks`` (N,) and ``xy`` (N, 2). A landmark seen
+        further away (a track that slid onto another surface) is retired: it takes no more
+        observations and no track of its id becomes a landmark again."""
         tracks, xy = keyframe.ids[seen], keyframe.normalised[seen]
         rows = np.searchsorted(self._landmarks.ids, tracks)
         T_C_W = invert_pose(self._poses[keyframe.index] @ self._T_B_C)
@@ -305,7 +321,7 @@ class SlidingWindowSmoother:
             good = (p_C[:, 2] > self.options.min_depth) & (
                 error_px <= self.options.max_observation_px)
         self._retired = np.union1d(self._retired, tracks[~good])
-        return zip(tracks[good], xy[good])
+        return tracks[good], xy[good]
 
     def _projection(self, index: int, track: int, xy: np.ndarray):
         measured = np.array([self.camera.fx * xy[0] + self.camera.cx,
@@ -314,35 +330,72 @@ class SlidingWindowSmoother:
                                                     L(track), self._K, False, False,
                                                     self._body_P_camera)
 
-    def _observations(self, window: list[_Keyframe], tracks: np.ndarray):
-        """Gather the window's observations of ``tracks``: ``mask`` (M, K), ``normalised``
-        (M, K, 2), and the cameras' ``R_W_C`` (M, K, 3, 3) and centres (M, K, 3)."""
-        M, K = len(tracks), len(window)
-        mask = np.zeros((M, K), bool)
-        normalised = np.zeros((M, K, 2))
-        for j, kf in enumerate(window):
-            if len(kf.ids) == 0:
-                continue
-            pos = np.minimum(np.searchsorted(kf.ids, tracks), len(kf.ids) - 1)
-            mask[:, j] = kf.ids[pos] == tracks
-            normalised[mask[:, j], j] = kf.normalised[pos[mask[:, j]]]
-        T_W_C = np.stack([self._poses[kf.index] @ self._T_B_C for kf in window])
-        R_W_C = np.broadcast_to(T_W_C[:, :3, :3], (M, K, 3, 3))
-        centres = np.broadcast_to(T_W_C[:, :3, 3], (M, K, 3))
-        return mask, normalised, R_W_C, centres
+    @staticmethod
+    def _observations(window: list[_Keyframe], tracks: np.ndarray):
+        """The window's observations of ``tracks``: ``mask`` (M, K) and ``normalised``
+        (M, K, 2)."""
+        K = len(window)
+        all_ids = np.concatenate([kf.ids for kf in window])
+        column = np.repeat(np.arange(K), [len(kf.ids) for kf in window])
+        mask = np.zeros((len(tracks), K), bool)
+        normalised = np.zeros((len(tracks), K, 2))
+        order = np.argsort(all_ids, kind="stable")
+        sorted_ids = all_ids[order]
+        first = np.searchsorted(sorted_ids, tracks, side="left")
+        counts = np.searchsorted(sorted_ids, tracks, side="right") - first
+        # each track's run first .. first + count - 1 in sorted_ids, all runs back to back
+        row = np.repeat(np.arange(len(tracks)), counts)
+        run_start = np.repeat(first - (np.cumsum(counts) - counts), counts)
+        picked = order[run_start + np.arange(len(row))]
+        mask[row, column[picked]] = True
+        normalised[row, column[picked]] = np.concatenate([kf.normalised for kf in window])[picked]
+        return mask, normalised
 
-    def _add_new_landmarks(self, window, candidates, graph, values, stamps) -> None:
-        if len(candidates) == 0:
+    def _cameras(self, window: list[_Keyframe], count: int):
+        """The window's cameras ``R_W_C`` (count, K, 3, 3) and centres (count, K, 3): the same
+        for each of ``count`` tracks (broadcast views)."""
+        T_W_C = np.stack([self._poses[kf.index] @ self._T_B_C for kf in window])
+        K = len(window)
+        return (np.broadcast_to(T_W_C[:, :3, :3], (count, K, 3, 3)),
+                np.broadcast_to(T_W_C[:, :3, 3], (count, K, 3)))
+
+    def _add_new_landmarks(self, window, candidates, observed_xy, graph, values, stamps) -> None:
+        """Gate the candidates seen in enough keyframes and spend what is left of the landmark
+        budget on the accepted ones, emptiest image cells first (:func:`spread_choice`).
+
+        The budget counts every landmark in the window, in view or not: each costs the update
+        until it is marginalised with the last keyframe that saw it. (Marginalising landmarks
+        sooner, while keyframes that saw them stay, meets the weak spot of GTSAM's fixed-lag
+        marginalisation: measured, it made updates fail and the smoother reset.)
+        ``observed_xy`` are the landmarks seen in the newest keyframe: the cells they occupy.
+        """
+        room = self.options.max_landmarks - len(self._landmarks.ids)
+        if room <= 0 or len(candidates) == 0:
             return
-        mask, normalised, R_W_C, centres = self._observations(window, candidates)
+        mask, normalised = self._observations(window, candidates)
+        ready = mask.sum(axis=1) >= self.gate.min_observations
+        if not ready.any():
+            return
+        candidates, mask, normalised = candidates[ready], mask[ready], normalised[ready]
+        R_W_C, centres = self._cameras(window, len(candidates))
         result = gate_candidates(R_W_C, centres, normalised, mask, self.gate)
-        t = window[-1].t
-        for m in np.flatnonzero(result.accepted):
+        accepted = np.flatnonzero(result.accepted)
+        newest = window[-1]
+        chosen = accepted[spread_choice(
+            self._pixels(normalised[accepted, -1]), result.parallax_rad[accepted],
+            self._pixels(observed_xy), (self.camera.width, self.camera.height), LANDMARK_GRID,
+            room)]
+        for m in chosen:
             track = int(candidates[m])
             values.insert(L(track), result.points[m])
-            stamps[L(track)] = t
+            stamps[L(track)] = newest.t
             for j in np.flatnonzero(mask[m]):
                 graph.add(self._projection(window[j].index, track, normalised[m, j]))
+
+    def _pixels(self, normalised: np.ndarray) -> np.ndarray:
+        """Ideal-pinhole pixels (N, 2) of undistorted normalised points."""
+        c = self.camera
+        return normalised * (c.fx, c.fy) + (c.cx, c.cy)
 
     def _read_estimate(self, keyframe: _Keyframe, window: list[_Keyframe]) -> None:
         estimate = self._smoother.calculateEstimate()
@@ -351,16 +404,17 @@ class SlidingWindowSmoother:
             k, keyframe.t, estimate.atPose3(X(k)).matrix(), np.asarray(estimate.atVector(V(k))),
             np.asarray(estimate.atConstantBias(B(k)).gyroscope()),
             np.asarray(estimate.atConstantBias(B(k)).accelerometer()))
-        self._window = [kf for kf in window if estimate.exists(X(kf.index))]
+        keys = np.array(estimate.keys(), dtype=np.uint64)
+        kept = set(_symbol_indices(keys, "x").tolist())
+        self._window = [kf for kf in window if kf.index in kept]
         self._poses = {kf.index: estimate.atPose3(X(kf.index)).matrix() for kf in self._window}
-        known = np.concatenate([self._landmarks.ids, window[-1].ids])
-        alive = np.array(sorted({int(i) for i in known if estimate.exists(L(int(i)))}),
-                         dtype=np.int64)
+        alive = _symbol_indices(keys, "l")
         gone = np.setdiff1d(self._landmarks.ids, alive)
         if len(gone):
             self._retired = np.union1d(self._retired, gone)
-        points = (np.array([estimate.atPoint3(L(int(i))) for i in alive]).reshape(-1, 3))
-        mask, _, _, centres = self._observations(self._window, alive)
+        points = np.array([estimate.atPoint3(L(int(i))) for i in alive]).reshape(-1, 3)
+        mask, _ = self._observations(self._window, alive)
+        _, centres = self._cameras(self._window, len(alive))
         rays = points[:, None, :] - centres
         rays /= np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-12)
         self._landmarks = Landmarks(alive, points, widest_ray_angle(rays, mask), mask.sum(axis=1))

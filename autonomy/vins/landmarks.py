@@ -16,6 +16,12 @@ by it) keeps a point only if
 - it lies between ``min_depth`` and ``max_depth`` in front of every observing camera, and
 - it reprojects within ``max_reprojection_px`` of every observation.
 
+A landmark costs the smoother a variable and a factor per observation, and the update time grows
+with their number, so the smoother holds a budget of them. :func:`spread_choice` spends what is
+left of it on the gated candidates that fill the emptiest parts of the image first, so the map
+covers the view (for the rescaler's fit and for the pose's conditioning) instead of clustering on
+the most textured surface.
+
 The depth uncertainty of a triangulated point follows from the observation geometry: an angular
 error ``sigma_px / f`` on a ray, over a baseline that subtends ``parallax`` at the point, moves
 it along the ray by about ``z * (sigma_px / f) / sin(parallax)``.
@@ -54,14 +60,14 @@ class Triangulated:
 def world_rays(R_W_C: np.ndarray, normalised: np.ndarray) -> np.ndarray:
     """Unit world-frame rays ``R_W_C [x, y, 1]`` for (..., 3, 3) rotations and (..., 2) points."""
     bearing = np.concatenate([normalised, np.ones(normalised.shape[:-1] + (1,))], axis=-1)
-    rays = np.einsum("...ij,...j->...i", R_W_C, bearing)
+    rays = (R_W_C @ bearing[..., None])[..., 0]
     return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
 
 def widest_ray_angle(rays: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """The largest angle between any two present rays of each candidate, radians (0 when fewer
     than two)."""
-    cosines = np.einsum("mki,mli->mkl", rays, rays)
+    cosines = rays @ np.swapaxes(rays, -1, -2)
     pair = mask[:, :, None] & mask[:, None, :]
     cosines = np.where(pair, cosines, 1.0)
     return np.arccos(np.clip(cosines.min(axis=(1, 2)), -1.0, 1.0))
@@ -69,13 +75,20 @@ def widest_ray_angle(rays: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def midpoint_triangulate(centres: np.ndarray, rays: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Least-squares closest points to each candidate's rays (module docstring), (M, 3); NaN
-    for candidates whose rays are (numerically) parallel."""
-    weights = mask[:, :, None, None].astype(float)
-    projectors = np.eye(3) - rays[..., :, None] * rays[..., None, :]
-    A = (weights * projectors).sum(axis=1)
-    b = np.einsum("mkij,mkj->mi", weights * projectors, centres)
+    for candidates whose rays are (numerically) parallel.
+
+    With ``n`` present rays, ``sum_k (I - d d^T) = n I - sum_k d d^T`` and
+    ``sum_k (I - d d^T) c = sum_k c - sum_k d (d . c)``.
+    """
+    weights = mask.astype(float)[..., None]
+    weighted_rays = weights * rays
+    A = (mask.sum(axis=1)[:, None, None] * np.eye(3)
+         - np.swapaxes(weighted_rays, 1, 2) @ rays)
+    along = (rays * centres).sum(axis=-1, keepdims=True)
+    b = (weights * centres).sum(axis=1) - (weighted_rays * along).sum(axis=1)
     points = np.full((len(A), 3), np.nan)
-    solvable = np.linalg.cond(A) < 1e10
+    eigenvalues = np.linalg.eigvalsh(A)  # ascending; A is symmetric positive semi-definite
+    solvable = eigenvalues[:, 0] > 1e-10 * eigenvalues[:, -1]
     if solvable.any():
         points[solvable] = np.linalg.solve(A[solvable], b[solvable][..., None])[..., 0]
     return points
@@ -86,8 +99,8 @@ def gate_candidates(R_W_C: np.ndarray, centres: np.ndarray, normalised: np.ndarr
     """Triangulate and gate ``M`` candidates of up to ``K`` observations each.
 
     ``R_W_C`` (M, K, 3, 3) and ``centres`` (M, K, 3) are the observing cameras' orientations
-    and positions in the world, ``normalised`` (M, K, 2) the undistorted observations, ``mask``
-    (M, K) which exist.
+    and positions in the world (broadcast views are fine), ``normalised`` (M, K, 2) the
+    undistorted observations, ``mask`` (M, K) which exist.
     """
     rays = world_rays(R_W_C, normalised)
     parallax = widest_ray_angle(rays, mask)
@@ -95,7 +108,7 @@ def gate_candidates(R_W_C: np.ndarray, centres: np.ndarray, normalised: np.ndarr
     points = np.full((len(mask), 3), np.nan)
     if enough.any():
         points[enough] = midpoint_triangulate(centres[enough], rays[enough], mask[enough])
-    p_C = np.einsum("mkji,mkj->mki", R_W_C, points[:, None, :] - centres)
+    p_C = (np.swapaxes(R_W_C, -1, -2) @ (points[:, None, :] - centres)[..., None])[..., 0]
     depth = p_C[..., 2]
     with np.errstate(invalid="ignore", divide="ignore"):
         error_px = gate.focal_px * np.linalg.norm(p_C[..., :2] / depth[..., None] - normalised,
@@ -111,3 +124,33 @@ def depth_sigma(depth: np.ndarray, parallax_rad: np.ndarray, pixel_sigma: float,
     """One-sigma depth uncertainty from the observation geometry (module docstring)."""
     sin_parallax = np.maximum(np.sin(parallax_rad), math.sin(math.radians(0.1)))
     return depth * (pixel_sigma / focal_px) / sin_parallax
+
+
+def spread_choice(pixels: np.ndarray, parallax_rad: np.ndarray, occupied_pixels: np.ndarray,
+                  size: tuple[int, int], grid: tuple[int, int], count: int) -> np.ndarray:
+    """Indices of at most ``count`` of the candidates at ``pixels`` (N, 2), chosen round-robin
+    over a ``grid`` (columns, rows) of cells on an image of ``size`` (width, height).
+
+    A candidate's turn is the number of landmarks already in its cell (``occupied_pixels``) plus
+    its rank in the cell by descending ``parallax_rad`` (a wider angle gives a better-conditioned
+    depth); the earliest turns win, and within a turn the wider parallax.
+    """
+    if count <= 0 or len(pixels) == 0:
+        return np.zeros(0, np.int64)
+    cells = _grid_cells(pixels, size, grid)
+    occupancy = np.bincount(_grid_cells(occupied_pixels, size, grid), minlength=grid[0] * grid[1])
+    by_cell = np.lexsort((-parallax_rad, cells))
+    sorted_cells = cells[by_cell]
+    first_in_cell = np.searchsorted(sorted_cells, sorted_cells)
+    rank = np.empty(len(cells), np.int64)
+    rank[by_cell] = np.arange(len(cells)) - first_in_cell
+    turn = occupancy[cells] + rank
+    return np.lexsort((-parallax_rad, turn))[:count]
+
+
+def _grid_cells(pixels: np.ndarray, size: tuple[int, int], grid: tuple[int, int]) -> np.ndarray:
+    """The flat grid cell of each pixel; pixels outside the image count in the nearest cell."""
+    pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
+    column = np.clip((pixels[:, 0] * grid[0] / size[0]).astype(np.int64), 0, grid[0] - 1)
+    row = np.clip((pixels[:, 1] * grid[1] / size[1]).astype(np.int64), 0, grid[1] - 1)
+    return row * grid[0] + column
