@@ -296,12 +296,14 @@ class SlidingWindowSmoother:
         graph, values, stamps = self._imu_step(keyframe, pim)
         window = self._window + [keyframe]
         seen = np.isin(keyframe.ids, self._landmarks.ids)
-        observed = self._consistent_observations(keyframe, seen)
-        for track, xy in zip(*observed):
-            graph.add(self._projection(keyframe.index, int(track), xy))
+        tracks, xy = self._consistent_observations(keyframe, seen)
+        observed_pixels = self._pixels(xy)
+        for track, pixel in zip(tracks, observed_pixels):
+            graph.add(self._projection(keyframe.index, int(track), pixel))
             stamps[L(int(track))] = keyframe.t
         fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
-        self._add_new_landmarks(window, keyframe.ids[fresh], observed[1], graph, values, stamps)
+        self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
+                                stamps)
         self._smoother.update(graph, values, stamps)
         for _ in range(self.options.extra_iterations):
             self._smoother.update()
@@ -323,10 +325,10 @@ class SlidingWindowSmoother:
         self._retired = np.union1d(self._retired, tracks[~good])
         return tracks[good], xy[good]
 
-    def _projection(self, index: int, track: int, xy: np.ndarray):
-        measured = np.array([self.camera.fx * xy[0] + self.camera.cx,
-                             self.camera.fy * xy[1] + self.camera.cy])
-        return gtsam.GenericProjectionFactorCal3_S2(measured, self._pixel_noise, X(index),
+    def _projection(self, index: int, track: int, pixel: np.ndarray):
+        """The factor of keyframe ``index`` seeing landmark ``track`` at ideal-pinhole
+        ``pixel``."""
+        return gtsam.GenericProjectionFactorCal3_S2(pixel, self._pixel_noise, X(index),
                                                     L(track), self._K, False, False,
                                                     self._body_P_camera)
 
@@ -359,7 +361,8 @@ class SlidingWindowSmoother:
         return (np.broadcast_to(T_W_C[:, :3, :3], (count, K, 3, 3)),
                 np.broadcast_to(T_W_C[:, :3, 3], (count, K, 3)))
 
-    def _add_new_landmarks(self, window, candidates, observed_xy, graph, values, stamps) -> None:
+    def _add_new_landmarks(self, window, candidates, observed_pixels, graph, values,
+                           stamps) -> None:
         """Gate the candidates seen in enough keyframes and spend what is left of the landmark
         budget on the accepted ones, emptiest image cells first (:func:`spread_choice`).
 
@@ -367,7 +370,8 @@ class SlidingWindowSmoother:
         until it is marginalised with the last keyframe that saw it. (Marginalising landmarks
         sooner, while keyframes that saw them stay, meets the weak spot of GTSAM's fixed-lag
         marginalisation: measured, it made updates fail and the smoother reset.)
-        ``observed_xy`` are the landmarks seen in the newest keyframe: the cells they occupy.
+        ``observed_pixels`` are the landmarks seen in the newest keyframe: the cells they
+        occupy.
         """
         room = self.options.max_landmarks - len(self._landmarks.ids)
         if room <= 0 or len(candidates) == 0:
@@ -383,17 +387,18 @@ class SlidingWindowSmoother:
         newest = window[-1]
         chosen = accepted[spread_choice(
             self._pixels(normalised[accepted, -1]), result.parallax_rad[accepted],
-            self._pixels(observed_xy), (self.camera.width, self.camera.height), LANDMARK_GRID,
+            observed_pixels, (self.camera.width, self.camera.height), LANDMARK_GRID,
             room)]
-        for m in chosen:
+        pixels = self._pixels(normalised[chosen])
+        for m, track_pixels in zip(chosen, pixels):
             track = int(candidates[m])
             values.insert(L(track), result.points[m])
             stamps[L(track)] = newest.t
             for j in np.flatnonzero(mask[m]):
-                graph.add(self._projection(window[j].index, track, normalised[m, j]))
+                graph.add(self._projection(window[j].index, track, track_pixels[j]))
 
     def _pixels(self, normalised: np.ndarray) -> np.ndarray:
-        """Ideal-pinhole pixels (N, 2) of undistorted normalised points."""
+        """Ideal-pinhole pixels (..., 2) of undistorted normalised points (..., 2)."""
         c = self.camera
         return normalised * (c.fx, c.fy) + (c.cx, c.cy)
 
