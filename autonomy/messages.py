@@ -61,3 +61,55 @@ class Odometry:
     velocity_W: np.ndarray
     angular_velocity_B: np.ndarray
     pose_covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class RelativeDepth:
+    """The depth network's output for the camera frame taken at ``t``: relative disparity
+    (float32, the camera's resolution; larger is nearer, known only up to an unknown monotone
+    map, affine for a good network)."""
+
+    t: float
+    disparity: np.ndarray
+
+
+@dataclass(frozen=True)
+class DepthDiagnostics:
+    """How a :class:`MetricDepth` was made.
+
+    ``anchors``: VINS landmarks sampled in the frame; ``anchors_used``: those the applied fit
+    was made from (after outlier rejection; 0 without a fit). ``residual_rms``: the fit's RMS
+    residual in metric disparity, 1/m (NaN without a fit). ``method``: the curve family applied
+    (empty without one). ``fit_age_s``: the frame's time minus the time of the frame the
+    applied fit was made on (0 for a fresh fit). ``reason``: why the frame got no fresh fit
+    (empty when it did).
+    """
+
+    anchors: int
+    anchors_used: int
+    residual_rms: float
+    method: str
+    fit_age_s: float
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class MetricDepth:
+    """Metric depth for the camera frame taken at ``t``.
+
+    ``depth``: float32 metres along the optical axis, NaN where unknown; ``confidence``: float32
+    in [0, 1] per pixel, how densely anchors support that disparity. Both are None when there is
+    no depth (no fit within the hold time, or the network output was rejected): the planner
+    treats that as stop. ``held`` is True when the fit applied was made on an earlier frame.
+    """
+
+    t: float
+    depth: np.ndarray | None
+    confidence: np.ndarray | None
+    held: bool
+    diagnostics: DepthDiagnostics
+
+    @property
+    def ok(self) -> bool:
+        """True when there is a depth image to plan on."""
+        return self.depth is not None

@@ -49,7 +49,14 @@ def field_types(cls: type) -> dict[str, Any]:
     return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
+def _is_str_tuple(kind: Any) -> bool:
+    """Whether ``kind`` is ``tuple[str, ...]``, the one container type an option may have."""
+    return typing.get_origin(kind) is tuple and typing.get_args(kind) == (str, Ellipsis)
+
+
 def _type_name(kind: Any) -> str:
+    if _is_str_tuple(kind):
+        return "a list of strings"
     return {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}.get(
         kind, str(kind)
     )
@@ -61,6 +68,8 @@ def _check_type(name: str, value: Any, kind: Any) -> None:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
     elif kind is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
+    elif _is_str_tuple(kind):
+        ok = isinstance(value, tuple) and all(isinstance(item, str) for item in value)
     else:
         ok = isinstance(value, kind)
     if not ok:
@@ -80,8 +89,11 @@ def _check_range(name: str, value: Any, f: dataclasses.Field) -> None:
         if limit is not None and not holds(value, limit):
             raise OptionError(name, f"must be {symbol} {limit:g}, got {value!r}")
     choices = meta.get("choices")
-    if choices is not None and value not in choices:
-        raise OptionError(name, f"must be one of {', '.join(choices)}; got {value!r}")
+    if choices is not None:
+        # For a tuple[str, ...] option the choices apply to each element.
+        for item in value if isinstance(value, tuple) else (value,):
+            if item not in choices:
+                raise OptionError(name, f"must be one of {', '.join(choices)}; got {item!r}")
 
 
 def validate(obj: Any) -> None:

@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 
 from autonomy.vins import VinsOptions
-from companion.evaluation import read_vio_dataset, run_vins, score_vio
+from companion.eval.vio import read_vio_dataset, run_vins, score_vio
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import WORLD_NAMES, SimOptions

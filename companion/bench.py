@@ -28,6 +28,7 @@ class RescaleScene:
     relative_disparity: np.ndarray  # (H, W) float32
     anchor_disparity: np.ndarray  # (N,) relative disparity at the anchors
     anchor_depth: np.ndarray  # (N,) metric depth of the anchors, metres
+    anchor_pixels: np.ndarray  # (N, 2) where the anchors are, (u, v) pixel centres
 
 
 def synthetic_scene(shape: tuple[int, int], anchors: int, seed: int = 0) -> RescaleScene:
@@ -58,7 +59,7 @@ def synthetic_scene(shape: tuple[int, int], anchors: int, seed: int = 0) -> Resc
     outliers = rng.random(anchors) < 0.05
     anchor_depth[outliers] *= 2.0
     return RescaleScene(relative.astype(np.float32), relative.reshape(-1)[pick].astype(float),
-                        anchor_depth)
+                        anchor_depth, np.column_stack([pick % width, pick // width]).astype(float))
 
 
 def interleaved_medians_ms(calls: list[Callable[[], object]], repeats: int) -> list[float]:

@@ -85,10 +85,14 @@ def _build_parser() -> argparse.ArgumentParser:
         help="override one config value, e.g. --set rescale.kappa=1e5 or "
              "--set rescale.method=poly1 (a TOML value; a bare word is a string); repeatable, "
              "the last one wins")
+    configured = argparse.ArgumentParser(add_help=False, parents=[overrides])
+    configured.add_argument("--config", dest="config_path", metavar="FILE",
+                            help="TOML config file (default: none, all defaults)")
     _add_config_commands(commands, overrides)
-    _add_bench_commands(commands, overrides)
-    _add_sim_commands(commands, overrides)
-    _add_eval_commands(commands, overrides)
+    _add_bench_commands(commands, configured)
+    _add_sim_commands(commands, configured)
+    _add_eval_commands(commands, configured)
+    _add_depth_commands(commands, configured)
     return parser
 
 
@@ -119,22 +123,19 @@ def _add_config_commands(commands: argparse._SubParsersAction,
 
 
 def _add_bench_commands(commands: argparse._SubParsersAction,
-                        overrides: argparse.ArgumentParser) -> None:
+                        configured: argparse.ArgumentParser) -> None:
     group = commands.add_parser("bench", help="measure the speed of the algorithms",
                                 description="Measure the speed of the algorithms on "
                                             "synthetic input.")
     actions = _add_command_group(group)
     rescale = actions.add_parser(
-        "rescale", parents=[overrides], help="time the depth rescaler",
+        "rescale", parents=[configured], help="time the depth rescaler",
         description="Time fitting the rescaling curve to sparse anchors and applying it to a "
                     "relative-disparity image, with the [rescale] options of the config. "
                     "Every method is timed, whatever rescale.method says; the result is "
                     "medians in milliseconds, with the direct per-pixel evaluation of the same "
                     "curve as the baseline.")
-    rescale.add_argument("--config", dest="config_path", metavar="FILE",
-                         help="TOML config file (default: none, all defaults)")
-    rescale.add_argument("--json", action="store_true",
-                         help="print the result as one JSON object instead of a table")
+    _add_json_flag(rescale, instead_of="a table")
     rescale.add_argument("--repeats", type=_positive_int, default=30,
                          help="timed runs per measurement (default: %(default)s)")
     rescale.add_argument("--anchors", type=_positive_int, default=150,
@@ -145,7 +146,7 @@ def _add_bench_commands(commands: argparse._SubParsersAction,
 
 
 def _add_sim_commands(commands: argparse._SubParsersAction,
-                       overrides: argparse.ArgumentParser) -> None:
+                       configured: argparse.ArgumentParser) -> None:
     from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
 
     group = commands.add_parser("sim", help="run the simulated vehicle",
@@ -153,15 +154,13 @@ def _add_sim_commands(commands: argparse._SubParsersAction,
                                             "MAVLink, a rendered camera and a synthetic IMU.")
     actions = _add_command_group(group)
     world = argparse.ArgumentParser(add_help=False)
-    world.add_argument("--config", dest="config_path", metavar="FILE",
-                       help="TOML config file (default: none, all defaults)")
     world.add_argument("--world", choices=WORLD_NAMES,
                        help="the world (default: [sim] world of the config)")
     world.add_argument("--seed", type=_non_negative_int,
                        help="seed of the world, the noise and the path (default: [sim] seed)")
 
     serve = actions.add_parser(
-        "serve", parents=[overrides, world], help="serve the vehicle to any MAVLink client",
+        "serve", parents=[configured, world], help="serve the vehicle to any MAVLink client",
         description="Run the simulated PX4 quadrotor alone for any MAVLink client (MAVSDK, "
                     "QGroundControl, mavproxy) until interrupted. With --mavlink pty the "
                     "pseudo-terminal's path is printed; open it like a serial port.")
@@ -177,7 +176,7 @@ def _add_sim_commands(commands: argparse._SubParsersAction,
     serve.set_defaults(command=_sim_serve)
 
     record = actions.add_parser(
-        "record", parents=[overrides, world], help="record a flight as a EuRoC dataset",
+        "record", parents=[configured, world], help="record a flight as a EuRoC dataset",
         description="Fly a smooth collision-free path through the world and write camera "
                     "images, ground-truth depth, IMU and ground truth in the EuRoC/ASL "
                     "layout (mav0/cam0, depth0, imu0, state_groundtruth_estimate0).")
@@ -189,13 +188,13 @@ def _add_sim_commands(commands: argparse._SubParsersAction,
 
 
 def _add_eval_commands(commands: argparse._SubParsersAction,
-                       overrides: argparse.ArgumentParser) -> None:
+                       configured: argparse.ArgumentParser) -> None:
     group = commands.add_parser("eval", help="measure the accuracy of the algorithms",
                                 description="Measure the accuracy of the algorithms against "
                                             "a dataset's ground truth.")
     actions = _add_command_group(group)
     vio = actions.add_parser(
-        "vio", parents=[overrides], help="score the VINS on a EuRoC dataset",
+        "vio", parents=[configured], help="score the VINS on a EuRoC dataset",
         description="Run the VINS, with the [vins], [vins_frontend] and [vins_init] options of "
                     "the config, over a EuRoC/ASL dataset (real, or recorded by 'companion sim "
                     "record') and compare it with the ground truth: trajectory error after "
@@ -203,18 +202,90 @@ def _add_eval_commands(commands: argparse._SubParsersAction,
                     "dataset has it, the static initialisation, and the time per stage.")
     vio.add_argument("dataset", type=Path, metavar="DATASET",
                      help="dataset folder, the one holding mav0/")
-    vio.add_argument("--config", dest="config_path", metavar="FILE",
-                     help="TOML config file (default: none, all defaults)")
-    vio.add_argument("--json", action="store_true",
-                     help="print the result as one JSON object instead of a report")
+    _add_json_flag(vio, instead_of="a report")
     vio.add_argument("--max-frames", type=_positive_int, metavar="N",
                      help="stop after N camera frames (default: all)")
     vio.set_defaults(command=_eval_vio)
 
+    depth = actions.add_parser(
+        "depth", parents=[configured], help="score the metric depth stage on a dataset",
+        description="Run the depth path as in flight over a EuRoC/ASL dataset with depth0 "
+                    "(recorded by 'companion sim record'): the VINS, the depth network "
+                    "([depth_network] model, or without one the synthetic stand-in of "
+                    "[synthetic_depth] on the ground-truth depth) and the metric depth stage "
+                    "([depth], [rescale]); score every frame's metric depth against depth0 with "
+                    "AbsRel, delta1, RMSE and the over-estimate rate, and time the stage.")
+    depth.add_argument("dataset", type=Path, metavar="DATASET",
+                       help="dataset folder, the one holding mav0/")
+    _add_json_flag(depth, instead_of="a report")
+    depth.add_argument("--max-frames", type=_positive_int, metavar="N",
+                       help="stop after N camera frames (default: all)")
+    depth.set_defaults(command=_eval_depth)
+
+
+def _add_depth_commands(commands: argparse._SubParsersAction,
+                        configured: argparse.ArgumentParser) -> None:
+    group = commands.add_parser("depth", help="the depth network and the metric depth stage",
+                                description="The depth network runtime and the metric depth "
+                                            "stage.")
+    actions = _add_command_group(group)
+    bench = actions.add_parser(
+        "bench", parents=[configured], help="time the depth network and the stage",
+        description="Time the depth network runtime (pre-processing, inference, "
+                    "post-processing) per preset and input size on every execution provider "
+                    "of [depth_network] providers that onnxruntime offers here, with a small "
+                    "generated test model and, with --model or [depth_network] model, the "
+                    "user's model; and the metric depth stage without the network. Medians "
+                    "in milliseconds.")
+    bench.add_argument("--model", metavar="FILE",
+                       help="the user's ONNX depth model (default: [depth_network] model)")
+    _add_json_flag(bench, instead_of="a table")
+    bench.add_argument("--repeats", type=_positive_int, default=20,
+                       help="timed runs per measurement (default: %(default)s)")
+    bench.add_argument("--size", type=_image_size, default=(480, 640), metavar="HxW",
+                       help="camera image height x width in pixels (default: 480x640)")
+    bench.set_defaults(command=_depth_bench)
+
+
+def _depth_bench(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.depth.network import NetworkError
+    from companion import bench, depth_bench
+
+    network = config.depth_network
+    if args.model is not None:
+        network = dataclasses.replace(network, model=args.model, sha256="")
+    try:
+        result = depth_bench.run_depth_benchmark(network, config.rescale, config.depth,
+                                                 shape=args.size, repeats=args.repeats)
+    except (NetworkError, bench.BenchmarkError) as error:
+        print(f"depth bench: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    print(json.dumps(result) if args.json else depth_bench.format_depth_table(result))
+    return EXIT_OK
+
+
+def _eval_depth(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.depth.network import NetworkError
+    from companion.eval import depth
+    from companion.eval.vio import EvaluationError
+
+    try:
+        network = depth.open_relative_depth_source(config.depth_network,
+                                                   config.synthetic_depth, seed=config.sim.seed)
+        options = depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
+                                         config.vins_frontend, config.vins_init)
+        result = depth.evaluate_depth(args.dataset, options, network,
+                                      max_frames=args.max_frames)
+    except (NetworkError, EvaluationError) as error:
+        print(f"eval depth: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    print(json.dumps(result) if args.json else depth.format_depth_report(result))
+    return EXIT_OK
+
 
 def _eval_vio(args: argparse.Namespace, config: Config) -> int:
     # Imported here: the evaluation pulls in the dataset readers and the estimator.
-    from companion import evaluation
+    from companion.eval import vio as evaluation
 
     try:
         result = evaluation.evaluate_vio(args.dataset, config.vins, frontend=config.vins_frontend,
@@ -277,6 +348,11 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
           f"({summary.frames} frames, {summary.imu_samples} IMU samples, path "
           f"{summary.path_length:.1f} m) into {args.out}")
     return EXIT_OK
+
+
+def _add_json_flag(parser: argparse.ArgumentParser, instead_of: str) -> None:
+    parser.add_argument("--json", action="store_true",
+                        help=f"print the result as one JSON object instead of {instead_of}")
 
 
 def _positive_float(text: str) -> float:

@@ -22,7 +22,10 @@ if sys.version_info >= (3, 11):
 else:  # Python 3.10
     import tomli as tomllib
 
+from autonomy.depth.network import NetworkOptions
 from autonomy.depth.options import RescaleOptions
+from autonomy.depth.stage import DepthStageOptions
+from autonomy.depth.synthetic import SyntheticDepthOptions
 from autonomy.options import OptionError, field_types, option, validate
 from autonomy.vins.frontend import FrontendOptions
 from autonomy.vins.options import VinsOptions
@@ -52,6 +55,9 @@ class Config:
 
     log: LogOptions = field(default_factory=LogOptions)
     rescale: RescaleOptions = field(default_factory=RescaleOptions)
+    depth: DepthStageOptions = field(default_factory=DepthStageOptions)
+    depth_network: NetworkOptions = field(default_factory=NetworkOptions)
+    synthetic_depth: SyntheticDepthOptions = field(default_factory=SyntheticDepthOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
     sim: SimOptions = field(default_factory=SimOptions)
     vehicle: VehicleOptions = field(default_factory=VehicleOptions)
@@ -192,9 +198,12 @@ def _build_section(section: str, kind: type, values: dict[str, tuple[Any, str]])
 
 
 def _coerce(value: Any, kind: Any) -> Any:
-    """TOML's ``3`` where a float is expected becomes ``3.0``; a bool is never a number."""
+    """TOML's ``3`` where a float is expected becomes ``3.0``; a bool is never a number; a
+    TOML list where a ``tuple[str, ...]`` is expected becomes a tuple."""
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if getattr(kind, "__origin__", None) is tuple and isinstance(value, list):
+        return tuple(value)
     return value
 
 

@@ -41,6 +41,9 @@ def test_version():
     (("config", "show"), "--set SECTION.KEY=VALUE"),
     (("bench",), "rescale"),
     (("bench", "rescale"), "--size HxW"),
+    (("depth",), "bench"),
+    (("depth", "bench"), "--model FILE"),
+    (("eval", "depth"), "--max-frames N"),
 ])
 def test_every_command_has_help(command, mentions):
     run = companion_command(*command, "--help")
@@ -85,7 +88,7 @@ def test_config_show_prints_every_key_of_the_defaults():
     run = companion_command("config", "show")
     assert run.returncode == 0
     shown = tomllib.loads(run.stdout)
-    assert shown == dataclasses.asdict(Config())
+    assert shown == json.loads(json.dumps(dataclasses.asdict(Config())))  # tuples as lists
 
 
 def test_config_show_applies_file_then_overrides(tmp_path):

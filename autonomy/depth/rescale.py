@@ -117,7 +117,7 @@ class RescaleModel:
         if affine is not None:
             return _affine_depth(image, affine.a, affine.b, self.options)
         return _lookup(image, lambda grid: self._depth_from_disparity(self.curve(grid)),
-                       self.options.lut_size, fill=np.nan)
+                       self.options.lut_size, fills=(np.nan,))
 
     def confidence(self, relative_disparity: np.ndarray) -> np.ndarray:
         """Per-pixel trust in [0, 1] (float32): how densely anchors support this disparity.
@@ -128,7 +128,21 @@ class RescaleModel:
         the middle of a bridged gap, and is 0 for invalid pixels.
         """
         image = _as_float32_image(relative_disparity)
-        return _lookup(image, self._support_confidence, self.options.lut_size, fill=0.0)
+        return _lookup(image, self._support_confidence, self.options.lut_size, fills=(0.0,))
+
+    def depth_and_confidence(self, relative_disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(depth(x), confidence(x))``, equal to the two calls but gathered in one pass
+        over the image (a two-channel table) where the curve is applied through a table."""
+        image = _as_float32_image(relative_disparity)
+        if self.curve.affine is not None:
+            return self.depth(image), self.confidence(image)
+
+        def tables(grid: np.ndarray) -> np.ndarray:
+            return np.stack([self._depth_from_disparity(self.curve(grid)),
+                             self._support_confidence(grid)])
+
+        both = _lookup(image, tables, self.options.lut_size, fills=(np.nan, 0.0))
+        return both[..., 0], both[..., 1]
 
     def _support_confidence(self, x: np.ndarray) -> np.ndarray:
         lo, hi = self.anchor_range
@@ -191,23 +205,28 @@ def _affine_depth(image: np.ndarray, a: float, b: float, options: RescaleOptions
 _REMAP_LIMIT = 32767
 
 
-def _lookup(image: np.ndarray, table_of, size: int, fill: float) -> np.ndarray:
-    """Apply a function of x to every pixel through a table over the image's valid range.
+def _lookup(image: np.ndarray, tables_of, size: int, fills: tuple[float, ...]) -> np.ndarray:
+    """Apply functions of x to every pixel through tables over the image's valid range.
 
-    ``table_of(grid)`` is evaluated once on ``size`` evenly spaced x from the smallest to the
-    largest valid pixel; each pixel takes its nearest entry, half a step at most
-    (range / (2·(size − 1))) from its own x, and invalid pixels take ``fill``. The gather is
-    OpenCV's nearest-neighbour remap over a one-row table, which rounds as it reads and runs
-    on every core: 1.5 times faster than numpy's take at 640x480
-    (benchmarks/lookup_gather.py, docs/benchmarks.md).
+    ``tables_of(grid)`` returns one table row per function, evaluated once on ``size`` evenly
+    spaced x from the smallest to the largest valid pixel; each pixel takes its nearest entry,
+    half a step at most (range / (2·(size − 1))) from its own x, and invalid pixels take the
+    function's entry of ``fills``. The result has the image's shape plus, for more than one
+    function, a last axis with one channel per function: the gather is OpenCV's
+    nearest-neighbour remap over a one-row table of that many channels, which rounds as it
+    reads, runs on every core and fetches all functions in one pass; 1.5 times faster than
+    numpy's take at 640x480 (benchmarks/lookup_gather.py, docs/benchmarks.md).
     """
+    channels = len(fills)
     bounds = _valid_range(image)
     if bounds is None:
-        return np.full(image.shape, fill, dtype=np.float32)
+        filled = np.empty(image.shape + (channels,), dtype=np.float32)
+        filled[...] = fills
+        return filled[..., 0] if channels == 1 else filled
     lo, hi = bounds
-    table = np.empty((1, size + 1), dtype=np.float32)
-    table[0, :size] = table_of(np.linspace(lo, hi, size))
-    table[0, size] = fill
+    table = np.empty((1, size + 1, channels), dtype=np.float32)
+    table[0, :size] = np.reshape(tables_of(np.linspace(lo, hi, size)), (channels, size)).T
+    table[0, size] = fills
     steps = np.float32((size - 1) / (hi - lo) if hi > lo else 0.0)
     # Column of each pixel's entry. Subtracting lo first keeps the smallest pixel at exactly
     # 0; +∞ is capped to the fill column, NaN and negative pixels (−∞ too) sent there
@@ -219,11 +238,13 @@ def _lookup(image: np.ndarray, table_of, size: int, fill: float) -> np.ndarray:
     no_disparity = image >= 0
     np.logical_not(no_disparity, out=no_disparity)
     np.copyto(columns, np.float32(size), where=no_disparity)
-    return _remap_nearest(table, columns).reshape(image.shape)
+    looked_up = _remap_nearest(table[..., 0] if channels == 1 else table, columns)
+    return looked_up.reshape(image.shape + ((channels,) if channels > 1 else ()))
 
 
 def _remap_nearest(table: np.ndarray, columns: np.ndarray) -> np.ndarray:
-    """table[0, round(columns)] for every element, through cv2.remap on a 2-D view."""
+    """table[0, round(columns)] for every element, through cv2.remap on a 2-D view; a table of
+    shape (1, n, c) gives c values per element (last axis)."""
     if columns.ndim == 2 and max(columns.shape) < _REMAP_LIMIT:
         grid = columns
     else:  # any other shape: rows of 1024 columns, the last one padded with the fill column
@@ -232,7 +253,8 @@ def _remap_nearest(table: np.ndarray, columns: np.ndarray) -> np.ndarray:
         grid.reshape(-1)[:flat.size] = flat
     rows = np.zeros_like(grid)
     looked_up = cv2.remap(table, grid, rows, interpolation=cv2.INTER_NEAREST)
-    return looked_up.reshape(-1)[:columns.size]
+    channels = table.shape[2:]
+    return looked_up.reshape((-1,) + channels)[:columns.size]
 
 
 # --------------------------------------------------------------------------------------------

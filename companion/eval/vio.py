@@ -30,7 +30,7 @@ from drivers.dataset.euroc import (
 )
 
 if TYPE_CHECKING:
-    from autonomy.vins.estimator import FrameUpdate
+    from autonomy.vins.estimator import FrameUpdate, Vins
     from autonomy.vins.frontend import FrontendOptions
     from autonomy.vins.options import VinsOptions
     from autonomy.vins.static_init import StaticInit, StaticInitOptions
@@ -128,12 +128,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
              max_frames: int | None = None) -> VioTrace:
     """Run a :class:`Vins` built with ``options``, ``frontend`` and ``static`` over the frames
     of ``data`` (:func:`vio_frames`) and trace its output, timing each stage."""
-    # Imported here: reading and checking a dataset does not need the whole estimator.
-    from autonomy.vins.estimator import Vins
-
     stream = data.camera
-    vins = Vins(stream.camera, stream.distortion, stream.T_B_C, data.noise, options,
-                frontend=frontend, static=static)
+    vins = build_vins(data, options, frontend=frontend, static=static)
     trace = VioTrace()
     for frame in vio_frames(data, max_frames):
         for sample in frame.imu:
@@ -144,10 +140,21 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         update = vins.add_frame(frame.t, tracks)
         _record(trace, update, 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle))
         if update.sparse_map is not None and frame.depth_path is not None:
-            depth = _read_depth(frame.depth_path, stream.camera)
+            depth = read_frame_depth(frame.depth_path, stream.camera)
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
     return trace
+
+
+def build_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
+               static: StaticInitOptions | None = None) -> Vins:
+    """A :class:`Vins` for the camera and IMU of ``data``, built with the given options."""
+    # Imported here: reading and checking a dataset does not need the whole estimator.
+    from autonomy.vins.estimator import Vins
+
+    stream = data.camera
+    return Vins(stream.camera, stream.distortion, stream.T_B_C, data.noise, options,
+                frontend=frontend, static=static)
 
 
 def vio_frames(data: VioDataset, max_frames: int | None = None) -> Iterator[VioFrame]:
@@ -228,7 +235,8 @@ def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def _read_depth(path: Path, camera: PinholeCamera) -> np.ndarray:
+def read_frame_depth(path: Path, camera: PinholeCamera) -> np.ndarray:
+    """A frame's ground-truth depth image (float32 metres, NaN unknown), checked for size."""
     try:
         depth = read_depth_png(path)
     except DatasetError as error:

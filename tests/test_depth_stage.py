@@ -1,0 +1,192 @@
+"""The metric depth stage: network output checked, paired with the VINS map of its frame,
+rescaled, held briefly when a frame gets no fit, and "no depth" after that."""
+
+import math
+
+import numpy as np
+import pytest
+
+from autonomy.depth import metrics
+from autonomy.depth.rescale import RescaleOptions
+from autonomy.depth.stage import (
+    NO_SPARSE_MAP, DepthStageOptions, MetricDepthStage, Rejection, check_relative_disparity,
+)
+from autonomy.geometry import PinholeCamera
+from autonomy.messages import RelativeDepth, SparseMap
+from autonomy.options import OptionError
+
+CAMERA = PinholeCamera.from_hfov(64, 48, math.radians(90.0))
+
+
+def _scene_depth() -> np.ndarray:
+    """A floor receding to 12 m, a wall at 6 m on the left and a box at 1.5 m on the right;
+    the anchors of :func:`_grid_pixels` span its whole depth range."""
+    rows = np.arange(CAMERA.height, dtype=np.float32)[:, None]
+    depth = np.broadcast_to(np.minimum(12.0, 40.0 / (rows + 1.0)), (48, 64)).copy()
+    depth[:, :16] = 6.0
+    depth[10:30, 40:56] = 1.5
+    return depth
+
+
+def _network(depth: np.ndarray) -> np.ndarray:
+    """A network's relative disparity: an unknown monotone map of 1/z."""
+    return (2.0 * (1.0 / depth) ** 0.9 + 0.1).astype(np.float32)
+
+
+def _sparse_map(t: float, depth: np.ndarray, pixels: np.ndarray, *, tracked=None,
+                depth_error: float = 1.0) -> SparseMap:
+    """Landmarks seen at ``pixels`` whose metric depth is the scene's times ``depth_error``:
+    the nearest surface of the four pixels around each (where the stage samples the network)."""
+    u, v = pixels.T
+    u0, v0 = np.floor(u).astype(int).clip(0, 63), np.floor(v).astype(int).clip(0, 47)
+    u1, v1 = np.minimum(u0 + 1, 63), np.minimum(v0 + 1, 47)
+    z = np.minimum.reduce([depth[v0, u0], depth[v0, u1], depth[v1, u0], depth[v1, u1]])
+    z = z * depth_error
+    points = np.column_stack([(u - CAMERA.cx) / CAMERA.fx * z, (v - CAMERA.cy) / CAMERA.fy * z, z])
+    n = len(pixels)
+    tracked = np.ones(n, bool) if tracked is None else np.asarray(tracked)
+    return SparseMap(t, np.arange(n), points, 0.01 * z, pixels, tracked)
+
+
+def _grid_pixels(step: int = 6) -> np.ndarray:
+    v, u = np.mgrid[2:46:step, 2:62:step]
+    return np.column_stack([u.ravel(), v.ravel()]).astype(float)
+
+
+def _stage(**options) -> MetricDepthStage:
+    return MetricDepthStage(RescaleOptions(), DepthStageOptions(**options))
+
+
+def test_a_frame_with_its_sparse_map_gets_metric_depth_and_diagnostics():
+    depth = _scene_depth()
+    stage = _stage()
+    pixels = _grid_pixels()
+    stage.add_sparse_map(_sparse_map(1.0, depth, pixels))
+    result = stage.process(RelativeDepth(1.0, _network(depth)))
+    assert result.ok and not result.held
+    assert result.depth.shape == depth.shape and result.depth.dtype == np.float32
+    assert metrics.abs_rel(result.depth, depth) < 0.02
+    assert result.confidence.shape == depth.shape
+    assert 0.0 <= result.confidence.min() and result.confidence.max() <= 1.0
+    d = result.diagnostics
+    assert d.anchors == len(pixels) and d.anchors_used >= 10
+    assert d.method == "monotone_spline" and d.fit_age_s == 0.0 and d.reason == ""
+    assert d.residual_rms < 0.01
+
+
+def test_the_map_of_the_frames_own_time_is_used_and_no_other():
+    depth = _scene_depth()
+    stage = _stage(max_map_offset_s=0.002)
+    for t, error in ((0.95, 2.0), (1.0, 1.0), (1.05, 2.0)):  # neighbours twice too deep
+        stage.add_sparse_map(_sparse_map(t, depth, _grid_pixels(), depth_error=error))
+    assert metrics.abs_rel(stage.process(RelativeDepth(1.0005, _network(depth))).depth,
+                           depth) < 0.02
+    between = stage.process(RelativeDepth(1.02, _network(depth)))
+    assert between.ok and between.held  # no map at 1.02: the fit of 1.0005 is held
+    assert stage.no_fit[NO_SPARSE_MAP] == 1
+
+
+def test_the_last_good_fit_is_held_for_hold_s_then_there_is_no_depth():
+    depth = _scene_depth()
+    stage = _stage(hold_s=0.5)
+    stage.add_sparse_map(_sparse_map(0.0, depth, _grid_pixels()))
+    assert stage.process(RelativeDepth(0.0, _network(depth))).ok
+    few = _grid_pixels()[:3]
+    for t in (0.3, 0.5):
+        stage.add_sparse_map(_sparse_map(t, depth, few))
+        held = stage.process(RelativeDepth(t, _network(depth)))
+        assert held.ok and held.held
+        assert held.diagnostics.fit_age_s == pytest.approx(t)
+        assert held.diagnostics.anchors == 3
+        assert "too_few_anchors" in held.diagnostics.reason
+        assert metrics.abs_rel(held.depth, depth) < 0.02
+    stage.add_sparse_map(_sparse_map(0.51, depth, few))
+    late = stage.process(RelativeDepth(0.51, _network(depth)))
+    assert not late.ok and late.depth is None and late.confidence is None
+    assert "too_few_anchors" in late.diagnostics.reason
+    assert stage.no_fit["too_few_anchors"] == 3
+
+
+def test_without_any_fit_yet_there_is_no_depth():
+    stage = _stage()
+    result = stage.process(RelativeDepth(0.0, _network(_scene_depth())))
+    assert not result.ok and "no VINS sparse map" in result.diagnostics.reason
+
+
+def test_hold_zero_never_holds():
+    depth = _scene_depth()
+    stage = _stage(hold_s=0.0)
+    stage.add_sparse_map(_sparse_map(0.0, depth, _grid_pixels()))
+    stage.process(RelativeDepth(0.0, _network(depth)))
+    stage.add_sparse_map(_sparse_map(0.05, depth, _grid_pixels()[:2]))
+    assert not stage.process(RelativeDepth(0.05, _network(depth))).ok
+
+
+def test_untracked_landmarks_are_anchors_only_when_asked():
+    """A landmark merely projected into view may be hidden behind an obstacle: with
+    ``tracked_only`` its (here wrong) depth is not used."""
+    depth = _scene_depth()
+    pixels = _grid_pixels(4)
+    tracked = np.arange(len(pixels)) % 2 == 0
+    sparse = _sparse_map(0.0, depth, pixels, tracked=tracked)
+    sparse.points_C[~tracked] *= 3.0
+    results = {}
+    for tracked_only in (True, False):
+        stage = _stage(tracked_only=tracked_only)
+        stage.add_sparse_map(sparse)
+        results[tracked_only] = stage.process(RelativeDepth(0.0, _network(depth)))
+    assert results[True].diagnostics.anchors == tracked.sum()
+    assert results[False].diagnostics.anchors == len(pixels)
+    assert metrics.abs_rel(results[True].depth, depth) < 0.02
+
+
+def test_landmarks_off_the_image_are_not_anchors():
+    depth = _scene_depth()
+    pixels = np.vstack([_grid_pixels(), [[-3.0, 10.0], [70.0, 5.0], [10.0, 48.5]]])
+    stage = _stage()
+    stage.add_sparse_map(_sparse_map(0.0, depth, pixels))
+    assert stage.process(RelativeDepth(0.0, _network(depth))).diagnostics.anchors \
+        == len(pixels) - 3
+
+
+@pytest.mark.parametrize("corrupt, reason", [
+    (lambda d: d.__setitem__((3, 4), np.nan), Rejection.NON_FINITE),
+    (lambda d: d.__setitem__((3, 4), np.inf), Rejection.NON_FINITE),
+    (lambda d: d.__setitem__((3, 4), -0.01), Rejection.NEGATIVE),
+    (lambda d: d.fill(0.7), Rejection.CONSTANT),
+    (lambda d: d.fill(0.0), Rejection.CONSTANT),
+])
+def test_bad_network_output_is_rejected_with_its_reason_counted_and_gives_no_depth(
+        corrupt, reason):
+    depth = _scene_depth()
+    stage = _stage()
+    stage.add_sparse_map(_sparse_map(0.0, depth, _grid_pixels()))
+    assert stage.process(RelativeDepth(0.0, _network(depth))).ok
+    bad = _network(depth)
+    corrupt(bad)
+    stage.add_sparse_map(_sparse_map(0.05, depth, _grid_pixels()))
+    result = stage.process(RelativeDepth(0.05, bad))
+    assert not result.ok  # a rejected image has nothing to hold a fit on
+    assert reason.value in result.diagnostics.reason
+    assert stage.rejected == {reason.value: 1}
+
+
+@pytest.mark.parametrize("image", [
+    np.zeros((4, 4, 3), np.float32), np.zeros(5, np.float32), np.zeros((0, 3), np.float32),
+    np.array([["a", "b"]]), np.ones((2, 2), complex),
+])
+def test_an_output_that_is_not_a_real_image_is_rejected(image):
+    reason, detail = check_relative_disparity(image)
+    assert reason is Rejection.NOT_AN_IMAGE and "2-D" in detail
+
+
+def test_a_healthy_image_passes_the_check():
+    assert check_relative_disparity(_network(_scene_depth())) is None
+    assert check_relative_disparity(np.array([[0, 3], [1, 2]], np.uint8)) is None
+
+
+@pytest.mark.parametrize("key, value", [("hold_s", -0.1), ("max_map_offset_s", 1.0),
+                                        ("map_history", 0), ("tracked_only", 1)])
+def test_bad_stage_options_are_named(key, value):
+    with pytest.raises(OptionError, match=key):
+        DepthStageOptions(**{key: value})
