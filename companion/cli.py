@@ -193,33 +193,29 @@ def _add_eval_commands(commands: argparse._SubParsersAction,
                                 description="Measure the accuracy of the algorithms against "
                                             "a dataset's ground truth.")
     actions = _add_command_group(group)
+    dataset = argparse.ArgumentParser(add_help=False, parents=[configured])
+    dataset.add_argument("dataset", type=Path, metavar="DATASET",
+                         help="dataset folder, the one holding mav0/")
+    _add_json_flag(dataset, instead_of="a report")
+    dataset.add_argument("--max-frames", type=_positive_int, metavar="N",
+                         help="stop after N camera frames (default: all)")
     vio = actions.add_parser(
-        "vio", parents=[configured], help="score the VINS on a EuRoC dataset",
+        "vio", parents=[dataset], help="score the VINS on a EuRoC dataset",
         description="Run the VINS, with the [vins], [vins_frontend] and [vins_init] options of "
                     "the config, over a EuRoC/ASL dataset (real, or recorded by 'companion sim "
                     "record') and compare it with the ground truth: trajectory error after "
                     "SE(3) alignment, scale error, landmark depth error against depth0 when the "
                     "dataset has it, the static initialisation, and the time per stage.")
-    vio.add_argument("dataset", type=Path, metavar="DATASET",
-                     help="dataset folder, the one holding mav0/")
-    _add_json_flag(vio, instead_of="a report")
-    vio.add_argument("--max-frames", type=_positive_int, metavar="N",
-                     help="stop after N camera frames (default: all)")
     vio.set_defaults(command=_eval_vio)
 
     depth = actions.add_parser(
-        "depth", parents=[configured], help="score the metric depth stage on a dataset",
+        "depth", parents=[dataset], help="score the metric depth stage on a dataset",
         description="Run the depth path as in flight over a EuRoC/ASL dataset with depth0 "
                     "(recorded by 'companion sim record'): the VINS, the depth network "
                     "([depth_network] model, or without one the synthetic stand-in of "
                     "[synthetic_depth] on the ground-truth depth) and the metric depth stage "
                     "([depth], [rescale]); score every frame's metric depth against depth0 with "
                     "AbsRel, delta1, RMSE and the over-estimate rate, and time the stage.")
-    depth.add_argument("dataset", type=Path, metavar="DATASET",
-                       help="dataset folder, the one holding mav0/")
-    _add_json_flag(depth, instead_of="a report")
-    depth.add_argument("--max-frames", type=_positive_int, metavar="N",
-                       help="stop after N camera frames (default: all)")
     depth.set_defaults(command=_eval_depth)
 
 

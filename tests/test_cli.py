@@ -6,13 +6,11 @@ import dataclasses
 import json
 import subprocess
 import sys
-import types
 from pathlib import Path
 
 import pytest
 
 import companion
-from companion.cli import main
 from companion.config import Config
 
 if sys.version_info >= (3, 11):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from autonomy.geometry import GRAVITY, quat_to_rot, skew, so3_exp, so3_log
+from autonomy.geometry import GRAVITY, quat_to_rot, so3_exp, so3_log
 from autonomy.vins.preintegration import (ImuNoise, preintegrate, predict,
                                           prediction_covariance)
 

@@ -10,7 +10,6 @@ own time is measured here (network excluded), never in ``autonomy/``.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ from autonomy.depth.synthetic import (
     SyntheticDepthOptions, SyntheticNetwork, affine_fit_abs_rel,
 )
 from autonomy.messages import MetricDepth, RelativeDepth
+from companion.eval.numbers import finite_or_none, mean_or_none, median_or_none, show
 from companion.eval.vio import (
     EvaluationError, VioDataset, VioFrame, build_vins, read_frame_depth, read_vio_dataset,
     vio_frames,
@@ -178,44 +178,30 @@ def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
         "frames_held": int(sum(trace.held)),
         "no_fit": trace.no_fit,
         "rejected": trace.rejected,
-        "abs_rel": _mean([m.abs_rel for m in per_frame]),
-        "delta1": _mean([m.delta1 for m in per_frame]),
-        "rmse_m": _mean([m.rmse for m in per_frame]),
-        "overestimate_rate": _mean(near),
+        "abs_rel": mean_or_none([m.abs_rel for m in per_frame]),
+        "delta1": mean_or_none([m.delta1 for m in per_frame]),
+        "rmse_m": mean_or_none([m.rmse for m in per_frame]),
+        "overestimate_rate": mean_or_none(near),
         "supported": {
-            "share": _mean(trace.supported_share),
-            "abs_rel": _mean([m.abs_rel for m in trace.supported]),
-            "delta1": _mean([m.delta1 for m in trace.supported]),
-            "overestimate_rate": _mean([m.overestimate_rate for m in trace.supported
+            "share": mean_or_none(trace.supported_share),
+            "abs_rel": mean_or_none([m.abs_rel for m in trace.supported]),
+            "delta1": mean_or_none([m.delta1 for m in trace.supported]),
+            "overestimate_rate": mean_or_none([m.overestimate_rate for m in trace.supported
                                         if m.near_pixels > 0]),
         },
-        "network_affine_abs_rel": _mean(trace.network_abs_rel),
-        "anchors_median": _median(trace.anchors),
-        "residual_rms_median": _median(trace.residual_rms),
-        "stage_ms_median": _median(stage_ms),
-        "stage_ms_p95": _finite(np.percentile(stage_ms, 95)) if stage_ms.size else None,
+        "network_affine_abs_rel": mean_or_none(trace.network_abs_rel),
+        "anchors_median": median_or_none(trace.anchors),
+        "residual_rms_median": median_or_none(trace.residual_rms),
+        "stage_ms_median": median_or_none(stage_ms),
+        "stage_ms_p95": finite_or_none(np.percentile(stage_ms, 95)) if stage_ms.size else None,
     }
 
 
-def _mean(values) -> float | None:
-    values = [v for v in values if math.isfinite(v)]
-    return _finite(np.mean(values)) if values else None
 
-
-def _median(values) -> float | None:
-    return _finite(np.median(values)) if len(values) else None
-
-
-def _finite(value) -> float | None:
-    value = float(value)
-    return value if math.isfinite(value) else None
 
 
 def format_depth_report(result: dict) -> str:
     """The evaluation result as a few lines a person reads."""
-    def show(value, spec: str, unit: str = "") -> str:
-        return "n/a" if value is None else f"{value:{spec}}{unit}"
-
     supported = result["supported"]
     no_fit = ", ".join(f"{reason} {count}" for reason, count in result["no_fit"].items())
     rejected = ", ".join(f"{reason} {count}" for reason, count in result["rejected"].items())

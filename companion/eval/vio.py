@@ -24,6 +24,7 @@ from autonomy.geometry import PinholeCamera, quat_to_rot
 from autonomy.messages import ImuSample, SparseMap
 from autonomy.trajectory import align_umeyama, ate_rmse, interpolate_poses, path_length
 from autonomy.vins.preintegration import ImuNoise
+from companion.eval.numbers import finite_or_none, median_or_none, show
 from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
     read_groundtruth, read_imu, read_imu_noise,
@@ -196,12 +197,12 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "frames": len(trace.t),
         "keyframes": sum(trace.keyframe),
         **_trajectory_metrics(trace, truth_t, data.truth),
-        "depth_rel_err_median": None if data.depth is None else _median(depth_errors),
+        "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
         "resets": int(trace.resets),
-        "frontend_ms_median": _median(trace.frontend_ms),
-        "backend_ms_median": _median(backend),
-        "backend_ms_p95": _finite(np.percentile(backend, 95)) if backend else None,
+        "frontend_ms_median": median_or_none(trace.frontend_ms),
+        "backend_ms_median": median_or_none(backend),
+        "backend_ms_p95": finite_or_none(np.percentile(backend, 95)) if backend else None,
         "health": dict(Counter(trace.health)),
         "init": _init_metrics(trace.static_init, truth_t, data.truth),
     }
@@ -285,7 +286,7 @@ def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruth
                 "note": f"no trajectory error from {len(chosen)} poses: {error}"}
     return {"ate_rmse_m": ate, "distance_m": distance,
             "ate_over_distance": ate / distance if distance > 0.0 else None,
-            "scale_error": _finite(abs(scale - 1.0))}
+            "scale_error": finite_or_none(abs(scale - 1.0))}
 
 
 def _init_metrics(static_init: StaticInit | None, truth_t: np.ndarray,
@@ -313,14 +314,6 @@ def _angle(a, b) -> float:
     return math.atan2(float(np.linalg.norm(np.cross(a, b))), float(np.dot(a, b)))
 
 
-def _median(values) -> float | None:
-    return _finite(np.median(values)) if len(values) else None
-
-
-def _finite(value) -> float | None:
-    """A plain float for JSON, None for NaN or infinity."""
-    value = float(value)
-    return value if math.isfinite(value) else None
 
 
 def format_vio_report(result: dict) -> str:
@@ -330,23 +323,20 @@ def format_vio_report(result: dict) -> str:
     lines = [
         f"{result['dataset']}: {result['frames']} frames, {result['keyframes']} keyframes, "
         f"{result['resets']} resets",
-        f"trajectory: ATE {_show(result['ate_rmse_m'], '.3f', ' m')} over "
-        f"{_show(result['distance_m'], '.1f', ' m')} "
-        f"({_show(result['ate_over_distance'], '.2%')}), scale error "
-        f"{_show(result['scale_error'], '.2%')}{note}",
-        f"depth: median relative error {_show(result['depth_rel_err_median'], '.1%')} over "
+        f"trajectory: ATE {show(result['ate_rmse_m'], '.3f', ' m')} over "
+        f"{show(result['distance_m'], '.1f', ' m')} "
+        f"({show(result['ate_over_distance'], '.2%')}), scale error "
+        f"{show(result['scale_error'], '.2%')}{note}",
+        f"depth: median relative error {show(result['depth_rel_err_median'], '.1%')} over "
         f"{result['depth_points']} landmarks",
         "init: none" if init is None else
         f"init at t={init['t']:.2f} s: gravity error "
-        f"{_show(init['gravity_err_deg'], '.2f', ' deg')}, gyro bias error "
-        f"{_show(init['gyro_bias_err_rel'], '.1%')}",
-        f"time: front-end {_show(result['frontend_ms_median'], '.1f', ' ms')} median, back-end "
-        f"{_show(result['backend_ms_median'], '.1f', ' ms')} median and "
-        f"{_show(result['backend_ms_p95'], '.1f', ' ms')} p95 per keyframe",
+        f"{show(init['gravity_err_deg'], '.2f', ' deg')}, gyro bias error "
+        f"{show(init['gyro_bias_err_rel'], '.1%')}",
+        f"time: front-end {show(result['frontend_ms_median'], '.1f', ' ms')} median, back-end "
+        f"{show(result['backend_ms_median'], '.1f', ' ms')} median and "
+        f"{show(result['backend_ms_p95'], '.1f', ' ms')} p95 per keyframe",
         "health: " + ", ".join(f"{name} {count}" for name, count in result["health"].items()),
     ]
     return "\n".join(lines)
 
-
-def _show(value: float | None, spec: str, unit: str = "") -> str:
-    return "n/a" if value is None else f"{value:{spec}}{unit}"
