@@ -13,6 +13,7 @@ import dataclasses
 import difflib
 import json
 import sys
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple, Sequence
@@ -202,7 +203,7 @@ def _coerce(value: Any, kind: Any) -> Any:
     TOML list where a ``tuple[str, ...]`` is expected becomes a tuple."""
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
-    if getattr(kind, "__origin__", None) is tuple and isinstance(value, list):
+    if typing.get_origin(kind) is tuple and isinstance(value, list):
         return tuple(value)
     return value
 

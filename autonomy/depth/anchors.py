@@ -53,7 +53,7 @@ def sample_nearest_surface(disparity: np.ndarray, pixels: np.ndarray) -> np.ndar
     ValueError
         If ``disparity`` is not 2-D or ``pixels`` is not (N, 2).
     """
-    disparity = np.asarray(disparity, dtype=np.float64)
+    disparity = np.asarray(disparity)  # gathered as it is, then cast: no whole-image copy
     pixels = np.asarray(pixels, dtype=np.float64)
     _check_inputs(disparity, pixels)
     height, width = disparity.shape
@@ -64,6 +64,7 @@ def sample_nearest_surface(disparity: np.ndarray, pixels: np.ndarray) -> np.ndar
     u1 = np.minimum(u0 + 1, width - 1)
     v1 = np.minimum(v0 + 1, height - 1)
     neighbours = disparity[np.stack([v0, v0, v1, v1]), np.stack([u0, u1, u0, u1])]
+    neighbours = neighbours.astype(np.float64)
     neighbours[~np.isfinite(neighbours)] = np.nan
     sampled = np.full(len(pixels), np.nan)
     sampled[inside] = np.fmax.reduce(neighbours, axis=0)
