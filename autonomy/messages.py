@@ -26,6 +26,20 @@ class ImuSample:
 
 
 @dataclass(frozen=True)
+class Frame:
+    """One camera image taken at ``t``: ``image`` uint8 RGB (H, W, 3), the camera's resolution.
+
+    ``truth_depth`` is the renderer's ground-truth depth (float32 metres, NaN where nothing
+    was hit) in simulation only, for the synthetic stand-in network and for evaluation; a real
+    camera driver leaves it None and nothing on the flight path may rely on it.
+    """
+
+    t: float
+    image: np.ndarray
+    truth_depth: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class SparseMap:
     """The VINS landmarks at one frame time, expressed in that frame's camera coordinates.
 
