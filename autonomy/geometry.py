@@ -148,6 +148,15 @@ def yaw_of(R: np.ndarray) -> float:
     return math.atan2(R[1, 0], R[0, 0])
 
 
+def yaw_alignment(T_L_B: np.ndarray, T_W_B: np.ndarray) -> np.ndarray:
+    """``T_L_W`` from one body pose in both frames, both gravity-aligned (z up): the rotation
+    about z by the yaw difference, and the translation that maps the body's position in ``W``
+    onto its position in ``L``. Roll and pitch agree in both frames up to the estimators'
+    tilt errors, which are left out so that ``L`` and ``W`` share their vertical."""
+    R = rot_z(yaw_of(T_L_B[:3, :3]) - yaw_of(T_W_B[:3, :3]))
+    return make_pose(R, T_L_B[:3, 3] - R @ T_W_B[:3, 3])
+
+
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """The 4x4 pose ``[[R, t], [0, 1]]``."""
     T = np.eye(4)

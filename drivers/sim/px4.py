@@ -189,6 +189,8 @@ class MockPx4:
         self._timesync_sent_ns: int | None = None
         self.timesync_offset_ns: int | None = None
         self._home = np.array(vehicle.state.position, dtype=float)
+        #: Streams held back (a fault injected by the simulator: e.g. an IMU gap).
+        self.suppressed_streams: set[int] = set()
         self._imu = (np.zeros(3), np.array([0.0, 0.0, GRAVITY]))
         self.estimate = self._estimate()
         self._enter_hold()
@@ -609,6 +611,8 @@ class MockPx4:
             # keep the phase while on time; after a stall, restart from now (no burst)
             next_due = due + interval
             self._next_due[message_id] = next_due if next_due > self.time else self.time + interval
+            if message_id in self.suppressed_streams:
+                continue
             if message_id == mavlink.MAVLINK_MSG_ID_TIMESYNC:
                 self._send_timesync_request()
             else:

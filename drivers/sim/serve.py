@@ -21,7 +21,8 @@ from typing import Protocol
 import numpy as np
 
 from drivers.clock import MonotonicClock, SimClock
-from drivers.mavlink.link import open_link
+from drivers.mavlink.link import mavlink, open_link
+from drivers.sim.faults import CuttableLink, FaultSchedule
 from drivers.sim.imu import ImuModel, ImuOptions
 from drivers.sim.options import CLOCK_MODES
 from drivers.sim.px4 import MockPx4, Px4Options
@@ -53,19 +54,26 @@ def start_position(world) -> np.ndarray:
 
 
 class SimulatedVehicle:
-    """The vehicle, its IMU and the mock PX4 on one link, stepped together."""
+    """The vehicle, its IMU and the mock PX4 on one link, stepped together.
+
+    ``faults`` injects the link and flight-controller faults of :mod:`drivers.sim.faults`
+    (link cut, IMU gap); ``start_yaw`` is the heading the vehicle stands at, radians.
+    """
 
     def __init__(self, link, world, *, seed: int = 0,
                  vehicle_options: VehicleOptions | None = None,
-                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None):
+                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
+                 start_yaw: float = 0.0, faults: FaultSchedule | None = None):
         self.imu_options = imu_options or ImuOptions()
         self.dt = 1.0 / self.imu_options.rate_hz
         clearance = getattr(world, "obstacle_clearance", None) if world is not None else None
         imu_seed, estimator_seed = np.random.SeedSequence(seed).spawn(2)
         self.vehicle = Quadrotor(vehicle_options or VehicleOptions(), clearance,
-                                 position=start_position(world))
+                                 position=start_position(world), yaw=start_yaw)
         self.imu = ImuModel(self.imu_options, np.random.default_rng(imu_seed))
-        self.px4 = MockPx4(link, self.vehicle, px4_options or Px4Options(),
+        self.link = CuttableLink(link)
+        self.faults = faults or FaultSchedule()
+        self.px4 = MockPx4(self.link, self.vehicle, px4_options or Px4Options(),
                            rng=np.random.default_rng(estimator_seed),
                            physics_rate_hz=self.imu_options.rate_hz)
         self.steps = 0
@@ -79,7 +87,18 @@ class SimulatedVehicle:
         truth = self.vehicle.step(self.dt)
         gyro, accel = self.imu.measure(truth, self.dt)
         self.steps += 1
+        self._apply_faults()
         self.px4.update(self.vehicle.state.time, gyro, accel)
+
+    def _apply_faults(self) -> None:
+        state = self.vehicle.state
+        self.faults.update(state.time, state.velocity)
+        self.link.cut = self.faults.active("link_cut", state.time)
+        imu = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+        if self.faults.active("imu_gap", state.time):
+            self.px4.suppressed_streams.add(imu)
+        else:
+            self.px4.suppressed_streams.discard(imu)
 
 
 async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realtime",
@@ -87,14 +106,16 @@ async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realt
                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
                 duration: float | None = None, stop: StopSignal | None = None,
                 sim_clock: SimClock | None = None, stop_on_collision: bool = False,
-                on_ready=None) -> ServeSummary:
+                on_ready=None, start_yaw: float = 0.0,
+                faults: FaultSchedule | None = None) -> ServeSummary:
     """Serve the vehicle on ``url`` until ``duration`` simulated seconds, ``stop`` is set, or
     (with ``stop_on_collision``) a collision; returns a :class:`ServeSummary`.
 
     ``world`` is a ``drivers.sim.world.World`` (anything with ``obstacle_clearance`` and
     ``routes``) or None for open space. ``sim_clock`` is advanced in lockstep mode (one is made
     if not given). ``on_ready(sim)`` is called with the :class:`SimulatedVehicle` once the link
-    is open (e.g. to print the pty path).
+    is open (e.g. to print the pty path). ``start_yaw`` and ``faults`` go to the
+    :class:`SimulatedVehicle`.
     """
     if clock_mode not in CLOCK_MODES:
         raise ValueError(f"clock_mode must be one of {', '.join(CLOCK_MODES)}, got {clock_mode!r}")
@@ -104,7 +125,8 @@ async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realt
                      source_component=(px4_options or Px4Options()).component_id)
     try:
         sim = SimulatedVehicle(link, world, seed=seed, vehicle_options=vehicle_options,
-                               imu_options=imu_options, px4_options=px4_options)
+                               imu_options=imu_options, px4_options=px4_options,
+                               start_yaw=start_yaw, faults=faults)
         if link.pty_path is not None:
             log.info("serving MAVLink on pseudo-terminal %s", link.pty_path)
         if on_ready is not None:

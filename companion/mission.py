@@ -1,0 +1,158 @@
+"""The flight state machine and its failsafe rules (DESIGN.md, "Flight behaviour").
+
+Pure bookkeeping, no I/O and no clock of its own: the application passes the time in. A flight
+goes
+
+    PREFLIGHT -> INITIALISING -> TAKING_OFF -> ENTERING_OFFBOARD -> NAVIGATING
+              -> STOPPING (goal reached) -> LANDING -> LANDED
+
+and whatever goes wrong in the air takes the safe way down:
+
+    any airborne state --failsafe--> FAILSAFE_STOP (follow the stop primitive checked at the
+    last planning round) -> HOLDING (PX4 Hold) -> LANDING -> LANDED
+
+A failsafe is terminal for the mission: the vehicle stops, holds for ``hold_before_land_s``
+and lands where it is. On the ground, a failed step ends in ABORTED. Every transition is kept
+with its time and reason, and logged.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from dataclasses import dataclass
+
+from autonomy.options import option, validate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FlightOptions:
+    """The mission and its failsafe thresholds (the ``[flight]`` table)."""
+
+    takeoff_altitude: float = option(1.5, gt=0.2, le=50.0,
+                                     doc="take-off height above the ground, metres")
+    goal_tolerance: float = option(1.0, gt=0.0, le=10.0,
+                                   doc="distance to the goal that counts as reached, metres")
+    waypoint_tolerance: float = option(2.0, gt=0.0, le=20.0,
+                                       doc="distance at which a waypoint counts as passed, metres")
+    align_threshold_deg: float = option(
+        60.0, gt=0.0, le=180.0,
+        doc="heading error to the next waypoint that makes the vehicle turn in place first, "
+            "degrees")
+    align_done_deg: float = option(15.0, gt=0.0, le=90.0,
+                                   doc="heading error at which turning in place ends, degrees")
+    align_yaw_rate_deg: float = option(30.0, gt=0.0, le=180.0,
+                                       doc="yaw rate of a turn in place, degrees per second")
+    setpoint_rate_hz: float = option(30.0, ge=20.0, le=50.0,
+                                     doc="offboard velocity setpoints per second (PX4: > 2)")
+    odometry_rate_hz: float = option(30.0, ge=1.0, le=50.0,
+                                     doc="ODOMETRY messages to PX4 per second")
+    planner_rate_hz: float = option(12.0, gt=0.0, le=50.0, doc="planning rounds per second")
+    monitor_rate_hz: float = option(20.0, gt=0.0, le=200.0,
+                                    doc="failsafe checks (and loop-lag probes) per second")
+    setpoint_deadline_s: float = option(
+        0.25, gt=0.0, le=2.0,
+        doc="a setpoint older than this is replaced by the stop, by the watchdog thread")
+    camera_timeout_s: float = option(0.5, gt=0.0, le=10.0,
+                                     doc="no camera frame for this long is a failsafe, seconds")
+    imu_timeout_s: float = option(0.25, gt=0.0, le=10.0,
+                                  doc="no IMU sample for this long is a failsafe, seconds")
+    depth_timeout_s: float = option(1.0, gt=0.0, le=10.0,
+                                    doc="no metric depth for this long is a failsafe, seconds")
+    no_path_timeout_s: float = option(
+        3.0, gt=0.0, le=30.0,
+        doc="the planner finding no safe primitive for this long is a failsafe, seconds")
+    max_loop_lag_s: float = option(0.3, gt=0.0, le=10.0,
+                                   doc="event-loop lag above this is a failsafe, seconds")
+    stopped_speed: float = option(0.2, gt=0.0, le=2.0,
+                                  doc="speed under which a stopping vehicle counts as stopped")
+    stop_timeout_s: float = option(3.0, gt=0.0, le=30.0,
+                                   doc="longest a stop may take before PX4 Hold, seconds")
+    hold_before_land_s: float = option(2.0, ge=0.0, le=120.0,
+                                       doc="time in Hold after a failsafe before landing, s")
+    preflight_timeout_s: float = option(15.0, gt=0.0, le=300.0,
+                                        doc="longest wait for link, IMU and camera, seconds")
+    init_timeout_s: float = option(20.0, gt=0.0, le=300.0,
+                                   doc="longest wait for the VINS static initialisation, s")
+    takeoff_timeout_s: float = option(20.0, gt=0.0, le=300.0,
+                                      doc="longest a take-off may take, seconds")
+    land_timeout_s: float = option(30.0, gt=0.0, le=600.0,
+                                   doc="longest wait for landing and disarm, seconds")
+    mission_timeout_s: float = option(300.0, gt=0.0, le=36000.0,
+                                      doc="longest navigation before a failsafe, seconds")
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+class FlightState(enum.Enum):
+    PREFLIGHT = "preflight"
+    INITIALISING = "initialising"
+    TAKING_OFF = "taking_off"
+    ENTERING_OFFBOARD = "entering_offboard"
+    ALIGNING = "aligning"
+    NAVIGATING = "navigating"
+    STOPPING = "stopping"
+    FAILSAFE_STOP = "failsafe_stop"
+    HOLDING = "holding"
+    LINK_LOST = "link_lost"
+    LANDING = "landing"
+    LANDED = "landed"
+    ABORTED = "aborted"
+
+
+#: States in which the application commands the vehicle with offboard setpoints.
+OFFBOARD_STATES = frozenset({FlightState.ENTERING_OFFBOARD, FlightState.ALIGNING,
+                             FlightState.NAVIGATING, FlightState.STOPPING,
+                             FlightState.FAILSAFE_STOP})
+#: States in which a failsafe check applies (in the air, on our setpoints).
+GUARDED_STATES = frozenset({FlightState.ALIGNING, FlightState.NAVIGATING,
+                            FlightState.STOPPING})
+FINAL_STATES = frozenset({FlightState.LANDED, FlightState.ABORTED})
+
+
+@dataclass(frozen=True)
+class Transition:
+    t: float
+    source: FlightState
+    target: FlightState
+    reason: str
+
+
+class Mission:
+    """The present state, every transition so far, and the failsafes that fired."""
+
+    def __init__(self, t: float = 0.0):
+        self.state = FlightState.PREFLIGHT
+        self.since = t
+        self.transitions: list[Transition] = []
+        self.failsafes: list[str] = []
+
+    def go(self, t: float, target: FlightState, reason: str) -> None:
+        """Enter ``target`` at ``t`` for ``reason`` (logged; a no-op when already there)."""
+        if target == self.state:
+            return
+        self.transitions.append(Transition(t, self.state, target, reason))
+        log.info("t=%.2f %s -> %s: %s", t, self.state.value, target.value, reason)
+        self.state, self.since = target, t
+
+    def failsafe(self, t: float, reason: str) -> bool:
+        """A failsafe for ``reason``: stop if navigating. Returns True when it changed the
+        state (the first failsafe of a flight; later ones are recorded but change nothing)."""
+        if reason not in self.failsafes:
+            self.failsafes.append(reason)
+        if self.state in GUARDED_STATES:
+            log.warning("t=%.2f failsafe: %s", t, reason)
+            self.go(t, FlightState.FAILSAFE_STOP, f"failsafe: {reason}")
+            return True
+        return False
+
+    @property
+    def done(self) -> bool:
+        return self.state in FINAL_STATES
+
+    def elapsed(self, t: float) -> float:
+        """Seconds in the present state."""
+        return t - self.since

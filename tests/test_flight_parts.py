@@ -1,0 +1,239 @@
+"""The flight application's parts on their own: faults, mission, watchdog, frame alignment,
+the simulated camera."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import re
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import make_pose, rot_z, yaw_alignment
+from companion.mission import FlightState, Mission
+from companion.watchdog import SetpointWatchdog
+from drivers.clock import SimClock
+from drivers.mavlink.link import open_link
+from drivers.sim.faults import CuttableLink, Fault, FaultSchedule
+
+
+# ---------------------------------------------------------------- faults
+
+def test_fault_parse_reads_kind_start_and_duration():
+    assert Fault.parse("imu_gap") == Fault("imu_gap", 1.0, math.inf)
+    assert Fault.parse("link_cut@2.5") == Fault("link_cut", 2.5, math.inf)
+    assert Fault.parse("camera_freeze@1+0.5") == Fault("camera_freeze", 1.0, 0.5)
+
+
+@pytest.mark.parametrize("text, words", [
+    ("gremlins", "unknown fault"),
+    ("imu_gap@soon", "expected kind[@after_s[+duration_s]]"),
+    ("imu_gap@-1", "after_s must be"),
+    ("imu_gap@1+0", "duration_s must be > 0"),
+])
+def test_fault_parse_rejects_bad_text_clearly(text, words):
+    with pytest.raises(ValueError, match=re.escape(words)):
+        Fault.parse(text)
+
+
+def test_fault_clock_starts_when_the_vehicle_first_cruises():
+    schedule = FaultSchedule((Fault("imu_gap", after_s=1.0, duration_s=0.5),))
+    schedule.update(5.0, (0.5, 0.0, 0.0))  # hovering: no cruise yet
+    assert not schedule.active("imu_gap", 7.0)
+    schedule.update(10.0, (0.0, 1.5, 0.0))  # cruising from t = 10
+    assert not schedule.active("imu_gap", 10.9)
+    assert schedule.active("imu_gap", 11.0)
+    assert schedule.active("imu_gap", 11.4)
+    assert not schedule.active("imu_gap", 11.5)
+    assert not schedule.active("link_cut", 11.2)
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def _received(link, seconds=0.5) -> list[str]:
+    deadline, names = time.monotonic() + seconds, []
+    while time.monotonic() < deadline:
+        names += [m.get_type() for m in link.receive_pending()]
+        time.sleep(0.01)
+    return names
+
+
+def test_a_cut_link_neither_sends_nor_delivers():
+    port = _free_port()
+    with open_link(f"udpin://127.0.0.1:{port}") as server_raw, \
+            open_link(f"udpout://127.0.0.1:{port}") as client:
+        server = CuttableLink(server_raw)
+        client.mav.heartbeat_send(6, 8, 0, 0, 0)
+        assert "HEARTBEAT" in _received(server)
+        server.send(server.mav.heartbeat_encode(6, 8, 0, 0, 0))
+        assert "HEARTBEAT" in _received(client)
+        server.cut = True
+        client.mav.heartbeat_send(6, 8, 0, 0, 0)
+        server.send(server.mav.heartbeat_encode(6, 8, 0, 0, 0))
+        assert _received(server) == [] and _received(client) == []
+        server.cut = False
+        client.mav.heartbeat_send(6, 8, 0, 0, 0)
+        assert "HEARTBEAT" in _received(server)
+
+
+# ---------------------------------------------------------------- mission
+
+def test_mission_keeps_every_transition_with_its_reason():
+    mission = Mission(0.0)
+    mission.go(1.0, FlightState.INITIALISING, "link up")
+    mission.go(1.0, FlightState.INITIALISING, "again")  # no-op
+    mission.go(3.0, FlightState.TAKING_OFF, "VINS initialised")
+    assert [(t.source, t.target, t.reason) for t in mission.transitions] == [
+        (FlightState.PREFLIGHT, FlightState.INITIALISING, "link up"),
+        (FlightState.INITIALISING, FlightState.TAKING_OFF, "VINS initialised")]
+    assert mission.elapsed(4.5) == pytest.approx(1.5)
+
+
+def test_a_failsafe_stops_navigation_once_and_records_every_reason():
+    mission = Mission(0.0)
+    mission.go(1.0, FlightState.NAVIGATING, "offboard")
+    assert mission.failsafe(2.0, "camera silent")
+    assert mission.state == FlightState.FAILSAFE_STOP
+    assert not mission.failsafe(2.1, "IMU silent")  # already stopping
+    assert mission.failsafes == ["camera silent", "IMU silent"]
+    assert mission.transitions[-1].reason == "failsafe: camera silent"
+
+
+def test_a_failsafe_on_the_ground_changes_nothing():
+    mission = Mission(0.0)
+    assert not mission.failsafe(1.0, "camera silent")
+    assert mission.state == FlightState.PREFLIGHT
+
+
+# ---------------------------------------------------------------- watchdog
+
+class _Now:
+    """A clock the test moves by hand (read from the watchdog's thread)."""
+
+    def __init__(self):
+        self.value = 0.0
+
+    def __call__(self) -> float:
+        return self.value
+
+
+def _wait_until(condition, seconds=2.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return condition()
+
+
+def test_watchdog_sends_the_stop_when_setpoints_go_stale_and_yields_when_they_resume():
+    now, sent = _Now(), []
+    watchdog = SetpointWatchdog(now, lambda t: sent.append(t), deadline_s=0.2, period_s=0.01)
+    watchdog.start()
+    try:
+        watchdog.arm(True)
+        watchdog.fed(0.0)
+        now.value = 0.1
+        time.sleep(0.15)
+        assert sent == [] and not watchdog.in_charge
+        now.value = 0.5  # the loop stalled: no setpoint since t = 0
+        assert _wait_until(lambda: len(sent) >= 3)
+        assert watchdog.in_charge and watchdog.episodes == 1
+        watchdog.fed(0.5)  # the loop is back
+        assert not watchdog.in_charge
+        count = len(sent)
+        time.sleep(0.1)
+        assert len(sent) == count
+    finally:
+        watchdog.close()
+
+
+def test_watchdog_stays_quiet_when_disarmed_and_survives_a_failing_send():
+    now = _Now()
+    calls = []
+
+    def failing(t):
+        calls.append(t)
+        raise OSError("link gone")
+    watchdog = SetpointWatchdog(now, failing, deadline_s=0.1, period_s=0.01)
+    watchdog.start()
+    try:
+        watchdog.fed(0.0)
+        now.value = 1.0
+        time.sleep(0.1)
+        assert calls == []  # not armed
+        watchdog.arm(True)
+        assert _wait_until(lambda: len(calls) >= 2)  # kept trying after the error
+        assert watchdog.fired == 0
+    finally:
+        watchdog.close()
+    assert not any(t.name == "setpoint-watchdog" for t in threading.enumerate())
+
+
+# ---------------------------------------------------------------- frames
+
+def test_yaw_alignment_maps_the_body_pose_from_vins_world_to_px4_local():
+    T_W_B = make_pose(rot_z(0.3), np.array([1.0, 2.0, 0.1]))
+    T_L_B = make_pose(rot_z(1.9), np.array([-4.0, 7.0, 0.0]))
+    T_L_W = yaw_alignment(T_L_B, T_W_B)
+    assert np.allclose(T_L_W @ T_W_B, T_L_B, atol=1e-12)
+    assert np.allclose(T_L_W[:3, :3], rot_z(1.6))
+
+
+# ---------------------------------------------------------------- simulated camera
+
+class _Vehicle:
+    def __init__(self):
+        from drivers.sim.vehicle import Quadrotor
+        self.vehicle = Quadrotor(position=(0.0, 0.0, 1.5))
+        self.faults = FaultSchedule((Fault("camera_freeze", 0.0, 0.2),
+                                     Fault("camera_blackout", 0.4, 0.1)))
+        self.time = 0.0
+
+
+def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout():
+    from drivers.sim.camera import SimCamera
+    from drivers.sim.render import Renderer
+    from drivers.sim.world import build_world
+    from drivers.camera.options import CameraOptions
+
+    options = CameraOptions(width=64, height=48, rate_hz=20.0)
+    world = build_world("dome", 0)
+    sim = _Vehicle()
+    clock = SimClock(0.0)
+
+    async def main():
+        frames = []
+        with Renderer(world, options.pinhole()) as renderer:
+            camera = SimCamera(sim, renderer, options.rate_hz, clock)
+            sim.faults.update(0.0, (2.0, 0.0, 0.0))  # cruise from t = 0: faults on schedule
+
+            async def advance():
+                for k in range(1, 141):
+                    sim.time = k * 0.005
+                    clock.advance_to(sim.time)
+                    await asyncio.sleep(0)
+            runner = asyncio.create_task(advance())
+            for _ in range(8):
+                frames.append(await camera.next_frame())
+            await runner
+        return frames, camera
+
+    frames, camera = asyncio.run(main())
+    times = np.array([f.t for f in frames])
+    grid = np.arange(0.2, 0.56, 0.05)  # nothing while frozen, before 0.2 s
+    # each frame is stamped when it is rendered: at its grid time, or a tick later when the
+    # consumer came late
+    assert np.all((times >= grid - 1e-9) & (times <= grid + 0.005 + 1e-9)), times
+    assert camera.delivered == 8
+    bright = [float(f.image.mean()) for f in frames]
+    black = [0.4 <= t < 0.5 for t in times]
+    assert [b == 0.0 for b in bright] == black
+    assert min(b for b, dark in zip(bright, black) if not dark) > 20.0
+    assert all(f.truth_depth.shape == (48, 64) for f in frames)
