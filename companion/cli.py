@@ -93,7 +93,40 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_sim_commands(commands, configured)
     _add_eval_commands(commands, configured)
     _add_depth_commands(commands, configured)
+    _add_fly_command(commands, configured)
     return parser
+
+
+def _add_fly_command(commands: argparse._SubParsersAction,
+                     configured: argparse.ArgumentParser) -> None:
+    fly = commands.add_parser(
+        "fly", parents=[configured], help="fly the real vehicle (the systemd service's command)",
+        description="Connect to the flight controller ([mavlink] url), the camera ([v4l2]) and "
+                    "the depth network ([depth_network] model), then fly the mission: "
+                    "[flight] waypoints, or --goal. Stops, holds and lands on any failure and "
+                    "on SIGTERM. See docs/operations.md.")
+    fly.add_argument("--goal", dest="goals", type=_point, action="append", default=[],
+                     metavar="X,Y,Z",
+                     help="waypoint in metres in PX4's local frame (x east, y north, z up); "
+                          "repeatable, the last is the goal; replaces [flight] waypoints")
+    _add_json_flag(fly, instead_of="the summary table")
+    fly.set_defaults(command=_fly)
+
+
+def _fly(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.depth.network import NetworkError
+    from companion import simfly, vehicle
+    from drivers.camera.v4l2 import CameraError
+
+    waypoints = args.goals or config.flight.waypoint_points()
+    try:
+        summary = vehicle.run(config, waypoints)
+    except (vehicle.FlyError, NetworkError, CameraError, ValueError, OSError) as error:
+        print(f"fly: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    print(json.dumps(summary) if args.json else simfly.format_flight(summary))
+    return EXIT_OK if summary["final_state"] == "landed" and summary["reached_goal"] \
+        else EXIT_FAILED
 
 
 def _add_command_group(parser: argparse.ArgumentParser) -> argparse._SubParsersAction:
@@ -185,6 +218,32 @@ def _add_sim_commands(commands: argparse._SubParsersAction,
     record.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="dataset folder to create (must be new or empty)")
     record.set_defaults(command=_sim_record)
+
+    fly = actions.add_parser(
+        "fly", parents=[configured, world], help="fly the whole stack in the simulator",
+        description="Start the simulator (mock PX4 over loopback UDP MAVLink, rendered camera, "
+                    "synthetic IMU) and fly the whole application against it: VINS, depth "
+                    "network (the synthetic stand-in unless [depth_network] model is set), "
+                    "rescaler and planner, from a start/goal pair of the world. Prints progress "
+                    "and a summary, and draws the flown path over the world map.")
+    fly.add_argument("--pair", type=_non_negative_int, default=0,
+                     help="start/goal pair of the world (default: %(default)s)")
+    fly.add_argument("--goal", type=_point, metavar="X,Y,Z",
+                     help="fly to this point (metres, world frame, z up) instead of the pair's "
+                          "goal, from the pair's start")
+    fly.add_argument("--clock", choices=CLOCK_MODES, default="lockstep",
+                     help="lockstep: deterministic, as fast as the CPU allows; realtime: the "
+                          "simulator in its own thread on the wall clock (default: %(default)s)")
+    fly.add_argument("--fault", dest="faults", action="append", default=[],
+                     metavar="KIND[@AFTER[+DURATION]]",
+                     help="inject a fault AFTER seconds into cruise for DURATION seconds "
+                          "(default: 1 s, for good): camera_freeze, camera_blackout, imu_gap, "
+                          "link_cut, network_nan, loop_stall; repeatable")
+    fly.add_argument("--plot", type=Path, default=Path("sim-fly.png"), metavar="PNG",
+                     help="where to draw the top view of the flight (default: %(default)s)")
+    fly.add_argument("--no-plot", action="store_true", help="draw no plot")
+    _add_json_flag(fly, instead_of="the summary table")
+    fly.set_defaults(command=_sim_fly)
 
 
 def _add_eval_commands(commands: argparse._SubParsersAction,
@@ -344,6 +403,42 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
           f"({summary.frames} frames, {summary.imu_samples} IMU samples, path "
           f"{summary.path_length:.1f} m) into {args.out}")
     return EXIT_OK
+
+
+def _sim_fly(args: argparse.Namespace, config: Config) -> int:
+    from companion import simfly
+    from drivers.sim.faults import Fault
+    from drivers.sim.render import RenderError
+
+    sim = _sim_options(args, config)
+    try:
+        mission = simfly.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
+                                    goal=args.goal, clock=args.clock,
+                                    faults=tuple(Fault.parse(f) for f in args.faults))
+        summary = simfly.run(config, mission, plot=None if args.no_plot else args.plot,
+                             progress=None if args.json else _print_progress)
+    except (simfly.SimFlyError, RenderError, ValueError, OSError) as error:
+        print(f"sim fly: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    print(json.dumps(summary) if args.json else simfly.format_summary(summary))
+    # a fault-free flight must reach its goal; any flight must end without a collision
+    safe = summary["collisions"] == 0 and summary["final_state"] == "landed"
+    return EXIT_OK if safe and (summary["reached_goal"] or mission.faults) else EXIT_FAILED
+
+
+def _print_progress(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _point(text: str) -> tuple[float, float, float]:
+    """``x,y,z`` metres -> a finite 3-tuple."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z in metres, e.g. 10,-4,1.5; got {text!r}")
+    return values
 
 
 def _add_json_flag(parser: argparse.ArgumentParser, instead_of: str) -> None:

@@ -27,11 +27,15 @@ from autonomy.depth.network import NetworkOptions
 from autonomy.depth.options import RescaleOptions
 from autonomy.depth.stage import DepthStageOptions
 from autonomy.depth.synthetic import SyntheticDepthOptions
+from autonomy.planning.planner import PlannerOptions
 from autonomy.options import OptionError, field_types, option, validate
 from autonomy.vins.frontend import FrontendOptions
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInitOptions
+from companion.mission import FlightOptions
 from drivers.camera.options import CameraOptions
+from drivers.camera.v4l2 import V4l2Options
+from drivers.mavlink.autopilot import MavlinkOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
 from drivers.sim.px4 import Px4Options
@@ -60,6 +64,7 @@ class Config:
     depth_network: NetworkOptions = field(default_factory=NetworkOptions)
     synthetic_depth: SyntheticDepthOptions = field(default_factory=SyntheticDepthOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
+    v4l2: V4l2Options = field(default_factory=V4l2Options)
     sim: SimOptions = field(default_factory=SimOptions)
     vehicle: VehicleOptions = field(default_factory=VehicleOptions)
     imu: ImuOptions = field(default_factory=ImuOptions)
@@ -67,6 +72,9 @@ class Config:
     vins: VinsOptions = field(default_factory=VinsOptions)
     vins_frontend: FrontendOptions = field(default_factory=FrontendOptions)
     vins_init: StaticInitOptions = field(default_factory=StaticInitOptions)
+    planner: PlannerOptions = field(default_factory=PlannerOptions)
+    flight: FlightOptions = field(default_factory=FlightOptions)
+    mavlink: MavlinkOptions = field(default_factory=MavlinkOptions)
 
     def __post_init__(self) -> None:
         validate(self)

@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 from dataclasses import dataclass
 
-from autonomy.options import option, validate
+from autonomy.options import OptionError, option, validate
 
 log = logging.getLogger(__name__)
 
@@ -31,9 +32,12 @@ log = logging.getLogger(__name__)
 class FlightOptions:
     """The mission and its failsafe thresholds (the ``[flight]`` table)."""
 
+    waypoints: tuple[str, ...] = option(
+        (), doc="the mission of `companion fly`: points 'x,y,z' in metres in PX4's local frame "
+                "(x east, y north, z up from its origin), flown in order; the last is the goal")
     takeoff_altitude: float = option(1.5, gt=0.2, le=50.0,
                                      doc="take-off height above the ground, metres")
-    goal_tolerance: float = option(1.0, gt=0.0, le=10.0,
+    goal_tolerance: float = option(1.5, gt=0.0, le=10.0,
                                    doc="distance to the goal that counts as reached, metres")
     waypoint_tolerance: float = option(2.0, gt=0.0, le=20.0,
                                        doc="distance at which a waypoint counts as passed, metres")
@@ -49,7 +53,6 @@ class FlightOptions:
                                      doc="offboard velocity setpoints per second (PX4: > 2)")
     odometry_rate_hz: float = option(30.0, ge=1.0, le=50.0,
                                      doc="ODOMETRY messages to PX4 per second")
-    planner_rate_hz: float = option(12.0, gt=0.0, le=50.0, doc="planning rounds per second")
     monitor_rate_hz: float = option(20.0, gt=0.0, le=200.0,
                                     doc="failsafe checks (and loop-lag probes) per second")
     setpoint_deadline_s: float = option(
@@ -85,6 +88,23 @@ class FlightOptions:
 
     def __post_init__(self) -> None:
         validate(self)
+        for text in self.waypoints:
+            parse_point(text, "waypoints")
+
+    def waypoint_points(self) -> list[tuple[float, float, float]]:
+        """The waypoints as (x, y, z) tuples, metres."""
+        return [parse_point(text, "waypoints") for text in self.waypoints]
+
+
+def parse_point(text: str, key: str = "point") -> tuple[float, float, float]:
+    """``"x,y,z"`` -> three finite floats; OptionError naming ``key`` otherwise."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise OptionError(key, f"expected 'x,y,z' in metres, got {text!r}")
+    return values
 
 
 class FlightState(enum.Enum):

@@ -101,9 +101,20 @@ def test_config_show_applies_file_then_overrides(tmp_path):
     (("bench", "rescale", "--size", "480"), "expected HEIGHTxWIDTH, e.g. 480x640; got '480'"),
     (("bench", "rescale", "--repeats", "0"), "expected a positive integer, got '0'"),
     (("--log-level", "LOUD", "config", "show"), "invalid choice: 'LOUD'"),
-    (("fly",), "invalid choice: 'fly'"),
+    (("launch",), "invalid choice: 'launch'"),
 ])
 def test_bad_arguments_exit_2_with_the_reason(args, complaint):
     run = companion_command(*args)
     assert run.returncode == 2
+    assert complaint in run.stderr
+
+
+@pytest.mark.parametrize("args, complaint", [
+    (("fly",), "no mission: set [flight] waypoints in the config or give --goal X,Y,Z"),
+    (("fly", "--goal", "10,0,1.5"), "[depth_network] model is empty"),
+    (("fly", "--set", "flight.waypoints=['1,2']"), "flight.waypoints: expected 'x,y,z'"),
+])
+def test_fly_says_what_is_missing_before_touching_any_device(args, complaint):
+    run = companion_command(*args)
+    assert run.returncode in (1, 2)
     assert complaint in run.stderr

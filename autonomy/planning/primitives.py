@@ -56,7 +56,9 @@ class Primitive:
 
     ``points_S`` (N, 3) are the arc's positions at times ``t`` (N,), from the start (t = 0)
     to the arc's end; ``stop_points_S`` (M, 3) the stopping extension after it, ending at rest.
-    ``heading`` is the yaw at the arc's end, radians.
+    ``heading`` is the yaw at the arc's end, radians. The stop primitive has an arc of no
+    length; its ``speed``, ``vertical_speed`` and ``heading`` are those of the velocity it
+    brakes from, so ``end_velocity_S`` is that velocity for every primitive.
     """
 
     speed: float
@@ -66,6 +68,11 @@ class Primitive:
     points_S: np.ndarray
     stop_points_S: np.ndarray
     heading: float
+
+    @property
+    def duration(self) -> float:
+        """Time along the arc, seconds, before the stopping extension begins."""
+        return float(self.t[-1])
 
     @property
     def end_velocity_S(self) -> np.ndarray:
@@ -106,7 +113,8 @@ def stop_primitive(velocity_S, options: PrimitiveOptions | None = None) -> Primi
         raise ValueError(f"velocity must be 3 finite numbers, got {velocity_S!r}")
     stop = braking_points(np.zeros(3), velocity, o)
     heading = math.atan2(velocity[1], velocity[0]) if velocity[:2].any() else 0.0
-    return Primitive(0.0, 0.0, 0.0, np.zeros(1), np.zeros((1, 3)), stop, heading)
+    return Primitive(math.hypot(velocity[0], velocity[1]), 0.0, float(velocity[2]), np.zeros(1),
+                     np.zeros((1, 3)), stop, heading)
 
 
 def braking_points(start: np.ndarray, velocity: np.ndarray,

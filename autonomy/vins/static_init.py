@@ -151,8 +151,10 @@ def static_initialise(t, gyro, accel, options: StaticInitOptions | None = None
         raise ValueError("t: times must be strictly increasing")
 
     t_end = float(t[-1])
-    if t_end - float(t[0]) < o.window_s * (1.0 - 1e-6):
-        return NotStill(f"only {t_end - t[0]:.3f} s of IMU, need {o.window_s:.3f} s",
+    # each sample holds until the next (zero-order hold), the last one for a typical period
+    covered = t_end - float(t[0]) + float(np.median(np.diff(t)))
+    if covered < o.window_s * (1.0 - 1e-6):
+        return NotStill(f"only {covered:.3f} s of IMU, need {o.window_s:.3f} s",
                         float(t[0]), t_end)
     m = t >= t_end - o.window_s * (1.0 + 1e-9)
     tw, gw, aw = t[m], gyro[m], accel[m]

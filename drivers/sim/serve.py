@@ -163,6 +163,8 @@ async def _run_lockstep(sim: SimulatedVehicle, finished, sim_clock) -> None:
     await asyncio.sleep(0)  # let tasks started before us begin at the first simulated instant
     while not finished():
         sim.tick()
+        # asked before advancing: advance_to wakes (and so removes) the sleepers now due
+        sleepers = clock.next_deadline is not None
         clock.advance_to(sim.time)
-        if clock.next_deadline is not None or sim.steps % LOCKSTEP_YIELD_EVERY == 0:
+        if sleepers or sim.steps % LOCKSTEP_YIELD_EVERY == 0:
             await asyncio.sleep(0)

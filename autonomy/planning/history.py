@@ -1,0 +1,456 @@
+"""A short history of depth frames and the collision check of spheres against it.
+
+After NanoMap (Florence et al., 2018) as Lee et al. (2024) use it: the planner checks a point
+``c`` that stands for the sphere ``B(c, R)`` of the robot radius ``R`` against the newest depth
+frames, not a fused map, and looks further back in time only where the newer frames cannot tell.
+
+**The exact rule.** In one frame, with ``c = (x, y, z)`` in that camera's optical frame and
+``L = |c|``, the sphere lies in observed free space when every pixel ray through it sees its
+surface beyond the point where the ray *leaves* the sphere. A unit ray ``d`` at angle ``theta``
+from the centre ray passes the centre at the distance ``b = L sin(theta)`` (its impact) and,
+for ``b <= R``, leaves the sphere at the distance along the ray
+
+    s2(b) = sqrt(L² - b²) + sqrt(R² - b²)                     (= d.c + sqrt((d.c)² - L² + R²))
+
+which falls from ``L + R`` on the centre ray to the tangent distance ``sqrt(L² - R²)`` at the
+rim (both terms fall as ``b`` grows). A surface seen on the ray at a distance ``r >= s2(b)`` is
+beyond the sphere; ``r < s2(b)`` puts it inside (or in front of, hiding) the sphere.
+
+**Ranges, not depths.** Each frame's image is stored as the *range* along each pixel's ray,
+``r = z_pixel * sqrt(1 + ((u - cx)/fx)² + ((v - cy)/fy)²)``, so the rule compares a range with
+``s2(b)``, which depends on the impact ``b`` alone. (With depths one compares ``z_pixel`` with
+``s2(b) d_z``, and ``d_z``, the cosine of the ray to the optical axis, varies across a window by
+up to ``cos(gamma - alpha) - cos(gamma + alpha)`` for a sphere of angular radius ``alpha`` seen
+at ``gamma`` off axis: a bound over the window loses far more than the one multiply per pixel
+that ranges cost when the frame is added.)
+
+**Rings.** The rays of impact ``b <= q R`` form the cone of half-angle ``asin(q R / L)`` about
+the centre ray: the tangent cone of the concentric sphere ``B(c, q R)``. Its image's bounding
+box, exact from the tangent lines (in the x-z plane the sphere is a disc of radius ``q R`` at
+``(x, z)``, so ``u = fx tan(atan2(x, z) ± asin(q R / sqrt(x² + z²))) + cx``; likewise ``v``) is
+the *window* ``W(q)``. With ``1 = q_0 > q_1 > ... > q_{n-1} > q_n = 0`` the sphere is judged
+
+    free  when  min over W(q_k) of r  >=  T_k = s2(q_{k+1} R)    for every k = 0 .. n-1.
+
+Conservative: a pixel whose ray has impact ``b`` in ``(q_{k+1} R, q_k R]`` lies in ``W(q_k)``,
+where the test asks ``r >= s2(q_{k+1} R) >= s2(b)`` (``s2`` falls with ``b``), and the centre ray
+(``b = 0``) is in ``W(q_{n-1})`` with ``T_{n-1} = L + R``. So *free* implies the exact rule on
+every pixel ray through the sphere. The rest is caution: the pixels of a square window outside
+its cone (the corners, up to ``sqrt(2) q_k R`` off the centre ray, the outer window's missing
+the sphere), and on a ray of ring ``k`` the test asks at most ``R sqrt(1 - q_{k+1}²) -
+R sqrt(1 - q_k²) + sqrt(L² - q_{k+1}² R²) - sqrt(L² - q_k² R²)`` more than the exact rule.
+The fractions, ``q_k = sqrt(1 - (k/n)²)``, make the first difference ``R / n`` in every ring:
+the far side ``sqrt(R² - b²)`` of the sphere is cut into ``n`` equal steps in depth, which puts
+most rings near the rim, where ``s2`` falls fastest (its slope is infinite at the rim). For
+``n = 4``, ``q = 1, 0.968, 0.866, 0.661``: the outer window may see a surface at the tangent
+distance plus about ``R / 4``, where the old single test (every pixel at least ``z + R`` deep)
+asked for the sphere's far side ``R`` farther; that is what lets the planner fly 1.5 m over a
+floor with ``R = 1``. A fraction of the angular radius, ``q`` in place of ``f`` (the cone of
+half-angle ``f alpha``), differs from it only through ``asin``; the impact is what ``s2``
+depends on. The outer window is read first: if its minimum is at least ``L + R`` (every
+``T_k``) the sphere is free, if below ``T_0`` occupied, and only in between are the ``n - 1``
+inner windows read (each is inside the outer one, so the shortcut skips no pixel that a ray
+through the sphere needs; it skips only pixels that widening, below, may add to an inner
+window). In open space most spheres are decided by one window.
+
+One frame's verdict on a point:
+
+- *unseen*: the centre is behind the camera or outside the image, the sphere reaches the camera
+  plane (``z <= R``; see near the vehicle), or its far side lies beyond ``max_range``
+  (``z + R > max_range``). Windows are clipped to the image: a frame judges the part of the
+  sphere it sees;
+- *unknown* when any pixel of any window (the outer window holds the others, unless one was
+  widened, below) is NaN, non-positive or less confident than ``min_confidence``; *free* by the
+  ring rule; *occupied* otherwise. Depths beyond ``max_range`` count as ``max_range``: the
+  farthest point of the sphere has ``z + R <= max_range``, so such a pixel's ray is free past
+  the sphere (its range ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z``
+  on that ray). So a sky rendered as ``max_range`` or beyond is free, but a NaN sky is unknown,
+  and unknown is unsafe: in the simulator NaN means "nothing within range", from a network it
+  means "no answer", and the history cannot tell which, so the renderer or the depth stage
+  must write ``max_range`` (confident) where it knows the sky is empty.
+
+Which frame decides: a *strong* verdict is *occupied*, or *free* with the outer window inside
+the image; *free* on a clipped window is *weak*. The newest frame with a strong verdict decides;
+failing one, the newest weak *free*; failing both the point is unknown, which the planner treats
+as unsafe. So space outside every frame's view, beyond range or of low confidence is unsafe
+unless an older frame saw it free, and an obstacle that has left the view is remembered as long
+as its frame is kept. The exact rule changes none of this: it concerns how one frame reads its
+pixels, while clipping (the frame saw part of the sphere) and the order of frames concern which
+frame may speak.
+
+Near the vehicle: the vehicle is at ``start``, so its own sphere ``B(start, R)`` is free (the
+planner never checks the start point). A sphere that reaches the camera plane (``z <= R``) has
+no bounded image (the cone of rays through it is not in front of the camera), so the exact rule
+cannot be applied through windows either. Such a point within ``2 R`` of ``start`` (the first
+second or so of a primitive) is judged against the whole image: every ray through its sphere
+leaves it within ``L + R`` of the camera, and every such ray is a ray of the image (or outside
+the view), so the sphere is free (weak) when the image's least range is at least ``L + R``
+(with a known pixel everywhere), occupied (strong) when a surface is seen in front of its centre
+(the centre's pixel nearer than ``L``), unknown otherwise. This is cautious: between walls
+nearer than about 2 m it finds nothing near the vehicle free, and the history's older frames,
+taken from farther back, must vouch for those spheres (they usually see them whole). An
+earlier rule judged such a point by its centre's ray alone; in simulation it let a braking
+vehicle graze the corner of a hallway's entrance, whose edge no centre ray met. A frame must
+see the point: one beside, below or behind every camera stays unknown, and farther than ``2 R``
+from the start a sphere reaching a frame's camera plane is unseen by that frame. Older frames, taken from farther back, usually see these
+spheres whole, and their strong verdict wins.
+
+Speed: each frame keeps a sparse table of its range image, ``table[k][v, u]`` the minimum over
+the ``2^k x 2^k`` square anchored at ``(u, v)``, with unknown pixels stored as -1 so that one
+minimum answers both questions (negative: unknown). A ``w x h`` window is answered exactly by
+4 look-ups at level ``k = floor(log2(min(w, h)))`` when its long side is at most ``2^(k+1)``
+(square-ish windows, the usual case), else 16 once its short side is at least half its long
+side; a thinner window (clipped at the image border) is first widened inside the image,
+which only adds pixels (conservative). All ``n`` windows of all points go through one gather.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from autonomy.geometry import PinholeCamera, invert_pose
+
+_UNKNOWN = np.float32(-1.0)
+
+HOLE_FILL_PX = 15
+"""Unknown pixels within this many pixels of known ones take the nearest range among those
+(:func:`fill_small_holes`)."""
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """The verdict on ``N`` points.
+
+    ``free`` (N,) bool; ``clearance`` (N,) metres, in the deciding frame, by which the observed
+    surface clears the ring rule, ``min_k (min over W(q_k) of r - T_k)``, or ``min over W(1)
+    of r - (L + R)`` where the outer window decided alone: a lower bound on how far beyond the
+    sphere's exit point the surface lies along any pixel ray through it (>= 0 where free;
+    +inf where the point was judged by its ray alone; NaN where unknown);
+    ``frame`` (N,) the deciding frame's time, NaN where unknown.
+    """
+
+    free: np.ndarray
+    clearance: np.ndarray
+    frame: np.ndarray
+
+
+class _Frame:
+    """One depth frame: its pose, camera, time and the sparse minimum table of its ranges."""
+
+    def __init__(self, table: np.ndarray, T_W_C: np.ndarray, camera: PinholeCamera, t: float):
+        T_C_W = invert_pose(T_W_C)
+        self.R_C_W = T_C_W[:3, :3]
+        self.t_C_W = T_C_W[:3, 3]
+        self.table = table
+        self.flat = table.reshape(-1)
+        self.least = float(table[0].min())  # negative when any pixel is unknown
+        self.camera = camera
+        self.t = t
+
+
+class DepthHistory:
+    """The newest ``max_frames`` depth frames, at most ``max_age_s`` older than the newest, and
+    the sphere check described in the module docstring."""
+
+    def __init__(self, *, robot_radius: float = 1.0, min_confidence: float = 0.3,
+                 max_range: float = 10.0, max_frames: int = 8, max_age_s: float = 2.0,
+                 rings: int = 4):
+        if not robot_radius > 0.0:
+            raise ValueError(f"robot_radius must be > 0, got {robot_radius}")
+        if not 0.0 <= min_confidence <= 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1], got {min_confidence}")
+        if not max_range > robot_radius:
+            raise ValueError(f"max_range must exceed robot_radius, got {max_range}")
+        if max_frames < 1:
+            raise ValueError(f"max_frames must be >= 1, got {max_frames}")
+        if not max_age_s > 0.0:
+            raise ValueError(f"max_age_s must be > 0, got {max_age_s}")
+        if not 1 <= rings <= 16:
+            raise ValueError(f"rings must be in [1, 16], got {rings}")
+        self.robot_radius = float(robot_radius)
+        self.min_confidence = float(min_confidence)
+        self.max_range = float(max_range)
+        self.max_frames = int(max_frames)
+        self.max_age_s = float(max_age_s)
+        #: The impact fractions q_0 = 1 > ... > q_{n-1} of the windows and q_1 .. q_n = 0 of
+        #: their thresholds (module docstring: rings).
+        k = np.arange(rings + 1) / rings
+        self.ring_fractions = np.sqrt(1.0 - k * k)
+        self._frames: list[_Frame] = []
+        self._ray_norms: tuple[PinholeCamera, np.ndarray] | None = None
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def times(self) -> list[float]:
+        """Times of the kept frames, oldest first."""
+        return [f.t for f in self._frames]
+
+    def clear(self) -> None:
+        """Forget every frame."""
+        self._frames.clear()
+
+    def add(self, depth, confidence, T_W_C, camera: PinholeCamera, t: float) -> None:
+        """Keep a frame: ``depth`` (H, W) metres (NaN unknown), ``confidence`` (H, W) in [0, 1],
+        the camera's pose ``T_W_C`` when it was taken at time ``t``. Drops the oldest frames
+        beyond ``max_frames`` or ``max_age_s`` before the newest."""
+        if not isinstance(camera, PinholeCamera):
+            raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+        shape = (camera.height, camera.width)
+        if 2 * camera.height < camera.width or 2 * camera.width < camera.height:
+            raise ValueError(f"camera {camera.width}x{camera.height} is more elongated than "
+                             "2:1, which the window look-up does not support")
+        depth = np.asarray(depth)
+        confidence = np.asarray(confidence)
+        if depth.shape != shape:
+            raise ValueError(f"depth image must have the camera's shape {shape}, "
+                             f"got {depth.shape}")
+        if confidence.shape != shape:
+            raise ValueError(f"confidence must have the depth image's shape {shape}, "
+                             f"got {confidence.shape}")
+        if not math.isfinite(t):
+            raise ValueError(f"frame time must be finite, got {t!r}")
+        T_W_C = as_pose(T_W_C, "T_W_C")
+        image = _known_range(depth, confidence, self.min_confidence, self.max_range,
+                             self._norms(camera))
+        image = fill_small_holes(image, HOLE_FILL_PX)
+        frame = _Frame(min_table(image), T_W_C, camera, float(t))
+        bisect.insort(self._frames, frame, key=lambda f: f.t)
+        newest = self._frames[-1].t
+        self._frames = [f for f in self._frames[-self.max_frames:]
+                        if f.t >= newest - self.max_age_s]
+
+    def check(self, points_W, start_W=None, now: float | None = None) -> CheckResult:
+        """Judge the spheres of radius ``robot_radius`` about ``points_W`` (N, 3).
+
+        ``start_W`` (3,): the vehicle's present position (module docstring: near the vehicle;
+        without it no point is judged by its ray); ``now``: ignore frames older than
+        ``now - max_age_s``. All points go through each frame in one vectorised pass, newest
+        frame first; a frame only sees the points no newer frame has decided strongly.
+        """
+        points = np.asarray(points_W, dtype=float)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+        n = len(points)
+        near = np.zeros(n, dtype=bool)
+        if start_W is not None:
+            start = np.asarray(start_W, dtype=float).reshape(3)
+            near = np.sum((points - start) ** 2, axis=1) <= (2.0 * self.robot_radius) ** 2
+        frames = [f for f in self._frames if now is None or f.t >= now - self.max_age_s]
+        verdict = np.zeros(n, dtype=np.int8)  # 0 undecided, 1 free, 2 occupied (strong)
+        clearance = np.full(n, np.nan)
+        frame_t = np.full(n, np.nan)
+        weak_clearance = np.full(n, np.nan)
+        weak_t = np.full(n, np.nan)
+        pending = np.arange(n)
+        for frame in reversed(frames):
+            if len(pending) == 0:
+                break
+            free, strong, gap = self._judge(frame, points[pending], near[pending])
+            decided = strong
+            index = pending[decided]
+            verdict[index] = np.where(free[decided], 1, 2)
+            clearance[index] = gap[decided]
+            frame_t[index] = frame.t
+            weak = free & ~strong & np.isnan(weak_t[pending])
+            weak_t[pending[weak]] = frame.t
+            weak_clearance[pending[weak]] = gap[weak]
+            pending = pending[~decided]
+        use_weak = (verdict == 0) & ~np.isnan(weak_t)
+        clearance[use_weak] = weak_clearance[use_weak]
+        frame_t[use_weak] = weak_t[use_weak]
+        return CheckResult((verdict == 1) | use_weak, clearance, frame_t)
+
+    def _norms(self, camera: PinholeCamera) -> np.ndarray:
+        """``|(x/z, y/z, 1)|`` of every pixel's ray (float32), kept for the last camera."""
+        if self._ray_norms is None or self._ray_norms[0] != camera:
+            self._ray_norms = (camera, ray_norms(camera))
+        return self._ray_norms[1]
+
+    def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray):
+        """``(free, strong, clearance)`` of one frame on ``points`` (M, 3); a point neither
+        free nor strong is unknown to this frame. Module docstring for the rules."""
+        cam, R = frame.camera, self.robot_radius
+        H, W = cam.height, cam.width
+        p = points @ frame.R_C_W.T + frame.t_C_W
+        x, y, z = p[:, 0], p[:, 1], p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = cam.fx * x / z + cam.cx
+            v = cam.fy * y / z + cam.cy
+        in_image = (z > 0.0) & (u >= -0.5) & (u < W - 0.5) & (v >= -0.5) & (v < H - 0.5)
+        free = np.zeros(len(p), dtype=bool)
+        strong = np.zeros(len(p), dtype=bool)
+        gap = np.full(len(p), np.nan)
+
+        ray = np.flatnonzero(near & in_image & (z <= R))
+        if len(ray):
+            d = frame.table[0, np.floor(v[ray] + 0.5).astype(np.intp),
+                            np.floor(u[ray] + 0.5).astype(np.intp)]
+            distance = np.sqrt(np.sum(p[ray] ** 2, axis=1))
+            nearest = frame.least  # the image's least range, negative if any pixel is unknown
+            free[ray] = (nearest >= 0.0) & (nearest >= distance + R)
+            strong[ray] = (d >= 0.0) & (d < distance)
+            gap[ray[free[ray]]] = nearest - (distance[free[ray]] + R)
+
+        whole = np.flatnonzero(in_image & (z > R) & (z + R <= self.max_range))
+        if len(whole):
+            xs, ys, zs = x[whole], y[whole], z[whole]
+            q = self.ring_fractions
+            b2 = (q[1:, None] * R) ** 2  # threshold k: exit distance s2 at impact q_{k+1} R
+            L2 = xs * xs + ys * ys + zs * zs
+            T = np.sqrt(L2 - b2) + np.sqrt(R * R - b2)  # (n, m), T[-1] = L + R
+            u_lo, u_hi = _tangent_span(xs, zs, R, cam.fx, cam.cx)
+            v_lo, v_hi = _tangent_span(ys, zs, R, cam.fy, cam.cy)
+            clipped = (u_lo < -0.5) | (u_hi > W - 0.5) | (v_lo < -0.5) | (v_hi > H - 0.5)
+            low = window_min(frame.flat, H, W, u_lo, u_hi, v_lo, v_hi)
+            margin = np.where(low >= T[-1], low - T[-1], low - T[0])
+            known = low >= 0.0
+            inner = np.flatnonzero((low >= T[0]) & (low < T[-1]))  # the outer ring passes
+            if len(inner) and len(q) > 2:
+                n, m = len(q) - 2, len(inner)
+                radii = np.repeat(q[1:-1] * R, m)  # window k: the sphere B(c, q_k R)
+                xi, yi, zi = (np.tile(a[inner], n) for a in (xs, ys, zs))
+                u_lo, u_hi = _tangent_span(xi, zi, radii, cam.fx, cam.cx)
+                v_lo, v_hi = _tangent_span(yi, zi, radii, cam.fy, cam.cy)
+                rings = window_min(frame.flat, H, W, u_lo, u_hi, v_lo, v_hi).reshape(n, m)
+                margin[inner] = np.minimum(margin[inner], (rings - T[1:, inner]).min(axis=0))
+                known[inner] = rings.min(axis=0) >= 0.0
+            is_free = known & (margin >= 0.0)
+            free[whole] = is_free
+            strong[whole] = known & (~is_free | ~clipped)
+            gap[whole] = np.where(known, margin, np.nan)
+        return free, strong, gap
+
+
+def min_table(image: np.ndarray) -> np.ndarray:
+    """The sparse table ``(L, H, W)`` of minima over ``2^k x 2^k`` squares anchored at each
+    pixel (top-left), ``k = 0 .. floor(log2(min(H, W)))``; entries whose square leaves the
+    image hold the minimum over its part inside and are never read."""
+    H, W = image.shape
+    levels = int(math.floor(math.log2(min(H, W)))) + 1
+    table = np.empty((levels, H, W), dtype=np.float32)
+    table[0] = image
+    for k in range(1, levels):
+        b = 1 << (k - 1)
+        prev, cur = table[k - 1], table[k]
+        cur[:, W - b:] = prev[:, W - b:]
+        np.minimum(prev[:, :W - b], prev[:, b:], out=cur[:, :W - b])
+        np.minimum(cur[:H - b], cur[b:], out=cur[:H - b])
+    return table
+
+
+def window_min(flat: np.ndarray, H: int, W: int, u_lo, u_hi, v_lo, v_hi) -> np.ndarray:
+    """Minimum of a sparse table's image (``flat``, the table raveled) over the pixels whose
+    squares ``[i - 1/2, i + 1/2]`` meet ``[u_lo, u_hi] x [v_lo, v_hi]``, clipped to the image.
+
+    A window thinner than 2:1 is first widened inside the image; then with
+    ``b = 2^floor(log2(short side)) > short side / 2``, ``n`` squares of side ``b`` per axis,
+    evenly placed from one end to the other, cover it exactly: ``n = 2`` when the long side is
+    at most ``2 b`` (every window no more elongated than ``2 b / short side``, so every square
+    one: 4 look-ups), else ``n = 4`` (``long side <= 2 short side < 4 b``: 16 look-ups).
+    """
+    i0, i1 = _pixel_range(u_lo, u_hi, W)
+    j0, j1 = _pixel_range(v_lo, v_hi, H)
+    w, h = i1 - i0 + 1, j1 - j0 + 1
+    i0, i1 = _widen(i0, w, (h + 1) // 2, W)
+    j0, j1 = _widen(j0, h, (w + 1) // 2, H)
+    w, h = i1 - i0 + 1, j1 - j0 + 1
+    side = np.minimum(w, h)
+    k = np.frexp(side.astype(np.float64))[1] - 1  # floor(log2(side)), exact for integers
+    b = np.left_shift(1, k)
+    out = np.empty(len(i0), dtype=flat.dtype)
+    two = np.maximum(w, h) <= 2 * b
+    for group, n in ((np.flatnonzero(two), 2), (np.flatnonzero(~two), 4)):
+        if len(group) == 0:
+            continue
+        g_b, g_k = b[group], k[group]
+        steps = np.arange(n)[:, None]
+        cols = i0[group] + steps * (w[group] - g_b) // (n - 1)  # (n, M)
+        rows = (g_k * H + j0[group] + steps * (h[group] - g_b) // (n - 1)) * W
+        out[group] = flat[rows[:, None, :] + cols[None, :, :]].min(axis=(0, 1))
+    return out
+
+
+def _tangent_span(s: np.ndarray, z: np.ndarray, R, f: float, c: float):
+    """Image coordinates ``f tan(alpha -+ beta) + c`` of the tangent lines from the camera to
+    the disc of radius R (a number or one per disc) at ``(s, z)``, z > R: ``tan alpha = s / z``,
+    ``tan beta = R / sqrt(s² + z² - R²)``, by the tangent addition formula."""
+    ta = s / z
+    tb = R / np.sqrt(s * s + z * z - R * R)
+    with np.errstate(divide="ignore"):
+        return f * (ta - tb) / (1.0 + ta * tb) + c, f * (ta + tb) / (1.0 - ta * tb) + c
+
+
+def _pixel_range(lo: np.ndarray, hi: np.ndarray, size: int):
+    """First and last pixel index (inclusive) meeting ``[lo, hi]``, clipped to the image."""
+    first = np.clip(np.floor(lo + 0.5), 0, size - 1).astype(np.intp)
+    last = np.clip(np.floor(hi + 0.5), 0, size - 1).astype(np.intp)
+    return first, last
+
+
+def _widen(first: np.ndarray, length: np.ndarray, need: np.ndarray, size: int):
+    """A range of at least ``need`` pixels containing ``[first, first + length)``, about the
+    same centre, inside ``[0, size)`` (``need <= size``)."""
+    new = np.maximum(length, need)
+    start = np.clip(first - (new - length) // 2, 0, size - new)
+    return start, start + new - 1
+
+
+def ray_norms(camera: PinholeCamera) -> np.ndarray:
+    """(H, W) float32 ``sqrt(1 + ((u - cx)/fx)² + ((v - cy)/fy)²)``: range over depth on each
+    pixel's ray."""
+    a = (np.arange(camera.width) - camera.cx) / camera.fx
+    b = (np.arange(camera.height) - camera.cy) / camera.fy
+    return np.sqrt(1.0 + b[:, None] ** 2 + a[None, :] ** 2).astype(np.float32)
+
+
+def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
+                 max_range: float, norms: np.ndarray) -> np.ndarray:
+    """float32 range along each pixel's ray of the depth clipped to ``max_range``, -1 where
+    unknown (NaN, <= 0, or low confidence nearer than ``max_range``).
+
+    A low-confidence pixel at or beyond ``max_range`` (the sky, a far wall no landmark lies on)
+    counts as ``max_range``: the rescaling curve is monotone, so a pixel less disparate than
+    the anchors reads farther than they do, and its error lies beyond the range the check
+    trusts; a low-confidence *near* pixel stays unknown, as its depth could be anything."""
+    d = depth.astype(np.float32, copy=False)
+    with np.errstate(invalid="ignore"):
+        known = (d > 0.0) & ((confidence >= min_confidence) | (d >= max_range))  # NaN: False
+    return np.where(known, np.minimum(d, np.float32(max_range)) * norms, _UNKNOWN)
+
+
+def fill_small_holes(image: np.ndarray, reach_px: int) -> np.ndarray:
+    """``image`` (range, ``_UNKNOWN`` where unknown) with every unknown pixel that has known
+    pixels within ``reach_px`` (Chebyshev distance) given the least of their ranges: a grey
+    erosion of the known ranges over a ``(2 reach + 1)`` square. A sliver of low-confidence
+    pixels (an edge the network blurred, a patch of floor no landmark lies on) then stops
+    vetoing every sphere whose window touches it, and takes the nearest surface around it,
+    the cautious guess; an unknown region wider than ``2 reach`` keeps an unknown core (the
+    sky without depth, a covered lens). An obstacle hidden entirely inside a small hole is
+    missed: that is the price, and why ``reach_px`` is small."""
+    unknown = image < 0.0
+    if not unknown.any():
+        return image
+    side = 2 * reach_px + 1
+    known = np.where(unknown, np.float32(np.inf), image)
+    nearest = cv2.erode(known, np.ones((side, side), np.uint8))
+    return np.where(unknown & np.isfinite(nearest), nearest, image).astype(np.float32)
+
+
+def as_pose(T, name: str) -> np.ndarray:
+    """A finite 4x4 rigid pose, or a ValueError naming it."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 pose, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise ValueError(f"{name} must be finite, got {T.tolist()}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0.0:
+        raise ValueError(f"{name} must hold a rotation (orthonormal, det +1)")
+    return T

@@ -1,0 +1,606 @@
+"""The flight application: one asyncio process from camera and IMU to PX4 setpoints.
+
+DESIGN.md, "The process". Tasks on one event loop, each a short coroutine:
+
+- the MAVLink driver (:class:`drivers.mavlink.autopilot.Autopilot`): heartbeats, TIMESYNC,
+  HIGHRES_IMU, commands;
+- perception, per camera frame: the VINS (front-end and back-end) and the depth network side by
+  side on their own workers, then the metric depth stage, whose output goes into the planner's
+  depth history;
+- the planner every ``[planner] period_s`` on the newest VINS state;
+- the setpoint sender at ``setpoint_rate_hz``: the plan sampled now, turned into PX4's local
+  frame; the :class:`~companion.watchdog.SetpointWatchdog` thread replaces it by the stop when it
+  is late;
+- ODOMETRY to PX4 at ``odometry_rate_hz``;
+- the monitor at ``monitor_rate_hz``: event-loop lag and the failsafe checks;
+- the mission (:mod:`companion.mission`): preflight, initialisation, take-off, offboard,
+  navigation through the waypoints, landing.
+
+Frames: the VINS world ``W`` is fixed at its static initialisation; PX4's local frame ``L``
+(ENU here, NED on the wire) is its own. They are tied once, on the ground, by the yaw and
+position of the two estimates at the same instant
+(:func:`autonomy.geometry.yaw_alignment`); goals are given in
+``L``, planned in ``W``, and setpoints and odometry go back to ``L``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from autonomy.depth.stage import MetricDepthStage
+from autonomy.geometry import invert_pose, rot_to_quat, yaw_alignment, yaw_of
+from autonomy.messages import Frame, MetricDepth, RelativeDepth
+from autonomy.planning.planner import Plan, Planner
+from autonomy.vins.estimator import FrameUpdate, Vins
+from autonomy.vins.health import HealthState
+from companion.mission import (GUARDED_STATES, OFFBOARD_STATES, FlightOptions, FlightState,
+                               Mission)
+from companion.watchdog import SetpointWatchdog
+from drivers.mavlink import px4
+from drivers.mavlink.autopilot import CompanionStatus
+
+log = logging.getLogger(__name__)
+
+#: Longest wait for the IMU to reach a frame's time before the frame is processed anyway, s.
+IMU_WAIT_S = 0.05
+#: How often a waiting step polls, seconds.
+POLL_S = 0.01
+
+
+@dataclass
+class FlightStats:
+    """What the run measured, for the summary."""
+
+    frames: int = 0
+    depth_ok: int = 0
+    depth_reasons: dict = field(default_factory=dict)
+    network_errors: int = 0
+    planning_rounds: int = 0
+    stop_rounds: int = 0
+    loop_lag_s: list = field(default_factory=list)
+    navigation_start: float | None = None
+    navigation_end: float | None = None
+    takeoff_t: float | None = None
+    landed_t: float | None = None
+    vins_resets_at_takeoff: int = 0
+
+
+class FlightApp:
+    """The whole stack against one autopilot, camera and depth network (module docstring).
+
+    ``waypoints_L``: (N, 3) points in PX4's local frame (ENU), the last one the goal.
+    ``depth_source(frame) -> relative disparity`` is the network (or the simulator's stand-in).
+    ``workers`` maps "vins", "network", "planner" to a worker (:mod:`companion.workers`).
+    """
+
+    def __init__(self, config, *, autopilot, camera, depth_source: Callable[[Frame], np.ndarray],
+                 vins: Vins, T_B_C: np.ndarray, planner: Planner, waypoints_L, clock,
+                 workers: dict, notifier=None):
+        self.options: FlightOptions = config.flight
+        self._home_z = 0.0
+        self.autopilot, self.camera, self.clock = autopilot, camera, clock
+        self.depth_source, self.vins, self.planner = depth_source, vins, planner
+        self.T_B_C = np.asarray(T_B_C, dtype=float)
+        self.stage = MetricDepthStage(config.rescale, config.depth)
+        self.waypoints_L = _checked_waypoints(waypoints_L)
+        self.workers = workers
+        self.notifier = notifier  # systemd (companion.service.SystemdNotifier) or None
+        self.mission = Mission(clock.now())
+        self.stats = FlightStats()
+        self.T_L_W: np.ndarray | None = None
+        self.waypoint = 0
+        self.plan: Plan | None = None
+        self.checked_stop: Plan | None = None
+        self.last_frame_t: float | None = None
+        self.last_depth_t: float | None = None
+        self.last_depth_reason = ""
+        self.last_update: FrameUpdate | None = None
+        self.no_path_since: float | None = None
+        self.stop_reason = ""
+        self.watchdog = SetpointWatchdog(clock.now, self._watchdog_stop,
+                                         self.options.setpoint_deadline_s,
+                                         1.0 / self.options.setpoint_rate_hz)
+
+    # ------------------------------------------------------------------ running
+
+    async def run(self) -> dict:
+        """Fly the mission to its end (landed or aborted) and return the summary."""
+        self.watchdog.start()
+        tasks = [asyncio.create_task(self._guard(name, coroutine), name=name)
+                 for name, coroutine in (
+                     ("autopilot", self.autopilot.run()), ("perception", self._perceive()),
+                     ("planner", self._plan_loop()), ("setpoints", self._send_setpoints()),
+                     ("odometry", self._send_odometry()), ("monitor", self._monitor()))]
+        try:
+            await self._fly()
+        finally:
+            self.watchdog.close()
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        return self.summary()
+
+    async def _guard(self, name: str, coroutine) -> None:
+        """Run one task; an error in it is a failsafe (logged with its traceback once), never
+        an exception out of the application. The watchdog covers a dead setpoint task."""
+        try:
+            await coroutine
+        except asyncio.CancelledError:
+            raise
+        except Exception as error:  # noqa: BLE001 - every failure must end in the safe state
+            log.exception("%s task failed", name)
+            self.mission.failsafe(self.clock.now(), f"{name} failed: {error}")
+            if self.mission.state == FlightState.FAILSAFE_STOP:
+                self.plan = self.checked_stop  # immutable: safe whatever failed
+            elif not self.mission.done and self.mission.state in (
+                    FlightState.PREFLIGHT, FlightState.INITIALISING):
+                self._abort(f"{name} failed: {error}")
+
+    def stop_requested(self, reason: str) -> None:
+        """An operator's stop (SIGTERM from systemd): on the ground the mission ends; in the
+        air it is a failsafe (stop, hold, land) at the next check."""
+        self.stop_reason = reason
+        if self.mission.state in (FlightState.PREFLIGHT, FlightState.INITIALISING):
+            self._abort(reason)
+
+    async def _fly(self) -> None:
+        steps = (self._preflight, self._initialise, self._take_off, self._enter_offboard,
+                 self._navigate, self._come_down)
+        for step in steps:
+            if self.mission.done:
+                return
+            await step()
+
+    # ------------------------------------------------------------------ mission steps
+
+    async def _preflight(self) -> None:
+        o = self.options
+        ready = await self._wait(lambda: self._preflight_problem() == "", o.preflight_timeout_s)
+        if not ready:
+            self._abort(f"preflight: {self._preflight_problem()}")
+            return
+        self._go(FlightState.INITIALISING, "link, IMU and camera up")
+        if self.notifier is not None:
+            self.notifier.ready("preflight passed")
+
+    def _preflight_problem(self) -> str:
+        autopilot = self.autopilot
+        if not autopilot.connected:
+            return "no heartbeat from the flight controller"
+        if not autopilot.time_synced:
+            return "no TIMESYNC answer from the flight controller"
+        if autopilot.last_imu_t is None:
+            return "no HIGHRES_IMU from the flight controller"
+        if self.last_frame_t is None:
+            return "no camera frame"
+        return ""
+
+    async def _initialise(self) -> None:
+        ready = await self._wait(lambda: self.T_L_W is not None, self.options.init_timeout_s)
+        if not ready:
+            reason = self.last_update.health.reason if self.last_update else "no frames"
+            self._abort(f"VINS did not initialise: {reason}")
+            return
+        self._go(FlightState.TAKING_OFF, "VINS initialised; frames aligned")
+
+    async def _take_off(self) -> None:
+        o, autopilot = self.options, self.autopilot
+        if not await autopilot.arm():
+            self._abort("arming denied")
+            return
+        self.stats.takeoff_t = self.clock.now()
+        self.stats.vins_resets_at_takeoff = self.vins.resets
+        if not await autopilot.takeoff(o.takeoff_altitude):
+            self._go(FlightState.LANDING, "take-off denied")
+            return
+
+        def up() -> bool:
+            state = autopilot.state
+            return (state is not None and autopilot.in_air and autopilot.mode == px4.AUTO_LOITER
+                    and state.position_L[2] >= self._home_z + o.takeoff_altitude - 0.25)
+        if not await self._wait(up, o.takeoff_timeout_s):
+            self._go(FlightState.LANDING, "take-off did not reach its height")
+            return
+        self._go(FlightState.ENTERING_OFFBOARD, "at take-off height")
+
+    async def _enter_offboard(self) -> None:
+        # PX4 takes Offboard only after a second of a setpoint stream (> 2 Hz); the setpoint
+        # task streams zero velocity in this state.
+        await self.clock.sleep(1.2)
+        if not await self.autopilot.set_mode(px4.OFFBOARD):
+            self._go(FlightState.LANDING, "PX4 refused Offboard")
+            return
+        self.stats.navigation_start = self.clock.now()
+        self._go(FlightState.NAVIGATING, "Offboard")
+
+    async def _navigate(self) -> None:
+        o = self.options
+        deadline = self.clock.now() + o.mission_timeout_s
+        while self.mission.state in (FlightState.NAVIGATING, FlightState.ALIGNING,
+                                     FlightState.STOPPING, FlightState.FAILSAFE_STOP):
+            if self.clock.now() > deadline:
+                self.mission.failsafe(self.clock.now(), "mission timeout")
+            await self._navigation_step()
+            await self.clock.sleep(POLL_S)
+        self.stats.navigation_end = self.clock.now()
+
+    async def _navigation_step(self) -> None:
+        state, now = self.mission.state, self.clock.now()
+        if state in (FlightState.STOPPING, FlightState.FAILSAFE_STOP):
+            if self._stopped() or self.mission.elapsed(now) > self.options.stop_timeout_s:
+                await self._after_stop(state)
+        elif state == FlightState.ALIGNING and abs(self._heading_error()) < math.radians(
+                self.options.align_done_deg):
+            self._go(FlightState.NAVIGATING, "facing the next waypoint")
+
+    async def _after_stop(self, state: FlightState) -> None:
+        if state == FlightState.STOPPING:
+            self._go(FlightState.LANDING, "stopped at the goal")
+            return
+        self._go(FlightState.HOLDING, "stopped after a failsafe")
+        await self.autopilot.hold()
+
+    async def _come_down(self) -> None:
+        o = self.options
+        if self.mission.state == FlightState.LINK_LOST:
+            await self._wait(lambda: self.autopilot.connected, o.land_timeout_s)
+            if not self.autopilot.connected:
+                self._go(FlightState.ABORTED, "link never came back; PX4's failsafe flies")
+                return
+            self._go(FlightState.HOLDING, "link back")
+            await self.autopilot.hold()
+        if self.mission.state == FlightState.HOLDING:
+            await self.clock.sleep(o.hold_before_land_s)
+            self._go(FlightState.LANDING, "hold time over")
+        if not await self.autopilot.land():
+            log.warning("land command not acknowledged; waiting for PX4 anyway")
+        if await self._wait(lambda: not self.autopilot.armed, o.land_timeout_s):
+            self.stats.landed_t = self.clock.now()
+            self._go(FlightState.LANDED, "disarmed on the ground")
+        else:
+            self._go(FlightState.ABORTED, "did not land in time")
+
+    # ------------------------------------------------------------------ perception
+
+    async def _perceive(self) -> None:
+        while True:
+            frame = await self.camera.next_frame()
+            self.last_frame_t = frame.t
+            self.stats.frames += 1
+            await self._wait_for_imu(frame.t)
+            self._feed_imu()
+            update, disparity = await asyncio.gather(
+                self.workers["vins"].run(self._track, frame),
+                self.workers["network"].run(self._infer, frame))
+            self._after_vins(update)
+            metric = await self.workers["network"].run(self._metric_depth, frame.t, disparity,
+                                                       update)
+            self._after_depth(metric, update)
+
+    async def _wait_for_imu(self, t: float) -> None:
+        give_up = self.clock.now() + IMU_WAIT_S
+        while (self.autopilot.last_imu_t is None or self.autopilot.last_imu_t < t) \
+                and self.clock.now() < give_up:
+            await self.clock.sleep(0.002)
+
+    def _feed_imu(self) -> None:
+        for sample in self.autopilot.take_imu():
+            try:
+                self.vins.add_imu(sample)
+            except ValueError as error:
+                log.debug("IMU sample refused: %s", error)
+
+    def _track(self, frame: Frame) -> FrameUpdate:
+        return self.vins.add_frame(frame.t, self.vins.track(frame.image))
+
+    def _infer(self, frame: Frame) -> np.ndarray | None:
+        try:
+            return self.depth_source(frame)
+        except (ValueError, RuntimeError) as error:
+            self.stats.network_errors += 1
+            log.warning("depth network failed on frame t=%.3f: %s", frame.t, error)
+            return None
+
+    def _after_vins(self, update: FrameUpdate) -> None:
+        self.last_update = update
+        if update.sparse_map is not None:
+            self.stage.add_sparse_map(update.sparse_map)
+        if self.T_L_W is None and update.T_W_B is not None and self.autopilot.state is not None:
+            self.T_L_W = yaw_alignment(self.autopilot.state.T_L_B, update.T_W_B)
+            self._home_z = float(self.autopilot.state.position_L[2])
+
+    def _metric_depth(self, t: float, disparity, update: FrameUpdate) -> MetricDepth | None:
+        if disparity is None:
+            return None
+        return self.stage.process(RelativeDepth(t, disparity))
+
+    def _after_depth(self, metric: MetricDepth | None, update: FrameUpdate) -> None:
+        if metric is None:
+            self._depth_failed("depth network failed")
+            return
+        if not metric.ok or update.T_W_B is None:
+            self._depth_failed(metric.diagnostics.reason or "no VINS pose for the frame")
+            return
+        self.planner.add_depth(metric, update.T_W_B @ self.T_B_C)
+        self.last_depth_t = metric.t
+        if self.stats.navigation_start is not None and self.stats.navigation_end is None:
+            self.stats.depth_ok += 1
+
+    def _depth_failed(self, reason: str) -> None:
+        self.last_depth_reason = reason
+        kind = reason.split(":")[0]  # counted by kind, without the frame's own numbers
+        self.stats.depth_reasons[kind] = self.stats.depth_reasons.get(kind, 0) + 1
+
+    # ------------------------------------------------------------------ planning
+
+    async def _plan_loop(self) -> None:
+        period = self.planner.options.period_s
+        while True:
+            if self.mission.state == FlightState.NAVIGATING:
+                await self._plan_round()
+            await self.clock.sleep(period)
+
+    async def _plan_round(self) -> None:
+        odometry = self._odometry()
+        if odometry is None or self.T_L_W is None:
+            return
+        now = self.clock.now()
+        self._advance_waypoints(odometry.T_W_B[:3, 3])
+        if self.mission.state != FlightState.NAVIGATING:
+            return
+        if abs(self._heading_error()) > math.radians(self.options.align_threshold_deg) \
+                and self._stopped():
+            self._go(FlightState.ALIGNING, "next waypoint is behind; turning in place")
+            return
+        goal_W = self._to_W(self.waypoints_L[self.waypoint])
+        plan = await self.workers["planner"].run(self.planner.plan, odometry.t, odometry.T_W_B,
+                                                 odometry.velocity_W, goal_W)
+        if self.mission.state != FlightState.NAVIGATING:
+            return  # a failsafe took over while planning
+        self.plan = plan
+        # the braking branch this round checked, for the watchdog thread to follow
+        self.checked_stop = self.planner.stop_plan(odometry.t, odometry.T_W_B,
+                                                   odometry.velocity_W, "setpoint deadline")
+        self.stats.planning_rounds += 1
+        if plan.kind == "stop":
+            self.stats.stop_rounds += 1
+            self.no_path_since = self.no_path_since if self.no_path_since is not None else now
+        else:
+            self.no_path_since = None
+
+    def _advance_waypoints(self, position_W: np.ndarray) -> None:
+        o = self.options
+        while True:
+            distance = float(np.linalg.norm(self._to_W(self.waypoints_L[self.waypoint])
+                                            - position_W))
+            last = self.waypoint == len(self.waypoints_L) - 1
+            if last and distance <= o.goal_tolerance:
+                self._stop_at_goal()
+                return
+            if last or distance > o.waypoint_tolerance:
+                return
+            self.waypoint += 1
+            log.info("waypoint %d of %d", self.waypoint + 1, len(self.waypoints_L))
+
+    def _stop_at_goal(self) -> None:
+        self.plan = self._stop_plan("goal reached")
+        self._go(FlightState.STOPPING, "goal reached")
+
+    def _stop_plan(self, reason: str) -> Plan | None:
+        """The stop checked at the last planning round while it lasts (braking from the
+        present velocity after it, or when there was no round)."""
+        odometry = self._odometry()
+        if odometry is None:
+            return self.plan
+        return self.planner.stop_plan(odometry.t, odometry.T_W_B, odometry.velocity_W, reason)
+
+    def _odometry(self):
+        self._feed_imu()
+        return self.vins.odometry()
+
+    def _heading_error(self) -> float:
+        """Angle from the body's heading to the next waypoint, radians in (-pi, pi]."""
+        odometry = self.vins.odometry()
+        if odometry is None or self.T_L_W is None:
+            return 0.0
+        to_goal = self._to_W(self.waypoints_L[self.waypoint]) - odometry.T_W_B[:3, 3]
+        error = math.atan2(to_goal[1], to_goal[0]) - yaw_of(odometry.T_W_B[:3, :3])
+        return math.atan2(math.sin(error), math.cos(error))
+
+    def _stopped(self) -> bool:
+        odometry = self.vins.odometry()
+        return odometry is not None and float(np.linalg.norm(odometry.velocity_W)) < \
+            self.options.stopped_speed
+
+    def _to_W(self, point_L) -> np.ndarray:
+        T_W_L = invert_pose(self.T_L_W)
+        return T_W_L[:3, :3] @ np.asarray(point_L, dtype=float) + T_W_L[:3, 3]
+
+    # ------------------------------------------------------------------ setpoints and odometry
+
+    async def _send_setpoints(self) -> None:
+        period = 1.0 / self.options.setpoint_rate_hz
+        while True:
+            commanding = self.mission.state in OFFBOARD_STATES and self.T_L_W is not None
+            self.watchdog.arm(commanding)
+            if commanding:
+                now = self.clock.now()
+                velocity_W, yaw_rate = self._command(now)
+                self._send_velocity(velocity_W, yaw_rate)
+                self.watchdog.fed(now)
+            await self.clock.sleep(period)
+
+    def _command(self, now: float) -> tuple[np.ndarray, float]:
+        state = self.mission.state
+        if state == FlightState.ALIGNING:
+            rate = math.radians(self.options.align_yaw_rate_deg)
+            return np.zeros(3), math.copysign(rate, self._heading_error())
+        if state == FlightState.ENTERING_OFFBOARD or self.plan is None:
+            return np.zeros(3), 0.0
+        return self.plan.setpoint(now)
+
+    def _send_velocity(self, velocity_W: np.ndarray, yaw_rate: float) -> None:
+        velocity_L = self.T_L_W[:3, :3] @ velocity_W
+        try:
+            self.autopilot.send_velocity(velocity_L, yaw_rate)
+        except ValueError as error:  # a non-finite command never leaves: send the stop
+            log.error("setpoint refused (%s); sending zero velocity", error)
+            self.autopilot.send_velocity(np.zeros(3), 0.0)
+
+    def _watchdog_stop(self, now: float) -> None:
+        """From the watchdog thread: the stop checked at the last planning round (or the
+        present stop plan), zero velocity without one. Reads only immutable plans."""
+        plan, T_L_W = self.plan, self.T_L_W
+        if plan is not None and plan.kind != "stop":
+            plan = self.checked_stop
+        if plan is None or T_L_W is None:
+            self.autopilot.send_velocity(np.zeros(3), 0.0)
+            return
+        velocity_W, yaw_rate = plan.setpoint(now)
+        self.autopilot.send_velocity(T_L_W[:3, :3] @ velocity_W, yaw_rate)
+
+    async def _send_odometry(self) -> None:
+        period = 1.0 / self.options.odometry_rate_hz
+        while True:
+            odometry = self._odometry() if self.T_L_W is not None else None
+            if odometry is not None and np.isfinite(odometry.T_W_B).all():
+                health = self.last_update.health if self.last_update else None
+                T_L_B = self.T_L_W @ odometry.T_W_B
+                self.autopilot.send_odometry(
+                    odometry.t, T_L_B[:3, 3], rot_to_quat(T_L_B[:3, :3]),
+                    self.T_L_W[:3, :3] @ odometry.velocity_W, odometry.angular_velocity_B,
+                    odometry.pose_covariance, reset_counter=self.vins.resets,
+                    quality=_quality(health.state if health else HealthState.LOST))
+            await self.clock.sleep(period)
+
+    # ------------------------------------------------------------------ monitoring
+
+    async def _monitor(self) -> None:
+        period = 1.0 / self.options.monitor_rate_hz
+        while True:
+            expected = self.clock.now() + period
+            await self.clock.sleep(period)
+            lag = max(0.0, self.clock.now() - expected)
+            self.stats.loop_lag_s.append(lag)
+            self._check(lag)
+            self.autopilot.set_status(self._mav_state())
+            if self.notifier is not None:  # the loop is alive: systemd's watchdog is fed
+                self.notifier.watchdog()
+
+    def _check(self, lag: float) -> None:
+        now, state = self.clock.now(), self.mission.state
+        if state in OFFBOARD_STATES | {FlightState.HOLDING} and not self.autopilot.connected:
+            self.mission.failsafe(now, "MAVLink link lost")
+            self._go(FlightState.LINK_LOST, "no heartbeat from the flight controller")
+            return
+        if state not in GUARDED_STATES:
+            return
+        reason = self._failsafe_reason(now, lag)
+        if reason and self.mission.failsafe(now, reason):
+            self.plan = self._stop_plan(reason)
+
+    def _failsafe_reason(self, now: float, lag: float) -> str:
+        o = self.options
+        checks = (
+            (bool(self.stop_reason), self.stop_reason),
+            (lag > o.max_loop_lag_s, f"event loop stalled ({1e3 * lag:.0f} ms late)"),
+            (self.watchdog.in_charge, "setpoint deadline missed (watchdog sent the stop)"),
+            (self._age(self.last_frame_t, now) > o.camera_timeout_s, "camera silent"),
+            (self._age(self.autopilot.last_imu_t, now) > o.imu_timeout_s, "IMU silent"),
+            (self._vins_problem() != "", self._vins_problem()),
+            (self._age(self.last_depth_t, now) > o.depth_timeout_s,
+             f"no metric depth ({self.last_depth_reason or 'none yet'})"),
+            (self.no_path_since is not None and now - self.no_path_since > o.no_path_timeout_s,
+             "no safe primitive"),
+        )
+        return next((reason for failed, reason in checks if failed), "")
+
+    def _vins_problem(self) -> str:
+        update = self.last_update
+        if update is None:
+            return ""
+        if update.health.state == HealthState.LOST:
+            return f"VINS lost ({update.health.reason})"
+        if self.vins.resets > self.stats.vins_resets_at_takeoff:
+            return "VINS reset in flight"
+        return ""
+
+    @staticmethod
+    def _age(t: float | None, now: float) -> float:
+        return math.inf if t is None else now - t
+
+    def _mav_state(self) -> CompanionStatus:
+        """What the companion's HEARTBEAT tells PX4 and the ground station."""
+        state = self.mission.state
+        if self.mission.failsafes and state != FlightState.LANDED:
+            return CompanionStatus.CRITICAL
+        if state == FlightState.ABORTED:
+            return CompanionStatus.EMERGENCY
+        if state in (FlightState.PREFLIGHT, FlightState.INITIALISING, FlightState.LANDED):
+            return CompanionStatus.STANDBY
+        return CompanionStatus.ACTIVE
+
+    # ------------------------------------------------------------------ helpers
+
+    async def _wait(self, condition: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = self.clock.now() + timeout_s
+        while not condition():
+            if self.clock.now() >= deadline or self.mission.done:
+                return False
+            await self.clock.sleep(POLL_S)
+        return True
+
+    def _go(self, state: FlightState, reason: str) -> None:
+        self.mission.go(self.clock.now(), state, reason)
+
+    def _abort(self, reason: str) -> None:
+        self._go(FlightState.ABORTED, reason)
+
+    def summary(self) -> dict:
+        """The run in plain numbers for JSON (the simulator adds the ground truth)."""
+        s, mission = self.stats, self.mission
+        navigation = ((s.navigation_end or self.clock.now()) - s.navigation_start
+                      if s.navigation_start is not None else 0.0)
+        lag = np.asarray(s.loop_lag_s) if s.loop_lag_s else np.zeros(1)
+        return {
+            "final_state": mission.state.value,
+            "reached_goal": any(t.reason == "goal reached" for t in mission.transitions),
+            "failsafes": list(mission.failsafes),
+            "transitions": [{"t": round(t.t, 3), "from": t.source.value, "to": t.target.value,
+                             "reason": t.reason} for t in mission.transitions],
+            "flight_time_s": ((s.landed_t or self.clock.now()) - s.takeoff_t
+                              if s.takeoff_t is not None else 0.0),
+            "navigation_time_s": navigation,
+            "frames": s.frames,
+            # metric depth frames the planner got per second of navigation
+            "depth_rate_hz": s.depth_ok / navigation if navigation > 0 else 0.0,
+            "depth_failures": dict(s.depth_reasons),
+            "planning_rounds": s.planning_rounds,
+            "stop_rounds": s.stop_rounds,
+            "vins_resets": self.vins.resets,
+            "watchdog_setpoints": self.watchdog.fired,
+            "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
+            "waypoints_passed": self.waypoint,
+        }
+
+
+def _quality(state: HealthState) -> int:
+    """ODOMETRY.quality (0: invalid, 100: best) from the VINS health."""
+    return {HealthState.OK: 100, HealthState.DEGRADED: 50}.get(state, 0)
+
+
+def _checked_waypoints(waypoints) -> np.ndarray:
+    points = np.asarray(waypoints, dtype=float)
+    if points.ndim == 1:
+        points = points.reshape(1, -1)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"waypoints must be (N, 3) points, got shape {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("waypoints must be finite numbers")
+    return points

@@ -1,0 +1,430 @@
+"""``companion sim fly``: the whole stack against the simulated vehicle, over real MAVLink.
+
+The simulator (:mod:`drivers.sim`) serves the mock PX4 on loopback UDP; the application
+(:class:`companion.app.FlightApp`) connects to it as it would to a real flight controller, sees
+the world through the simulated camera, estimates its state with the VINS and its depth with
+the network (the synthetic stand-in of ``[synthetic_depth]`` unless ``[depth_network] model``
+names an ONNX file) and the rescaler, and flies the planner's arcs to the goal.
+
+The mission: a world's start/goal pair (``pair``), flown through the corners of the route's
+collision-free path as waypoints (what an operator would give as a mission), or one ``goal``.
+Waypoints and goals are in PX4's local frame, which in the simulator is the world frame (ENU).
+
+Ground truth stays on the simulator's side and is used only for the summary: the flown path,
+its clearance from the obstacles, collisions, the distance to the goal at the end.
+
+Clocks: ``lockstep`` (default) runs the simulator and the application on one event loop and one
+:class:`~drivers.clock.SimClock`, heavy stages inline (deterministic, as fast as the CPU
+allows); ``realtime`` runs the simulator in its own thread on the wall clock and the application
+on the main thread with its stages in worker threads, as on the vehicle.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from autonomy.depth.network import DepthNetwork
+from autonomy.depth.synthetic import SyntheticNetwork
+from autonomy.planning.planner import Planner
+from autonomy.vins.estimator import Vins
+from autonomy.vins.preintegration import ImuNoise
+from companion.app import FlightApp
+from companion.workers import make_workers
+from drivers.clock import MonotonicClock, SimClock
+from drivers.mavlink.autopilot import Autopilot
+from drivers.sim.camera import SimCamera
+from drivers.sim.faults import Fault, FaultSchedule
+from drivers.sim.record import ROBOT_RADIUS, T_BODY_CAMERA
+from drivers.sim.render import Renderer
+from drivers.sim.serve import serve
+from drivers.sim.world import World, build_world
+
+log = logging.getLogger(__name__)
+
+#: How often the simulator side samples the true path for the summary, Hz.
+TRACK_RATE_HZ = 20.0
+#: How much further than ``[flight] goal_tolerance`` the true closest approach may be when the
+#: application says it reached the goal: the VINS's drift over a flight, metres.
+GOAL_DRIFT_ALLOWANCE = 1.0
+#: Longest event-loop stall a ``loop_stall`` fault injects, seconds.
+MAX_STALL_S = 5.0
+#: Longest wait for the simulator thread to come up, seconds.
+SIM_START_TIMEOUT_S = 30.0
+
+
+class SimFlyError(RuntimeError):
+    """The simulated flight could not be set up; the message says why."""
+
+
+@dataclass(frozen=True)
+class SimMission:
+    """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z)."""
+
+    world: str = "dome"
+    seed: int = 0
+    pair: int = 0
+    goal: tuple[float, float, float] | None = None
+    faults: tuple[Fault, ...] = ()
+    clock: str = "lockstep"
+
+
+def mission_waypoints(world: World, mission: SimMission, height: float
+                      ) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(start, waypoints (N, 3), start_yaw)`` of the mission: the route's start, the corners
+    of its collision-free path at ``height`` ending at its goal (or just ``mission.goal``), and
+    the heading of the first leg."""
+    if not 0 <= mission.pair < len(world.routes):
+        raise SimFlyError(f"{world.name} has start/goal pairs 0..{len(world.routes) - 1}, "
+                          f"not {mission.pair}")
+    route = world.routes[mission.pair]
+    start = np.asarray(route.start, dtype=float)
+    if mission.goal is not None:
+        goal = np.asarray(mission.goal, dtype=float)
+        if goal.shape != (3,) or not np.isfinite(goal).all():
+            raise SimFlyError(f"goal must be three finite numbers x,y,z, got {mission.goal}")
+        waypoints = goal[None, :]
+    else:
+        corners = world.find_path(start[:2], route.goal[:2], ROBOT_RADIUS)
+        if corners is None:
+            raise SimFlyError(f"{world.name}: route {route.name} has no path with "
+                              f"{ROBOT_RADIUS} m clearance")
+        waypoints = np.column_stack([corners[1:], np.full(len(corners) - 1, height)])
+        waypoints[-1] = route.goal
+    first = waypoints[0, :2] - start[:2]
+    return start, waypoints, math.atan2(first[1], first[0])
+
+
+def goal_distance(position, goal) -> float:
+    return float(np.linalg.norm(np.asarray(position) - np.asarray(goal)))
+
+
+def free_udp_port() -> int:
+    """A loopback UDP port nobody is bound to now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def depth_source_for(config, seed: int, faults: FaultSchedule, sim_time: Callable[[], float]):
+    """The network the application runs: the user's ONNX model on the image, else the
+    synthetic stand-in on the rendered depth; NaN everywhere while a ``network_nan`` fault is
+    on (what a broken engine outputs)."""
+    if config.depth_network.model:
+        model = DepthNetwork.open(config.depth_network,
+                                  (config.camera.height, config.camera.width))
+        infer = lambda frame: model(frame.image, channels="rgb")  # noqa: E731
+    else:
+        stand_in = SyntheticNetwork(config.synthetic_depth, seed=seed)
+        infer = lambda frame: stand_in(frame.truth_depth)  # noqa: E731
+
+    def source(frame):
+        disparity = infer(frame)
+        if faults.active("network_nan", sim_time()):
+            return np.full_like(disparity, np.nan)
+        return disparity
+    return source
+
+
+class TruthTrack:
+    """The true path, sampled on the simulator's side, for the summary."""
+
+    def __init__(self):
+        self.t: list[float] = []
+        self.positions: list[np.ndarray] = []
+
+    async def run(self, sim, clock, goal: np.ndarray, progress=None) -> None:
+        """Sample until cancelled; every :data:`PROGRESS_PERIOD_S` a line to ``progress``."""
+        next_line = 0.0
+        while True:
+            self.t.append(sim.time)
+            self.positions.append(np.array(sim.vehicle.state.position))
+            if progress is not None and sim.time >= next_line:
+                progress(self._progress_line(sim, goal))
+                next_line = sim.time + PROGRESS_PERIOD_S
+            await clock.sleep(1.0 / TRACK_RATE_HZ)
+
+    def _progress_line(self, sim, goal: np.ndarray) -> str:
+        position = self.positions[-1]
+        speed = float(np.linalg.norm(sim.vehicle.state.velocity))
+        return (f"t={sim.time:6.1f} s  {sim.px4.mode.name:<11}  "
+                f"{goal_distance(position, goal):6.1f} m to goal  {speed:4.1f} m/s  "
+                f"height {position[2]:4.1f} m")
+
+    def score(self, world: World, goal: np.ndarray) -> dict:
+        path = np.array(self.positions).reshape(-1, 3)
+        if len(path) == 0:
+            return {"path_length_m": 0.0, "min_clearance_m": None, "closest_to_goal_m": None}
+        airborne = path[path[:, 2] > 0.3]
+        clearance = world.obstacle_clearance(airborne) if len(airborne) else np.array([np.inf])
+        return {
+            "path_length_m": float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
+            "min_clearance_m": float(clearance.min()) if np.isfinite(clearance.min()) else None,
+            "closest_to_goal_m": float(np.linalg.norm(path[:, :2] - goal[:2], axis=1).min()),
+        }
+
+
+#: Simulated seconds between progress lines.
+PROGRESS_PERIOD_S = 2.0
+
+
+def run(config, mission: SimMission, *, plot: Path | None = None,
+        progress: Callable[[str], None] | None = None) -> dict:
+    """Fly ``mission`` to its end and return the summary (module docstring)."""
+    if mission.clock not in ("lockstep", "realtime"):
+        raise SimFlyError(f"clock must be lockstep or realtime, got {mission.clock!r}")
+    return asyncio.run(fly(config, mission, plot=plot, progress=progress))
+
+
+async def fly(config, mission: SimMission, *, plot: Path | None = None,
+              progress: Callable[[str], None] | None = None) -> dict:
+    """Fly ``mission`` on the running loop and return the summary (module docstring)."""
+    world = build_world(mission.world, mission.seed)
+    start, waypoints, start_yaw = mission_waypoints(world, mission,
+                                                    config.flight.takeoff_altitude)
+    faults = FaultSchedule(mission.faults)
+    if faults.has("loop_stall") and mission.clock != "realtime":
+        raise SimFlyError("a loop_stall fault needs --clock realtime: in lockstep the simulator "
+                          "shares the stalled loop, so simulated time stalls with it")
+    port = free_udp_port()
+    side = (_LockstepSimulator if mission.clock == "lockstep" else _ThreadedSimulator)(
+        config, world, mission, port, start_yaw, faults, waypoints[-1], progress)
+    sim, camera, clock = await side.start()
+    stall = asyncio.create_task(_stall_when_due(faults, sim))
+    try:
+        app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera,
+                        depth_source_for(config, mission.seed, faults, lambda: sim.time),
+                        waypoints, lockstep=mission.clock == "lockstep")
+        summary = await app.run()
+    finally:
+        stall.cancel()
+        await side.stop()
+    summary.update(_truth_summary(config, world, mission, sim, side.track, waypoints, summary))
+    if plot is not None:
+        _plot(world, side.track, start, waypoints, sim, plot, summary)
+        summary["plot"] = str(plot)
+    return summary
+
+
+async def _stall_when_due(faults: FaultSchedule, sim) -> None:
+    """The ``loop_stall`` fault: block this event loop (a runaway computation) for the
+    fault's duration, at most :data:`MAX_STALL_S`."""
+    stall = next((f for f in faults.faults if f.kind == "loop_stall"), None)
+    if stall is None:
+        return
+    while not faults.active("loop_stall", sim.time):
+        await asyncio.sleep(0.01)
+    log.warning("injecting an event-loop stall of %.1f s", min(stall.duration_s, MAX_STALL_S))
+    time.sleep(min(stall.duration_s, MAX_STALL_S))
+
+
+class _Simulator:
+    """The simulator side of a flight: what it serves, and the true path it tracks."""
+
+    def __init__(self, config, world, mission, port, start_yaw, faults, goal, progress):
+        self.config, self.world, self.mission, self.port = config, world, mission, port
+        self.start_yaw, self.faults, self.goal, self.progress = start_yaw, faults, goal, progress
+        self.track = TruthTrack()
+
+    def _serve(self, clock_mode: str, stop, on_ready, sim_clock=None):
+        c = self.config
+        return serve(f"udpin://127.0.0.1:{self.port}", self.world, seed=self.mission.seed,
+                     clock_mode=clock_mode, vehicle_options=c.vehicle, imu_options=c.imu,
+                     px4_options=c.px4, stop=stop, sim_clock=sim_clock, on_ready=on_ready,
+                     start_yaw=self.start_yaw, faults=self.faults)
+
+
+class _LockstepSimulator(_Simulator):
+    """The simulator on the application's loop and clock (a :class:`SimClock`)."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.clock = SimClock(0.0)
+        self._stop = asyncio.Event()
+
+    async def start(self):
+        ready: asyncio.Future = asyncio.get_running_loop().create_future()
+        self._server = asyncio.create_task(self._serve("lockstep", self._stop,
+                                                       ready.set_result, self.clock))
+        self.sim = await ready
+        self._tracker = asyncio.create_task(self.track.run(self.sim, self.clock, self.goal,
+                                                           self.progress))
+        camera = self.config.camera
+        self._renderer = Renderer(self.world, camera.pinhole())
+        camera = SimCamera(self.sim, self._renderer, camera.rate_hz, self.clock)
+        return self.sim, camera, self.clock
+
+    async def stop(self) -> None:
+        self._stop.set()
+        self._tracker.cancel()
+        await asyncio.gather(self._server, self._tracker, return_exceptions=True)
+        self._renderer.close()
+
+
+class _ThreadedSimulator(_Simulator):
+    """The simulator in its own thread and event loop on the wall clock (real time): its
+    physics, mock PX4 and camera keep going whatever the application's loop does. Frames
+    cross to the application's loop through a newest-frame slot."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self._stop = threading.Event()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+
+    async def start(self):
+        self.frames = FrameSlot(asyncio.get_running_loop())
+        self._thread = threading.Thread(target=self._main, name="simulator", daemon=True)
+        self._thread.start()
+        if not await asyncio.to_thread(self._ready.wait, SIM_START_TIMEOUT_S):
+            raise SimFlyError("the simulator thread did not start")
+        if self._error is not None:
+            raise SimFlyError(f"the simulator thread failed: {self._error}")
+        return self.sim, self.frames, MonotonicClock()
+
+    async def stop(self) -> None:
+        self._stop.set()
+        await asyncio.to_thread(self._thread.join, 10.0)
+
+    def _main(self) -> None:
+        try:
+            asyncio.run(self._run())
+        except BaseException as error:  # noqa: BLE001 - reported to the starting thread
+            self._error = error
+            self._ready.set()
+
+    async def _run(self) -> None:
+        clock, camera = MonotonicClock(), self.config.camera
+        started: asyncio.Future = asyncio.get_running_loop().create_future()
+        server = asyncio.create_task(self._serve("realtime", self._stop, started.set_result))
+        self.sim = await started
+        with Renderer(self.world, camera.pinhole()) as renderer:
+            camera = SimCamera(self.sim, renderer, camera.rate_hz, clock)
+            tasks = [asyncio.create_task(self._pump(camera)), asyncio.create_task(
+                self.track.run(self.sim, clock, self.goal, self.progress))]
+            self._ready.set()
+            await server
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def _pump(self, camera: SimCamera) -> None:
+        while True:
+            self.frames.put(await camera.next_frame())
+
+
+class FrameSlot:
+    """The newest frame, put from any thread, awaited on one event loop; frames nobody took
+    before a newer one came are counted in ``dropped``."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop):
+        self._loop = loop
+        self._frame = None
+        self._arrived = asyncio.Event()
+        self.dropped = 0
+
+    def put(self, frame) -> None:
+        self._loop.call_soon_threadsafe(self._set, frame)
+
+    def _set(self, frame) -> None:
+        if self._frame is not None:
+            self.dropped += 1
+        self._frame = frame
+        self._arrived.set()
+
+    async def next_frame(self):
+        await self._arrived.wait()
+        self._arrived.clear()
+        frame, self._frame = self._frame, None
+        return frame
+
+
+def build_app(config, clock, url: str, camera, depth_source, waypoints, *,
+              lockstep: bool) -> FlightApp:
+    """The application wired to a camera, a depth source and the autopilot at ``url``."""
+    pinhole = config.camera.pinhole()
+    noise = ImuNoise(config.imu.gyro_noise_density, config.imu.accel_noise_density,
+                     config.imu.gyro_bias_random_walk, config.imu.accel_bias_random_walk)
+    vins = Vins(pinhole, (0.0,) * 4, T_BODY_CAMERA, noise, config.vins,
+                frontend=config.vins_frontend, static=config.vins_init)
+    autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
+    return FlightApp(config, autopilot=autopilot, camera=camera, depth_source=depth_source,
+                     vins=vins, T_B_C=T_BODY_CAMERA, planner=Planner(pinhole, config.planner),
+                     waypoints_L=waypoints, clock=clock,
+                     workers=make_workers(lockstep, ("vins", "network", "planner")))
+
+
+def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
+                   waypoints, summary: dict) -> dict:
+    goal = waypoints[-1]
+    truth = track.score(world, goal)
+    collision = sim.vehicle.collision
+    return {
+        "world": world.name, "seed": mission.seed, "pair": mission.pair,
+        "goal": [round(float(v), 3) for v in goal],
+        "faults": [dataclasses.asdict(f) for f in mission.faults],
+        "collisions": 0 if collision is None else 1,
+        "collision": None if collision is None else {
+            "t": round(collision.time, 3),
+            "position": [round(float(v), 3) for v in collision.position]},
+        **truth,
+        # the application's own judgement, confirmed by the truth (with room for VINS drift)
+        "reached_goal": bool(summary["reached_goal"] and truth["closest_to_goal_m"] is not None
+                             and truth["closest_to_goal_m"]
+                             <= config.flight.goal_tolerance + GOAL_DRIFT_ALLOWANCE),
+    }
+
+
+def _plot(world, track, start, waypoints, sim, out: Path, summary: dict) -> None:
+    from companion.plot import top_view
+
+    collision = sim.vehicle.collision
+    top_view(world, np.array(track.positions), start=start, goal=waypoints[-1],
+             waypoints=waypoints[:-1],
+             collisions=() if collision is None else (collision.position,), out=out,
+             title=f"{world.name} pair {summary['pair']}: "
+                   f"{'reached' if summary['reached_goal'] else 'not reached'}")
+
+
+
+def format_summary(summary: dict) -> str:
+    """A simulated flight's summary as a few lines for a person."""
+    lines = [f"{summary['world']} pair {summary['pair']} (seed {summary['seed']}) -> goal "
+             f"{summary['goal']}",
+             f"  reached goal      {'yes' if summary['reached_goal'] else 'no'}"
+             f" (closest {_number(summary, 'closest_to_goal_m', '.2f', ' m')})",
+             f"  collisions        {summary['collisions']}",
+             f"  path length       {_number(summary, 'path_length_m', '.1f', ' m')}",
+             f"  min clearance     {_number(summary, 'min_clearance_m', '.2f', ' m')}"]
+    lines += format_flight(summary).splitlines()
+    if summary.get("plot"):
+        lines.append(f"  plot              {summary['plot']}")
+    return "\n".join(lines)
+
+
+def format_flight(summary: dict) -> str:
+    """The application's own summary (real or simulated flight) as a few lines."""
+    return "\n".join([
+        f"  final state       {summary['final_state']}",
+        f"  failsafes         {', '.join(summary['failsafes']) or 'none'}",
+        f"  flight time       {_number(summary, 'flight_time_s', '.1f', ' s')}",
+        f"  depth rate        {_number(summary, 'depth_rate_hz', '.1f', ' Hz')}",
+        f"  loop lag p99      {_number(summary, 'loop_lag_ms_p99', '.1f', ' ms')}",
+        f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops)",
+        f"  VINS resets       {summary['vins_resets']}",
+    ])
+
+
+def _number(summary: dict, key: str, spec: str, unit: str = "") -> str:
+    value = summary.get(key)
+    return "n/a" if value is None else f"{value:{spec}}{unit}"

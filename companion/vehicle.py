@@ -1,0 +1,86 @@
+"""``companion fly``: the application on the real vehicle.
+
+The same :class:`~companion.app.FlightApp` the simulator flies, wired to real devices: the
+flight controller over ``[mavlink] url`` (serial on the Orin's UART, or UDP), the V4L2 camera of
+``[v4l2]``, the user's ONNX depth network of ``[depth_network]`` (required here: the synthetic
+stand-in needs a simulator's ground truth), the wall clock and worker threads. The mission is
+``[flight] waypoints`` (or ``--goal`` on the command line).
+
+Run by systemd (``systemd/companion.service``, Type=notify): ``READY=1`` once preflight has
+passed, ``WATCHDOG=1`` from the event loop's monitor (a stalled loop stops the pings and systemd
+restarts the service), ``STOPPING=1`` at the end; SIGTERM or SIGINT ask the mission to stop,
+which in the air means stop, hold and land.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+
+from autonomy.depth.network import DepthNetwork
+from autonomy.planning.planner import Planner
+from autonomy.vins.estimator import Vins
+from autonomy.vins.preintegration import ImuNoise
+from companion.app import FlightApp
+from companion.service import SystemdNotifier
+from companion.workers import make_workers
+from drivers.camera.v4l2 import V4l2Camera
+from drivers.clock import MonotonicClock
+from drivers.mavlink.autopilot import Autopilot
+from drivers.sim.record import T_BODY_CAMERA
+
+log = logging.getLogger(__name__)
+
+
+class FlyError(RuntimeError):
+    """The real flight cannot start; the message says what to fix."""
+
+
+def run(config, waypoints) -> dict:
+    """Fly ``waypoints`` ((x, y, z) tuples in PX4's local frame, ENU) and return the summary."""
+    if not waypoints:
+        raise FlyError("no mission: set [flight] waypoints in the config or give --goal X,Y,Z")
+    if not config.depth_network.model:
+        raise FlyError("[depth_network] model is empty: companion fly needs the ONNX depth "
+                       "network (docs/depth_network.md); the synthetic stand-in only works in "
+                       "the simulator")
+    return asyncio.run(_fly(config, waypoints))
+
+
+async def _fly(config, waypoints) -> dict:
+    clock = MonotonicClock()
+    notifier = SystemdNotifier()
+    network = DepthNetwork.open(config.depth_network, (config.camera.height,
+                                                        config.camera.width))
+    log.info("depth network on %s", network.provider)
+    pinhole = config.camera.pinhole()
+    noise = ImuNoise(config.imu.gyro_noise_density, config.imu.accel_noise_density,
+                     config.imu.gyro_bias_random_walk, config.imu.accel_bias_random_walk)
+    vins = Vins(pinhole, (0.0,) * 4, T_BODY_CAMERA, noise, config.vins,
+                frontend=config.vins_frontend, static=config.vins_init)
+    workers = make_workers(False, ("vins", "network", "planner"))
+    async with V4l2Camera(config.camera, config.v4l2, clock) as camera:
+        autopilot = Autopilot.open(config.mavlink, clock)
+        try:
+            app = FlightApp(config, autopilot=autopilot, camera=camera,
+                            depth_source=lambda frame: network(frame.image, channels="rgb"),
+                            vins=vins, T_B_C=T_BODY_CAMERA, planner=Planner(pinhole,
+                                                                            config.planner),
+                            waypoints_L=waypoints, clock=clock, workers=workers,
+                            notifier=notifier)
+            _stop_on_signals(app)
+            return await app.run()
+        finally:
+            notifier.stopping("mission ended")
+            autopilot.close()
+            for worker in workers.values():
+                worker.close()
+
+
+def _stop_on_signals(app: FlightApp) -> None:
+    loop = asyncio.get_running_loop()
+    for number in (signal.SIGTERM, signal.SIGINT):
+        name = signal.Signals(number).name
+        loop.add_signal_handler(number, app.stop_requested, f"stop requested ({name})")
+

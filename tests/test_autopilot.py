@@ -1,0 +1,429 @@
+"""The companion's PX4 driver against the mock PX4 over real loopback UDP.
+
+The simulator is served in the test's own event loop, in lockstep on a SimClock that the
+Autopilot sleeps on too, so simulated time is exact and runs faster than real time; the link
+loss test runs both in real time (a restarted simulator boots at time zero again). Every test
+has a wall-clock timeout, so a regression fails instead of hanging.
+"""
+
+import asyncio
+import math
+import socket
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import GRAVITY
+from autonomy.options import OptionError
+from drivers.clock import MonotonicClock, SimClock
+from drivers.mavlink import px4
+from drivers.mavlink.autopilot import (Autopilot, CommandDenied, CommandTimeout,
+                                       CompanionStatus, MavlinkOptions, NotConnected)
+from drivers.mavlink.imu_stream import ImuStamper
+from drivers.mavlink.link import mavlink, open_link
+from drivers.mavlink.odometry import pose_covariance_to_mavlink
+from drivers.mavlink.timesync import RESET_AFTER_OUTLIERS, TimesyncFilter
+from drivers.sim.imu import ImuOptions
+from drivers.sim.px4 import Px4Options
+from drivers.sim.serve import serve
+
+DT = 0.005  # the simulator's physics and IMU period
+KEY = "ab" * 32
+WALL_TIMEOUT = 90.0
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+async def until(clock, predicate, timeout: float, step: float = 0.01) -> bool:
+    """Wait on ``clock`` until ``predicate()`` holds (True) or ``timeout`` passes (False)."""
+    deadline = clock.now() + timeout
+    while not predicate():
+        if clock.now() >= deadline:
+            return False
+        await clock.sleep(step)
+    return True
+
+
+class Flight:
+    """A served simulator and an Autopilot on one clock; ``truth`` records the IMU samples
+    the mock PX4 was given: (time at the end of the step, gyro FLU, accel FLU)."""
+
+    def __init__(self, clock, options: MavlinkOptions, **serve_kwargs):
+        self.clock, self.options, self.serve_kwargs = clock, options, serve_kwargs
+        self.port = free_udp_port()
+        self.sim = None
+        self.truth = []
+        self.autopilot = None
+
+    def _ready(self, sim) -> None:
+        self.sim = sim
+        update = sim.px4.update
+
+        def recording_update(t, gyro=None, accel=None):
+            self.truth.append((t, np.array(gyro), np.array(accel)))
+            update(t, gyro, accel)
+        sim.px4.update = recording_update
+
+    async def start_server(self) -> None:
+        """Serve on the flight's port until ``self.stop`` is set (the task is ``server``)."""
+        kwargs = dict(self.serve_kwargs)
+        if isinstance(self.clock, SimClock):
+            kwargs.update(clock_mode="lockstep", sim_clock=self.clock)
+        self.stop = asyncio.Event()
+        self.server = asyncio.create_task(serve(
+            f"udpin://127.0.0.1:{self.port}", None, stop=self.stop, duration=600.0,
+            on_ready=self._ready, **kwargs))
+        await asyncio.sleep(0)  # the link is open once serve first yields
+
+    async def fly(self, body) -> None:
+        await self.start_server()
+        options = replace(self.options, url=f"udpout://127.0.0.1:{self.port}")
+        self.autopilot = Autopilot.open(options, self.clock)
+        runner = asyncio.create_task(self.autopilot.run())
+        try:
+            await body(self)
+            assert not runner.done(), "Autopilot.run() ended"
+        finally:
+            self.stop.set()
+            runner.cancel()
+            await asyncio.gather(runner, self.server, return_exceptions=True)
+            self.autopilot.close()
+
+    async def connected(self, timeout=5.0) -> bool:
+        return await until(self.clock, lambda: self.autopilot.connected, timeout)
+
+
+def fly(body, options=None, clock=None, **serve_kwargs):
+    """Run ``await body(flight)`` against a served simulator (lockstep unless a clock)."""
+    flight = Flight(clock or SimClock(), options or MavlinkOptions(), **serve_kwargs)
+    asyncio.run(asyncio.wait_for(flight.fly(body), WALL_TIMEOUT))
+    return flight
+
+
+async def stream_velocity(flight: Flight, velocity_L, seconds: float, rate_hz=20.0):
+    """Send a velocity setpoint at ``rate_hz`` for ``seconds`` on the flight's clock."""
+    end = flight.clock.now() + seconds
+    while flight.clock.now() < end:
+        flight.autopilot.send_velocity(velocity_L, 0.0)
+        await flight.clock.sleep(1.0 / rate_hz)
+
+
+# -------------------------------------------------------------------- options and pure parts
+
+def test_options_default_to_an_onboard_computer_talking_to_px4():
+    options = MavlinkOptions()
+    assert (options.system_id, options.component_id) == (1, 191)
+    assert (options.target_system, options.target_component) == (1, 1)
+    assert options.imu_rate_hz == 200.0 and options.signing_secret is None
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"signing_key": "abc"}, "signing_key"),
+    ({"signing_key": "zz" * 32}, "signing_key"),
+    ({"url": "udp://127.0.0.1:14540"}, "url"),
+    ({"imu_rate_hz": 0.0}, "imu_rate_hz"),
+    ({"component_id": 256}, "component_id"),
+])
+def test_bad_options_name_the_field(changes, key):
+    with pytest.raises(OptionError) as error:
+        MavlinkOptions(**changes)
+    assert error.value.key == key
+
+
+def test_timesync_filter_averages_ignores_one_outlier_and_follows_a_clock_jump():
+    f = TimesyncFilter()
+    for k, error in enumerate([0.002, -0.002, 0.001, -0.001]):
+        remote = 10.0 + k
+        assert f.add(remote + 5.0 - 0.001 + error, remote, remote + 5.0 + 0.001 + error)
+    assert f.offset == pytest.approx(5.0, abs=1e-9)
+    assert not f.add(20.0, 14.0 - 1.0, 20.001)  # one sample 1 s off: ignored
+    assert f.offset == pytest.approx(5.0, abs=1e-9)
+    assert not f.add(20.0, 15.0, 20.5)          # a 0.5 s round trip: too loose to use
+    assert f.rejected_rtt == 1
+    for k in range(RESET_AFTER_OUTLIERS):       # PX4 rebooted: its clock restarted
+        f.add(30.0 + k, 0.1 + k, 30.001 + k)
+    assert f.offset == pytest.approx(29.9005, abs=1e-6) and f.resets == 1
+    assert f.to_local(1.0) == pytest.approx(30.9005) and f.to_remote(30.9005) == \
+        pytest.approx(1.0)
+
+
+def test_imu_stamper_holds_each_sample_from_the_previous_stamp_in_flu():
+    stamper = ImuStamper(200.0)
+    assert stamper.push(1.000, (0.1, 0.2, 0.3), (1, 2, 3), offset=10.0) is None  # first
+    sample = stamper.push(1.005, (0.1, 0.2, 0.3), (1.0, 2.0, -9.8), offset=10.0)
+    assert sample.t == pytest.approx(11.000)
+    np.testing.assert_allclose(sample.gyro, [0.1, -0.2, -0.3])
+    np.testing.assert_allclose(sample.accel, [1.0, -2.0, 9.8])
+    assert stamper.push(1.005, (0, 0, 0), (0, 0, 0), offset=10.0) is None   # not later
+    assert stamper.push(1.050, (0, 0, 0), (0, 0, 0), offset=10.0) is None   # a gap
+    assert stamper.push(1.055, (0, 0, 0), (0, 0, 0), offset=10.0).t == pytest.approx(11.050)
+    assert stamper.push(1.060, (math.nan, 0, 0), (0, 0, 0), offset=10.0) is None
+    assert stamper.push(1.065, (0, 0, 0), (0, 0, 0), offset=None) is None
+    assert dict(stamper.counts) == {"first": 1, "backwards": 1, "gap": 1, "invalid": 1,
+                                    "no_time": 1}
+
+
+def test_pose_covariance_goes_to_ned_position_and_euler_angles():
+    # q_L_B identity: level, facing east (x of frame L), so PX4's yaw is +90 degrees
+    sigma = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])  # roll, pitch, yaw, forward, left, up
+    upper = pose_covariance_to_mavlink(sigma, (1.0, 0.0, 0.0, 0.0))
+    full = np.zeros((6, 6))
+    full[np.triu_indices(6)] = upper
+    # forward (east) is NED y, left (north) is NED x, up is -down
+    np.testing.assert_allclose(np.diag(full), [5.0, 4.0, 6.0, 1.0, 2.0, 3.0], atol=1e-12)
+    assert math.isnan(pose_covariance_to_mavlink(None, (1, 0, 0, 0))[0])
+    assert math.isnan(pose_covariance_to_mavlink(np.full((6, 6), np.nan), (1, 0, 0, 0))[0])
+    with pytest.raises(ValueError, match="6x6"):
+        pose_covariance_to_mavlink(np.eye(3), (1, 0, 0, 0))
+
+
+# -------------------------------------------------------------------- over the link
+
+def test_connects_and_streams_imu_at_200hz_in_flu_on_the_companion_clock():
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert await flight.connected()
+        assert await until(flight.clock, lambda: autopilot.imu_rate_hz > 190.0, 5.0)
+        assert flight.sim.px4.message_rate_hz(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU) == 200.0
+        autopilot.take_imu()
+        await flight.clock.sleep(1.0)
+        samples = autopilot.take_imu()
+        assert len(samples) == pytest.approx(200, abs=2)
+        np.testing.assert_allclose(np.diff([s.t for s in samples]), DT, atol=1e-5)
+        theta = autopilot.timesync.offset
+        assert abs(theta) <= DT  # the simulator's boot time is the SimClock's time
+        truth = {round(t / DT): (gyro, accel) for t, gyro, accel in flight.truth}
+        for sample in samples:
+            # the sample holding over [t, t + DT) is the one the IMU integrated up to t + DT
+            gyro, accel = truth[round((sample.t - theta + DT) / DT)]
+            np.testing.assert_allclose(sample.gyro, gyro, atol=1e-5)
+            np.testing.assert_allclose(sample.accel, accel, atol=1e-4)
+        assert np.mean([s.accel[2] for s in samples]) == pytest.approx(GRAVITY, abs=0.05)
+        assert autopilot.last_imu_t == samples[-1].t
+        assert autopilot.landed and not autopilot.in_air and not autopilot.armed
+        assert autopilot.mode == px4.AUTO_LOITER
+    fly(body)
+
+
+def test_timesync_converges_both_ways():
+    async def body(flight):
+        assert await flight.connected()
+        assert await until(flight.clock,
+                           lambda: flight.sim.px4.timesync_offset_ns is not None, 3.0)
+        await flight.clock.sleep(2.0)
+        assert abs(flight.autopilot.timesync.offset) <= DT
+        assert abs(flight.sim.px4.timesync_offset_ns) <= DT * 1e9
+        assert flight.autopilot.stats()["timesync_answered"] >= 1
+        assert flight.autopilot.time_synced
+        state = flight.autopilot.state
+        assert state is not None and abs(state.t - flight.clock.now()) < 0.1
+        np.testing.assert_allclose(state.T_L_B[:3, 3], state.position_L)
+    fly(body)
+
+
+def test_heartbeat_shows_the_companion_status():
+    received = []
+
+    async def body(flight):
+        assert await flight.connected()
+        # listen in on the mock's side of the link for our heartbeats
+        receive = flight.sim.px4.link.receive_pending
+
+        def spy():
+            messages = receive()
+            received.extend(m for m in messages if m.get_type() == "HEARTBEAT")
+            return messages
+        flight.sim.px4.link.receive_pending = spy
+        flight.autopilot.set_status(CompanionStatus.CRITICAL)
+        await flight.clock.sleep(0.05)
+    fly(body)
+    heartbeat = received[-1]
+    assert heartbeat.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+    assert heartbeat.autopilot == mavlink.MAV_AUTOPILOT_INVALID
+    assert heartbeat.system_status == mavlink.MAV_STATE_CRITICAL
+    assert (heartbeat.get_srcSystem(), heartbeat.get_srcComponent()) == (1, 191)
+
+
+def test_arm_take_off_offboard_velocity_in_enu_hold_land():
+    async def body(flight):
+        autopilot, clock = flight.autopilot, flight.clock
+        assert await flight.connected()
+        assert not await autopilot.set_mode(px4.OFFBOARD)
+        error = autopilot.last_command_error
+        assert isinstance(error, CommandDenied)
+        assert error.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert "Offboard is currently not available" in str(error)
+        assert await autopilot.arm()
+        assert await autopilot.takeoff(3.0)
+        assert await until(clock, lambda: autopilot.in_air, 2.0)
+        assert await until(clock, lambda: autopilot.state.position_L[2] > 2.8
+                           and autopilot.mode == px4.AUTO_LOITER, 10.0)
+        await clock.sleep(3.0)  # the climb overshoots a little, then holds
+        assert flight.sim.vehicle.state.position[2] == pytest.approx(3.0, abs=0.3)
+        start = autopilot.state.position_L.copy()
+        await stream_velocity(flight, (0.0, 0.0, 0.0), 1.2)  # PX4 wants a stream first
+        streaming = asyncio.create_task(stream_velocity(flight, (1.0, 0.0, 0.0), 4.0))
+        assert await autopilot.set_mode(px4.OFFBOARD)
+        assert await until(clock, lambda: autopilot.mode == px4.OFFBOARD, 2.0)
+        await streaming
+        moved = autopilot.state.position_L - start
+        assert moved[0] > 2.0 and abs(moved[1]) < 0.3 and abs(moved[2]) < 0.3  # east
+        assert flight.sim.vehicle.state.position[0] > 2.0
+        assert autopilot.state.velocity_L[0] > 0.5
+        assert await autopilot.hold()
+        assert await until(clock, lambda: autopilot.mode == px4.AUTO_LOITER, 1.0)
+        assert await autopilot.land()
+        assert await until(clock, lambda: autopilot.landed, 15.0)
+        assert await autopilot.disarm()
+        assert await until(clock, lambda: not autopilot.armed, 2.0)
+    fly(body)
+
+
+def test_external_vision_odometry_reaches_px4():
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert not autopilot.send_odometry(0.0, (0, 0, 0), (1, 0, 0, 0))  # no time yet
+        assert autopilot.stats()["odometry_no_time"] == 1
+        assert await flight.connected()
+        assert await until(flight.clock, lambda: autopilot.timesync.offset is not None, 1.0)
+        shifted = np.array([1.0, 2.0, 0.0])  # vision says the vehicle is 1 m east, 2 north
+        for _ in range(20):
+            assert autopilot.send_odometry(flight.clock.now(), shifted, (1, 0, 0, 0),
+                                           np.zeros(3), np.zeros(3), np.eye(6) * 1e-4,
+                                           quality=80)
+            await flight.clock.sleep(0.05)
+        assert flight.sim.px4.external_vision_active
+        np.testing.assert_allclose(flight.sim.px4.estimate.position, shifted, atol=0.1)
+        await flight.clock.sleep(0.1)
+        np.testing.assert_allclose(autopilot.state.position_L, shifted, atol=0.1)
+    fly(body)
+
+
+def test_imu_rate_far_below_the_request_is_asked_again():
+    async def body(flight):
+        assert await flight.connected()
+        await flight.clock.sleep(8.0)
+        assert flight.autopilot.imu_rate_hz == pytest.approx(100.0, rel=0.05)
+        assert flight.autopilot.stats()["imu_interval_requests"] >= 2
+        assert flight.autopilot.take_imu()  # samples still come, at the rate PX4 can give
+    # a flight controller whose IMU runs at 100 Hz cannot send 200 Hz
+    fly(body, imu_options=ImuOptions(rate_hz=100.0))
+
+
+def test_link_loss_is_detected_and_the_imu_rate_requested_again_after_it():
+    clock = MonotonicClock()
+
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert await flight.connected()
+        first_sim = flight.sim
+        imu_rate = lambda: flight.sim.px4.message_rate_hz(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU)
+        assert await until(clock, lambda: imu_rate() == 200.0, 3.0)
+        flight.stop.set()  # the served vehicle goes away
+        await flight.server
+        assert await until(clock, lambda: not autopilot.connected, 5.0)
+        assert autopilot.link_losses == 1
+        await flight.start_server()  # and comes back, booted afresh
+        assert flight.sim is not first_sim and imu_rate() == 50.0
+        assert await flight.connected(5.0)
+        assert await until(clock, lambda: imu_rate() == 200.0, 3.0)
+        autopilot.take_imu()
+        assert await until(clock, lambda: len(autopilot.take_imu()) > 0, 2.0)
+    fly(body, clock=clock)
+
+
+def test_signing_on_both_ends_works_with_a_watchdog_thread_sending_too():
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert autopilot.link.signing_enabled
+        assert await flight.connected()
+        assert await until(flight.clock, lambda: autopilot.imu_rate_hz > 190.0, 5.0)
+        watchdog = threading.Thread(
+            target=lambda: [autopilot.send_velocity((0.0, 0.0, 0.0)) for _ in range(300)])
+        watchdog.start()
+        assert await autopilot.arm()
+        while watchdog.is_alive():
+            await flight.clock.sleep(0.01)
+        await flight.clock.sleep(0.05)
+        assert flight.sim.vehicle.armed
+        assert flight.sim.px4.link.bad_data_count == 0  # every signed frame arrived whole
+    fly(body, MavlinkOptions(signing_key=KEY), px4_options=Px4Options(signing_key=KEY))
+
+
+def test_a_wrong_key_is_rejected_both_ways():
+    async def body(flight):
+        assert not await flight.connected(3.0)
+        assert flight.sim.px4.link.bad_data_count > 0
+        assert flight.autopilot.stats()["bad_data"] > 0
+        assert not await flight.autopilot.arm()
+        assert isinstance(flight.autopilot.last_command_error, NotConnected)
+        with pytest.raises(NotConnected, match="no HEARTBEAT"):
+            await flight.autopilot.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    fly(body, MavlinkOptions(signing_key="cd" * 32), px4_options=Px4Options(signing_key=KEY))
+
+
+def test_px4_requiring_signing_ignores_an_unsigned_companion():
+    async def body(flight):
+        assert await flight.connected()  # we hear PX4 (its signatures are not checked) ...
+        assert not await flight.autopilot.arm()  # ... but it does not listen to us
+        assert isinstance(flight.autopilot.last_command_error, CommandTimeout)
+        assert "no COMMAND_ACK" in str(flight.autopilot.last_command_error)
+        assert not flight.sim.vehicle.armed
+        assert flight.sim.px4.link.bad_data_count > 0
+    fly(body, px4_options=Px4Options(signing_key=KEY))
+
+
+def test_bad_setpoints_and_odometry_raise_and_send_nothing():
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert await flight.connected()
+        for velocity, yaw_rate in [((math.nan, 0, 0), 0.0), ((0, 0, 0), math.inf),
+                                   ((1, 2), 0.0)]:
+            with pytest.raises(ValueError):
+                autopilot.send_velocity(velocity, yaw_rate)
+        with pytest.raises(ValueError, match="position_L"):
+            autopilot.send_odometry(flight.clock.now(), (0, math.nan, 0), (1, 0, 0, 0))
+        with pytest.raises(ValueError, match="unit quaternion"):
+            autopilot.send_odometry(flight.clock.now(), (0, 0, 0), (2, 0, 0, 0))
+        with pytest.raises(ValueError, match="quality"):
+            autopilot.send_odometry(flight.clock.now(), (0, 0, 0), (1, 0, 0, 0), quality=101)
+        with pytest.raises(ValueError, match="altitude"):
+            await autopilot.takeoff(-1.0)
+        await flight.clock.sleep(0.1)
+        assert not flight.sim.px4.external_vision_active
+        assert "SET_POSITION_TARGET" not in " ".join(s.text for s in autopilot.statustexts)
+    fly(body)
+
+
+def test_garbage_and_other_systems_are_ignored():
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert await flight.connected()
+        address = autopilot.link._connection.port.getsockname()
+        stranger = open_link(f"udpout://{address[0]}:{address[1]}", source_system=42,
+                             source_component=1)
+        impostor = open_link(f"udpout://{address[0]}:{address[1]}", source_system=1,
+                             source_component=100)
+        try:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+                for n in range(50):
+                    raw.sendto(bytes([0xFD, n, 0, 0, 0]) + bytes(range(n)), address)
+                    raw.sendto(np.random.default_rng(n).bytes(200), address)
+            stranger.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR,
+                                        mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0)
+            impostor.mav.timesync_send(0, 12345)
+            await flight.clock.sleep(0.5)
+        finally:
+            stranger.close()
+            impostor.close()
+        stats = autopilot.stats()
+        assert stats["bad_data"] > 0 and stats["foreign"] >= 2
+        assert autopilot.connected and autopilot.link_losses == 0
+        assert autopilot.take_imu()
+    fly(body)

@@ -1,0 +1,512 @@
+"""The planner on rendered depth: walls block arcs, unknown space is unsafe, the history
+remembers, the choice makes progress and holds steady, the fallback is last round's checked
+stop, and the setpoints fly the arcs that were checked."""
+
+import math
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, rot_z
+from autonomy.messages import DepthDiagnostics, MetricDepth
+from autonomy.options import OptionError
+from autonomy.planning.history import fill_small_holes, DepthHistory, min_table, window_min
+from autonomy.planning.planner import Plan, Planner, PlannerOptions
+
+CAMERA = PinholeCamera.from_hfov(160, 120, math.radians(90.0))
+ALTITUDE = 5.0
+#: Far walls all round filling every view, so that open space is observed (clipped to
+#: max_range).
+ROOM = [((40.0, -200.0, -200.0), (41.0, 200.0, 200.0)),
+        ((-41.0, -200.0, -200.0), (-40.0, 200.0, 200.0)),
+        ((-200.0, 40.0, -200.0), (200.0, 41.0, 200.0)),
+        ((-200.0, -41.0, -200.0), (200.0, -40.0, 200.0))]
+#: A wall on the left ahead, its edge 0.5 m left of the straight arc.
+WALL_LEFT = ((4.0, 0.5, -50.0), (4.5, 50.0, 50.0))
+DIAGNOSTICS = DepthDiagnostics(anchors=50, anchors_used=50, residual_rms=0.0, method="poly1",
+                               fit_age_s=0.0)
+
+
+def body(x=0.0, y=0.0, yaw=0.0, z=ALTITUDE):
+    return make_pose(rot_z(yaw), np.array([x, y, z]))
+
+
+def camera_pose(T_W_B):
+    return T_W_B @ make_pose(R_BODY_CAMERA, np.zeros(3))
+
+
+def render(T_W_C, boxes, camera=CAMERA):
+    """Depth (z along the optical axis) of the nearest axis-aligned box on each pixel's ray,
+    NaN where none is hit (slab intersection)."""
+    rays_C = camera.rays().reshape(-1, 3)
+    d = rays_C @ T_W_C[:3, :3].T  # world direction per unit optical depth
+    o = T_W_C[:3, 3]
+    best = np.full(len(d), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for lo, hi in boxes:
+            t1 = (np.asarray(lo) - o) / d
+            t2 = (np.asarray(hi) - o) / d
+            near = np.nanmax(np.minimum(t1, t2), axis=1)
+            far = np.nanmin(np.maximum(t1, t2), axis=1)
+            hit = (far >= near) & (far > 0)
+            best = np.where(hit, np.minimum(best, np.maximum(near, 0.0)), best)
+    depth = np.where(np.isfinite(best), best, np.nan).astype(np.float32)
+    return depth.reshape(camera.height, camera.width)
+
+
+def metric(depth, t, confidence=None):
+    if confidence is None:
+        confidence = np.ones_like(depth)
+    return MetricDepth(t, depth, np.asarray(confidence, dtype=np.float32), False, DIAGNOSTICS)
+
+
+def planner_seeing(boxes, T_W_B=None, t=0.0, options=None):
+    planner = Planner(CAMERA, options)
+    T_W_B = body() if T_W_B is None else T_W_B
+    planner.add_depth(metric(render(camera_pose(T_W_B), boxes), t), camera_pose(T_W_B))
+    return planner
+
+
+FORWARD = np.array([2.0, 0.0, 0.0])
+AHEAD = np.array([30.0, 0.0, ALTITUDE])
+
+
+# ---------------------------------------------------------------- the window look-up
+
+
+def test_window_minimum_equals_the_brute_force_minimum_or_a_superset_of_it():
+    rng = np.random.default_rng(3)
+    H, W = 48, 64
+    image = rng.uniform(1.0, 9.0, (H, W)).astype(np.float32)
+    flat = min_table(image).reshape(-1)
+    for _ in range(400):
+        u = np.sort(rng.uniform(-10, W + 10, 2))
+        v = np.sort(rng.uniform(-10, H + 10, 2))
+        got = window_min(flat, H, W, u[:1], u[1:], v[:1], v[1:])[0]
+        i0, i1 = (int(np.clip(np.floor(a + 0.5), 0, W - 1)) for a in u)
+        j0, j1 = (int(np.clip(np.floor(a + 0.5), 0, H - 1)) for a in v)
+        exact = image[j0:j1 + 1, i0:i1 + 1].min()
+        assert got <= exact  # never misses a pixel of the window
+        w, h = i1 - i0 + 1, j1 - j0 + 1
+        if max(w, h) <= 2 * min(w, h):
+            assert got == exact  # exact for windows no thinner than 2:1
+
+
+# ---------------------------------------------------------------- the sphere check
+
+
+def test_a_wall_blocks_points_whose_sphere_reaches_it_and_no_others():
+    T_W_C = camera_pose(body())
+    history = DepthHistory()
+    history.add(render(T_W_C, [((6.0, -50, -50), (6.5, 50, 50))]), np.ones((120, 160)),
+                T_W_C, CAMERA, 0.0)
+    xs = np.array([2.0, 3.0, 4.5, 5.1, 5.5])
+    result = history.check(np.column_stack([xs, np.zeros(5), np.full(5, ALTITUDE)]))
+    np.testing.assert_array_equal(result.free, [True, True, True, False, False])
+    # the centre ray's margin: range to the wall minus L + R (the nearest pixel ray is half a
+    # pixel off the axis, 2e-4 m longer)
+    np.testing.assert_allclose(result.clearance[:3], 6.0 - (xs[:3] + 1.0), atol=1e-3)
+    assert np.all(result.frame[:4] == 0.0)
+
+
+def test_unknown_depth_low_confidence_and_beyond_range_are_not_free():
+    T_W_C = camera_pose(body())
+    depth = render(T_W_C, ROOM)
+    point = np.array([[4.0, 0.0, ALTITUDE]])
+    history = DepthHistory()
+    history.add(depth, np.ones_like(depth), T_W_C, CAMERA, 0.0)
+    assert history.check(point).free.all()
+    assert not history.check([[9.5, 0.0, ALTITUDE]]).free.any()  # z + R beyond max_range
+    holes = depth.copy()
+    holes[40:80, 60:100] = np.nan  # a patch of unknown around the point's pixel, 40 px wide
+    only = DepthHistory(max_frames=1)
+    only.add(holes, np.ones_like(depth), T_W_C, CAMERA, 0.0)
+    assert not only.check(point).free.any()
+    unsure = np.ones_like(depth)
+    unsure[40:80, 60:100] = 0.1  # unsure, but of walls beyond max_range: far all the same
+    only.add(depth, unsure, T_W_C, CAMERA, 1.0)
+    assert only.check(point).free.all()
+    sliver = depth.copy()
+    sliver[55:65, 75:85] = np.nan  # 10 px: filled from the surfaces around it
+    only.add(sliver, np.ones_like(depth), T_W_C, CAMERA, 1.5)
+    assert only.check(point).free.all()
+    only.add(depth, np.ones_like(depth), T_W_C, CAMERA, 2.0)
+    assert only.check(point).free.all()
+
+
+def test_a_hole_takes_the_nearest_range_around_it_and_a_wide_one_keeps_an_unknown_core():
+    image = np.full((60, 80), 5.0, np.float32)
+    image[20:30, 30:40] = -1.0  # small hole
+    image[0:10, 0:10] = 2.0  # a near surface far from the hole
+    image[25, 45] = 3.0  # a near surface next to the hole
+    filled = fill_small_holes(image, 15)
+    assert (filled >= 0).all()
+    assert filled[25, 35] == 3.0  # the nearest range within reach, not the far wall
+    wide = np.full((100, 100), 5.0, np.float32)
+    wide[10:90, 10:90] = -1.0
+    out = fill_small_holes(wide, 15)
+    assert (out[30:70, 30:70] < 0).all() and (out[10:25, 10:90] == 5.0).all()
+
+
+def test_low_confidence_counts_as_unknown_when_near_and_as_far_beyond_range():
+    T_W_C = camera_pose(body())
+    far = np.full((CAMERA.height, CAMERA.width), 60.0, np.float32)  # the sky at max_depth
+    history = DepthHistory()
+    history.add(far, np.zeros_like(far), T_W_C, CAMERA, 0.0)
+    assert history.check([[4.0, 0.0, ALTITUDE]]).free.all()
+    unsure = DepthHistory()
+    unsure.add(np.full_like(far, 6.0), np.zeros_like(far), T_W_C, CAMERA, 1.0)
+    assert not unsure.check([[2.0, 0.0, ALTITUDE]]).free.any()
+
+
+def test_an_older_frame_decides_where_the_newest_cannot_tell():
+    T_W_C = camera_pose(body())
+    depth = render(T_W_C, ROOM)
+    history = DepthHistory()
+    history.add(depth, np.ones_like(depth), T_W_C, CAMERA, 0.0)
+    history.add(np.full_like(depth, np.nan), np.ones_like(depth), T_W_C, CAMERA, 0.1)
+    result = history.check([[4.0, 0.0, ALTITUDE]])
+    assert result.free.all() and result.frame[0] == 0.0
+
+
+def test_the_history_remembers_an_obstacle_that_left_the_view():
+    post = ((3.0, -0.3, -50.0), (3.6, 0.3, 50.0))
+    scene = [post, *ROOM]
+    ahead, left = camera_pose(body()), camera_pose(body(yaw=math.pi / 2))
+    points = np.array([[2.5, 0.0, ALTITUDE], [0.0, 4.0, ALTITUDE]])
+    for frames, expected_first in ((8, False), (1, False)):
+        history = DepthHistory(max_frames=frames)
+        for t, T in ((0.0, ahead), (0.1, left)):
+            depth = render(T, scene)
+            history.add(depth, np.ones_like(depth), T, CAMERA, t)
+        result = history.check(points)
+        assert result.free[0] == expected_first  # occupied (seen) or unknown (forgotten)
+        assert result.free[1]  # the newest frame sees open space to the left
+    remembered = DepthHistory()
+    for t, T in ((0.0, ahead), (0.1, left)):
+        depth = render(T, scene)
+        remembered.add(depth, np.ones_like(depth), T, CAMERA, t)
+    assert remembered.check(points).frame[0] == 0.0  # decided by the frame that saw the post
+
+
+def test_points_near_the_start_whose_sphere_reaches_the_camera_are_judged_by_their_ray():
+    T_W_C = camera_pose(body())
+    history = DepthHistory()
+    open_space = render(T_W_C, ROOM)
+    history.add(open_space, np.ones_like(open_space), T_W_C, CAMERA, 0.0)
+    start = np.array([0.0, 0.0, ALTITUDE])
+    near = np.array([[0.5, 0.0, ALTITUDE], [0.0, 0.0, ALTITUDE - 0.5]])  # ahead; below, unseen
+    result = history.check(near, start_W=start)
+    np.testing.assert_array_equal(result.free, [True, False])
+    assert not history.check(near[:1]).free.any()  # without the start its sphere is unseen
+    wall = render(T_W_C, [((0.7, -50, -50), (0.8, 50, 50))])
+    history.add(wall, np.ones_like(wall), T_W_C, CAMERA, 0.1)
+    assert not history.check([[0.9, 0.0, ALTITUDE]], start_W=start).free.any()
+
+
+def _exact_free(depth, T_W_C, points_W, camera=CAMERA, R=1.0, max_range=10.0):
+    """The exact per-ray rule by brute force: every known pixel ray through the sphere sees its
+    surface at least as far as the ray's exit distance s2 = d.c + sqrt((d.c)² - |c|² + R²)."""
+    rays = camera.rays().reshape(-1, 3)
+    norms = np.linalg.norm(rays, axis=1)
+    unit = rays / norms[:, None]
+    ranges = np.minimum(depth.reshape(-1), max_range) * norms
+    R_C_W, t_C_W = T_W_C[:3, :3].T, -T_W_C[:3, :3].T @ T_W_C[:3, 3]
+    verdicts = []
+    for p in np.asarray(points_W, dtype=float):
+        c = R_C_W @ p + t_C_W
+        b = unit @ c
+        disc = b * b - c @ c + R * R
+        hit = disc >= 0.0
+        verdicts.append(bool(np.all(ranges[hit] >= b[hit] + np.sqrt(disc[hit]))))
+    return np.array(verdicts)
+
+
+def test_the_ring_rule_never_calls_free_what_the_exact_per_ray_rule_does_not():
+    rng = np.random.default_rng(7)
+    rings_free = exact_free = 0
+    for trial in range(6):
+        T_W_C = camera_pose(body())
+        boxes = list(ROOM)
+        for _ in range(12):
+            lo = np.array([rng.uniform(2.0, 9.0), rng.uniform(-4.0, 4.0),
+                           rng.uniform(ALTITUDE - 4.0, ALTITUDE + 3.0)])
+            boxes.append((lo, lo + rng.uniform(0.05, 1.0, 3)))
+        depth = render(T_W_C, boxes)
+        history = DepthHistory(max_range=30.0)
+        history.add(depth, np.ones_like(depth), T_W_C, CAMERA, 0.0)
+        points = np.column_stack([rng.uniform(1.5, 8.0, 300), rng.uniform(-3.0, 3.0, 300),
+                                  rng.uniform(ALTITUDE - 2.5, ALTITUDE + 2.5, 300)])
+        rings = history.check(points).free
+        exact = _exact_free(depth, T_W_C, points, max_range=30.0)
+        assert not np.any(rings & ~exact)  # conservative
+        rings_free += rings.sum()
+        exact_free += exact.sum()
+    assert exact_free > 600 and rings_free > 0.65 * exact_free  # cautious, not hopelessly
+
+
+# ---------------------------------------------------------------- over a floor
+
+
+WIDE = PinholeCamera.from_hfov(640, 480, math.radians(90.0))
+FAR_WALL = ((30.0, -200.0, -50.0), (31.0, 200.0, 50.0))
+
+
+def floor_scene(altitude, boxes=()):
+    """The 640x480 depth of a level camera ``altitude`` above a flat floor (world z = 0): the
+    floor plane analytically, depth ``altitude / ((v - cy) / fy)`` below the horizon, and a
+    wall 30 m ahead and any ``boxes`` rendered; the planner seeing it from the origin."""
+    T_W_B = body(z=altitude)
+    down = WIDE.rays()[..., 1]
+    with np.errstate(divide="ignore"):
+        floor = np.where(down > 0.0, altitude / down, np.inf)
+    walls = render(camera_pose(T_W_B), [FAR_WALL, *boxes], WIDE)
+    depth = np.fmin(floor, walls).astype(np.float32)
+    planner = Planner(WIDE)
+    planner.add_depth(metric(depth, 0.0), camera_pose(T_W_B))
+    return planner, T_W_B, depth
+
+
+def _kinds(planner):
+    yaw = np.array([a.yaw_rate for a in planner.library])
+    climb = np.array([a.vertical_speed for a in planner.library])
+    return yaw, climb
+
+
+def test_level_arcs_1_5_m_over_a_floor_are_safe():
+    planner, T_W_B, _ = floor_scene(1.5)
+    plan = planner.plan(0.05, T_W_B, FORWARD, np.array([30.0, 0.0, 1.5]))
+    # straight on; it climbs (the floor's nearness costs), but level would do
+    assert plan.kind == "arc" and plan.primitive.yaw_rate == 0.0
+    safe, _ = planner.check(0.05, plan.T_W_S)
+    yaw, climb = _kinds(planner)
+    level = climb == 0.0
+    # every level arc whose end the camera sees (the two hardest turns each way end beside
+    # the 90 degree view from a standstill), and the climbs
+    assert safe[level & (abs(yaw) <= math.radians(33.0))].all()
+    assert safe[(climb > 0.0) & (abs(yaw) <= math.radians(33.0))].all()
+    # sinking 0.25 or 0.5 m/s for 2 s, then braking, ends within 1 m of the floor: unsafe
+    assert not safe[climb < 0.0].any()
+
+
+def test_level_arcs_0_8_m_over_a_floor_are_unsafe():
+    planner, T_W_B, depth = floor_scene(0.8)
+    plan = planner.plan(0.05, T_W_B, FORWARD, np.array([30.0, 0.0, 0.8]))
+    assert plan.kind == "stop" and plan.reason == "no safe primitive"
+    ahead = np.array([[x, 0.0, 0.8] for x in (2.0, 4.0, 6.0)])  # spheres reach 0.2 m under
+    assert not planner.history.check(ahead).free.any()
+    assert not _exact_free(depth, camera_pose(T_W_B), ahead, WIDE).any()
+
+
+def test_a_wall_2_5_m_ahead_over_a_floor_leaves_no_arc_safe():
+    wall = ((2.5, -50.0, -1.0), (3.0, 50.0, 50.0))
+    planner, T_W_B, _ = floor_scene(1.5, [wall])
+    # spheres 0.1 m short of the wall are free, 0.1 m into it are not
+    result = planner.history.check([[1.4, 0.0, 1.5], [1.6, 0.0, 1.5]])
+    np.testing.assert_array_equal(result.free, [True, False])
+    plan = planner.plan(0.05, T_W_B, FORWARD, np.array([30.0, 0.0, 1.5]))
+    # geometrically right: the hardest turn (45 deg/s at 2 m/s) has radius 2.55 m and reaches
+    # x = 2.55 m when it has turned 90 degrees, its sphere 1 m beyond the wall's face
+    assert plan.kind == "stop" and plan.reason == "no safe primitive"
+    safe, _ = planner.check(0.05, plan.T_W_S)
+    assert not safe.any()
+
+
+@pytest.mark.parametrize("gap, blocked", [(0.9, True), (1.3, False)])
+def test_a_thin_pole_within_the_radius_of_the_arc_is_seen(gap, blocked):
+    """A 0.1 m pole 5 m ahead, its near side ``gap`` from the straight arc."""
+    pole = ((4.95, gap, -1.0), (5.05, gap + 0.1, 50.0))
+    planner, T_W_B, depth = floor_scene(1.5, [pole])
+    point = [[5.0, 0.0, 1.5]]
+    assert planner.history.check(point).free[0] == (not blocked)
+    assert _exact_free(depth, camera_pose(T_W_B), point, WIDE)[0] == (not blocked)
+    safe, _ = planner.check(0.05, planner.plan(0.05, T_W_B, FORWARD, AHEAD).T_W_S)
+    yaw, climb = _kinds(planner)
+    assert safe[(yaw == 0.0) & (climb == 0.0)][0] == (not blocked)
+
+
+# ---------------------------------------------------------------- choosing
+
+
+def test_a_wall_ahead_leaves_nothing_safe_and_the_planner_brakes():
+    planner = planner_seeing([((3.0, -50, -50), (3.5, 50, 50))])
+    plan = planner.plan(0.05, body(), FORWARD, AHEAD)
+    assert plan.kind == "stop" and plan.reason == "no safe primitive" and plan.safe_count == 0
+    velocity, yaw_rate = plan.setpoint(0.05)
+    np.testing.assert_allclose(velocity, FORWARD)  # braking from the present velocity
+    assert yaw_rate == 0.0
+    np.testing.assert_allclose(plan.setpoint(0.05 + 2.0)[0], 0.0, atol=1e-12)
+
+
+def test_a_wall_on_the_left_turns_the_choice_right():
+    planner = planner_seeing([WALL_LEFT, *ROOM])
+    plan = planner.plan(0.05, body(), FORWARD, AHEAD)
+    assert plan.kind == "arc" and plan.reason == ""
+    assert plan.primitive.yaw_rate < 0.0
+    safe, clearance = planner.check(0.05, plan.T_W_S)
+    assert safe.sum() == plan.safe_count and 0 < plan.safe_count < len(planner.library)
+    turns = np.array([a.yaw_rate for a in planner.library])
+    assert not safe[turns >= 0.0].any()  # straight on or left: into the wall
+    assert safe[turns < 0.0].any()  # right turns clear of it
+    assert np.all(clearance[safe] >= 0.0)
+
+
+def test_no_depth_and_unknown_depth_mean_stop():
+    planner = Planner(CAMERA)
+    assert planner.plan(0.0, body(), FORWARD, AHEAD).reason == "no depth"
+    nothing = MetricDepth(0.0, None, None, False, DIAGNOSTICS)
+    assert planner.add_depth(nothing, camera_pose(body())) is False
+    assert planner.plan(0.0, body(), FORWARD, AHEAD).reason == "no depth"
+    blank = np.full((120, 160), np.nan, dtype=np.float32)
+    planner.add_depth(metric(blank, 0.0), camera_pose(body()))
+    assert planner.plan(0.05, body(), FORWARD, AHEAD).reason == "no safe primitive"
+    stale = planner_seeing(ROOM, t=0.0)
+    assert stale.plan(0.05, body(), FORWARD, AHEAD).kind == "arc"
+    assert stale.plan(5.0, body(), FORWARD, AHEAD).reason == "no depth"  # older than history_s
+
+
+def test_low_confidence_everywhere_means_stop():
+    planner = Planner(CAMERA)
+    T_W_C = camera_pose(body())
+    depth = np.full((CAMERA.height, CAMERA.width), 6.0, np.float32)  # a wall within range
+    planner.add_depth(metric(depth, 0.0, np.full_like(depth, 0.2)), T_W_C)
+    assert planner.plan(0.05, body(), FORWARD, AHEAD).reason == "no safe primitive"
+
+
+@pytest.mark.parametrize("goal, turn, climb", [((10.0, 10.0, ALTITUDE), 1, 0),
+                                               ((10.0, -10.0, ALTITUDE), -1, 0),
+                                               ((30.0, 0.0, ALTITUDE + 10.0), 0, 1)])
+def test_in_open_space_the_choice_heads_for_the_goal(goal, turn, climb):
+    planner = planner_seeing(ROOM)
+    plan = planner.plan(0.05, body(), FORWARD, np.array(goal))
+    assert plan.kind == "arc" and plan.safe_count >= 45
+    end_W = plan.T_W_S[:3, :3] @ plan.primitive.points_S[-1] + plan.T_W_S[:3, 3]
+    start = np.array([0.0, 0.0, ALTITUDE])
+    assert np.linalg.norm(end_W - goal) < np.linalg.norm(start - goal) - 3.0
+    assert np.sign(plan.primitive.yaw_rate) == turn
+    assert np.sign(plan.primitive.vertical_speed) == climb
+
+
+def test_smoothness_keeps_the_choice_near_the_previous_one():
+    changes = {}
+    for weight in (0.0, 3.0):
+        options = PlannerOptions(smoothness_weight=weight)
+        planner = planner_seeing(ROOM, options=options)
+        first = planner.plan(0.05, body(), FORWARD, np.array([5.0, 10.0, ALTITUDE]))
+        second = planner.plan(0.10, body(), FORWARD, AHEAD)
+        changes[weight] = abs(second.primitive.yaw_rate - first.primitive.yaw_rate)
+        again = planner.plan(0.15, body(), FORWARD, AHEAD)
+        assert again.primitive is planner.plan(0.2, body(), FORWARD, AHEAD).primitive
+    assert changes[3.0] < changes[0.0]
+
+
+def test_when_nothing_is_safe_the_previous_rounds_checked_stop_is_continued():
+    planner = planner_seeing(ROOM)
+    first = planner.plan(0.05, body(), FORWARD, np.array([10.0, 10.0, ALTITUDE]))
+    index = next(i for i, a in enumerate(planner.library) if a is first.primitive)
+    T_W_B = body(x=0.15)
+    wall = render(camera_pose(T_W_B), [((1.5, -50, -50), (2.0, 50, 50))])
+    planner.add_depth(metric(wall, 0.1), camera_pose(T_W_B))
+    stop = planner.plan(0.13, T_W_B, FORWARD, AHEAD)
+    assert stop.kind == "stop" and stop.reason == "no safe primitive"
+    assert stop.primitive is planner.branches[index]
+    assert stop.t == first.t and np.array_equal(stop.T_W_S, first.T_W_S)
+    assert stop.primitive.duration == pytest.approx(planner.options.period_s)
+    # the same commands as the first plan for one period, then braking along that heading
+    np.testing.assert_allclose(stop.setpoint(0.1)[0], first.setpoint(0.1)[0])
+    mid = first.t + planner.options.period_s + 1.0
+    np.testing.assert_allclose(np.linalg.norm(stop.setpoint(mid)[0]),
+                               0.5 * np.linalg.norm(first.primitive.end_velocity_S), rtol=1e-9)
+    assert stop.setpoint(mid)[1] == 0.0
+    failsafe = planner.stop_plan(0.2, T_W_B, FORWARD, "vins lost")
+    assert failsafe.primitive is stop.primitive and failsafe.reason == "vins lost"
+    late = planner.stop_plan(first.t + 10.0, T_W_B, FORWARD, "vins lost")  # it has run out
+    assert late.t == first.t + 10.0 and late.primitive.duration == 0.0
+
+
+def test_the_chosen_primitives_stop_branch_was_checked_free():
+    planner = planner_seeing([WALL_LEFT, *ROOM])
+    plan = planner.plan(0.05, body(), FORWARD, AHEAD)
+    i = next(i for i, a in enumerate(planner.library) if a is plan.primitive)
+    branch = planner.branches[i]
+    path_S = np.vstack([plan.primitive.points_S[1:], plan.primitive.stop_points_S,
+                        branch.points_S[-1:], branch.stop_points_S])
+    path_W = path_S @ plan.T_W_S[:3, :3].T + plan.T_W_S[:3, 3]
+    assert planner.history.check(path_W, start_W=plan.T_W_S[:3, 3]).free.all()
+
+
+# ---------------------------------------------------------------- setpoints
+
+
+def _fly(plan: Plan, t0: float, t1: float, dt: float = 1e-3):
+    """Integrate the setpoints (midpoint rule): positions and yaw relative to T_W_S."""
+    position, yaw, trace = plan.T_W_S[:3, 3].copy(), 0.0, []
+    for t in np.arange(t0, t1, dt):
+        velocity, yaw_rate = plan.setpoint(t + dt / 2)
+        position = position + velocity * dt
+        yaw += yaw_rate * dt
+        trace.append((t + dt, position.copy(), yaw))
+    return trace
+
+
+@pytest.mark.parametrize("yaw", [0.0, 2.0])
+def test_integrated_setpoints_follow_the_arc_and_its_extension(yaw):
+    planner = planner_seeing(ROOM, T_W_B=body(yaw=yaw))
+    goal = body(yaw=yaw) @ np.array([10.0, 6.0, 5.0, 1.0])
+    plan = planner.plan(1.0, body(yaw=yaw), FORWARD, goal[:3])
+    arc = plan.primitive
+    assert arc.yaw_rate != 0.0 and arc.vertical_speed != 0.0
+    trace = _fly(plan, 1.0, 1.0 + arc.duration + plan.stop_duration_s + 0.5)
+    times = np.array([t for t, _, _ in trace])
+    positions_S = (np.array([p for _, p, _ in trace]) - plan.T_W_S[:3, 3]) @ plan.T_W_S[:3, :3]
+    for tau, point in zip(arc.t, arc.points_S):
+        k = int(np.argmin(abs(times - 1.0 - tau)))
+        np.testing.assert_allclose(positions_S[k], point, atol=5e-3)
+    at_rest = positions_S[-1]
+    np.testing.assert_allclose(at_rest, arc.stop_points_S[-1], atol=5e-3)
+    assert trace[-1][2] == pytest.approx(arc.heading, abs=1e-3)
+    np.testing.assert_allclose(plan.setpoint(100.0)[0], 0.0)
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_bad_inputs_raise_clear_errors():
+    planner = planner_seeing(ROOM)
+    with pytest.raises(ValueError, match="goal_W must be finite"):
+        planner.plan(0.1, body(), FORWARD, [np.nan, 0.0, 0.0])
+    with pytest.raises(ValueError, match="velocity_W must be 3 numbers"):
+        planner.plan(0.1, body(), [1.0, 2.0], AHEAD)
+    with pytest.raises(ValueError, match="T_W_B must be finite"):
+        planner.plan(0.1, np.full((4, 4), np.inf), FORWARD, AHEAD)
+    with pytest.raises(ValueError, match="T_W_B must hold a rotation"):
+        planner.plan(0.1, np.diag([2.0, 1.0, 1.0, 1.0]), FORWARD, AHEAD)
+    with pytest.raises(ValueError, match="planning time"):
+        planner.plan(math.nan, body(), FORWARD, AHEAD)
+    with pytest.raises(ValueError, match="depth image must have the camera's shape"):
+        planner.add_depth(metric(np.ones((10, 10), np.float32), 0.0), camera_pose(body()))
+    with pytest.raises(ValueError, match="confidence must have"):
+        planner.add_depth(metric(np.ones((120, 160), np.float32), 0.0, np.ones((2, 2))),
+                          camera_pose(body()))
+    with pytest.raises(ValueError, match="no confidence"):
+        planner.add_depth(MetricDepth(0.0, np.ones((120, 160), np.float32), None, False,
+                                      DIAGNOSTICS), camera_pose(body()))
+    with pytest.raises(TypeError, match="MetricDepth"):
+        planner.add_depth(np.ones((120, 160)), camera_pose(body()))
+    with pytest.raises(ValueError, match="reason"):
+        planner.stop_plan(0.0, body(), FORWARD, "")
+
+
+@pytest.mark.parametrize("key, value", [("period_s", 2.0), ("max_range", 0.5),
+                                        ("max_yaw_rate_deg", 0.0), ("robot_radius", 0.0),
+                                        ("history_frames", 0)])
+def test_bad_options_are_named(key, value):
+    with pytest.raises(OptionError, match=key):
+        PlannerOptions(**{key: value})
+
+
+def test_planner_options_give_the_library_shape():
+    options = PlannerOptions(speed=1.5, yaw_rates=5, vertical_speeds=3)
+    shape = options.primitives
+    assert (shape.speed, shape.yaw_rates, shape.vertical_speeds) == (1.5, 5, 3)
+    assert len(Planner(CAMERA, options).library) == 15

@@ -1,0 +1,188 @@
+"""What an operator relies on in the service unit and the udev rules, checked on the files that
+get installed: the unit is started, watched and restarted by systemd, runs as `companion` with
+the groups that open the serial port, cameras and GPU, and no hardening option hides a device."""
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+SYSTEMD = Path(__file__).resolve().parent.parent / "systemd"
+UNIT = SYSTEMD / "companion.service"
+RULES = SYSTEMD / "99-companion.rules"
+
+
+def parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
+    """Section -> key -> every value assigned, in order (systemd keys may repeat, and the last
+    assignment of a single-valued key wins); comments and blank lines dropped, as systemd.syntax
+    describes. A line that is neither is a ValueError naming it."""
+    unit: dict[str, dict[str, list[str]]] = {}
+    section = None
+    for number, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line[0] in "#;":
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            section = unit.setdefault(line[1:-1], {})
+        elif "=" in line and section is not None and not line.endswith("\\"):
+            key, value = line.split("=", 1)
+            section.setdefault(key.strip(), []).append(value.strip())
+        else:
+            raise ValueError(f"line {number}: not a section, key=value or comment: {raw!r}")
+    return unit
+
+
+@pytest.fixture(scope="module")
+def unit():
+    return parse_unit(UNIT.read_text(encoding="utf-8"))
+
+
+def one(unit, section, key) -> str:
+    values = unit[section].get(key)
+    assert values, f"{section}.{key} is not set"
+    return values[-1]  # the last assignment wins in systemd
+
+
+def seconds(span: str) -> float:
+    match = re.fullmatch(r"(\d+(?:\.\d+)?)\s*(ms|s|min)?", span)
+    assert match, f"not a simple time span: {span!r}"
+    return float(match[1]) * {"ms": 1e-3, "s": 1.0, "min": 60.0, None: 1.0}[match[2]]
+
+
+def is_true(value: str) -> bool:
+    return value.lower() in ("1", "yes", "true", "on")
+
+
+def test_unit_parser_keeps_repeated_keys_and_rejects_stray_lines():
+    parsed = parse_unit("[Service]\n# c\nEnvironment=A=1\n\nEnvironment=B=2\n")
+    assert parsed["Service"]["Environment"] == ["A=1", "B=2"]
+    with pytest.raises(ValueError, match="line 2"):
+        parse_unit("[Service]\nType notify\n")
+
+
+def test_started_watched_and_restarted_by_systemd(unit):
+    assert one(unit, "Service", "Type") == "notify"
+    assert one(unit, "Service", "NotifyAccess") == "main"
+    assert 0 < seconds(one(unit, "Service", "WatchdogSec")) <= 5
+    assert one(unit, "Service", "Restart") == "on-failure"
+    assert seconds(one(unit, "Service", "RestartSec")) >= 1
+    assert int(one(unit, "Unit", "StartLimitBurst")) >= 1
+    assert seconds(one(unit, "Unit", "StartLimitIntervalSec")) > 0
+    assert one(unit, "Install", "WantedBy") == "multi-user.target"
+
+
+def test_runs_the_flight_command_with_the_installed_config(unit):
+    command = one(unit, "Service", "ExecStart").split()
+    assert command[0].startswith("/") and command[0].endswith("/bin/companion")
+    assert command[1:] == ["fly", "--config", "/etc/companion/flight.toml"]
+    assert "PYTHONUNBUFFERED=1" in " ".join(unit["Service"]["Environment"])
+
+
+def test_dedicated_user_with_the_device_groups(unit):
+    assert one(unit, "Service", "User") == "companion"
+    groups = " ".join(unit["Service"]["SupplementaryGroups"]).split()
+    assert {"dialout", "video", "plugdev"} <= set(groups)
+
+
+def test_hardening_hides_no_device(unit):
+    service = unit["Service"]
+    assert not is_true(service.get("PrivateDevices", ["no"])[-1])
+    assert service.get("DevicePolicy", ["auto"])[-1] == "auto"
+    assert "DeviceAllow" not in service  # any entry closes every device not listed
+    assert not is_true(service.get("ProtectClock", ["no"])[-1])  # implies a DeviceAllow
+    assert one(unit, "Service", "ProtectSystem") == "strict"
+    for key in ("NoNewPrivileges", "ProtectHome", "PrivateTmp", "ProtectKernelTunables",
+                "ProtectControlGroups"):
+        assert is_true(one(unit, "Service", key)), key
+    families = set(one(unit, "Service", "RestrictAddressFamilies").split())
+    assert {"AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK"} <= families  # sd_notify, UDP, udev
+
+
+def test_something_writable_under_protect_system_strict(unit):
+    service = unit["Service"]
+    assert any(k in service for k in ("StateDirectory", "LogsDirectory", "ReadWritePaths"))
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None,
+                    reason="systemd-analyze is not installed here")
+def test_systemd_analyze_verify_accepts_the_unit(tmp_path):
+    # verify also checks that ExecStart's program exists; the venv lives on the vehicle only
+    text = re.sub(r"^ExecStart=\S+", "ExecStart=/bin/true", UNIT.read_text(encoding="utf-8"),
+                  flags=re.MULTILINE)
+    copy = tmp_path / "companion.service"
+    copy.write_text(text, encoding="utf-8")
+    result = subprocess.run(["systemd-analyze", "verify", str(copy)], capture_output=True,
+                            text=True, timeout=60)
+    output = (result.stdout + result.stderr).strip()
+    assert result.returncode == 0 and not output, output
+
+
+RULE_TOKEN = re.compile(r'\s*([A-Z_]+)(\{[^}]+\})?\s*(==|!=|\+=|-=|:=|=)\s*"([^"]*)"\s*(,|$)')
+
+
+def parse_rules(text: str) -> list[list[tuple[str, str, str, str]]]:
+    """Each rule as (key, {attribute} or '', operator, value) tokens; a ValueError names a
+    line that is not a well-formed rule."""
+    rules = []
+    for number, line in _logical_lines(text):
+        tokens, position = [], 0
+        while position < len(line):
+            match = RULE_TOKEN.match(line, position)
+            if not match:
+                raise ValueError(f"line {number}: malformed at {line[position:]!r}")
+            tokens.append(match.groups()[:4])
+            position = match.end()
+        rules.append([(k, a or "", op, v) for k, a, op, v in tokens])
+    return rules
+
+
+def _logical_lines(text: str):
+    """(first line number, rule text) of each rule, continuation lines (a trailing backslash)
+    joined, comments and blank lines skipped."""
+    pending, start = "", 0
+    for number, line in enumerate(text.splitlines(), 1):
+        if not pending and (not line.strip() or line.lstrip().startswith("#")):
+            continue
+        start = start if pending else number
+        if line.endswith("\\"):
+            pending += line[:-1]
+            continue
+        yield start, pending + line
+        pending = ""
+    if pending:
+        raise ValueError(f"line {start}: the file ends inside a continued rule")
+
+
+def test_rules_parse_and_cover_the_serial_ports_and_cameras():
+    rules = parse_rules(RULES.read_text(encoding="utf-8"))
+
+    def find(**match):
+        return [r for r in rules
+                if all(any((k + a, v) == (key, value) for k, a, _, v in r)
+                       for key, value in match.items())]
+
+    assert any(("GROUP", "", "=", "dialout") in r for r in find(KERNEL="ttyTHS[0-9]*"))
+    for vendor in ("26ac", "3162"):
+        (pixhawk,) = find(**{"ATTRS{idVendor}": vendor, "SUBSYSTEM": "tty"})
+        assert ("SYMLINK", "", "+=", "fcu-usb") in pixhawk
+        assert ("ENV", "{ID_MM_DEVICE_IGNORE}", "=", "1") in pixhawk
+    assert any(("GROUP", "", "=", "video") in r for r in find(SUBSYSTEM="video4linux"))
+
+
+def test_rules_give_devices_only_to_groups_the_service_has(unit):
+    groups = set(" ".join(unit["Service"]["SupplementaryGroups"]).split())
+    for rule in parse_rules(RULES.read_text(encoding="utf-8")):
+        for key, _, op, value in rule:
+            if key == "GROUP":
+                assert value in groups, rule
+
+
+def test_rules_parser_rejects_malformed_lines():
+    with pytest.raises(ValueError, match="line 2"):
+        parse_rules('# ok\nKERNEL=="ttyTHS1" SYMLINK+="x"\n')
+    with pytest.raises(ValueError, match="line 1: the file ends"):
+        parse_rules('KERNEL=="ttyTHS1", \\\n')
+    assert parse_rules('KERNEL=="a", \\\n  SYMLINK+="b"\n') == [
+        [("KERNEL", "", "==", "a"), ("SYMLINK", "", "+=", "b")]]
