@@ -103,6 +103,7 @@ class FlightApp:
         self.last_update: FrameUpdate | None = None
         self.no_path_since: float | None = None
         self.stop_reason = ""
+        self.turned_for_path = False
         self.watchdog = SetpointWatchdog(clock.now, self._watchdog_stop,
                                          self.options.setpoint_deadline_s,
                                          1.0 / self.options.setpoint_rate_hz)
@@ -368,11 +369,17 @@ class FlightApp:
         self.checked_stop = self.planner.stop_plan(odometry.t, odometry.T_W_B,
                                                    odometry.velocity_W, "setpoint deadline")
         self.stats.planning_rounds += 1
-        if plan.kind == "stop":
-            self.stats.stop_rounds += 1
-            self.no_path_since = self.no_path_since if self.no_path_since is not None else now
-        else:
-            self.no_path_since = None
+        if plan.kind != "stop":
+            self.no_path_since, self.turned_for_path = None, False
+            return
+        self.stats.stop_rounds += 1
+        self.no_path_since = self.no_path_since if self.no_path_since is not None else now
+        if not self.turned_for_path and self._stopped() and abs(
+                self._heading_error()) > math.radians(self.options.align_done_deg):
+            # blocked, at rest and not facing the waypoint: one turn in place for a new view
+            # (the arcs only turn while moving on), then the no-path clock starts again
+            self.turned_for_path, self.no_path_since = True, None
+            self._go(FlightState.ALIGNING, "no safe primitive; turning to face the waypoint")
 
     def _advance_waypoints(self, position_W: np.ndarray) -> None:
         o = self.options

@@ -10,7 +10,7 @@ surface beyond the point where the ray *leaves* the sphere. A unit ray ``d`` at 
 from the centre ray passes the centre at the distance ``b = L sin(theta)`` (its impact) and,
 for ``b <= R``, leaves the sphere at the distance along the ray
 
-    s2(b) = sqrt(L² - b²) + sqrt(R² - b²)                     (= d.c + sqrt((d.c)² - L² + R²))
+    s2(b) = sqrt(L² - b²) + sqrt(R² - b²)          (= d.c + sqrt((d.c)² - L² + R²))
 
 which falls from ``L + R`` on the centre ray to the tangent distance ``sqrt(L² - R²)`` at the
 rim (both terms fall as ``b`` grows). A surface seen on the ray at a distance ``r >= s2(b)`` is
@@ -92,8 +92,9 @@ taken from farther back, must vouch for those spheres (they usually see them who
 earlier rule judged such a point by its centre's ray alone; in simulation it let a braking
 vehicle graze the corner of a hallway's entrance, whose edge no centre ray met. A frame must
 see the point: one beside, below or behind every camera stays unknown, and farther than ``2 R``
-from the start a sphere reaching a frame's camera plane is unseen by that frame. Older frames, taken from farther back, usually see these
-spheres whole, and their strong verdict wins.
+from the start a sphere reaching a frame's camera plane is unseen by that frame. Older
+frames, taken from farther back, usually see these spheres whole, and their strong verdict
+wins.
 
 Speed: each frame keeps a sparse table of its range image, ``table[k][v, u]`` the minimum over
 the ``2^k x 2^k`` square anchored at ``(u, v)``, with unknown pixels stored as -1 so that one
