@@ -35,13 +35,16 @@ import numpy as np
 
 from autonomy.depth.stage import MetricDepthStage
 from autonomy.geometry import invert_pose, rot_to_quat, yaw_alignment, yaw_of
-from autonomy.messages import Frame, MetricDepth, RelativeDepth
+from autonomy.messages import Frame, MetricDepth, Odometry, RelativeDepth
 from autonomy.planning.planner import Plan, Planner
 from autonomy.vins.estimator import FrameUpdate, Vins
 from autonomy.vins.health import HealthState
+from autonomy.vins.preintegration import ImuNoise
+from companion.eval.numbers import show
 from companion.mission import (GUARDED_STATES, OFFBOARD_STATES, FlightOptions, FlightState,
                                Mission)
 from companion.watchdog import SetpointWatchdog
+from companion.workers import make_workers
 from drivers.mavlink import px4
 from drivers.mavlink.autopilot import CompanionStatus
 
@@ -79,6 +82,23 @@ class FlightApp:
     ``workers`` maps "vins", "network", "planner" to a worker (:mod:`companion.workers`).
     """
 
+    @classmethod
+    def from_config(cls, config, *, autopilot, camera, depth_source, T_B_C, waypoints_L, clock,
+                    lockstep: bool, notifier=None) -> "FlightApp":
+        """The application with its VINS, planner and workers built from ``config``: an
+        undistorted ``[camera]`` mounted at ``T_B_C``, the ``[imu]`` noise model; workers
+        inline in lockstep, threads otherwise (closed when :meth:`run` ends)."""
+        pinhole = config.camera.pinhole()
+        imu = config.imu
+        noise = ImuNoise(imu.gyro_noise_density, imu.accel_noise_density,
+                         imu.gyro_bias_random_walk, imu.accel_bias_random_walk)
+        vins = Vins(pinhole, (0.0,) * 4, T_B_C, noise, config.vins,
+                    frontend=config.vins_frontend, static=config.vins_init)
+        return cls(config, autopilot=autopilot, camera=camera, depth_source=depth_source,
+                   vins=vins, T_B_C=T_B_C, planner=Planner(pinhole, config.planner),
+                   waypoints_L=waypoints_L, clock=clock, notifier=notifier,
+                   workers=make_workers(lockstep, ("vins", "network", "planner")))
+
     def __init__(self, config, *, autopilot, camera, depth_source: Callable[[Frame], np.ndarray],
                  vins: Vins, T_B_C: np.ndarray, planner: Planner, waypoints_L, clock,
                  workers: dict, notifier=None):
@@ -101,6 +121,7 @@ class FlightApp:
         self.last_depth_t: float | None = None
         self.last_depth_reason = ""
         self.last_update: FrameUpdate | None = None
+        self.odometry: Odometry | None = None  # newest VINS state, see _refresh_odometry
         self.no_path_since: float | None = None
         self.stop_reason = ""
         self.turned_for_path = False
@@ -125,6 +146,8 @@ class FlightApp:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+            for worker in self.workers.values():
+                worker.close()
         return self.summary()
 
     async def _guard(self, name: str, coroutine) -> None:
@@ -275,14 +298,13 @@ class FlightApp:
             self.last_frame_t = frame.t
             self.stats.frames += 1
             await self._wait_for_imu(frame.t)
-            self._feed_imu()
             update, disparity = await asyncio.gather(
                 self.workers["vins"].run(self._track, frame),
                 self.workers["network"].run(self._infer, frame))
             self._after_vins(update)
             metric = await self.workers["network"].run(self._metric_depth, frame.t, disparity,
                                                        update)
-            self._after_depth(metric, update)
+            await self._after_depth(metric, update)
 
     async def _wait_for_imu(self, t: float) -> None:
         give_up = self.clock.now() + IMU_WAIT_S
@@ -298,6 +320,8 @@ class FlightApp:
                 log.debug("IMU sample refused: %s", error)
 
     def _track(self, frame: Frame) -> FrameUpdate:
+        """The VINS on one frame, with the IMU up to it (on the VINS worker)."""
+        self._feed_imu()
         return self.vins.add_frame(frame.t, self.vins.track(frame.image))
 
     def _infer(self, frame: Frame) -> np.ndarray | None:
@@ -321,14 +345,16 @@ class FlightApp:
             return None
         return self.stage.process(RelativeDepth(t, disparity))
 
-    def _after_depth(self, metric: MetricDepth | None, update: FrameUpdate) -> None:
+    async def _after_depth(self, metric: MetricDepth | None, update: FrameUpdate) -> None:
         if metric is None:
             self._depth_failed("depth network failed")
             return
         if not metric.ok or update.T_W_B is None:
             self._depth_failed(metric.diagnostics.reason or "no VINS pose for the frame")
             return
-        self.planner.add_depth(metric, update.T_W_B @ self.T_B_C)
+        # on the planner's worker: the history is only touched there, in order with planning
+        await self.workers["planner"].run(self.planner.add_depth, metric,
+                                          update.T_W_B @ self.T_B_C)
         self.last_depth_t = metric.t
         if self.stats.navigation_start is not None and self.stats.navigation_end is None:
             self.stats.depth_ok += 1
@@ -348,7 +374,7 @@ class FlightApp:
             await self.clock.sleep(period)
 
     async def _plan_round(self) -> None:
-        odometry = self._odometry()
+        odometry = await self._refresh_odometry()
         if odometry is None or self.T_L_W is None:
             return
         now = self.clock.now()
@@ -360,14 +386,11 @@ class FlightApp:
             self._go(FlightState.ALIGNING, "next waypoint is behind; turning in place")
             return
         goal_W = self._to_W(self.waypoints_L[self.waypoint])
-        plan = await self.workers["planner"].run(self.planner.plan, odometry.t, odometry.T_W_B,
-                                                 odometry.velocity_W, goal_W)
+        plan, checked_stop = await self.workers["planner"].run(self._plan_with_stop, odometry,
+                                                               goal_W)
         if self.mission.state != FlightState.NAVIGATING:
             return  # a failsafe took over while planning
-        self.plan = plan
-        # the braking branch this round checked, for the watchdog thread to follow
-        self.checked_stop = self.planner.stop_plan(odometry.t, odometry.T_W_B,
-                                                   odometry.velocity_W, "setpoint deadline")
+        self.plan, self.checked_stop = plan, checked_stop
         self.stats.planning_rounds += 1
         if plan.kind != "stop":
             self.no_path_since, self.turned_for_path = None, False
@@ -380,6 +403,13 @@ class FlightApp:
             # (the arcs only turn while moving on), then the no-path clock starts again
             self.turned_for_path, self.no_path_since = True, None
             self._go(FlightState.ALIGNING, "no safe primitive; turning to face the waypoint")
+
+    def _plan_with_stop(self, odometry: Odometry, goal_W: np.ndarray) -> tuple[Plan, Plan]:
+        """This round's plan, and the braking branch it checked (for the watchdog thread to
+        follow); on the planner's worker."""
+        args = (odometry.t, odometry.T_W_B, odometry.velocity_W)
+        return (self.planner.plan(*args, goal_W),
+                self.planner.stop_plan(*args, "setpoint deadline"))
 
     def _advance_waypoints(self, position_W: np.ndarray) -> None:
         o = self.options
@@ -401,19 +431,25 @@ class FlightApp:
 
     def _stop_plan(self, reason: str) -> Plan | None:
         """The stop checked at the last planning round while it lasts (braking from the
-        present velocity after it, or when there was no round)."""
-        odometry = self._odometry()
+        newest state's velocity after it, or when there was no round)."""
+        odometry = self.odometry
         if odometry is None:
             return self.plan
         return self.planner.stop_plan(odometry.t, odometry.T_W_B, odometry.velocity_W, reason)
 
-    def _odometry(self):
+    async def _refresh_odometry(self) -> Odometry | None:
+        """The VINS state at the newest IMU sample, kept in :attr:`odometry`. On the VINS
+        worker: the estimator is touched by one thread only, in order with its frames."""
+        self.odometry = await self.workers["vins"].run(self._estimate)
+        return self.odometry
+
+    def _estimate(self) -> Odometry | None:
         self._feed_imu()
         return self.vins.odometry()
 
     def _heading_error(self) -> float:
         """Angle from the body's heading to the next waypoint, radians in (-pi, pi]."""
-        odometry = self.vins.odometry()
+        odometry = self.odometry
         if odometry is None or self.T_L_W is None:
             return 0.0
         to_goal = self._to_W(self.waypoints_L[self.waypoint]) - odometry.T_W_B[:3, 3]
@@ -421,7 +457,7 @@ class FlightApp:
         return math.atan2(math.sin(error), math.cos(error))
 
     def _stopped(self) -> bool:
-        odometry = self.vins.odometry()
+        odometry = self.odometry
         return odometry is not None and float(np.linalg.norm(odometry.velocity_W)) < \
             self.options.stopped_speed
 
@@ -475,7 +511,7 @@ class FlightApp:
     async def _send_odometry(self) -> None:
         period = 1.0 / self.options.odometry_rate_hz
         while True:
-            odometry = self._odometry() if self.T_L_W is not None else None
+            odometry = await self._refresh_odometry() if self.T_L_W is not None else None
             if odometry is not None and np.isfinite(odometry.T_W_B).all():
                 health = self.last_update.health if self.last_update else None
                 T_L_B = self.T_L_W @ odometry.T_W_B
@@ -595,6 +631,19 @@ class FlightApp:
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
             "waypoints_passed": self.waypoint,
         }
+
+
+def format_flight(summary: dict) -> str:
+    """The application's own summary (real or simulated flight) as a few lines."""
+    return "\n".join([
+        f"  final state       {summary['final_state']}",
+        f"  failsafes         {', '.join(summary['failsafes']) or 'none'}",
+        f"  flight time       {show(summary.get('flight_time_s'), '.1f', ' s')}",
+        f"  depth rate        {show(summary.get('depth_rate_hz'), '.1f', ' Hz')}",
+        f"  loop lag p99      {show(summary.get('loop_lag_ms_p99'), '.1f', ' ms')}",
+        f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops)",
+        f"  VINS resets       {summary['vins_resets']}",
+    ])
 
 
 def _quality(state: HealthState) -> int:

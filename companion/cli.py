@@ -16,8 +16,10 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from autonomy.options import OptionError
 from companion import __version__
 from companion.config import LOG_LEVELS, Config, ConfigError, dump_toml, load_config
+from companion.mission import parse_point
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -115,7 +117,8 @@ def _add_fly_command(commands: argparse._SubParsersAction,
 
 def _fly(args: argparse.Namespace, config: Config) -> int:
     from autonomy.depth.network import NetworkError
-    from companion import simfly, vehicle
+    from companion import vehicle
+    from companion.app import format_flight
     from drivers.camera.v4l2 import CameraError
 
     waypoints = args.goals or config.flight.waypoint_points()
@@ -124,7 +127,7 @@ def _fly(args: argparse.Namespace, config: Config) -> int:
     except (vehicle.FlyError, NetworkError, CameraError, ValueError, OSError) as error:
         print(f"fly: {error}", file=sys.stderr)
         return EXIT_FAILED
-    print(json.dumps(summary) if args.json else simfly.format_flight(summary))
+    print(json.dumps(summary) if args.json else format_flight(summary))
     return EXIT_OK if summary["final_state"] == "landed" and summary["reached_goal"] \
         else EXIT_FAILED
 
@@ -431,14 +434,12 @@ def _print_progress(line: str) -> None:
 
 
 def _point(text: str) -> tuple[float, float, float]:
-    """``x,y,z`` metres -> a finite 3-tuple."""
+    """``x,y,z`` metres -> a finite 3-tuple (:func:`companion.mission.parse_point`)."""
     try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z in metres, e.g. 10,-4,1.5; got {text!r}")
-    return values
+        return parse_point(text)
+    except OptionError:
+        raise argparse.ArgumentTypeError(
+            f"expected X,Y,Z in metres, e.g. 10,-4,1.5; got {text!r}") from None
 
 
 def _add_json_flag(parser: argparse.ArgumentParser, instead_of: str) -> None:

@@ -36,11 +36,8 @@ import numpy as np
 
 from autonomy.depth.network import DepthNetwork
 from autonomy.depth.synthetic import SyntheticNetwork
-from autonomy.planning.planner import Planner
-from autonomy.vins.estimator import Vins
-from autonomy.vins.preintegration import ImuNoise
-from companion.app import FlightApp
-from companion.workers import make_workers
+from companion.app import FlightApp, format_flight
+from companion.eval.numbers import show
 from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink.autopilot import Autopilot
 from drivers.sim.camera import SimCamera
@@ -205,7 +202,10 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera,
                         depth_source_for(config, mission.seed, faults, lambda: sim.time),
                         waypoints, lockstep=mission.clock == "lockstep")
-        summary = await app.run()
+        try:
+            summary = await app.run()
+        finally:
+            app.autopilot.close()
     finally:
         stall.cancel()
         await side.stop()
@@ -352,16 +352,10 @@ class FrameSlot:
 def build_app(config, clock, url: str, camera, depth_source, waypoints, *,
               lockstep: bool) -> FlightApp:
     """The application wired to a camera, a depth source and the autopilot at ``url``."""
-    pinhole = config.camera.pinhole()
-    noise = ImuNoise(config.imu.gyro_noise_density, config.imu.accel_noise_density,
-                     config.imu.gyro_bias_random_walk, config.imu.accel_bias_random_walk)
-    vins = Vins(pinhole, (0.0,) * 4, T_BODY_CAMERA, noise, config.vins,
-                frontend=config.vins_frontend, static=config.vins_init)
     autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
-    return FlightApp(config, autopilot=autopilot, camera=camera, depth_source=depth_source,
-                     vins=vins, T_B_C=T_BODY_CAMERA, planner=Planner(pinhole, config.planner),
-                     waypoints_L=waypoints, clock=clock,
-                     workers=make_workers(lockstep, ("vins", "network", "planner")))
+    return FlightApp.from_config(config, autopilot=autopilot, camera=camera,
+                                 depth_source=depth_source, T_B_C=T_BODY_CAMERA,
+                                 waypoints_L=waypoints, clock=clock, lockstep=lockstep)
 
 
 def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
@@ -402,29 +396,11 @@ def format_summary(summary: dict) -> str:
     lines = [f"{summary['world']} pair {summary['pair']} (seed {summary['seed']}) -> goal "
              f"{summary['goal']}",
              f"  reached goal      {'yes' if summary['reached_goal'] else 'no'}"
-             f" (closest {_number(summary, 'closest_to_goal_m', '.2f', ' m')})",
+             f" (closest {show(summary.get('closest_to_goal_m'), '.2f', ' m')})",
              f"  collisions        {summary['collisions']}",
-             f"  path length       {_number(summary, 'path_length_m', '.1f', ' m')}",
-             f"  min clearance     {_number(summary, 'min_clearance_m', '.2f', ' m')}"]
+             f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
+             f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}"]
     lines += format_flight(summary).splitlines()
     if summary.get("plot"):
         lines.append(f"  plot              {summary['plot']}")
     return "\n".join(lines)
-
-
-def format_flight(summary: dict) -> str:
-    """The application's own summary (real or simulated flight) as a few lines."""
-    return "\n".join([
-        f"  final state       {summary['final_state']}",
-        f"  failsafes         {', '.join(summary['failsafes']) or 'none'}",
-        f"  flight time       {_number(summary, 'flight_time_s', '.1f', ' s')}",
-        f"  depth rate        {_number(summary, 'depth_rate_hz', '.1f', ' Hz')}",
-        f"  loop lag p99      {_number(summary, 'loop_lag_ms_p99', '.1f', ' ms')}",
-        f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops)",
-        f"  VINS resets       {summary['vins_resets']}",
-    ])
-
-
-def _number(summary: dict, key: str, spec: str, unit: str = "") -> str:
-    value = summary.get(key)
-    return "n/a" if value is None else f"{value:{spec}}{unit}"

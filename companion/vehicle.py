@@ -19,12 +19,8 @@ import logging
 import signal
 
 from autonomy.depth.network import DepthNetwork
-from autonomy.planning.planner import Planner
-from autonomy.vins.estimator import Vins
-from autonomy.vins.preintegration import ImuNoise
 from companion.app import FlightApp
 from companion.service import SystemdNotifier
-from companion.workers import make_workers
 from drivers.camera.v4l2 import V4l2Camera
 from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot
@@ -54,28 +50,19 @@ async def _fly(config, waypoints) -> dict:
     network = DepthNetwork.open(config.depth_network, (config.camera.height,
                                                         config.camera.width))
     log.info("depth network on %s", network.provider)
-    pinhole = config.camera.pinhole()
-    noise = ImuNoise(config.imu.gyro_noise_density, config.imu.accel_noise_density,
-                     config.imu.gyro_bias_random_walk, config.imu.accel_bias_random_walk)
-    vins = Vins(pinhole, (0.0,) * 4, T_BODY_CAMERA, noise, config.vins,
-                frontend=config.vins_frontend, static=config.vins_init)
-    workers = make_workers(False, ("vins", "network", "planner"))
     async with V4l2Camera(config.camera, config.v4l2, clock) as camera:
         autopilot = Autopilot.open(config.mavlink, clock)
         try:
-            app = FlightApp(config, autopilot=autopilot, camera=camera,
-                            depth_source=lambda frame: network(frame.image, channels="rgb"),
-                            vins=vins, T_B_C=T_BODY_CAMERA, planner=Planner(pinhole,
-                                                                            config.planner),
-                            waypoints_L=waypoints, clock=clock, workers=workers,
-                            notifier=notifier)
+            app = FlightApp.from_config(
+                config, autopilot=autopilot, camera=camera,
+                depth_source=lambda frame: network(frame.image, channels="rgb"),
+                T_B_C=T_BODY_CAMERA, waypoints_L=waypoints, clock=clock, lockstep=False,
+                notifier=notifier)
             _stop_on_signals(app)
             return await app.run()
         finally:
             notifier.stopping("mission ended")
             autopilot.close()
-            for worker in workers.values():
-                worker.close()
 
 
 def _stop_on_signals(app: FlightApp) -> None:

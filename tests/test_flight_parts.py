@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import math
 import re
-import socket
 import threading
 import time
 
@@ -15,6 +14,7 @@ import pytest
 
 from autonomy.geometry import make_pose, rot_z, yaw_alignment
 from companion.mission import FlightState, Mission
+from companion.simfly import free_udp_port
 from companion.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
 from drivers.mavlink.link import open_link
@@ -52,12 +52,6 @@ def test_fault_clock_starts_when_the_vehicle_first_cruises():
     assert not schedule.active("link_cut", 11.2)
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def _received(link, seconds=0.5) -> list[str]:
     deadline, names = time.monotonic() + seconds, []
     while time.monotonic() < deadline:
@@ -67,7 +61,7 @@ def _received(link, seconds=0.5) -> list[str]:
 
 
 def test_a_cut_link_neither_sends_nor_delivers():
-    port = _free_port()
+    port = free_udp_port()
     with open_link(f"udpin://127.0.0.1:{port}") as server_raw, \
             open_link(f"udpout://127.0.0.1:{port}") as client:
         server = CuttableLink(server_raw)

@@ -28,13 +28,13 @@ no such stop or once it has run out, braking from the present velocity.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from autonomy.geometry import PinholeCamera, make_pose, rot_z, yaw_of
 from autonomy.messages import MetricDepth
-from autonomy.options import OptionError, option, validate
+from autonomy.options import OptionError, option
 from autonomy.planning.history import DepthHistory, as_pose
 from autonomy.planning.primitives import (
     Primitive, PrimitiveOptions, forward_arc, library, stop_primitive,
@@ -42,23 +42,10 @@ from autonomy.planning.primitives import (
 
 
 @dataclass(frozen=True)
-class PlannerOptions:
-    """Every planner setting, flat (one ``[planner]`` table): the library's shape as in
-    :class:`PrimitiveOptions`, the collision check and the cost."""
+class PlannerOptions(PrimitiveOptions):
+    """Every planner setting, flat (one ``[planner]`` table): the library's shape (the fields of
+    :class:`PrimitiveOptions`, inherited), the collision check and the cost."""
 
-    speed: float = option(2.0, gt=0.0, le=20.0, doc="horizontal speed along every arc, m/s")
-    duration_s: float = option(2.0, gt=0.0, le=10.0, doc="length of an arc in time, seconds")
-    yaw_rates: int = option(15, ge=1, le=101, doc="yaw rates in the library, spread evenly "
-                            "over [-max_yaw_rate, max_yaw_rate] (odd keeps a straight arc)")
-    max_yaw_rate_deg: float = option(45.0, ge=0.0, le=360.0, doc="largest yaw rate of an arc, "
-                                     "degrees per second")
-    vertical_speeds: int = option(5, ge=1, le=21, doc="vertical speeds in the library, spread "
-                                  "evenly over [-max_vertical_speed, max_vertical_speed]")
-    max_vertical_speed: float = option(0.5, ge=0.0, le=5.0, doc="largest climb or sink rate of "
-                                       "an arc, m/s")
-    stop_duration_s: float = option(2.0, gt=0.0, le=10.0, doc="time to brake to rest, seconds")
-    sample_spacing: float = option(0.25, gt=0.0, le=5.0, doc="largest distance between the "
-                                   "points a primitive is checked at, metres")
     period_s: float = option(1.0 / 12.0, gt=0.0, le=1.0, doc="time between planning rounds, "
                              "seconds: the stop checked each round follows the arc this long")
     robot_radius: float = option(1.0, gt=0.0, le=10.0, doc="radius of the sphere about each "
@@ -80,23 +67,19 @@ class PlannerOptions:
                                      "radius that costs nothing, metres")
 
     def __post_init__(self) -> None:
-        validate(self)
+        super().__post_init__()
         if self.period_s >= self.duration_s:
             raise OptionError("period_s", f"must be < duration_s ({self.duration_s:g}), "
                               f"got {self.period_s:g}")
         if self.max_range <= self.robot_radius:
             raise OptionError("max_range", f"must be > robot_radius ({self.robot_radius:g}), "
                               f"got {self.max_range:g}")
-        self.primitives  # builds PrimitiveOptions, whose checks name a bad key
 
     @property
     def primitives(self) -> PrimitiveOptions:
-        """The library's shape as :class:`PrimitiveOptions`."""
-        return PrimitiveOptions(
-            speed=self.speed, duration_s=self.duration_s, yaw_rates=self.yaw_rates,
-            max_yaw_rate_deg=self.max_yaw_rate_deg, vertical_speeds=self.vertical_speeds,
-            max_vertical_speed=self.max_vertical_speed, stop_duration_s=self.stop_duration_s,
-            sample_spacing=self.sample_spacing)
+        """The library's shape alone, as :class:`PrimitiveOptions`."""
+        return PrimitiveOptions(**{f.name: getattr(self, f.name)
+                                   for f in fields(PrimitiveOptions)})
 
 
 @dataclass(frozen=True, eq=False)
