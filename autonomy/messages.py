@@ -30,8 +30,9 @@ class Frame:
     """One camera image taken at ``t``: ``image`` uint8 RGB (H, W, 3), the camera's resolution.
 
     ``truth_depth`` is the renderer's ground-truth depth (float32 metres, NaN where nothing
-    was hit) in simulation only, for the synthetic stand-in network and for evaluation; a real
-    camera driver leaves it None and nothing on the flight path may rely on it.
+    was hit) in simulation only, for the synthetic stand-in network and for evaluation (the
+    ground-truth-depth baseline, ``companion sim fly --depth truth``); a real camera driver
+    leaves it None and nothing else on the flight path may rely on it.
     """
 
     t: float

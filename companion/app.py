@@ -8,13 +8,14 @@ DESIGN.md, "The process". Tasks on one event loop, each a short coroutine:
   side on their own workers, then the metric depth stage, whose output goes into the planner's
   depth history;
 - the planner every ``[planner] period_s`` on the newest VINS state;
-- the setpoint sender at ``setpoint_rate_hz``: the plan sampled now, turned into PX4's local
-  frame; the :class:`~companion.watchdog.SetpointWatchdog` thread replaces it by the stop when it
-  is late;
+- the setpoint sender at ``setpoint_rate_hz``: the plan sampled now (velocity corrected toward
+  the plan's position, acceleration as feed-forward), turned into PX4's local frame; the
+  :class:`~companion.watchdog.SetpointWatchdog` thread replaces it by the stop when it is late;
 - ODOMETRY to PX4 at ``odometry_rate_hz``;
 - the monitor at ``monitor_rate_hz``: event-loop lag and the failsafe checks;
 - the mission (:mod:`companion.mission`): preflight, initialisation, take-off, offboard,
-  navigation through the waypoints, landing.
+  navigation through the waypoints (stopping, gliding and turning at corners: docs/flight.md),
+  landing.
 
 Frames: the VINS world ``W`` is fixed at its static initialisation; PX4's local frame ``L``
 (ENU here, NED on the wire) is its own. They are tied once, on the ground, by the yaw and
@@ -28,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -36,13 +38,13 @@ import numpy as np
 from autonomy.depth.stage import MetricDepthStage
 from autonomy.geometry import invert_pose, rot_to_quat, yaw_alignment, yaw_of
 from autonomy.messages import Frame, MetricDepth, Odometry, RelativeDepth
-from autonomy.planning.planner import Plan, Planner
+from autonomy.planning.planner import Plan, Planner, Setpoint
 from autonomy.vins.estimator import FrameUpdate, Vins
 from autonomy.vins.health import HealthState
 from autonomy.vins.preintegration import ImuNoise
 from companion.eval.numbers import show
 from companion.mission import (GUARDED_STATES, OFFBOARD_STATES, FlightOptions, FlightState,
-                               Mission)
+                               Mission, stop_waypoints)
 from companion.watchdog import SetpointWatchdog
 from companion.workers import make_workers
 from drivers.mavlink import px4
@@ -54,6 +56,25 @@ log = logging.getLogger(__name__)
 IMU_WAIT_S = 0.05
 #: How often a waiting step polls, seconds.
 POLL_S = 0.01
+#: Oldest VINS state the setpoints' tracking correction uses, seconds.
+TRACKING_MAX_AGE_S = 0.2
+#: After a turn at a corner: how long without metric depth before gliding for parallax (s),
+#: how far back along the approach (m), and the reason its plans carry.
+PARALLAX_WAIT_S = 0.3
+PARALLAX_GLIDE_M = 0.5
+#: Planning rounds' positions kept as the flown trail (5 s at 12 Hz): a glide back to one of
+#: them goes over ground just flown.
+TRAIL_LENGTH = 60
+PARALLAX_REASON = "gliding for parallax"
+
+
+@dataclass
+class CornerState:
+    """What the application keeps about the route's stop waypoints (corners, the goal)."""
+
+    pending: bool = False  # one was just passed: stop and turn before going on
+    trail: deque = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))  # flown, W
+    parallax_moves: list = field(default_factory=list)  # glides back and forth, after turning
 
 
 @dataclass
@@ -71,7 +92,8 @@ class FlightStats:
     navigation_end: float | None = None
     takeoff_t: float | None = None
     landed_t: float | None = None
-    vins_resets_at_takeoff: int = 0
+    vins_reinitialisations_at_takeoff: int = 0
+    vins_rebuilds_seen: int = 0
 
 
 class FlightApp:
@@ -79,12 +101,14 @@ class FlightApp:
 
     ``waypoints_L``: (N, 3) points in PX4's local frame (ENU), the last one the goal.
     ``depth_source(frame) -> relative disparity`` is the network (or the simulator's stand-in).
+    ``metric_source(frame) -> MetricDepth``, when given, replaces the network and the rescaler
+    (the simulator's true depth: the ground-truth-depth baseline of the evaluation).
     ``workers`` maps "vins", "network", "planner" to a worker (:mod:`companion.workers`).
     """
 
     @classmethod
     def from_config(cls, config, *, autopilot, camera, depth_source, T_B_C, waypoints_L, clock,
-                    lockstep: bool, notifier=None) -> "FlightApp":
+                    lockstep: bool, notifier=None, metric_source=None) -> "FlightApp":
         """The application with its VINS, planner and workers built from ``config``: an
         undistorted ``[camera]`` mounted at ``T_B_C``, the ``[imu]`` noise model; workers
         inline in lockstep, threads otherwise (closed when :meth:`run` ends)."""
@@ -97,18 +121,25 @@ class FlightApp:
         return cls(config, autopilot=autopilot, camera=camera, depth_source=depth_source,
                    vins=vins, T_B_C=T_B_C, planner=Planner(pinhole, config.planner),
                    waypoints_L=waypoints_L, clock=clock, notifier=notifier,
-                   workers=make_workers(lockstep, ("vins", "network", "planner")))
+                   workers=make_workers(lockstep, ("vins", "network", "planner")),
+                   metric_source=metric_source)
 
     def __init__(self, config, *, autopilot, camera, depth_source: Callable[[Frame], np.ndarray],
                  vins: Vins, T_B_C: np.ndarray, planner: Planner, waypoints_L, clock,
-                 workers: dict, notifier=None):
+                 workers: dict, notifier=None,
+                 metric_source: Callable[[Frame], MetricDepth] | None = None):
         self.options: FlightOptions = config.flight
         self._home_z = 0.0
         self.autopilot, self.camera, self.clock = autopilot, camera, clock
         self.depth_source, self.vins, self.planner = depth_source, vins, planner
+        self.metric_source = metric_source
         self.T_B_C = np.asarray(T_B_C, dtype=float)
         self.stage = MetricDepthStage(config.rescale, config.depth)
         self.waypoints_L = _checked_waypoints(waypoints_L)
+        #: Waypoints the vehicle stops at: the goal, and corners sharper than
+        #: ``corner_turn_deg`` (approached slowly; at rest it faces the next leg).
+        self.stop_at = stop_waypoints(self.waypoints_L, math.radians(
+            self.options.corner_turn_deg))
         self.workers = workers
         self.notifier = notifier  # systemd (companion.service.SystemdNotifier) or None
         self.mission = Mission(clock.now())
@@ -119,12 +150,14 @@ class FlightApp:
         self.checked_stop: Plan | None = None
         self.last_frame_t: float | None = None
         self.last_depth_t: float | None = None
+        self.last_fit_t: float | None = None  # newest depth rescaled by its own frame's fit
         self.last_depth_reason = ""
         self.last_update: FrameUpdate | None = None
         self.odometry: Odometry | None = None  # newest VINS state, see _refresh_odometry
         self.no_path_since: float | None = None
         self.stop_reason = ""
         self.turned_for_path = False
+        self.corner = CornerState()
         self.watchdog = SetpointWatchdog(clock.now, self._watchdog_stop,
                                          self.options.setpoint_deadline_s,
                                          1.0 / self.options.setpoint_rate_hz)
@@ -219,7 +252,7 @@ class FlightApp:
             self._abort("arming denied")
             return
         self.stats.takeoff_t = self.clock.now()
-        self.stats.vins_resets_at_takeoff = self.vins.resets
+        self.stats.vins_reinitialisations_at_takeoff = self.vins.reinitialisations
         if not await autopilot.takeoff(o.takeoff_altitude):
             self._go(FlightState.LANDING, "take-off denied")
             return
@@ -298,13 +331,14 @@ class FlightApp:
             self.last_frame_t = frame.t
             self.stats.frames += 1
             await self._wait_for_imu(frame.t)
-            update, disparity = await asyncio.gather(
-                self.workers["vins"].run(self._track, frame),
-                self.workers["network"].run(self._infer, frame))
+            network = self.workers["network"]
+            source = self.metric_source if self.metric_source is not None else self._infer
+            update, depth = await asyncio.gather(self.workers["vins"].run(self._track, frame),
+                                                 network.run(source, frame))
             self._after_vins(update)
-            metric = await self.workers["network"].run(self._metric_depth, frame.t, disparity,
-                                                       update)
-            await self._after_depth(metric, update)
+            if self.metric_source is None:  # rescale with the sparse map of this very frame
+                depth = await network.run(self._metric_depth, frame.t, depth, update)
+            await self._after_depth(depth, update)
 
     async def _wait_for_imu(self, t: float) -> None:
         give_up = self.clock.now() + IMU_WAIT_S
@@ -356,6 +390,8 @@ class FlightApp:
         await self.workers["planner"].run(self.planner.add_depth, metric,
                                           update.T_W_B @ self.T_B_C)
         self.last_depth_t = metric.t
+        if not metric.held:
+            self.last_fit_t = metric.t
         if self.stats.navigation_start is not None and self.stats.navigation_end is None:
             self.stats.depth_ok += 1
 
@@ -378,14 +414,19 @@ class FlightApp:
         if odometry is None or self.T_L_W is None:
             return
         now = self.clock.now()
+        self.corner.trail.append(odometry.T_W_B[:3, 3].copy())
         self._advance_waypoints(odometry.T_W_B[:3, 3])
         if self.mission.state != FlightState.NAVIGATING:
             return
-        if abs(self._heading_error()) > math.radians(self.options.align_threshold_deg) \
-                and self._stopped():
-            self._go(FlightState.ALIGNING, "next waypoint is behind; turning in place")
-            return
         goal_W = self._to_W(self.waypoints_L[self.waypoint])
+        if self.corner.pending or (abs(self._heading_error()) > math.radians(
+                self.options.align_threshold_deg) and not self._gliding()):
+            await self._turn_at_corner()
+            return
+        if self._move_for_parallax(odometry, now):
+            return
+        if await self._approach(odometry, goal_W):
+            return
         plan, checked_stop = await self.workers["planner"].run(self._plan_with_stop, odometry,
                                                                goal_W)
         if self.mission.state != FlightState.NAVIGATING:
@@ -404,24 +445,112 @@ class FlightApp:
             self.turned_for_path, self.no_path_since = True, None
             self._go(FlightState.ALIGNING, "no safe primitive; turning to face the waypoint")
 
+    def _gliding(self) -> bool:
+        """Is the vehicle on a checked glide to a stop waypoint? Its heading does not matter
+        then (near the point, the bearing to it swings wildly)."""
+        return self.plan is not None and self.plan.reason == "approach"
+
+    async def _approach(self, odometry: Odometry, goal_W: np.ndarray) -> bool:
+        """Near a stop waypoint (a corner, the goal) and slow: glide straight to it when the
+        planner finds that safe (True), else plan arcs as usual (False). A corner is glided to
+        exactly; the goal only to half ``goal_tolerance`` short of it, or failing that 0.9 of
+        it (horizontally, at its height), since a goal near a wall may leave no room for the
+        sphere on the point."""
+        o = self.options
+        position = odometry.T_W_B[:3, 3]
+        offset = goal_W - position
+        distance = float(np.hypot(offset[0], offset[1]))
+        if not self.stop_at[self.waypoint] or distance > o.approach_distance or float(
+                np.linalg.norm(odometry.velocity_W)) > self.planner.tiers[-1].speed \
+                + o.stopped_speed:
+            return False
+        plan = None
+        for short in ((0.0,) if self.waypoint < len(self.waypoints_L) - 1 else (0.5, 0.9)):
+            target = goal_W.copy()
+            if short > 0.0 and distance > 0.0:
+                target[:2] -= offset[:2] * (min(distance, short * o.goal_tolerance) / distance)
+            plan = await self.workers["planner"].run(self.planner.approach, odometry.t,
+                                                     odometry.T_W_B, target)
+            if plan is not None:
+                break
+        if plan is None:
+            return False
+        self.plan = self.checked_stop = plan
+        self.stats.planning_rounds += 1
+        self.no_path_since, self.turned_for_path = None, False
+        return True
+
+    def _move_for_parallax(self, odometry: Odometry, now: float) -> bool:
+        """After turning in place at a corner the view is new, and a monocular VINS has no
+        landmarks in it until the camera moves sideways: no anchors, no metric depth, no arc
+        checked. Then glide back to the newest point of the trail just flown half a metre off
+        (the straight line to it stays within centimetres of ground the vehicle was on a
+        moment ago) and return to the corner: the camera, facing the next leg, moves across
+        its view. True while doing so."""
+        moves = self.corner.parallax_moves
+        if not moves:
+            return False
+        started = len(moves) < 2
+        if not started and self._age(self.last_fit_t, now) <= PARALLAX_WAIT_S:
+            moves.clear()  # anchors came back by themselves (a held fit does not count)
+            return False
+        plan = self.plan
+        if started and plan is not None and plan.reason == PARALLAX_REASON \
+                and now < plan.end_time:
+            return True
+        target = moves.pop(0)
+        glide = self.planner.glide(odometry.t, odometry.T_W_B, target, PARALLAX_REASON)
+        if glide is not None:
+            self.plan = self.checked_stop = glide
+        log.info("no depth after turning at the corner; gliding %s along the approach",
+                 "back" if moves else "to the corner")
+        return True
+
+    async def _turn_at_corner(self) -> None:
+        """At a corner (a stop waypoint just passed, or the next waypoint far off the
+        heading): come to rest on the stop checked at the last round, then turn in place to
+        face the next waypoint; the arcs would sweep wide. A stop by choice: the no-path clock
+        does not run."""
+        self.no_path_since = None
+        if not self._stopped():
+            self.plan = await self.workers["planner"].run(
+                self._stop_plan, "stopping to turn to the next waypoint")
+            return
+        corner, position = self.corner, self.odometry.T_W_B[:3, 3]
+        corner.pending = False
+        back = next((p for p in reversed(corner.trail)
+                     if np.hypot(*(p - position)[:2]) >= PARALLAX_GLIDE_M), None)
+        if back is not None:
+            corner.parallax_moves = [back.copy(), position.copy()]
+        if abs(self._heading_error()) > math.radians(self.options.align_done_deg):
+            self._go(FlightState.ALIGNING, "at a corner; turning to face the next waypoint")
+
     def _plan_with_stop(self, odometry: Odometry, goal_W: np.ndarray) -> tuple[Plan, Plan]:
         """This round's plan, and the braking branch it checked (for the watchdog thread to
         follow); on the planner's worker."""
         args = (odometry.t, odometry.T_W_B, odometry.velocity_W)
-        return (self.planner.plan(*args, goal_W),
+        return (self.planner.plan(*args, goal_W, stop_at_goal=self.stop_at[self.waypoint]),
                 self.planner.stop_plan(*args, "setpoint deadline"))
 
     def _advance_waypoints(self, position_W: np.ndarray) -> None:
+        """Pass every waypoint within ``waypoint_tolerance``, or stop at the goal within
+        ``goal_tolerance`` and ``height_tolerance``: horizontal distances and, for the goal,
+        the height (as PX4's acceptance radius and altitude acceptance). A waypoint guides
+        the route; the planner may pass it higher, over what lies below."""
         o = self.options
         while True:
-            distance = float(np.linalg.norm(self._to_W(self.waypoints_L[self.waypoint])
-                                            - position_W))
+            offset = self._to_W(self.waypoints_L[self.waypoint]) - position_W
+            distance = float(np.hypot(offset[0], offset[1]))
             last = self.waypoint == len(self.waypoints_L) - 1
-            if last and distance <= o.goal_tolerance:
+            if last and distance <= o.goal_tolerance \
+                    and abs(float(offset[2])) <= o.height_tolerance:
                 self._stop_at_goal()
                 return
-            if last or distance > o.waypoint_tolerance:
+            tolerance = o.corner_tolerance if self.stop_at[self.waypoint] else \
+                o.waypoint_tolerance
+            if last or distance > tolerance:
                 return
+            self.corner.pending = self.stop_at[self.waypoint]
             self.waypoint += 1
             log.info("waypoint %d of %d", self.waypoint + 1, len(self.waypoints_L))
 
@@ -474,24 +603,45 @@ class FlightApp:
             self.watchdog.arm(commanding)
             if commanding:
                 now = self.clock.now()
-                velocity_W, yaw_rate = self._command(now)
-                self._send_velocity(velocity_W, yaw_rate)
+                self._send(self._tracked(self._command(now), now))
                 self.watchdog.fed(now)
             await self.clock.sleep(period)
 
-    def _command(self, now: float) -> tuple[np.ndarray, float]:
+    def _command(self, now: float) -> Setpoint:
         state = self.mission.state
         if state == FlightState.ALIGNING:
             rate = math.radians(self.options.align_yaw_rate_deg)
-            return np.zeros(3), math.copysign(rate, self._heading_error())
+            return _still(math.copysign(rate, self._heading_error()))
         if state == FlightState.ENTERING_OFFBOARD or self.plan is None:
-            return np.zeros(3), 0.0
+            return _still()
         return self.plan.setpoint(now)
 
-    def _send_velocity(self, velocity_W: np.ndarray, yaw_rate: float) -> None:
-        velocity_L = self.T_L_W[:3, :3] @ velocity_W
+    def _tracked(self, setpoint: Setpoint, now: float) -> Setpoint:
+        """``setpoint`` with its velocity corrected toward the plan's position:
+        ``v + k (p_plan - p)``, ``p`` the newest VINS position carried to ``now`` on its
+        velocity, the correction at most ``max_tracking_speed``. Without it the autopilot's
+        velocity loop lets the vehicle run on (in braking, its integrator keeps a creep for
+        seconds) off the primitive the planner checked. Unchanged without a fresh VINS state
+        or a plan position."""
+        o, odometry = self.options, self.odometry
+        if setpoint.position_W is None or odometry is None or o.tracking_gain == 0.0 \
+                or not 0.0 <= now - odometry.t <= TRACKING_MAX_AGE_S:
+            return setpoint
+        position = odometry.T_W_B[:3, 3] + odometry.velocity_W * (now - odometry.t)
+        correction = o.tracking_gain * (setpoint.position_W - position)
+        size = float(np.linalg.norm(correction))
+        if not math.isfinite(size):
+            return setpoint
+        if size > o.max_tracking_speed:
+            correction *= o.max_tracking_speed / size
+        return setpoint._replace(velocity_W=setpoint.velocity_W + correction)
+
+    def _send(self, setpoint: Setpoint, T_L_W: np.ndarray | None = None) -> None:
+        """``setpoint`` (frame W) to PX4 in frame L; zero velocity if it is not finite."""
+        R_L_W = (self.T_L_W if T_L_W is None else T_L_W)[:3, :3]
         try:
-            self.autopilot.send_velocity(velocity_L, yaw_rate)
+            self.autopilot.send_velocity(R_L_W @ setpoint.velocity_W, setpoint.yaw_rate,
+                                         R_L_W @ setpoint.acceleration_W)
         except ValueError as error:  # a non-finite command never leaves: send the stop
             log.error("setpoint refused (%s); sending zero velocity", error)
             self.autopilot.send_velocity(np.zeros(3), 0.0)
@@ -505,8 +655,7 @@ class FlightApp:
         if plan is None or T_L_W is None:
             self.autopilot.send_velocity(np.zeros(3), 0.0)
             return
-        velocity_W, yaw_rate = plan.setpoint(now)
-        self.autopilot.send_velocity(T_L_W[:3, :3] @ velocity_W, yaw_rate)
+        self._send(plan.setpoint(now), T_L_W)
 
     async def _send_odometry(self) -> None:
         period = 1.0 / self.options.odometry_rate_hz
@@ -557,12 +706,19 @@ class FlightApp:
             (self._age(self.last_frame_t, now) > o.camera_timeout_s, "camera silent"),
             (self._age(self.autopilot.last_imu_t, now) > o.imu_timeout_s, "IMU silent"),
             (self._vins_problem() != "", self._vins_problem()),
-            (self._age(self.last_depth_t, now) > o.depth_timeout_s,
+            (self._age(self.last_depth_t, now) > o.depth_timeout_s and not self._turning(),
              f"no metric depth ({self.last_depth_reason or 'none yet'})"),
             (self.no_path_since is not None and now - self.no_path_since > o.no_path_timeout_s,
              "no safe primitive"),
         )
         return next((reason for failed, reason in checks if failed), "")
+
+    def _turning(self) -> bool:
+        """Turning in place at a corner, or gliding for parallax after it: the vehicle stays
+        on ground it has flown, and new depth is what these moves are for."""
+        return self.mission.state == FlightState.ALIGNING or bool(self.corner.parallax_moves) or (
+            self.plan is not None and self.plan.reason == PARALLAX_REASON
+            and self.clock.now() < self.plan.end_time)
 
     def _vins_problem(self) -> str:
         update = self.last_update
@@ -570,8 +726,14 @@ class FlightApp:
             return ""
         if update.health.state == HealthState.LOST:
             return f"VINS lost ({update.health.reason})"
-        if self.vins.resets > self.stats.vins_resets_at_takeoff:
+        if self.vins.reinitialisations > self.stats.vins_reinitialisations_at_takeoff:
             return "VINS reset in flight"
+        rebuilds = self.vins.backend.resets
+        if rebuilds > self.stats.vins_rebuilds_seen:
+            # the smoother refused an update and went on from its last good keyframe: the
+            # estimate stays continuous (DEGRADED for a while), so the flight goes on
+            self.stats.vins_rebuilds_seen = rebuilds
+            log.warning("VINS smoother rebuilt (%s)", self.vins.backend.last_failure)
         return ""
 
     @staticmethod
@@ -644,6 +806,11 @@ def format_flight(summary: dict) -> str:
         f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops)",
         f"  VINS resets       {summary['vins_resets']}",
     ])
+
+
+def _still(yaw_rate: float = 0.0) -> Setpoint:
+    """Hold the position (zero velocity and acceleration), turning at ``yaw_rate``."""
+    return Setpoint(np.zeros(3), yaw_rate, np.zeros(3))
 
 
 def _quality(state: HealthState) -> int:

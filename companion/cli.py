@@ -237,6 +237,9 @@ def _add_sim_commands(commands: argparse._SubParsersAction,
     fly.add_argument("--clock", choices=CLOCK_MODES, default="lockstep",
                      help="lockstep: deterministic, as fast as the CPU allows; realtime: the "
                           "simulator in its own thread on the wall clock (default: %(default)s)")
+    fly.add_argument("--depth", choices=("estimated", "truth"), default="estimated",
+                     help="the planner's depth: estimated (network and rescaler on the VINS "
+                          "map) or the renderer's truth (default: %(default)s)")
     fly.add_argument("--fault", dest="faults", action="append", default=[],
                      metavar="KIND[@AFTER[+DURATION]]",
                      help="inject a fault AFTER seconds into cruise for DURATION seconds "
@@ -416,7 +419,7 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
     sim = _sim_options(args, config)
     try:
         mission = simfly.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
-                                    goal=args.goal, clock=args.clock,
+                                    goal=args.goal, clock=args.clock, depth=args.depth,
                                     faults=tuple(Fault.parse(f) for f in args.faults))
         summary = simfly.run(config, mission, plot=None if args.no_plot else args.plot,
                              progress=None if args.json else _print_progress)

@@ -23,6 +23,8 @@ import logging
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from autonomy.options import OptionError, option, validate
 
 log = logging.getLogger(__name__)
@@ -38,9 +40,25 @@ class FlightOptions:
     takeoff_altitude: float = option(1.5, gt=0.2, le=50.0,
                                      doc="take-off height above the ground, metres")
     goal_tolerance: float = option(1.5, gt=0.0, le=10.0,
-                                   doc="distance to the goal that counts as reached, metres")
+                                   doc="horizontal distance to the goal that counts as "
+                                       "reached, metres")
     waypoint_tolerance: float = option(2.0, gt=0.0, le=20.0,
-                                       doc="distance at which a waypoint counts as passed, metres")
+                                       doc="horizontal distance at which a waypoint counts as "
+                                           "passed, metres")
+    height_tolerance: float = option(1.0, gt=0.0, le=10.0,
+                                     doc="height difference a reached goal may have (the "
+                                         "tolerances above are horizontal), metres")
+    corner_turn_deg: float = option(
+        30.0, gt=0.0, le=180.0,
+        doc="a waypoint where the route turns by more than this is a corner: approached "
+            "slowly, stopped at, and the next leg faced in place, degrees")
+    corner_tolerance: float = option(0.5, gt=0.0, le=5.0,
+                                     doc="horizontal distance at which a corner counts as "
+                                         "reached, metres")
+    approach_distance: float = option(
+        4.0, ge=0.0, le=20.0,
+        doc="within this distance of a corner or the goal the vehicle glides straight to it "
+            "at the slowest tier's speed when that is safe, metres (0: never)")
     align_threshold_deg: float = option(
         60.0, gt=0.0, le=180.0,
         doc="heading error to the next waypoint that makes the vehicle turn in place first, "
@@ -51,6 +69,12 @@ class FlightOptions:
                                        doc="yaw rate of a turn in place, degrees per second")
     setpoint_rate_hz: float = option(30.0, ge=20.0, le=50.0,
                                      doc="offboard velocity setpoints per second (PX4: > 2)")
+    tracking_gain: float = option(
+        1.0, ge=0.0, le=5.0,
+        doc="velocity added per metre between the plan's position and the VINS position, 1/s "
+            "(0: velocity and acceleration feed-forward alone)")
+    max_tracking_speed: float = option(0.5, ge=0.0, le=2.0,
+                                       doc="largest tracking correction, m/s")
     odometry_rate_hz: float = option(30.0, ge=1.0, le=50.0,
                                      doc="ODOMETRY messages to PX4 per second")
     monitor_rate_hz: float = option(20.0, gt=0.0, le=200.0,
@@ -176,3 +200,15 @@ class Mission:
     def elapsed(self, t: float) -> float:
         """Seconds in the present state."""
         return t - self.since
+
+
+def stop_waypoints(waypoints: np.ndarray, sharpest: float) -> list[bool]:
+    """Per waypoint of ``waypoints`` (N, 3): does the vehicle stop there? The last (the goal)
+    and every corner where the route turns by more than ``sharpest`` radians horizontally."""
+    stops = [False] * len(waypoints)
+    stops[-1] = True
+    for k in range(1, len(waypoints) - 1):
+        into, out = np.diff(waypoints[k - 1:k + 2, :2], axis=0)
+        turn = math.atan2(into[0] * out[1] - into[1] * out[0], into @ out)
+        stops[k] = abs(turn) > sharpest
+    return stops

@@ -36,13 +36,14 @@ import numpy as np
 
 from autonomy.depth.network import DepthNetwork
 from autonomy.depth.synthetic import SyntheticNetwork
+from autonomy.messages import DepthDiagnostics, MetricDepth
 from companion.app import FlightApp, format_flight
 from companion.eval.numbers import show
 from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink.autopilot import Autopilot
 from drivers.sim.camera import SimCamera
 from drivers.sim.faults import Fault, FaultSchedule
-from drivers.sim.record import ROBOT_RADIUS, T_BODY_CAMERA
+from drivers.sim.record import ROBOT_RADIUS
 from drivers.sim.render import Renderer
 from drivers.sim.serve import serve
 from drivers.sim.world import World, build_world
@@ -64,9 +65,15 @@ class SimFlyError(RuntimeError):
     """The simulated flight could not be set up; the message says why."""
 
 
+#: Where the planner's depth comes from: the estimate (network and rescaler on the VINS map)
+#: or the renderer's true depth (the evaluation's baseline, as the paper's ground-truth runs).
+DEPTH_SOURCES = ("estimated", "truth")
+
+
 @dataclass(frozen=True)
 class SimMission:
-    """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z)."""
+    """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z);
+    ``depth`` one of :data:`DEPTH_SOURCES`."""
 
     world: str = "dome"
     seed: int = 0
@@ -74,6 +81,7 @@ class SimMission:
     goal: tuple[float, float, float] | None = None
     faults: tuple[Fault, ...] = ()
     clock: str = "lockstep"
+    depth: str = "estimated"
 
 
 def mission_waypoints(world: World, mission: SimMission, height: float
@@ -133,6 +141,17 @@ def depth_source_for(config, seed: int, faults: FaultSchedule, sim_time: Callabl
     return source
 
 
+def truth_metric_source(max_range: float) -> Callable:
+    """The renderer's true depth as the application's metric depth, fully confident; NaN
+    (nothing within the far plane) becomes ``max_range``, which the planner knows to be free
+    beyond (:mod:`autonomy.planning.history`)."""
+    def source(frame) -> MetricDepth:
+        depth = np.nan_to_num(frame.truth_depth, nan=max_range).astype(np.float32)
+        return MetricDepth(frame.t, depth, np.ones_like(depth), False,
+                           DepthDiagnostics(0, 0, math.nan, "truth", 0.0))
+    return source
+
+
 class TruthTrack:
     """The true path, sampled on the simulator's side, for the summary."""
 
@@ -180,6 +199,9 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     """Fly ``mission`` to its end and return the summary (module docstring)."""
     if mission.clock not in ("lockstep", "realtime"):
         raise SimFlyError(f"clock must be lockstep or realtime, got {mission.clock!r}")
+    if mission.depth not in DEPTH_SOURCES:
+        raise SimFlyError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
+                          f"got {mission.depth!r}")
     return asyncio.run(fly(config, mission, plot=plot, progress=progress))
 
 
@@ -199,9 +221,11 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     sim, camera, clock = await side.start()
     stall = asyncio.create_task(_stall_when_due(faults, sim))
     try:
+        truth = truth_metric_source(config.planner.max_range) if mission.depth == "truth" \
+            else None
         app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera,
                         depth_source_for(config, mission.seed, faults, lambda: sim.time),
-                        waypoints, lockstep=mission.clock == "lockstep")
+                        waypoints, lockstep=mission.clock == "lockstep", metric_source=truth)
         try:
             summary = await app.run()
         finally:
@@ -261,7 +285,8 @@ class _LockstepSimulator(_Simulator):
                                                            self.progress))
         camera = self.config.camera
         self._renderer = Renderer(self.world, camera.pinhole())
-        camera = SimCamera(self.sim, self._renderer, camera.rate_hz, self.clock)
+        camera = SimCamera(self.sim, self._renderer, camera.rate_hz, self.clock,
+                           camera.T_B_C())
         return self.sim, camera, self.clock
 
     async def stop(self) -> None:
@@ -309,7 +334,7 @@ class _ThreadedSimulator(_Simulator):
         server = asyncio.create_task(self._serve("realtime", self._stop, started.set_result))
         self.sim = await started
         with Renderer(self.world, camera.pinhole()) as renderer:
-            camera = SimCamera(self.sim, renderer, camera.rate_hz, clock)
+            camera = SimCamera(self.sim, renderer, camera.rate_hz, clock, camera.T_B_C())
             tasks = [asyncio.create_task(self._pump(camera)), asyncio.create_task(
                 self.track.run(self.sim, clock, self.goal, self.progress))]
             self._ready.set()
@@ -350,12 +375,13 @@ class FrameSlot:
 
 
 def build_app(config, clock, url: str, camera, depth_source, waypoints, *,
-              lockstep: bool) -> FlightApp:
+              lockstep: bool, metric_source=None) -> FlightApp:
     """The application wired to a camera, a depth source and the autopilot at ``url``."""
     autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
     return FlightApp.from_config(config, autopilot=autopilot, camera=camera,
-                                 depth_source=depth_source, T_B_C=T_BODY_CAMERA,
-                                 waypoints_L=waypoints, clock=clock, lockstep=lockstep)
+                                 depth_source=depth_source, T_B_C=config.camera.T_B_C(),
+                                 waypoints_L=waypoints, clock=clock, lockstep=lockstep,
+                                 metric_source=metric_source)
 
 
 def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
@@ -364,7 +390,7 @@ def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthT
     truth = track.score(world, goal)
     collision = sim.vehicle.collision
     return {
-        "world": world.name, "seed": mission.seed, "pair": mission.pair,
+        "world": world.name, "seed": mission.seed, "pair": mission.pair, "depth": mission.depth,
         "goal": [round(float(v), 3) for v in goal],
         "faults": [dataclasses.asdict(f) for f in mission.faults],
         "collisions": 0 if collision is None else 1,

@@ -24,7 +24,6 @@ from companion.service import SystemdNotifier
 from drivers.camera.v4l2 import V4l2Camera
 from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot
-from drivers.sim.record import T_BODY_CAMERA
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +55,7 @@ async def _fly(config, waypoints) -> dict:
             app = FlightApp.from_config(
                 config, autopilot=autopilot, camera=camera,
                 depth_source=lambda frame: network(frame.image, channels="rgb"),
-                T_B_C=T_BODY_CAMERA, waypoints_L=waypoints, clock=clock, lockstep=False,
+                T_B_C=config.camera.T_B_C(), waypoints_L=waypoints, clock=clock, lockstep=False,
                 notifier=notifier)
             _stop_on_signals(app)
             return await app.run()

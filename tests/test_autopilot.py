@@ -285,6 +285,42 @@ def test_arm_take_off_offboard_velocity_in_enu_hold_land():
     fly(body)
 
 
+def test_acceleration_feed_forward_lets_the_vehicle_brake_as_commanded():
+    """A braking ramp 1.5 m/s -> 0 over 1.5 s: the velocity loop alone lags it (at the ramp's
+    end the vehicle is still moving, further on); the ramp's deceleration sent as feed-forward
+    keeps the vehicle much nearer to it."""
+    ramp_s, speed, rate_hz = 1.5, 1.5, 30.0
+
+    async def brake(flight, feed_forward: bool) -> tuple[float, float]:
+        """(distance beyond the ramp's 1.125 m, speed left) at the ramp's end."""
+        autopilot, clock = flight.autopilot, flight.clock
+        await stream_velocity(flight, (speed, 0.0, 0.0), 3.0)  # steady at cruise
+        start, t0 = flight.sim.vehicle.state.position[0], clock.now()
+        while clock.now() < t0 + ramp_s:
+            left = 1.0 - (clock.now() - t0) / ramp_s
+            autopilot.send_velocity((speed * left, 0.0, 0.0), 0.0,
+                                    (-speed / ramp_s, 0.0, 0.0) if feed_forward else None)
+            await clock.sleep(1.0 / rate_hz)
+        state = flight.sim.vehicle.state
+        return state.position[0] - start - speed * ramp_s / 2.0, state.velocity[0]
+
+    async def body(flight):
+        autopilot, clock = flight.autopilot, flight.clock
+        assert await flight.connected()
+        assert await autopilot.arm() and await autopilot.takeoff(3.0)
+        assert await until(clock, lambda: autopilot.mode == px4.AUTO_LOITER
+                           and autopilot.state.position_L[2] > 2.8, 15.0)
+        await stream_velocity(flight, (0.0, 0.0, 0.0), 1.2)  # PX4 wants a stream first
+        streaming = asyncio.create_task(stream_velocity(flight, (0.0, 0.0, 0.0), 0.5))
+        assert await autopilot.set_mode(px4.OFFBOARD)
+        await streaming
+        beyond, still_moving = await brake(flight, feed_forward=False)
+        assert beyond > 0.4 and still_moving > 0.4  # the loop's lag
+        beyond_ff, still_moving_ff = await brake(flight, feed_forward=True)
+        assert beyond_ff < 0.5 * beyond and still_moving_ff < 0.5 * still_moving
+    fly(body)
+
+
 def test_external_vision_odometry_reaches_px4():
     async def body(flight):
         autopilot = flight.autopilot
@@ -387,6 +423,8 @@ def test_bad_setpoints_and_odometry_raise_and_send_nothing():
                                    ((1, 2), 0.0)]:
             with pytest.raises(ValueError):
                 autopilot.send_velocity(velocity, yaw_rate)
+        with pytest.raises(ValueError, match="acceleration_L"):
+            autopilot.send_velocity((0, 0, 0), 0.0, (0, math.inf, 0))
         with pytest.raises(ValueError, match="position_L"):
             autopilot.send_odometry(flight.clock.now(), (0, math.nan, 0), (1, 0, 0, 0))
         with pytest.raises(ValueError, match="unit quaternion"):

@@ -4,16 +4,21 @@ loads to."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from autonomy.depth.options import RescaleOptions
-from autonomy.options import field_types
+from autonomy.geometry import R_BODY_CAMERA
+from autonomy.options import OptionError, field_types
 from companion.config import Config, ConfigError, dump_toml, load_config, parse_override
+from drivers.camera.options import CameraOptions
+from drivers.sim.record import T_BODY_CAMERA
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -203,3 +208,16 @@ def test_sim_toml_loads_and_lists_every_key_of_every_section():
         section: {f.name for f in dataclasses.fields(kind)}
         for section, kind in field_types(Config).items()
     }
+
+
+def test_the_camera_mounting_defaults_to_the_simulators_and_turns_as_named():
+    np.testing.assert_allclose(Config().camera.T_B_C(), T_BODY_CAMERA)
+    np.testing.assert_allclose(T_BODY_CAMERA[:3, :3], R_BODY_CAMERA)
+    np.testing.assert_allclose(T_BODY_CAMERA[:3, 3], [0.10, 0.0, 0.05])
+    view = lambda **mount: CameraOptions(**mount).T_B_C()[:3, 2]  # noqa: E731 - optical axis
+    down = math.radians(20.0)
+    np.testing.assert_allclose(view(mount_pitch_deg=20.0), [math.cos(down), 0, -math.sin(down)],
+                               atol=1e-12)
+    np.testing.assert_allclose(view(mount_yaw_deg=90.0), [0, 1, 0], atol=1e-12)
+    with pytest.raises(OptionError, match="mount_pitch_deg"):
+        CameraOptions(mount_pitch_deg=120.0)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import make_pose, rot_z, yaw_alignment
-from companion.mission import FlightState, Mission
-from companion.simfly import free_udp_port
+from companion.mission import FlightState, Mission, stop_waypoints
+from companion.simfly import free_udp_port, truth_metric_source
 from companion.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
 from drivers.mavlink.link import open_link
@@ -79,6 +79,23 @@ def test_a_cut_link_neither_sends_nor_delivers():
 
 
 # ---------------------------------------------------------------- mission
+
+def test_the_vehicle_stops_at_the_goal_and_at_sharp_corners_only():
+    route = np.array([[0.0, 0.0, 1.5], [10.0, 0.0, 1.5], [20.0, 2.0, 1.5],  # 11 deg: on
+                      [20.0, 12.0, 1.5], [10.0, 12.0, 2.5]])  # then 79 and 90 deg: stop
+    assert stop_waypoints(route, math.radians(30.0)) == [False, False, True, True, True]
+    assert stop_waypoints(route[:1], math.radians(30.0)) == [True]
+
+
+def test_truth_depth_is_fully_confident_and_its_empty_sky_is_far():
+    from autonomy.messages import Frame
+    depth = np.array([[2.0, np.nan], [5.0, 7.0]], np.float32)
+    frame = Frame(1.5, np.zeros((2, 2, 3), np.uint8), truth_depth=depth)
+    metric = truth_metric_source(10.0)(frame)
+    assert metric.ok and metric.t == 1.5 and metric.diagnostics.method == "truth"
+    np.testing.assert_array_equal(metric.depth, [[2.0, 10.0], [5.0, 7.0]])
+    np.testing.assert_array_equal(metric.confidence, 1.0)
+
 
 def test_mission_keeps_every_transition_with_its_reason():
     mission = Mission(0.0)

@@ -245,6 +245,31 @@ def test_the_ring_rule_never_calls_free_what_the_exact_per_ray_rule_does_not():
     assert exact_free > 600 and rings_free > 0.65 * exact_free  # cautious, not hopelessly
 
 
+def test_near_spheres_are_judged_ray_by_ray_never_freer_than_the_exact_rule():
+    """In a 2.5 m corridor the image's nearest surface (a wall seen at the view's edge, 1.8 m
+    off) is nearer than ``L + R`` for spheres 0.8 m ahead or more, which the whole-image test
+    would refuse; ray by ray, block by block, most are free, and none that a ray through it
+    contradicts."""
+    rng = np.random.default_rng(3)
+    corridor = [((-50.0, 1.25, -50.0), (50.0, 2.0, 50.0)),
+                ((-50.0, -2.0, -50.0), (50.0, -1.25, 50.0)),
+                ((-50.0, -50.0, ALTITUDE - 2.5), (50.0, 50.0, ALTITUDE - 2.0)),
+                ((-50.0, -50.0, ALTITUDE + 2.0), (50.0, 50.0, ALTITUDE + 2.5)), ROOM[0]]
+    T_W_C = camera_pose(body())
+    depth = render(T_W_C, corridor)
+    history = DepthHistory()
+    history.add(depth, np.ones_like(depth), T_W_C, CAMERA, 0.0)
+    start = np.array([0.0, 0.0, ALTITUDE])
+    points = start + np.column_stack([rng.uniform(0.2, 1.0, 400), rng.uniform(-0.3, 0.3, 400),
+                                      rng.uniform(-0.3, 0.3, 400)])
+    free = history.check(points, start_W=start).free
+    exact = _exact_free(depth, T_W_C, points)
+    assert not np.any(free & ~exact)
+    whole_image = np.nanmin(depth * np.linalg.norm(CAMERA.rays(), axis=-1)) >= \
+        np.linalg.norm(points - T_W_C[:3, 3], axis=1) + 1.0
+    assert (free & ~whole_image).sum() > 30 and free.sum() > 0.8 * exact.sum()
+
+
 # ---------------------------------------------------------------- over a floor
 
 
@@ -268,9 +293,8 @@ def floor_scene(altitude, boxes=()):
 
 
 def _kinds(planner):
-    yaw = np.array([a.yaw_rate for a in planner.library])
-    climb = np.array([a.vertical_speed for a in planner.library])
-    return yaw, climb
+    fastest = planner.tiers[0]
+    return fastest.yaw_rates, fastest.vertical_speeds
 
 
 def test_level_arcs_1_5_m_over_a_floor_are_safe():
@@ -292,13 +316,18 @@ def test_level_arcs_1_5_m_over_a_floor_are_safe():
 def test_level_arcs_0_8_m_over_a_floor_are_unsafe():
     planner, T_W_B, depth = floor_scene(0.8)
     plan = planner.plan(0.05, T_W_B, FORWARD, np.array([30.0, 0.0, 0.8]))
-    assert plan.kind == "stop" and plan.reason == "no safe primitive"
+    for tier in planner.tiers:
+        safe, _ = planner.check(0.05, plan.T_W_S, tier)
+        assert not safe[tier.vertical_speeds <= 0.0].any()
+    # what is left is the steepest climb, away from the floor
+    assert plan.kind == "arc"
+    assert plan.primitive.vertical_speed == planner.options.max_vertical_speed
     ahead = np.array([[x, 0.0, 0.8] for x in (2.0, 4.0, 6.0)])  # spheres reach 0.2 m under
     assert not planner.history.check(ahead).free.any()
     assert not _exact_free(depth, camera_pose(T_W_B), ahead, WIDE).any()
 
 
-def test_a_wall_2_5_m_ahead_over_a_floor_leaves_no_arc_safe():
+def test_a_wall_2_5_m_ahead_over_a_floor_leaves_only_the_slowest_arcs_safe():
     wall = ((2.5, -50.0, -1.0), (3.0, 50.0, 50.0))
     planner, T_W_B, _ = floor_scene(1.5, [wall])
     # spheres 0.1 m short of the wall are free, 0.1 m into it are not
@@ -306,10 +335,19 @@ def test_a_wall_2_5_m_ahead_over_a_floor_leaves_no_arc_safe():
     np.testing.assert_array_equal(result.free, [True, False])
     plan = planner.plan(0.05, T_W_B, FORWARD, np.array([30.0, 0.0, 1.5]))
     # geometrically right: the hardest turn (45 deg/s at 2 m/s) has radius 2.55 m and reaches
-    # x = 2.55 m when it has turned 90 degrees, its sphere 1 m beyond the wall's face
-    assert plan.kind == "stop" and plan.reason == "no safe primitive"
-    safe, _ = planner.check(0.05, plan.T_W_S)
-    assert not safe.any()
+    # x = 2.55 m when it has turned 90 degrees, its sphere 1 m beyond the wall's face; at
+    # 1 m/s the straight arc and its braking end 3 m ahead
+    for tier in planner.tiers[:2]:
+        safe, _ = planner.check(0.05, plan.T_W_S, tier)
+        assert not safe.any()
+    # at 0.5 m/s: 1 m of arc and 0.5 m of braking, the sphere just short of the wall's face
+    assert plan.kind == "arc" and plan.primitive.speed == pytest.approx(0.5)
+    slowest = planner.tiers[-1]
+    safe, _ = planner.check(0.05, plan.T_W_S, slowest)
+    for i in np.flatnonzero(safe):
+        points = np.vstack([slowest.library[i].points_S, slowest.library[i].stop_points_S,
+                            slowest.branches[i].stop_points_S])
+        assert points[:, 0].max() + planner.options.robot_radius <= 2.5 + 1e-9
 
 
 @pytest.mark.parametrize("gap, blocked", [(0.9, True), (1.3, False)])
@@ -329,13 +367,36 @@ def test_a_thin_pole_within_the_radius_of_the_arc_is_seen(gap, blocked):
 
 
 def test_a_wall_ahead_leaves_nothing_safe_and_the_planner_brakes():
-    planner = planner_seeing([((3.0, -50, -50), (3.5, 50, 50))])
+    planner = planner_seeing([((1.8, -50, -50), (2.3, 50, 50))])
     plan = planner.plan(0.05, body(), FORWARD, AHEAD)
     assert plan.kind == "stop" and plan.reason == "no safe primitive" and plan.safe_count == 0
-    velocity, yaw_rate = plan.setpoint(0.05)
+    velocity, yaw_rate, acceleration, position = plan.setpoint(0.05)
     np.testing.assert_allclose(velocity, FORWARD)  # braking from the present velocity
+    np.testing.assert_allclose(acceleration, -FORWARD / planner.options.stop_duration_s)
+    np.testing.assert_allclose(position, body()[:3, 3])
     assert yaw_rate == 0.0
-    np.testing.assert_allclose(plan.setpoint(0.05 + 2.0)[0], 0.0, atol=1e-12)
+    rest = plan.setpoint(0.05 + 2.0)
+    np.testing.assert_allclose(rest.velocity_W, 0.0, atol=1e-12)
+    np.testing.assert_allclose(rest.position_W - body()[:3, 3], FORWARD * 1.0)  # u T / 2
+    # later rounds that find nothing safe continue this braking, they do not begin it afresh
+    again = planner.plan(1.0, body(x=1.5), 0.5 * FORWARD, AHEAD)
+    assert again.t == plan.t and again.primitive is plan.primitive
+    # at rest it holds the stop's end point, where the vehicle has crept to within a radius...
+    held = planner.plan(9.0, body(x=1.6), 0.1 * FORWARD, AHEAD)
+    assert held.primitive is plan.primitive
+    np.testing.assert_allclose(held.setpoint(9.0).position_W, rest.position_W)
+    # ...and brakes afresh where it is when pushed farther than that
+    pushed = planner.plan(9.5, body(x=-0.5), -0.1 * FORWARD, AHEAD)
+    assert pushed.t == 9.5 and pushed.primitive is not plan.primitive
+
+
+def test_a_wall_3_m_ahead_is_approached_by_a_slower_tier():
+    planner = planner_seeing([((3.0, -50, -50), (3.5, 50, 50))])
+    plan = planner.plan(0.05, body(), FORWARD, AHEAD)
+    # 2 m/s needs 4 m of arc, 2 m of braking and the radius; 1 m/s arcs stop in 3 m, too far
+    assert plan.kind == "arc" and plan.primitive.speed == pytest.approx(0.5)
+    safe, _ = planner.check(0.05, plan.T_W_S, planner.tiers[0])
+    assert not safe.any()
 
 
 def test_a_wall_on_the_left_turns_the_choice_right():
@@ -344,8 +405,8 @@ def test_a_wall_on_the_left_turns_the_choice_right():
     assert plan.kind == "arc" and plan.reason == ""
     assert plan.primitive.yaw_rate < 0.0
     safe, clearance = planner.check(0.05, plan.T_W_S)
-    assert safe.sum() == plan.safe_count and 0 < plan.safe_count < len(planner.library)
-    turns = np.array([a.yaw_rate for a in planner.library])
+    assert safe.sum() == plan.safe_count and 0 < plan.safe_count < len(planner.tiers[0].library)
+    turns = planner.tiers[0].yaw_rates
     assert not safe[turns >= 0.0].any()  # straight on or left: into the wall
     assert safe[turns < 0.0].any()  # right turns clear of it
     assert np.all(clearance[safe] >= 0.0)
@@ -403,13 +464,13 @@ def test_smoothness_keeps_the_choice_near_the_previous_one():
 def test_when_nothing_is_safe_the_previous_rounds_checked_stop_is_continued():
     planner = planner_seeing(ROOM)
     first = planner.plan(0.05, body(), FORWARD, np.array([10.0, 10.0, ALTITUDE]))
-    index = next(i for i, a in enumerate(planner.library) if a is first.primitive)
+    index = next(i for i, a in enumerate(planner.tiers[0].library) if a is first.primitive)
     T_W_B = body(x=0.15)
     wall = render(camera_pose(T_W_B), [((1.5, -50, -50), (2.0, 50, 50))])
     planner.add_depth(metric(wall, 0.1), camera_pose(T_W_B))
     stop = planner.plan(0.13, T_W_B, FORWARD, AHEAD)
     assert stop.kind == "stop" and stop.reason == "no safe primitive"
-    assert stop.primitive is planner.branches[index]
+    assert stop.primitive is planner.tiers[0].branches[index]
     assert stop.t == first.t and np.array_equal(stop.T_W_S, first.T_W_S)
     assert stop.primitive.duration == pytest.approx(planner.options.period_s)
     # the same commands as the first plan for one period, then braking along that heading
@@ -424,13 +485,35 @@ def test_when_nothing_is_safe_the_previous_rounds_checked_stop_is_continued():
     assert late.t == first.t + 10.0 and late.primitive.duration == 0.0
 
 
+@pytest.mark.parametrize("distance", [0.3, 2.5])
+def test_an_approach_glides_straight_to_rest_over_its_goal(distance):
+    planner = planner_seeing(ROOM)
+    goal = np.array([distance * math.cos(0.4), distance * math.sin(0.4), ALTITUDE + 0.1])
+    plan = planner.approach(1.0, body(), goal)
+    assert plan is not None and plan.kind == "stop" and plan.reason == "approach"
+    rest = plan.setpoint(plan.end_time + 1.0)
+    np.testing.assert_allclose(rest.position_W, goal, atol=1e-9)
+    assert plan.setpoint(1.5).yaw_rate == 0.0  # heading held
+    speeds = [np.linalg.norm(plan.setpoint(t).velocity_W[:2]) for t in np.arange(1.0, 9.0, 0.1)]
+    assert max(speeds) <= planner.tiers[-1].speed + 1e-9
+    # it is the stop the next rounds continue when they find nothing safe
+    assert planner.stop_plan(1.5, body(), FORWARD, "vins lost").primitive is plan.primitive
+
+
+def test_an_approach_through_a_wall_is_refused():
+    planner = planner_seeing([((1.5, -50, -50), (2.0, 50, 50))])
+    assert planner.approach(1.0, body(), np.array([2.5, 0.0, ALTITUDE])) is None
+    assert planner.approach(1.0, body(), body()[:3, 3]) is None  # already there
+
+
 def test_the_chosen_primitives_stop_branch_was_checked_free():
     planner = planner_seeing([WALL_LEFT, *ROOM])
     plan = planner.plan(0.05, body(), FORWARD, AHEAD)
-    i = next(i for i, a in enumerate(planner.library) if a is plan.primitive)
-    branch = planner.branches[i]
+    i = next(i for i, a in enumerate(planner.tiers[0].library) if a is plan.primitive)
+    branch = planner.tiers[0].branches[i]
+    # the branch's short arc is the arc's first piece; its braking goes off the arc
     path_S = np.vstack([plan.primitive.points_S[1:], plan.primitive.stop_points_S,
-                        branch.points_S[-1:], branch.stop_points_S])
+                        branch.stop_points_S])
     path_W = path_S @ plan.T_W_S[:3, :3].T + plan.T_W_S[:3, 3]
     assert planner.history.check(path_W, start_W=plan.T_W_S[:3, 3]).free.all()
 
@@ -442,7 +525,7 @@ def _fly(plan: Plan, t0: float, t1: float, dt: float = 1e-3):
     """Integrate the setpoints (midpoint rule): positions and yaw relative to T_W_S."""
     position, yaw, trace = plan.T_W_S[:3, 3].copy(), 0.0, []
     for t in np.arange(t0, t1, dt):
-        velocity, yaw_rate = plan.setpoint(t + dt / 2)
+        velocity, yaw_rate, _, _ = plan.setpoint(t + dt / 2)
         position = position + velocity * dt
         yaw += yaw_rate * dt
         trace.append((t + dt, position.copy(), yaw))
@@ -509,4 +592,6 @@ def test_planner_options_give_the_library_shape():
     options = PlannerOptions(speed=1.5, yaw_rates=5, vertical_speeds=3)
     shape = options.primitives
     assert (shape.speed, shape.yaw_rates, shape.vertical_speeds) == (1.5, 5, 3)
-    assert len(Planner(CAMERA, options).library) == 15
+    tiers = Planner(CAMERA, options).tiers
+    assert [tier.speed for tier in tiers] == [1.5, 0.75, 0.375]
+    assert all(len(tier.library) == 15 for tier in tiers)

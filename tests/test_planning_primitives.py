@@ -7,7 +7,7 @@ import pytest
 
 from autonomy.options import OptionError
 from autonomy.planning.primitives import (
-    PrimitiveOptions, braking_points, forward_arc, library, stop_primitive,
+    PrimitiveOptions, braking_points, forward_arc, library, stop_primitive, tier_speeds,
 )
 
 OPTIONS = PrimitiveOptions()
@@ -26,6 +26,43 @@ def test_the_default_library_is_the_papers_75_arcs_at_2_m_s_for_2_s():
     assert min(a.vertical_speed for a in arcs) == pytest.approx(-0.5)
     assert all(a.t[0] == 0.0 and a.t[-1] == pytest.approx(2.0) for a in arcs)
     assert any(a.yaw_rate == 0.0 and a.vertical_speed == 0.0 for a in arcs)
+
+
+def test_slower_tiers_halve_the_speed_and_keep_the_turn_rates():
+    assert tier_speeds() == [2.0, 1.0, 0.5]
+    assert tier_speeds(PrimitiveOptions(speed_tiers=1)) == [2.0]
+    slow = library(speed=0.5)
+    assert len(slow) == 75 and {a.speed for a in slow} == {0.5}
+    assert {a.yaw_rate for a in slow} == {a.yaw_rate for a in library()}
+    straight = next(a for a in slow if a.yaw_rate == 0.0 and a.vertical_speed == 0.0)
+    # 1 m of arc, 0.5 m of braking (u T / 2): a slow arc needs little room
+    assert straight.stop_points_S[-1, 0] == pytest.approx(1.5)
+
+
+def test_an_arc_may_be_given_its_own_duration_but_a_positive_one():
+    arc = forward_arc(0.5, 0.0, 0.0, OPTIONS, 7.0)
+    assert arc.duration == pytest.approx(7.0) and arc.points_S[-1, 0] == pytest.approx(3.5)
+    for duration in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="duration"):
+            forward_arc(0.5, 0.0, 0.0, OPTIONS, duration)
+
+
+@pytest.mark.parametrize("yaw_rate, climb", [(math.radians(40.0), 0.5), (0.0, -0.25)])
+def test_the_motion_along_a_primitive_is_its_points_and_their_derivatives(yaw_rate, climb):
+    arc = forward_arc(1.5, yaw_rate, climb, OPTIONS)
+    T = OPTIONS.stop_duration_s
+    for tau, point in zip(arc.t, arc.points_S):
+        np.testing.assert_allclose(arc.motion_S(tau, T)[0], point, atol=1e-12)
+    np.testing.assert_allclose(arc.motion_S(10.0, T)[0], arc.stop_points_S[-1], atol=1e-12)
+    np.testing.assert_allclose(arc.motion_S(10.0, T)[1:3], 0.0)
+    h = 1e-6
+    for tau in (0.3, 1.7, 2.0 + 0.5, 2.0 + 1.9):  # on the arc, then braking
+        p0, v0, a0, _ = arc.motion_S(tau - h, T)
+        p1, v1, a1, _ = arc.motion_S(tau + h, T)
+        position, velocity, acceleration, rate = arc.motion_S(tau, T)
+        np.testing.assert_allclose((p1 - p0) / (2 * h), velocity, atol=1e-6)
+        np.testing.assert_allclose((v1 - v0) / (2 * h), acceleration, atol=1e-5)
+        assert rate == (yaw_rate if tau < 2.0 else 0.0)
 
 
 def test_an_arc_is_a_circle_of_radius_v_over_w_at_constant_speed():

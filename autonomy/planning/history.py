@@ -60,7 +60,8 @@ One frame's verdict on a point:
   (``z + R > max_range``). Windows are clipped to the image: a frame judges the part of the
   sphere it sees;
 - *unknown* when any pixel of any window (the outer window holds the others, unless one was
-  widened, below) is NaN, non-positive or less confident than ``min_confidence``; *free* by the
+  widened, below) is NaN, non-positive or of low confidence (:func:`_known_range`: one less
+  disparate than every confident pixel counts as the farthest confident depth); *free* by the
   ring rule; *occupied* otherwise. Depths beyond ``max_range`` count as ``max_range``: the
   farthest point of the sphere has ``z + R <= max_range``, so such a pixel's ray is free past
   the sphere (its range ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z``
@@ -81,20 +82,22 @@ frame may speak.
 Near the vehicle: the vehicle is at ``start``, so its own sphere ``B(start, R)`` is free (the
 planner never checks the start point). A sphere that reaches the camera plane (``z <= R``) has
 no bounded image (the cone of rays through it is not in front of the camera), so the exact rule
-cannot be applied through windows either. Such a point within ``2 R`` of ``start`` (the first
-second or so of a primitive) is judged against the whole image: every ray through its sphere
-leaves it within ``L + R`` of the camera, and every such ray is a ray of the image (or outside
-the view), so the sphere is free (weak) when the image's least range is at least ``L + R``
-(with a known pixel everywhere), occupied (strong) when a surface is seen in front of its centre
-(the centre's pixel nearer than ``L``), unknown otherwise. This is cautious: between walls
-nearer than about 2 m it finds nothing near the vehicle free, and the history's older frames,
-taken from farther back, must vouch for those spheres (they usually see them whole). An
-earlier rule judged such a point by its centre's ray alone; in simulation it let a braking
-vehicle graze the corner of a hallway's entrance, whose edge no centre ray met. A frame must
-see the point: one beside, below or behind every camera stays unknown, and farther than ``2 R``
-from the start a sphere reaching a frame's camera plane is unseen by that frame. Older
-frames, taken from farther back, usually see these spheres whole, and their strong verdict
-wins.
+cannot be applied through windows. Such a point within ``2 R`` of ``start`` (the first second
+or so of a primitive) is occupied (strong) when a surface is seen in front of its centre (the
+centre's pixel nearer than ``L``); free (weak) when the image's least range is at least
+``L + R`` (every ray through its sphere leaves it within ``L + R``); else it is judged ray by
+ray on ``NEAR_BLOCK_PX`` blocks of pixels (:meth:`DepthHistory._judge_by_blocks`: the exact rule
+with each block's least range against the largest exit distance of any of its rays), free
+(weak) when every block meeting the sphere passes. Weak, because the part of such a sphere
+outside the view is not seen by this frame: older frames, taken from farther back, usually see
+these spheres whole, and their strong verdict wins. (An earlier rule judged such a point by its
+centre's ray alone; in simulation it let a braking vehicle graze the corner of a hallway's
+entrance, whose edge no centre ray met. The whole-image test alone found nothing free near the
+vehicle between walls nearer than about 2 m.) A sphere within ``2 R`` that the rings refuse
+gets the block rule too, as a second opinion: in a narrow passage the rings' caution (about
+``R / n``) is most of the room there is. A frame must see the point: one beside, below or
+behind every camera stays unknown, and farther than ``2 R`` from the start a sphere reaching a
+frame's camera plane is unseen by that frame.
 
 Speed: each frame keeps a sparse table of its range image, ``table[k][v, u]`` the minimum over
 the ``2^k x 2^k`` square anchored at ``(u, v)``, with unknown pixels stored as -1 so that one
@@ -122,6 +125,16 @@ HOLE_FILL_PX = 15
 """Unknown pixels within this many pixels of known ones take the nearest range among those
 (:func:`fill_small_holes`)."""
 
+NEAR_BLOCK_PX = (32, 16)
+"""Sides of the square pixel blocks the spheres near the vehicle are checked against, ray by
+ray, coarse first (cheap; a sphere it frees is free) and the finer only for what the coarse
+refuses (powers of two: the blocks are read from the sparse minimum table)."""
+
+NEAR_CELL_M = 0.05
+"""Spheres near the vehicle are checked by the block rule per cube of this side: the arcs'
+first points nearly coincide, and one sphere about the cube's centre, grown by its half
+diagonal, holds the sphere of every point in the cube."""
+
 
 @dataclass(frozen=True)
 class CheckResult:
@@ -141,7 +154,9 @@ class CheckResult:
 
 
 class _Frame:
-    """One depth frame: its pose, camera, time and the sparse minimum table of its ranges."""
+    """One depth frame: its pose, camera, time, the sparse minimum table of its ranges and, per
+    side in ``NEAR_BLOCK_PX``, the least range of each such square block (raveled, -1 where
+    any pixel is unknown)."""
 
     def __init__(self, table: np.ndarray, T_W_C: np.ndarray, camera: PinholeCamera, t: float):
         T_C_W = invert_pose(T_W_C)
@@ -150,6 +165,8 @@ class _Frame:
         self.table = table
         self.flat = table.reshape(-1)
         self.least = float(table[0].min())  # negative when any pixel is unknown
+        self.blocks = {side: table[side.bit_length() - 1, ::side, ::side].reshape(-1)
+                       for side in NEAR_BLOCK_PX}
         self.camera = camera
         self.t = t
 
@@ -184,6 +201,7 @@ class DepthHistory:
         self.ring_fractions = np.sqrt(1.0 - k * k)
         self._frames: list[_Frame] = []
         self._ray_norms: tuple[PinholeCamera, np.ndarray] | None = None
+        self._block_rays: tuple[PinholeCamera, dict] | None = None
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -253,7 +271,8 @@ class DepthHistory:
         for frame in reversed(frames):
             if len(pending) == 0:
                 break
-            free, strong, gap = self._judge(frame, points[pending], near[pending])
+            free, strong, gap = self._judge(frame, points[pending], near[pending],
+                                            np.isnan(weak_t[pending]))
             decided = strong
             index = pending[decided]
             verdict[index] = np.where(free[decided], 1, 2)
@@ -274,11 +293,79 @@ class DepthHistory:
             self._ray_norms = (camera, ray_norms(camera))
         return self._ray_norms[1]
 
-    def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray):
+    def _blocks(self, camera: PinholeCamera, side: int) -> tuple[np.ndarray, ...]:
+        """``(directions, spread, cos(spread), sin(spread))`` of :func:`block_rays` (float32)
+        for ``side``, kept for the last camera."""
+        if self._block_rays is None or self._block_rays[0] != camera:
+            self._block_rays = (camera, {})
+        kept = self._block_rays[1]
+        if side not in kept:
+            directions, spread = block_rays(camera, side)
+            kept[side] = tuple(a.astype(np.float32) for a in
+                               (directions, spread, np.cos(spread), np.sin(spread)))
+        return kept[side]
+
+    def _judge_by_blocks(self, frame: _Frame, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(free, clearance)`` of spheres about ``p`` (M, 3), camera frame, by the exact
+        rule on every pixel block (for spheres near the vehicle): a ray at angle ``theta``
+        from the centre's direction meets the sphere when ``b = L sin(theta) <= R`` (and, from
+        outside it, ``theta < 90°``) and leaves it at ``s2(theta) = L cos(theta) + sqrt(R² -
+        b²)``, which falls as ``theta`` grows. A block whose rays lie within ``delta`` of its
+        centre ray, at ``theta_c`` from the centre's direction, has no ray nearer in angle
+        than ``theta_c - delta``; its least range must reach ``s2`` there. Free when every
+        block meeting the sphere is known and passes (of a sphere reaching the camera plane
+        only the part in view: the caller makes that verdict weak); the clearance is the
+        least margin. Points are taken per :data:`NEAR_CELL_M` cube (the caution that costs is
+        the cube's half diagonal, 4 cm)."""
+        cells, inverse = np.unique(np.floor(p / NEAR_CELL_M), axis=0, return_inverse=True)
+        centres = (cells + 0.5) * NEAR_CELL_M
+        radius = self.robot_radius + NEAR_CELL_M * math.sqrt(0.75)
+        free, margin = self._blocks_rule(frame, centres, radius, NEAR_BLOCK_PX[0])
+        for side in NEAR_BLOCK_PX[1:]:
+            again = np.flatnonzero(~free)
+            if len(again) == 0:
+                break
+            free[again], margin[again] = self._blocks_rule(frame, centres[again], radius, side)
+        return free[inverse.reshape(-1)], margin[inverse.reshape(-1)]
+
+    def _blocks_rule(self, frame: _Frame, p: np.ndarray, R: float, side: int):
+        """The block rule of :meth:`_judge_by_blocks` on spheres of radius ``R``, with blocks
+        of ``side`` pixels."""
+        directions, spread, cos_spread, sin_spread = self._blocks(frame.camera, side)
+        p = p.astype(np.float32)
+        L = np.sqrt(np.sum(p * p, axis=1))
+        cos_c = directions @ (p / L[:, None]).T  # (K, M)
+        # only blocks within the sphere's angular radius (all, from inside it) can meet it
+        reach = np.where(L > R, np.arcsin(np.minimum(R / L, 1.0)), np.pi)
+        block, point = np.nonzero(cos_c >= np.cos(np.minimum(spread[:, None] + reach, np.pi)))
+        cos_c = np.clip(cos_c[block, point], -1.0, 1.0)
+        sin_c = np.sqrt(1.0 - cos_c * cos_c)
+        cos_d, sin_d = cos_spread[block], sin_spread[block]
+        within = cos_c >= cos_d  # the block holds the centre's direction: theta can be 0
+        cos_t = np.where(within, 1.0, cos_c * cos_d + sin_c * sin_d)  # cos(theta_c - delta)
+        sin_t = np.where(within, 0.0, sin_c * cos_d - cos_c * sin_d)
+        Lp = L[point]
+        b = Lp * sin_t
+        meets = (b <= R) & ((Lp <= R) | (cos_t > 0.0))
+        exit_distance = Lp * cos_t + np.sqrt(np.maximum(R * R - b * b, 0.0))
+        ranges = frame.blocks[side][block]
+        m = len(p)
+        margin = np.full(m, np.inf, dtype=np.float32)
+        np.minimum.at(margin, point[meets], (ranges - exit_distance)[meets])
+        unknown = np.zeros(m, dtype=bool)
+        unknown[point[meets & (ranges < 0.0)]] = True
+        known = ~unknown
+        return known & (margin >= 0.0), np.where(known, margin.astype(float), np.nan)
+
+    def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray,
+               open_: np.ndarray | None = None):
         """``(free, strong, clearance)`` of one frame on ``points`` (M, 3); a point neither
-        free nor strong is unknown to this frame. Module docstring for the rules."""
+        free nor strong is unknown to this frame. Module docstring for the rules. ``open_``:
+        the points no newer frame has called free (weakly); only those get the block rule
+        where it could only call them weakly free."""
         cam, R = frame.camera, self.robot_radius
         H, W = cam.height, cam.width
+        open_ = np.ones(len(points), dtype=bool) if open_ is None else open_
         p = points @ frame.R_C_W.T + frame.t_C_W
         x, y, z = p[:, 0], p[:, 1], p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -298,6 +385,12 @@ class DepthHistory:
             free[ray] = (nearest >= 0.0) & (nearest >= distance + R)
             strong[ray] = (d >= 0.0) & (d < distance)
             gap[ray[free[ray]]] = nearest - (distance[free[ray]] + R)
+            # a sphere holding the camera meets every ray, so any unknown pixel leaves it
+            # unknown; the rest, ray by ray, block by block
+            holds_camera = (nearest < 0.0) & (distance <= R)
+            rest = ray[~free[ray] & ~strong[ray] & open_[ray] & ~holds_camera]
+            if len(rest):
+                free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest])
 
         whole = np.flatnonzero(in_image & (z > R) & (z + R <= self.max_range))
         if len(whole):
@@ -323,6 +416,13 @@ class DepthHistory:
                 margin[inner] = np.minimum(margin[inner], (rings - T[1:, inner]).min(axis=0))
                 known[inner] = rings.min(axis=0) >= 0.0
             is_free = known & (margin >= 0.0)
+            # near the vehicle, where a narrow passage leaves little room, a sphere the rings
+            # refuse gets the finer block-by-block rule (the rings' caution is about R / n)
+            retry = np.flatnonzero(near[whole] & known & ~is_free)
+            if len(retry):
+                again, again_gap = self._judge_by_blocks(frame, p[whole[retry]])
+                is_free[retry] = again
+                margin[retry] = np.where(again, again_gap, margin[retry])
             free[whole] = is_free
             strong[whole] = known & (~is_free | ~clipped)
             gap[whole] = np.where(known, margin, np.nan)
@@ -403,6 +503,32 @@ def _widen(first: np.ndarray, length: np.ndarray, need: np.ndarray, size: int):
     return start, start + new - 1
 
 
+def block_rays(camera: PinholeCamera, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``block x block`` pixel block (row-major, the last row and column of blocks cut
+    by the image border): ``(directions (K, 3), spread (K,))``, the unit ray through its
+    centre and the largest angle from it to any ray through the block, reached at a corner
+    (the rays within an angle of a direction meet the image plane in a convex set), radians."""
+    def edges(size: int) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.arange(0, size, block) - 0.5
+        return lo, np.minimum(lo + block, size - 0.5)
+
+    u_lo, u_hi = edges(camera.width)
+    v_lo, v_hi = edges(camera.height)
+
+    def unit(u, v):
+        xy = np.stack(np.broadcast_arrays((u - camera.cx) / camera.fx,
+                                          (v - camera.cy) / camera.fy, 1.0), axis=-1)
+        return xy / np.linalg.norm(xy, axis=-1, keepdims=True)
+
+    centre = unit((u_lo + u_hi)[None, :] / 2, (v_lo + v_hi)[:, None] / 2)
+    spread = np.zeros(centre.shape[:2])
+    for u in (u_lo, u_hi):
+        for v in (v_lo, v_hi):
+            cos = np.sum(centre * unit(u[None, :], v[:, None]), axis=-1)
+            spread = np.maximum(spread, np.arccos(np.clip(cos, -1.0, 1.0)))
+    return centre.reshape(-1, 3), spread.reshape(-1)
+
+
 def ray_norms(camera: PinholeCamera) -> np.ndarray:
     """(H, W) float32 ``sqrt(1 + ((u - cx)/fx)² + ((v - cy)/fy)²)``: range over depth on each
     pixel's ray."""
@@ -414,16 +540,27 @@ def ray_norms(camera: PinholeCamera) -> np.ndarray:
 def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
                  max_range: float, norms: np.ndarray) -> np.ndarray:
     """float32 range along each pixel's ray of the depth clipped to ``max_range``, -1 where
-    unknown (NaN, <= 0, or low confidence nearer than ``max_range``).
+    unknown (NaN, <= 0, or low confidence and nearer than the confident pixels).
 
-    A low-confidence pixel at or beyond ``max_range`` (the sky, a far wall no landmark lies on)
-    counts as ``max_range``: the rescaling curve is monotone, so a pixel less disparate than
-    the anchors reads farther than they do, and its error lies beyond the range the check
-    trusts; a low-confidence *near* pixel stays unknown, as its depth could be anything."""
+    A low-confidence pixel at or beyond ``max_range`` (the sky, a far wall no landmark lies
+    on) counts as ``max_range``: the rescaling curve is monotone, so a pixel less disparate
+    than the anchors reads farther than they do, and its error lies beyond the range the check
+    trusts. One nearer than ``max_range`` but beyond every confident pixel (the middle of a
+    long hallway whose walls carry landmarks only near by) counts as the farthest confident
+    depth ``d*``, a lower bound: confidence follows the relative disparity, and the curve is
+    monotone, so a pixel less disparate than every confident one is farther than all of them,
+    whatever its own error. A low-confidence pixel nearer than ``d*`` stays unknown, as its
+    depth could be anything between its confident neighbours in disparity."""
     d = depth.astype(np.float32, copy=False)
     with np.errstate(invalid="ignore"):
-        known = (d > 0.0) & ((confidence >= min_confidence) | (d >= max_range))  # NaN: False
-    return np.where(known, np.minimum(d, np.float32(max_range)) * norms, _UNKNOWN)
+        valid = d > 0.0  # NaN: False
+        confident = valid & (confidence >= min_confidence)
+        farthest = float(d[confident].max()) if confident.any() else math.inf
+        far = valid & ~confident & (d >= max_range)
+        bounded = valid & ~confident & ~far & (d >= farthest)
+    d = np.where(bounded, np.float32(farthest), d)
+    return np.where(confident | far | bounded, np.minimum(d, np.float32(max_range)) * norms,
+                    _UNKNOWN)
 
 
 def fill_small_holes(image: np.ndarray, reach_px: int) -> np.ndarray:

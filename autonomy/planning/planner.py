@@ -9,7 +9,13 @@ per frame. A primitive is safe when all of these are:
 - the branch "follow the arc for one planning period, then brake": the stop that will be
   followed if the next round finds nothing safe, checked now, this round.
 
-Among the safe primitives it takes the one of least cost (dimensionless terms):
+The library comes in speed tiers (``speed``, ``speed / 2``, ``speed / 4``): the fastest is
+checked first, and a slower one only when no arc of the faster ones is safe. A slower arc
+needs less room ahead (its stopping extension is ``u T / 2``) and turns on a tighter circle
+(``v / w``), so a narrow passage or a corner is flown slowly instead of not at all, while open
+space costs one tier's check per round.
+
+Among the safe primitives of the tier it takes the one of least cost (dimensionless terms):
 
     J = -w_p (|s - g| - |e - g|) / (v T)                   progress toward the goal g
         + w_s [((w - w0) / w_max)² + ((c - c0) / c_max)²]    change from the previous choice
@@ -22,13 +28,17 @@ surface observed behind it.
 
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
-no such stop or once it has run out, braking from the present velocity.
+no such stop, braking from the present velocity, which the following rounds continue in the
+same way. A stop that has come to rest goes on holding its end point (the application steers
+toward the plan's position) while the vehicle is within a robot radius of it; farther off, a
+new braking begins where the vehicle is.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -37,7 +47,7 @@ from autonomy.messages import MetricDepth
 from autonomy.options import OptionError, option
 from autonomy.planning.history import DepthHistory, as_pose
 from autonomy.planning.primitives import (
-    Primitive, PrimitiveOptions, forward_arc, library, stop_primitive,
+    Primitive, PrimitiveOptions, forward_arc, library, stop_primitive, tier_speeds,
 )
 
 
@@ -82,6 +92,17 @@ class PlannerOptions(PrimitiveOptions):
                                    for f in fields(PrimitiveOptions)})
 
 
+class Setpoint(NamedTuple):
+    """A plan's command at one instant, in the planning world ``W``: ``velocity_W`` (3,) m/s,
+    ``yaw_rate`` rad/s about z up, ``acceleration_W`` (3,) m/s² (feed-forward), and
+    ``position_W`` (3,) metres, where the plan has the body then (None: hold no position)."""
+
+    velocity_W: np.ndarray
+    yaw_rate: float
+    acceleration_W: np.ndarray
+    position_W: np.ndarray | None = None
+
+
 @dataclass(frozen=True, eq=False)
 class Plan:
     """What to fly from time ``t``: ``primitive`` in the start frame whose pose is ``T_W_S``.
@@ -103,28 +124,18 @@ class Plan:
     clearance: float
     stop_duration_s: float
 
-    def setpoint(self, t: float) -> tuple[np.ndarray, float]:
-        """``(velocity_W (3,), yaw_rate)`` commanded at time ``t``, m/s and rad/s about z up.
-
-        With ``tau = t - self.t`` (0 before the start), arc duration ``D``, braking time ``T``
-        and the primitive's speed ``v``, yaw rate ``w``, vertical speed ``c``:
-        ``v_S = (v cos w tau, v sin w tau, c)``, yaw rate ``w`` for ``tau < D``; then
-        ``v_S = u (1 - (tau - D) / T)`` with ``u`` the arc's final velocity, yaw rate 0, until
-        rest at ``D + T``; zero after. ``velocity_W = R_W_S v_S``.
-        """
+    def setpoint(self, t: float) -> "Setpoint":
+        """What to command at time ``t``: the primitive's motion ``tau = t - self.t`` after its
+        start (:meth:`Primitive.motion_S`: along the arc, then braking over
+        ``stop_duration_s``, at rest after) turned into ``W``. The acceleration is the
+        feed-forward that lets the autopilot's velocity loop follow the arc and the braking
+        without the lag of its feedback alone, the position what the application's tracking
+        corrects toward: the collision check assumed the primitive is flown as it is."""
         if not math.isfinite(t):
             raise ValueError(f"setpoint time must be finite, got {t!r}")
-        p = self.primitive
-        tau = max(0.0, t - self.t)
-        if tau < p.duration:
-            heading = p.yaw_rate * tau
-            v_S = np.array([p.speed * math.cos(heading), p.speed * math.sin(heading),
-                            p.vertical_speed])
-            yaw_rate = p.yaw_rate
-        else:
-            left = max(0.0, 1.0 - (tau - p.duration) / self.stop_duration_s)
-            v_S, yaw_rate = p.end_velocity_S * left, 0.0
-        return self.T_W_S[:3, :3] @ v_S, float(yaw_rate)
+        p_S, v_S, a_S, yaw_rate = self.primitive.motion_S(t - self.t, self.stop_duration_s)
+        R = self.T_W_S[:3, :3]
+        return Setpoint(R @ v_S, float(yaw_rate), R @ a_S, R @ p_S + self.T_W_S[:3, 3])
 
     @property
     def end_time(self) -> float:
@@ -144,20 +155,7 @@ class Planner:
         self.history = DepthHistory(robot_radius=o.robot_radius, min_confidence=o.min_confidence,
                                     max_range=o.max_range, max_frames=o.history_frames,
                                     max_age_s=o.history_s)
-        shape = o.primitives
-        self.library = library(shape)
-        branch_shape = replace(shape, duration_s=o.period_s)
-        self.branches = [forward_arc(a.speed, a.yaw_rate, a.vertical_speed, branch_shape)
-                         for a in self.library]
-        # Every point checked per primitive: arc (less its start, the vehicle's own sphere),
-        # extension, then the branch's point at one period and its braking.
-        groups = [np.vstack([a.points_S[1:], a.stop_points_S, b.points_S[-1:], b.stop_points_S])
-                  for a, b in zip(self.library, self.branches)]
-        self._points_S = np.vstack(groups)
-        self._starts = np.cumsum([0] + [len(g) for g in groups[:-1]])
-        self._ends_S = np.array([a.points_S[-1] for a in self.library])
-        self._yaw_rates = np.array([a.yaw_rate for a in self.library])
-        self._vertical = np.array([a.vertical_speed for a in self.library])
+        self.tiers = [PrimitiveTier(speed, o) for speed in tier_speeds(o.primitives)]
         self._previous: Plan | None = None
         self._checked_stop: Plan | None = None
 
@@ -179,39 +177,96 @@ class Planner:
         self.history.add(depth.depth, depth.confidence, T_W_C, self.camera, depth.t)
         return True
 
-    def plan(self, t: float, T_W_B, velocity_W, goal_W) -> Plan:
+    def plan(self, t: float, T_W_B, velocity_W, goal_W, stop_at_goal: bool = False) -> Plan:
         """The plan for the round at time ``t`` with the body at ``T_W_B`` moving at
-        ``velocity_W`` (m/s), heading for ``goal_W`` (module docstring)."""
+        ``velocity_W`` (m/s), heading for ``goal_W`` (module docstring). ``stop_at_goal``: the
+        vehicle is to stop there (the last waypoint, a sharp corner), so only tiers whose
+        arc and braking end no farther than the goal are flown, the slowest always."""
         t = _finite_time(t)
         T_W_S = _start_pose(T_W_B)
         velocity = _vector(velocity_W, "velocity_W")
         goal = _vector(goal_W, "goal_W")
         if not any(ft >= t - self.options.history_s for ft in self.history.times):
             return self._stop(t, T_W_S, velocity, "no depth")
-        safe, clearance = self.check(t, T_W_S)
-        count = int(safe.sum())
-        if count == 0:
-            return self._stop(t, T_W_S, velocity, "no safe primitive")
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
-        cost = np.where(safe, self._cost(start, R, goal, clearance), np.inf)
+        tiers = self.tiers
+        if stop_at_goal:
+            room = float(np.hypot(*(goal - start)[:2]))
+            tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
+        for tier in tiers:  # fastest first; a slower one only when nothing is safe
+            safe, clearance = self.check(t, T_W_S, tier)
+            if safe.any():
+                break
+        else:
+            return self._stop(t, T_W_S, velocity, "no safe primitive")
+        count = int(safe.sum())
+        cost = np.where(safe, self._cost(tier, start, R, goal, clearance), np.inf)
         i = int(np.argmin(cost))
         chosen = float(clearance[i])
-        plan = Plan(t, T_W_S, self.library[i], "arc", "", count, chosen,
+        plan = Plan(t, T_W_S, tier.library[i], "arc", "", count, chosen,
                     self.options.stop_duration_s)
         self._previous = plan
-        self._checked_stop = Plan(t, T_W_S, self.branches[i], "stop", "", count, chosen,
+        self._checked_stop = Plan(t, T_W_S, tier.branches[i], "stop", "", count, chosen,
                                   self.options.stop_duration_s)
         return plan
 
-    def check(self, t: float, T_W_S) -> tuple[np.ndarray, np.ndarray]:
-        """``(safe, clearance)`` of every primitive of ``library`` (and its branch) placed at
-        the start frame ``T_W_S``, against the frames no older than ``t - history_s``:
-        ``safe`` (P,) bool; ``clearance`` (P,) the least clearance along it (metres between
-        the sphere's far side and the surface behind it; inf where only rays judged it)."""
+    def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """``(safe, clearance)`` of every primitive of ``tier`` (default the fastest) and its
+        branch, placed at the start frame ``T_W_S``, against the frames no older than
+        ``t - history_s``: ``safe`` (P,) bool; ``clearance`` (P,) the least clearance along it
+        (metres between the sphere's far side and the surface behind it; inf where only rays
+        judged it)."""
+        tier = self.tiers[0] if tier is None else tier
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
-        result = self.history.check(self._points_S @ R.T + start, start_W=start, now=t)
-        safe = np.logical_and.reduceat(result.free, self._starts)
-        return safe, np.fmin.reduceat(result.clearance, self._starts)
+        result = self.history.check(tier.points_S @ R.T + start, start_W=start, now=t)
+        safe = np.logical_and.reduceat(result.free, tier.starts)
+        return safe, np.fmin.reduceat(result.clearance, tier.starts)
+
+    def approach(self, t: float, T_W_B, goal_W) -> Plan | None:
+        """:meth:`glide` to ``goal_W``, checked against the history as the arcs are (its points
+        and braking); None when unsafe. For stopping at a corner or the goal precisely, where
+        a narrow passage leaves no room to be off its axis, and the arcs cannot stop on a
+        point."""
+        plan = self.glide(t, T_W_B, goal_W, "approach")
+        if plan is None:
+            return None
+        start = plan.T_W_S[:3, 3]
+        points_S = np.vstack([plan.primitive.points_S[1:], plan.primitive.stop_points_S])
+        result = self.history.check(points_S @ plan.T_W_S[:3, :3].T + start, start_W=start,
+                                    now=plan.t)
+        if not result.free.all():
+            return None
+        plan = replace(plan, safe_count=1, clearance=float(np.min(result.clearance)))
+        self._checked_stop = plan
+        return plan
+
+    def glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
+        """A straight glide from the body at ``T_W_B`` (at rest) to come to rest at
+        ``goal_W``, heading held: horizontally at no more than the slowest tier's speed ``u``,
+        cruise then brake over ``stop_duration_s`` (``u T / 2``), slower when the goal is
+        nearer than that; vertically at the constant rate ``c`` (then braking with the rest)
+        that ends at the goal's height, at most ``max_vertical_speed``. None when already
+        there. Unchecked: :meth:`approach` checks it."""
+        t = _finite_time(t)
+        T_W_B = as_pose(T_W_B, "T_W_B")
+        start = T_W_B[:3, 3]
+        offset = _vector(goal_W, "goal_W") - start
+        distance = float(np.hypot(offset[0], offset[1]))
+        if distance < 1e-3 and abs(offset[2]) < 1e-3:
+            return None
+        o = self.options
+        slowest = self.tiers[-1].speed
+        braking = slowest * o.stop_duration_s / 2.0
+        speed = slowest if distance >= braking else 2.0 * distance / o.stop_duration_s
+        cruise_s = max(0.0, distance - braking) / max(speed, 1e-9)
+        climb = float(np.clip(offset[2] / (cruise_s + o.stop_duration_s / 2.0),
+                              -o.max_vertical_speed, o.max_vertical_speed))
+        heading = math.atan2(offset[1], offset[0]) if distance >= 1e-3 else yaw_of(T_W_B[:3, :3])
+        T_W_S = make_pose(rot_z(heading), start)
+        primitive = (forward_arc(speed, 0.0, climb, o.primitives, cruise_s) if cruise_s > 0.0
+                     else stop_primitive(np.array([speed, 0.0, climb]), o.primitives))
+        return Plan(t, T_W_S, primitive, "stop", reason, 0, math.nan, o.stop_duration_s)
 
     def stop_plan(self, t: float, T_W_B, velocity_W, reason: str) -> Plan:
         """The stop for the application's failsafes: the stop checked at the last round,
@@ -223,31 +278,61 @@ class Planner:
 
     def _stop(self, t: float, T_W_S: np.ndarray, velocity: np.ndarray, reason: str) -> Plan:
         stop = self._checked_stop
-        if stop is not None and stop.t <= t < stop.end_time:
+        if stop is not None and stop.t <= t and (t < stop.end_time or np.linalg.norm(
+                stop.setpoint(t).position_W - T_W_S[:3, 3]) <= self.options.robot_radius):
             return replace(stop, reason=reason, safe_count=0)
-        self._checked_stop = None
+        # Braking from the present velocity, kept and continued by the next rounds: braking
+        # begun afresh every round from the velocity then would never come to rest, and a
+        # stop begun afresh where the vehicle has crept to would let it creep on.
         velocity_S = T_W_S[:3, :3].T @ velocity
-        return Plan(t, T_W_S, stop_primitive(velocity_S, self.options.primitives), "stop",
-                    reason, 0, math.nan, self.options.stop_duration_s)
+        self._checked_stop = Plan(t, T_W_S, stop_primitive(velocity_S, self.options.primitives),
+                                  "stop", reason, 0, math.nan, self.options.stop_duration_s)
+        return self._checked_stop
 
-    def _cost(self, start: np.ndarray, R: np.ndarray, goal: np.ndarray,
+    def _cost(self, tier: "PrimitiveTier", start: np.ndarray, R: np.ndarray, goal: np.ndarray,
               clearance: np.ndarray) -> np.ndarray:
-        """The cost ``J`` of the module docstring for every primitive."""
+        """The cost ``J`` of the module docstring for every primitive of ``tier``."""
         o = self.options
-        ends = self._ends_S @ R.T + start
+        ends = tier.ends_S @ R.T + start
         progress = np.linalg.norm(start - goal) - np.linalg.norm(ends - goal, axis=1)
-        cost = -o.progress_weight * progress / (o.speed * o.duration_s)
+        cost = -o.progress_weight * progress / (tier.speed * o.duration_s)
         if self._previous is not None:
             change = np.zeros(len(cost))
             if o.max_yaw_rate_deg > 0.0:
                 w0 = self._previous.primitive.yaw_rate
-                change += ((self._yaw_rates - w0) / math.radians(o.max_yaw_rate_deg)) ** 2
+                change += ((tier.yaw_rates - w0) / math.radians(o.max_yaw_rate_deg)) ** 2
             if o.max_vertical_speed > 0.0:
                 c0 = self._previous.primitive.vertical_speed
-                change += ((self._vertical - c0) / o.max_vertical_speed) ** 2
+                change += ((tier.vertical_speeds - c0) / o.max_vertical_speed) ** 2
             cost += o.smoothness_weight * change
         near = np.clip(1.0 - clearance / o.clearance_wanted, 0.0, 1.0)
         return cost + o.clearance_weight * near
+
+
+class PrimitiveTier:
+    """The library at one speed, ready to check: ``library`` its arcs, ``branches`` each
+    arc's "one period, then brake" branch, and every point checked per primitive, stacked:
+    the arc (less its start, the vehicle's own sphere), its extension, then the branch's
+    braking (``points_S``, primitive ``i``'s from ``starts[i]``). The branch's own short arc
+    is the first piece of the arc, so it is checked as the arc is, at the arc's samples (its
+    end point, a few centimetres ahead at a slow tier, would sit beside or behind the camera,
+    where no frame can see it)."""
+
+    def __init__(self, speed: float, options: PlannerOptions):
+        shape = options.primitives
+        self.speed = speed
+        self.library = library(shape, speed)
+        self.branches = [forward_arc(a.speed, a.yaw_rate, a.vertical_speed, shape,
+                                     options.period_s) for a in self.library]
+        groups = [np.vstack([a.points_S[1:], a.stop_points_S, b.stop_points_S])
+                  for a, b in zip(self.library, self.branches)]
+        self.points_S = np.vstack(groups)
+        self.starts = np.cumsum([0] + [len(g) for g in groups[:-1]])
+        self.ends_S = np.array([a.points_S[-1] for a in self.library])
+        #: How far ahead the straight arc comes to rest: its length and braking, v (D + T / 2).
+        self.reach = speed * (options.duration_s + options.stop_duration_s / 2.0)
+        self.yaw_rates = np.array([a.yaw_rate for a in self.library])
+        self.vertical_speeds = np.array([a.vertical_speed for a in self.library])
 
 
 def _finite_time(t) -> float:

@@ -40,6 +40,9 @@ class PrimitiveOptions:
                                   "evenly over [-max_vertical_speed, max_vertical_speed]")
     max_vertical_speed: float = option(0.5, ge=0.0, le=5.0, doc="largest climb or sink rate of "
                                        "an arc, m/s")
+    speed_tiers: int = option(3, ge=1, le=5, doc="speeds of the library: speed, speed / 2, "
+                              "speed / 4, ...; a slower tier is tried only when no arc of the "
+                              "faster ones is safe (a narrow passage, a corner)")
     stop_duration_s: float = option(2.0, gt=0.0, le=10.0, doc="time to brake to rest, seconds")
     sample_spacing: float = option(0.25, gt=0.0, le=5.0, doc="largest distance between the "
                                    "points an arc is checked at, metres")
@@ -81,24 +84,60 @@ class Primitive:
                          self.speed * math.sin(self.heading), self.vertical_speed])
 
 
-def library(options: PrimitiveOptions | None = None) -> list[Primitive]:
-    """Every forward arc of the library, yaw rate varying fastest, from right turns (negative
-    yaw rate, clockwise seen from above) to left turns."""
+    def motion_S(self, tau: float, stop_duration: float):
+        """``(position, velocity, acceleration, yaw_rate)`` at ``tau`` seconds after the start
+        (clamped to 0 below), in the start frame: along the arc (module docstring) for
+        ``tau < duration``, then braking over ``stop_duration``, at rest after. On the arc
+        ``v = (v cos w tau, v sin w tau, c)`` and ``a = v w (-sin w tau, cos w tau, 0)``;
+        braking from the end velocity ``u``, ``s = tau - duration``: ``p = p_end + u (s -
+        s² / 2T)``, ``v = u (1 - s / T)``, ``a = -u / T``."""
+        tau = max(0.0, tau)
+        if tau < self.duration:
+            heading = self.yaw_rate * tau
+            cos, sin = math.cos(heading), math.sin(heading)
+            x, y = _arc_xy(self.speed, self.yaw_rate, np.array([tau]))
+            position = np.array([x[0], y[0], self.vertical_speed * tau])
+            velocity = np.array([self.speed * cos, self.speed * sin, self.vertical_speed])
+            return (position, velocity, self.speed * self.yaw_rate * np.array([-sin, cos, 0.0]),
+                    self.yaw_rate)
+        u = self.end_velocity_S
+        s = min(tau - self.duration, stop_duration)
+        position = self.points_S[-1] + u * (s - s * s / (2.0 * stop_duration))
+        if s >= stop_duration:
+            return position, np.zeros(3), np.zeros(3), 0.0
+        return position, u * (1.0 - s / stop_duration), -u / stop_duration, 0.0
+
+
+def tier_speeds(options: PrimitiveOptions | None = None) -> list[float]:
+    """The horizontal speed of each tier, fastest first: ``speed / 2^k``."""
+    o = options or PrimitiveOptions()
+    return [o.speed / 2.0**k for k in range(o.speed_tiers)]
+
+
+def library(options: PrimitiveOptions | None = None, speed: float | None = None
+            ) -> list[Primitive]:
+    """Every forward arc of one tier (``speed``, default the fastest), yaw rate varying
+    fastest, from right turns (negative yaw rate, clockwise seen from above) to left turns.
+    The same yaw rates at every speed: a slower arc turns on a tighter circle, ``v / w``."""
     o = options or PrimitiveOptions()
     yaw_rates = _spread(math.radians(o.max_yaw_rate_deg), o.yaw_rates)
     vertical_speeds = _spread(o.max_vertical_speed, o.vertical_speeds)
-    return [forward_arc(o.speed, w, c, o) for c in vertical_speeds for w in yaw_rates]
+    v = o.speed if speed is None else speed
+    return [forward_arc(v, w, c, o) for c in vertical_speeds for w in yaw_rates]
 
 
 def forward_arc(speed: float, yaw_rate: float, vertical_speed: float,
-                options: PrimitiveOptions) -> Primitive:
-    """The arc with these commands, sampled at most ``sample_spacing`` apart, and its
-    stopping extension."""
+                options: PrimitiveOptions, duration: float | None = None) -> Primitive:
+    """The arc with these commands for ``duration`` seconds (default ``duration_s``), sampled
+    at most ``sample_spacing`` apart, and its stopping extension."""
     o = options
+    duration = o.duration_s if duration is None else float(duration)
+    if not (math.isfinite(duration) and duration > 0.0):
+        raise ValueError(f"an arc's duration must be > 0 s, got {duration!r}")
     step_length = math.hypot(speed, vertical_speed)
-    t = _sample_times(o.duration_s, step_length, o.sample_spacing)
+    t = _sample_times(duration, step_length, o.sample_spacing)
     points = np.column_stack([*_arc_xy(speed, yaw_rate, t), vertical_speed * t])
-    heading = yaw_rate * o.duration_s
+    heading = yaw_rate * duration
     velocity = np.array([speed * math.cos(heading), speed * math.sin(heading), vertical_speed])
     stop = braking_points(points[-1], velocity, o)
     return Primitive(speed, yaw_rate, vertical_speed, t, points, stop, heading)

@@ -672,20 +672,23 @@ class Autopilot:
         remote = self.timesync.to_remote(self.clock.now())
         return 0 if remote is None else int(min(max(remote * 1e3, 0.0), 2**32 - 1))
 
-    def send_velocity(self, velocity_L, yaw_rate: float = 0.0) -> None:
-        """Offboard velocity setpoint: ``velocity_L`` (3,) m/s in frame L (ENU) and a yaw rate
-        in rad/s about z up; sent as SET_POSITION_TARGET_LOCAL_NED (local NED, velocity + yaw
-        rate). ValueError for non-finite input: nothing is sent."""
-        velocity = np.asarray(velocity_L, dtype=float)
-        if velocity.shape != (3,) or not np.isfinite(velocity).all():
-            raise ValueError(f"velocity_L must be 3 finite numbers (m/s), got {velocity_L!r}")
+    def send_velocity(self, velocity_L, yaw_rate: float = 0.0, acceleration_L=None) -> None:
+        """Offboard velocity setpoint: ``velocity_L`` (3,) m/s in frame L (ENU), a yaw rate in
+        rad/s about z up and, optionally, ``acceleration_L`` (3,) m/s² as feed-forward; sent as
+        SET_POSITION_TARGET_LOCAL_NED (local NED). ValueError for non-finite input: nothing is
+        sent."""
+        velocity = _finite_vector(velocity_L, "velocity_L", "m/s")
         if not math.isfinite(yaw_rate):
             raise ValueError(f"yaw_rate must be a finite number (rad/s), got {yaw_rate!r}")
-        north, east, down = enu_to_ned(velocity)
+        if acceleration_L is None:
+            mask, acceleration = px4.TYPE_MASK_VELOCITY_YAW_RATE, np.zeros(3)
+        else:
+            mask = px4.TYPE_MASK_VELOCITY_ACCELERATION_YAW_RATE
+            acceleration = _finite_vector(acceleration_L, "acceleration_L", "m/s²")
         self._send(self.link.mav.set_position_target_local_ned_encode(
             self._boot_ms(), self.options.target_system, self.options.target_component,
-            mavlink.MAV_FRAME_LOCAL_NED, px4.TYPE_MASK_VELOCITY_YAW_RATE, 0.0, 0.0, 0.0,
-            north, east, down, 0.0, 0.0, 0.0, 0.0, -float(yaw_rate)))
+            mavlink.MAV_FRAME_LOCAL_NED, mask, 0.0, 0.0, 0.0,
+            *enu_to_ned(velocity), *enu_to_ned(acceleration), 0.0, -float(yaw_rate)))
 
     def send_odometry(self, t: float, position_L, q_L_B, velocity_L=None,
                       angular_velocity_B=None, pose_covariance=None, reset_counter: int = 0,
@@ -719,3 +722,10 @@ class Autopilot:
 def _ns(t: float) -> int:
     """Companion seconds as TIMESYNC nanoseconds, never 0 (tc1 = 0 marks a request)."""
     return max(1, int(round(t * 1e9)))
+
+
+def _finite_vector(value, name: str, unit: str) -> np.ndarray:
+    vector = np.asarray(value, dtype=float)
+    if vector.shape != (3,) or not np.isfinite(vector).all():
+        raise ValueError(f"{name} must be 3 finite numbers ({unit}), got {value!r}")
+    return vector

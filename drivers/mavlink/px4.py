@@ -159,6 +159,9 @@ IGNORE_YAW_RATE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 #: type_mask for a velocity-only setpoint with a yaw rate (what MAVSDK's set_velocity_body
 #: sends) and with an absolute yaw (set_velocity_ned).
 TYPE_MASK_VELOCITY_YAW_RATE = IGNORE_POSITION | IGNORE_ACCELERATION | IGNORE_YAW
+#: ... and with an acceleration feed-forward (PX4's PositionControl adds it to the output of
+#: its velocity loop).
+TYPE_MASK_VELOCITY_ACCELERATION_YAW_RATE = IGNORE_POSITION | IGNORE_YAW
 TYPE_MASK_VELOCITY_YAW = IGNORE_POSITION | IGNORE_ACCELERATION | IGNORE_YAW_RATE
 #: type_mask for a position setpoint with an absolute yaw.
 TYPE_MASK_POSITION_YAW = IGNORE_VELOCITY | IGNORE_ACCELERATION | IGNORE_YAW_RATE

@@ -3,7 +3,7 @@
 A driver like any other camera driver: :meth:`SimCamera.next_frame` waits for the next frame
 time of a ``rate_hz`` camera and returns a :class:`~autonomy.messages.Frame` stamped on the
 companion's clock. It renders the world at the vehicle's true pose at that instant, through the
-camera mounting :data:`~drivers.sim.record.T_BODY_CAMERA`, and fills ``truth_depth`` (the
+camera mounting ``T_B_C`` (``[camera]`` mount_*), and fills ``truth_depth`` (the
 renderer's depth, for the synthetic network and for scoring).
 
 Frames come on a fixed grid ``k / rate_hz``; a consumer slower than the camera gets the newest
@@ -26,12 +26,13 @@ from drivers.sim.record import T_BODY_CAMERA
 
 class SimCamera:
     """Frames of ``renderer`` from the pose of ``sim`` (a :class:`~drivers.sim.serve.
-    SimulatedVehicle`) at ``rate_hz``, on ``clock``."""
+    SimulatedVehicle`) at ``rate_hz``, on ``clock``, the camera mounted at ``T_B_C``."""
 
-    def __init__(self, sim, renderer, rate_hz: float, clock):
+    def __init__(self, sim, renderer, rate_hz: float, clock, T_B_C=T_BODY_CAMERA):
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"camera rate must be a positive number of Hz, got {rate_hz}")
         self.sim, self.renderer, self.clock = sim, renderer, clock
+        self.T_B_C = np.asarray(T_B_C, dtype=float)
         self.period = 1.0 / rate_hz
         self._next_index = math.ceil(clock.now() / self.period)
         self.delivered = 0
@@ -53,7 +54,7 @@ class SimCamera:
 
     def _render(self, t: float) -> Frame:
         state = self.sim.vehicle.state
-        T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ T_BODY_CAMERA
+        T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ self.T_B_C
         rgb, depth = self.renderer.render(T_W_C)
         if self.sim.faults.active("camera_blackout", self.sim.time):
             rgb = np.zeros_like(rgb)

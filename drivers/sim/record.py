@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-from autonomy.geometry import R_BODY_CAMERA, make_pose, quat_to_rot
+from autonomy.geometry import make_pose, quat_to_rot
 from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import EurocWriter
 from drivers.sim.imu import ImuModel, ImuOptions
@@ -26,9 +26,9 @@ from drivers.sim.render import Renderer
 from drivers.sim.vehicle import ControlTarget, Quadrotor, VehicleOptions
 from drivers.sim.world import Route, World, build_world
 
-#: Camera mounting: optical frame looking along body x, 10 cm ahead of the body origin and
-#: 5 cm above it.
-T_BODY_CAMERA = make_pose(R_BODY_CAMERA, np.array([0.10, 0.0, 0.05]))
+#: The default camera mounting (``[camera]`` mount_*): optical frame looking along body x,
+#: 10 cm ahead of the body origin and 5 cm above it.
+T_BODY_CAMERA = CameraOptions().T_B_C()
 
 ROBOT_RADIUS = 1.0
 """Clearance the recorded path keeps from every obstacle, metres (the paper's robot radius)."""
@@ -158,6 +158,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     sensor = ImuModel(imu, np.random.default_rng([seed, 1]))
     owned = renderer is None
     renderer = renderer or Renderer(world, camera.pinhole())
+    T_B_C = camera.T_B_C()
     climb_seconds = route.cruise_height * CLIMB_SECONDS_PER_METRE + SETTLE_SECONDS
     ticks = int(round(duration * imu.rate_hz))
     next_frame, frames = 0.0, 0
@@ -167,7 +168,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
             t_ns = int(round(t * 1e9))
             state = quad.state
             if t >= next_frame - 1e-9:
-                T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ T_BODY_CAMERA
+                T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ T_B_C
                 sink.add_frame(t_ns, *renderer.render(T_W_C))
                 frames += 1
                 next_frame += 1.0 / camera.rate_hz
@@ -220,7 +221,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")
     world = build_world(sim.world, sim.seed)
     route = world.routes[sim.seed % len(world.routes)]
-    with EurocWriter(out, camera.pinhole(), T_BODY_CAMERA, camera.rate_hz, _euroc_noise(imu)) as writer:
+    with EurocWriter(out, camera.pinhole(), camera.T_B_C(), camera.rate_hz,
+                     _euroc_noise(imu)) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.seed,
                    camera=camera, vehicle=vehicle, imu=imu)
 
