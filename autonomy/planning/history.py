@@ -358,14 +358,14 @@ class DepthHistory:
         return known & (margin >= 0.0), np.where(known, margin.astype(float), np.nan)
 
     def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray,
-               open_: np.ndarray | None = None):
+               unfreed: np.ndarray | None = None):
         """``(free, strong, clearance)`` of one frame on ``points`` (M, 3); a point neither
-        free nor strong is unknown to this frame. Module docstring for the rules. ``open_``:
+        free nor strong is unknown to this frame. Module docstring for the rules. ``unfreed``:
         the points no newer frame has called free (weakly); only those get the block rule
         where it could only call them weakly free."""
         cam, R = frame.camera, self.robot_radius
         H, W = cam.height, cam.width
-        open_ = np.ones(len(points), dtype=bool) if open_ is None else open_
+        unfreed = np.ones(len(points), dtype=bool) if unfreed is None else unfreed
         p = points @ frame.R_C_W.T + frame.t_C_W
         x, y, z = p[:, 0], p[:, 1], p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -388,7 +388,7 @@ class DepthHistory:
             # a sphere holding the camera meets every ray, so any unknown pixel leaves it
             # unknown; the rest, ray by ray, block by block
             holds_camera = (nearest < 0.0) & (distance <= R)
-            rest = ray[~free[ray] & ~strong[ray] & open_[ray] & ~holds_camera]
+            rest = ray[~free[ray] & ~strong[ray] & unfreed[ray] & ~holds_camera]
             if len(rest):
                 free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest])
 

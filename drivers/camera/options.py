@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, rot_z
+from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.options import option, validate
 
 
@@ -44,21 +44,12 @@ class CameraOptions:
         (x forward, y left, z up): ``R = Rz(yaw) Ry(pitch) Rx(roll) R_BODY_CAMERA`` at
         ``(mount_x, mount_y, mount_z)``; the defaults are the simulator's mounting, level,
         10 cm ahead and 5 cm above the body origin."""
-        tilt = (rot_z(math.radians(self.mount_yaw_deg)) @ _rot_y(math.radians(
-            self.mount_pitch_deg)) @ _rot_x(math.radians(self.mount_roll_deg)))
+        tilt = (rot_z(math.radians(self.mount_yaw_deg))
+                @ so3_exp(np.array([0.0, math.radians(self.mount_pitch_deg), 0.0]))
+                @ so3_exp(np.array([math.radians(self.mount_roll_deg), 0.0, 0.0])))
         return make_pose(tilt @ R_BODY_CAMERA,
                          np.array([self.mount_x, self.mount_y, self.mount_z]))
 
     def pinhole(self) -> PinholeCamera:
         """The intrinsics: square pixels, principal point at the centre."""
         return PinholeCamera.from_hfov(self.width, self.height, math.radians(self.hfov_deg))
-
-
-def _rot_y(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _rot_x(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
