@@ -6,15 +6,18 @@ Renders a 640x480 (90 degree) depth image of a floor, a field of pillars and a f
 from 8 poses 12 Hz apart along a 2 m/s flight at 1.5 m, with a 60x40 patch of each image at
 confidence 0, feeds them to Planner.add_depth, and times Planner.plan (every speed tier tried
 when none of a faster one is safe), and the same round with the fastest tier alone (the
-paper's 75 arcs, speed_tiers=1). Baselines in the same run:
-the same round against the newest frame alone (history_frames=1), and a naive check of the
-same points and rules taking each ring window's minimum by slicing the range image (no table),
-which also confirms the table's verdicts. Last, every point's sphere against the newest frame
-by the ring rule and by the exact per-ray rule (every pixel ray through the sphere sees its
-surface beyond the ray's exit point): the ring rule must never call free what the exact rule
-does not. Then the round where planning costs most: on the axis of a 3 m corridor, where most
-spheres near the vehicle need the block rule and slower tiers may be tried. Prints one JSON
-object.
+paper's 75 arcs, speed_tiers=1), wall and CPU time (on a shared machine the CPU time leaves
+out the time other processes took the core). The rounds are timed in turn, so that the load
+falls on all alike. Baselines in the same run: the same round against the newest frame alone
+(history_frames=1); the fastest tier's check with every point judged (no primitive left off
+at its first occupied point), which must agree on which primitives are safe; and a naive check
+of the same points and rules taking each ring window's minimum by slicing the range image (no
+table), which also confirms the table's verdicts. Last, every point's sphere against the newest
+frame by the ring rule and by the exact per-ray rule (every pixel ray through the sphere sees
+its surface beyond the ray's exit point): the ring rule must never call free what the exact
+rule does not. Then the round where planning costs most: on the axis of a 3 m corridor, where
+most spheres near the vehicle need the block rule and slower tiers may be tried. Prints one
+JSON object.
 """
 
 import argparse
@@ -200,6 +203,36 @@ def exact_versus_rings(planner: Planner, T_W_S: np.ndarray) -> dict:
             "exact_free_rings_not": int(np.sum(exact & ~rings))}
 
 
+def every_point_check(planner: Planner, T_W_S: np.ndarray, now: float) -> np.ndarray:
+    """The baseline of :meth:`Planner.check` (fastest tier): every point judged, no group
+    left off once one of its points is occupied; which primitives are safe."""
+    tier = planner.tiers[0]
+    result = planner.history.check(tier.points_S @ T_W_S[:3, :3].T + T_W_S[:3, 3],
+                                   start_W=T_W_S[:3, 3], now=now)
+    return np.logical_and.reduceat(result.free, tier.starts)
+
+
+def interleaved(rounds: dict, repeats: int) -> tuple[dict, dict]:
+    """Wall and CPU milliseconds per call of each of ``rounds`` (name: no-argument callable),
+    ``repeats`` each after a warm-up, the rounds taken in turn so that the load of a shared
+    machine falls on all of them alike."""
+    wall = {name: [] for name in rounds}
+    cpu = {name: [] for name in rounds}
+    for name, call in rounds.items():
+        call()
+    for _ in range(repeats):
+        for name, call in rounds.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            call()
+            cpu[name].append((time.process_time() - c0) * 1e3)
+            wall[name].append((time.perf_counter() - w0) * 1e3)
+    return wall, cpu
+
+
+def _median(ms: list[float]) -> float:
+    return round(float(np.median(ms)), 3)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=200)
@@ -227,15 +260,14 @@ def main() -> None:
             add_ms.append((time.perf_counter() - t0) * 1e3)
     now = 8 * options.period_s
     velocity, goal = np.array([2.0, 0.0, 0.0]), np.array([60.0, 0.0, ALTITUDE])
-    timings, plans = {}, {}
-    for n, planner in planners.items():
-        planner.plan(now, T_W_B, velocity, goal)  # warm-up
-        ms = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            plans[n] = planner.plan(now, T_W_B, velocity, goal)
-            ms.append((time.perf_counter() - t0) * 1e3)
-        timings[n] = ms
+    plans = {n: planner.plan(now, T_W_B, velocity, goal) for n, planner in planners.items()}
+    fastest = planners["75"]
+    T_W_S = plans["75"].T_W_S
+    rounds = {n: (lambda p=planner: p.plan(now, T_W_B, velocity, goal))
+              for n, planner in planners.items()}
+    rounds["check"] = lambda: fastest.check(now, T_W_S)
+    rounds["check_every_point"] = lambda: every_point_check(fastest, T_W_S, now)
+    wall, cpu = interleaved(rounds, args.repeats)
     planner = planners[8]
     T_W_S = plans[8].T_W_S
     free = planner.history.check(planner.tiers[0].points_S @ T_W_S[:3, :3].T + T_W_S[:3, 3],
@@ -245,7 +277,7 @@ def main() -> None:
         t0 = time.perf_counter()
         naive = naive_free(planner, T_W_S, now)
         naive_ms.append((time.perf_counter() - t0) * 1e3)
-    median = float(np.median(timings[8]))
+    median = float(np.median(wall[8]))
     versus = exact_versus_rings(planner, T_W_S)
     corridor_ms, corridor_kind, corridor_speed = corridor_round_ms(max(5, args.repeats // 10))
     print(json.dumps({
@@ -253,9 +285,14 @@ def main() -> None:
         "points": len(planner.tiers[0].points_S), "threads": 1,
         "safe_primitives": plans[8].safe_count, "safe_primitives_1_frame": plans[1].safe_count,
         "plan_ms_median": round(median, 3),
-        "plan_ms_p90": round(float(np.percentile(timings[8], 90)), 3),
-        "plan_1_frame_ms_median": round(float(np.median(timings[1])), 3),
-        "plan_fastest_tier_only_ms_median": round(float(np.median(timings["75"])), 3),
+        "plan_ms_p90": round(float(np.percentile(wall[8], 90)), 3),
+        "plan_1_frame_ms_median": _median(wall[1]),
+        "plan_fastest_tier_only_ms_median": _median(wall["75"]),
+        "plan_fastest_tier_only_cpu_ms_median": _median(cpu["75"]),
+        "check_fastest_tier_ms_median": _median(wall["check"]),
+        "check_fastest_tier_every_point_ms_median": _median(wall["check_every_point"]),
+        "check_agrees_with_every_point": bool(np.array_equal(
+            fastest.check(now, T_W_S)[0], every_point_check(fastest, T_W_S, now))),
         "tiers_tried": len(planner.tiers) if plans[8].kind == "stop" else 1,
         "add_depth_ms_median": round(float(np.median(add_ms)), 3),
         "naive_check_ms_median": round(float(np.median(naive_ms)), 1),

@@ -82,7 +82,7 @@ def test_window_minimum_equals_the_brute_force_minimum_or_a_superset_of_it():
     for _ in range(400):
         u = np.sort(rng.uniform(-10, W + 10, 2))
         v = np.sort(rng.uniform(-10, H + 10, 2))
-        got = window_min(flat, H, W, u[:1], u[1:], v[:1], v[1:])[0]
+        got = window_min(flat, H, W, np.array([u[:1], v[:1]]), np.array([u[1:], v[1:]]))[0]
         i0, i1 = (int(np.clip(np.floor(a + 0.5), 0, W - 1)) for a in u)
         j0, j1 = (int(np.clip(np.floor(a + 0.5), 0, H - 1)) for a in v)
         exact = image[j0:j1 + 1, i0:i1 + 1].min()
@@ -412,6 +412,33 @@ def test_a_wall_on_the_left_turns_the_choice_right():
     assert np.all(clearance[safe] >= 0.0)
 
 
+
+def test_a_primitives_check_stops_at_its_first_occupied_point_with_the_same_verdicts():
+    """The planner checks each primitive's points as a group and stops judging a primitive at
+    its first occupied point: which primitives are safe, and a safe one's clearance, are what
+    judging every point gives."""
+    planner = planner_seeing([WALL_LEFT, *ROOM])
+    older = camera_pose(body(x=-0.5, yaw=0.2))
+    depth = render(older, [WALL_LEFT, *ROOM])
+    planner.history.add(depth, np.ones_like(depth), older, CAMERA, -0.05)
+    T_W_S = planner.plan(0.05, body(), FORWARD, AHEAD).T_W_S
+    tier = planner.tiers[0]
+    points = tier.points_S @ T_W_S[:3, :3].T + T_W_S[:3, 3]
+    every = planner.history.check(points, start_W=T_W_S[:3, 3], now=0.05)
+    grouped = planner.history.check(points, start_W=T_W_S[:3, 3], now=0.05,
+                                    groups=tier.primitive_of_point)
+    safe, clearance = planner.check(0.05, T_W_S)
+    np.testing.assert_array_equal(safe, np.logical_and.reduceat(every.free, tier.starts))
+    np.testing.assert_array_equal(
+        clearance[safe], np.fmin.reduceat(every.clearance, tier.starts)[safe])
+    assert 0 < safe.sum() < len(safe)
+    assert not np.any(grouped.free & ~every.free)
+    assert np.isnan(grouped.frame).sum() > np.isnan(every.frame).sum()  # points left unjudged
+    with pytest.raises(ValueError, match="groups must be"):
+        planner.history.check(points, groups=np.zeros(3, dtype=int))
+    with pytest.raises(ValueError, match="groups must be"):
+        planner.history.check(points, groups=np.full(len(points), -1))
+
 def test_no_depth_and_unknown_depth_mean_stop():
     planner = Planner(CAMERA)
     assert planner.plan(0.0, body(), FORWARD, AHEAD).reason == "no depth"
@@ -576,6 +603,9 @@ def test_bad_inputs_raise_clear_errors():
                                       DIAGNOSTICS), camera_pose(body()))
     with pytest.raises(TypeError, match="MetricDepth"):
         planner.add_depth(np.ones((120, 160)), camera_pose(body()))
+    tiny = PinholeCamera.from_hfov(40, 24, math.radians(90.0))
+    with pytest.raises(ValueError, match="smaller than the 32-pixel blocks"):
+        Planner(tiny)
     with pytest.raises(ValueError, match="reason"):
         planner.stop_plan(0.0, body(), FORWARD, "")
 

@@ -105,7 +105,12 @@ minimum answers both questions (negative: unknown). A ``w x h`` window is answer
 4 look-ups at level ``k = floor(log2(min(w, h)))`` when its long side is at most ``2^(k+1)``
 (square-ish windows, the usual case), else 16 once its short side is at least half its long
 side; a thinner window (clipped at the image border) is first widened inside the image,
-which only adds pixels (conservative). All ``n`` windows of all points go through one gather.
+which only adds pixels (conservative). The outer windows of all points go through one
+gather, the inner windows of those it leaves undecided through a second. The planner needs
+every point of a primitive free, so it passes each point's primitive as its group: a primitive
+found occupied somewhere is not looked up in older frames (in a cluttered view this halves the
+points the older frames judge), and within a frame the block rule is left off the points of a
+primitive that the rings or a centre ray found occupied.
 """
 
 from __future__ import annotations
@@ -168,6 +173,9 @@ class _Frame:
         self.blocks = {side: table[side.bit_length() - 1, ::side, ::side].reshape(-1)
                        for side in NEAR_BLOCK_PX}
         self.camera = camera
+        self.focal = np.array([[camera.fx], [camera.fy]])  # image x, y: (2, 1) for broadcasting
+        self.centre = np.array([[camera.cx], [camera.cy]])
+        self.edge = np.array([[camera.width - 0.5], [camera.height - 0.5]])
         self.t = t
 
 
@@ -219,12 +227,8 @@ class DepthHistory:
         """Keep a frame: ``depth`` (H, W) metres (NaN unknown), ``confidence`` (H, W) in [0, 1],
         the camera's pose ``T_W_C`` when it was taken at time ``t``. Drops the oldest frames
         beyond ``max_frames`` or ``max_age_s`` before the newest."""
-        if not isinstance(camera, PinholeCamera):
-            raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+        check_camera(camera)
         shape = (camera.height, camera.width)
-        if 2 * camera.height < camera.width or 2 * camera.width < camera.height:
-            raise ValueError(f"camera {camera.width}x{camera.height} is more elongated than "
-                             "2:1, which the window look-up does not support")
         depth = np.asarray(depth)
         confidence = np.asarray(confidence)
         if depth.shape != shape:
@@ -245,18 +249,27 @@ class DepthHistory:
         self._frames = [f for f in self._frames[-self.max_frames:]
                         if f.t >= newest - self.max_age_s]
 
-    def check(self, points_W, start_W=None, now: float | None = None) -> CheckResult:
+    def check(self, points_W, start_W=None, now: float | None = None,
+              groups=None) -> CheckResult:
         """Judge the spheres of radius ``robot_radius`` about ``points_W`` (N, 3).
 
         ``start_W`` (3,): the vehicle's present position (module docstring: near the vehicle;
         without it no point is judged by its ray); ``now``: ignore frames older than
-        ``now - max_age_s``. All points go through each frame in one vectorised pass, newest
-        frame first; a frame only sees the points no newer frame has decided strongly.
+        ``now - max_age_s``; ``groups`` (N,) int >= 0: for a caller that needs every point of
+        a group free (a primitive), once a frame finds one point of a group occupied the
+        group's other points are not judged further (reported not free, clearance and frame
+        NaN: the group is unsafe whatever they are). All points go through each frame in one
+        vectorised pass, newest frame first; a frame only sees the points no newer frame has
+        decided strongly.
         """
         points = np.asarray(points_W, dtype=float)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {points.shape}")
         n = len(points)
+        if groups is not None:
+            groups = np.asarray(groups)
+            if groups.shape != (n,) or groups.dtype.kind not in "iu" or (groups < 0).any():
+                raise ValueError(f"groups must be {n} integers >= 0, one per point")
         near = np.zeros(n, dtype=bool)
         if start_W is not None:
             start = np.asarray(start_W, dtype=float).reshape(3)
@@ -272,7 +285,8 @@ class DepthHistory:
             if len(pending) == 0:
                 break
             free, strong, gap = self._judge(frame, points[pending], near[pending],
-                                            np.isnan(weak_t[pending]))
+                                            np.isnan(weak_t[pending]),
+                                            None if groups is None else groups[pending])
             decided = strong
             index = pending[decided]
             verdict[index] = np.where(free[decided], 1, 2)
@@ -282,6 +296,12 @@ class DepthHistory:
             weak_t[pending[weak]] = frame.t
             weak_clearance[pending[weak]] = gap[weak]
             pending = pending[~decided]
+            if groups is not None and (strong & ~free).any():
+                unsafe = np.zeros(groups.max() + 1, dtype=bool)
+                unsafe[groups[verdict == 2]] = True
+                dropped = unsafe[groups[pending]]
+                weak_t[pending[dropped]] = np.nan  # not judged: neither free nor unknown
+                pending = pending[~dropped]
         use_weak = (verdict == 0) & ~np.isnan(weak_t)
         clearance[use_weak] = weak_clearance[use_weak]
         frame_t[use_weak] = weak_t[use_weak]
@@ -317,8 +337,7 @@ class DepthHistory:
         only the part in view: the caller makes that verdict weak); the clearance is the
         least margin. Points are taken per :data:`NEAR_CELL_M` cube (the caution that costs is
         the cube's half diagonal, 4 cm)."""
-        cells, inverse = np.unique(np.floor(p / NEAR_CELL_M), axis=0, return_inverse=True)
-        centres = (cells + 0.5) * NEAR_CELL_M
+        centres, inverse = _cells(p, NEAR_CELL_M)
         radius = self.robot_radius + NEAR_CELL_M * math.sqrt(0.75)
         free, margin = self._blocks_rule(frame, centres, radius, NEAR_BLOCK_PX[0])
         for side in NEAR_BLOCK_PX[1:]:
@@ -326,7 +345,7 @@ class DepthHistory:
             if len(again) == 0:
                 break
             free[again], margin[again] = self._blocks_rule(frame, centres[again], radius, side)
-        return free[inverse.reshape(-1)], margin[inverse.reshape(-1)]
+        return free[inverse], margin[inverse]
 
     def _blocks_rule(self, frame: _Frame, p: np.ndarray, R: float, side: int):
         """The block rule of :meth:`_judge_by_blocks` on spheres of radius ``R``, with blocks
@@ -358,11 +377,13 @@ class DepthHistory:
         return known & (margin >= 0.0), np.where(known, margin.astype(float), np.nan)
 
     def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray,
-               unfreed: np.ndarray | None = None):
+               unfreed: np.ndarray | None = None, groups: np.ndarray | None = None):
         """``(free, strong, clearance)`` of one frame on ``points`` (M, 3); a point neither
         free nor strong is unknown to this frame. Module docstring for the rules. ``unfreed``:
         the points no newer frame has called free (weakly); only those get the block rule
-        where it could only call them weakly free."""
+        where it could only call them weakly free. ``groups`` (M,): the block rule, the costly
+        part, is left off the points whose group this frame finds occupied by the other
+        rules (they stay unknown, or occupied by the rings)."""
         cam, R = frame.camera, self.robot_radius
         H, W = cam.height, cam.width
         unfreed = np.ones(len(points), dtype=bool) if unfreed is None else unfreed
@@ -375,58 +396,93 @@ class DepthHistory:
         free = np.zeros(len(p), dtype=bool)
         strong = np.zeros(len(p), dtype=bool)
         gap = np.full(len(p), np.nan)
-
-        ray = np.flatnonzero(near & in_image & (z <= R))
-        if len(ray):
-            d = frame.table[0, np.floor(v[ray] + 0.5).astype(np.intp),
-                            np.floor(u[ray] + 0.5).astype(np.intp)]
-            distance = np.sqrt(np.sum(p[ray] ** 2, axis=1))
-            nearest = frame.least  # the image's least range, negative if any pixel is unknown
-            free[ray] = (nearest >= 0.0) & (nearest >= distance + R)
-            strong[ray] = (d >= 0.0) & (d < distance)
-            gap[ray[free[ray]]] = nearest - (distance[free[ray]] + R)
-            # a sphere holding the camera meets every ray, so any unknown pixel leaves it
-            # unknown; the rest, ray by ray, block by block
-            holds_camera = (nearest < 0.0) & (distance <= R)
-            rest = ray[~free[ray] & ~strong[ray] & unfreed[ray] & ~holds_camera]
-            if len(rest):
-                free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest])
-
+        rest = np.flatnonzero(near & in_image & (z <= R))
+        if len(rest):
+            rest = self._judge_by_ray(frame, p, u, v, rest, free, strong, gap)
+            rest = rest[unfreed[rest]]
         whole = np.flatnonzero(in_image & (z > R) & (z + R <= self.max_range))
+        retry = np.zeros(0, dtype=np.intp)
         if len(whole):
-            xs, ys, zs = x[whole], y[whole], z[whole]
-            q = self.ring_fractions
-            b2 = (q[1:, None] * R) ** 2  # threshold k: exit distance s2 at impact q_{k+1} R
-            L2 = xs * xs + ys * ys + zs * zs
-            T = np.sqrt(L2 - b2) + np.sqrt(R * R - b2)  # (n, m), T[-1] = L + R
-            u_lo, u_hi = _tangent_span(xs, zs, R, cam.fx, cam.cx)
-            v_lo, v_hi = _tangent_span(ys, zs, R, cam.fy, cam.cy)
-            clipped = (u_lo < -0.5) | (u_hi > W - 0.5) | (v_lo < -0.5) | (v_hi > H - 0.5)
-            low = window_min(frame.flat, H, W, u_lo, u_hi, v_lo, v_hi)
-            margin = np.where(low >= T[-1], low - T[-1], low - T[0])
-            known = low >= 0.0
-            inner = np.flatnonzero((low >= T[0]) & (low < T[-1]))  # the outer ring passes
-            if len(inner) and len(q) > 2:
-                n, m = len(q) - 2, len(inner)
-                radii = np.repeat(q[1:-1] * R, m)  # window k: the sphere B(c, q_k R)
-                xi, yi, zi = (np.tile(a[inner], n) for a in (xs, ys, zs))
-                u_lo, u_hi = _tangent_span(xi, zi, radii, cam.fx, cam.cx)
-                v_lo, v_hi = _tangent_span(yi, zi, radii, cam.fy, cam.cy)
-                rings = window_min(frame.flat, H, W, u_lo, u_hi, v_lo, v_hi).reshape(n, m)
-                margin[inner] = np.minimum(margin[inner], (rings - T[1:, inner]).min(axis=0))
-                known[inner] = rings.min(axis=0) >= 0.0
-            is_free = known & (margin >= 0.0)
+            clipped = self._judge_by_rings(frame, p[whole], whole, free, strong, gap)
             # near the vehicle, where a narrow passage leaves little room, a sphere the rings
             # refuse gets the finer block-by-block rule (the rings' caution is about R / n)
-            retry = np.flatnonzero(near[whole] & known & ~is_free)
-            if len(retry):
-                again, again_gap = self._judge_by_blocks(frame, p[whole[retry]])
-                is_free[retry] = again
-                margin[retry] = np.where(again, again_gap, margin[retry])
-            free[whole] = is_free
-            strong[whole] = known & (~is_free | ~clipped)
-            gap[whole] = np.where(known, margin, np.nan)
+            retry = whole[near[whole] & strong[whole] & ~free[whole]]
+        if groups is not None and len(rest) + len(retry):
+            occupied = strong & ~free
+            occupied[retry] = False  # the block rule may yet free these
+            dead = np.isin(groups, groups[occupied])
+            rest, retry = rest[~dead[rest]], retry[~dead[retry]]
+        if len(rest):
+            free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest])
+        if len(retry):
+            again, again_gap = self._judge_by_blocks(frame, p[retry])
+            freed = retry[again]
+            free[freed], gap[freed] = True, again_gap[again]
+            strong[freed] = ~clipped[np.searchsorted(whole, freed)]
         return free, strong, gap
+
+    def _judge_by_ray(self, frame: _Frame, p: np.ndarray, u: np.ndarray, v: np.ndarray,
+                      ray: np.ndarray, free: np.ndarray, strong: np.ndarray,
+                      gap: np.ndarray) -> np.ndarray:
+        """The near-vehicle rule's first steps on the points ``ray`` (those reaching the
+        camera plane), written into ``free``, ``strong``, ``gap``: occupied if the centre's
+        pixel sees a surface in front of the centre, free if the image's least range exceeds
+        ``L + R``. The points left for the block rule."""
+        R = self.robot_radius
+        d = frame.table[0, np.floor(v[ray] + 0.5).astype(np.intp),
+                        np.floor(u[ray] + 0.5).astype(np.intp)]
+        distance = np.sqrt(np.sum(p[ray] ** 2, axis=1))
+        nearest = frame.least  # the image's least range, negative if any pixel is unknown
+        free[ray] = (nearest >= 0.0) & (nearest >= distance + R)
+        strong[ray] = (d >= 0.0) & (d < distance)
+        gap[ray[free[ray]]] = nearest - (distance[free[ray]] + R)
+        # a sphere holding the camera meets every ray, so any unknown pixel leaves it
+        # unknown; the rest, ray by ray, block by block
+        holds_camera = (nearest < 0.0) & (distance <= R)
+        return ray[~free[ray] & ~strong[ray] & ~holds_camera]
+
+    def _judge_by_rings(self, frame: _Frame, c: np.ndarray, whole: np.ndarray,
+                        free: np.ndarray, strong: np.ndarray, gap: np.ndarray) -> np.ndarray:
+        """The ring rule on the spheres about ``c`` (M, 3, camera frame; ``z > R``, within
+        range), the points ``whole``, written into ``free``, ``strong``, ``gap``; whether
+        each one's outer window was clipped to the image (a free verdict is then weak)."""
+        R, H, W = self.robot_radius, frame.camera.height, frame.camera.width
+        xy, zs = c[:, :2].T, c[:, 2]
+        q = self.ring_fractions
+        b2 = (q[1:, None] * R) ** 2  # threshold k: exit distance s2 at impact q_{k+1} R
+        L2 = np.sum(xy * xy, axis=0) + zs * zs
+        T = np.sqrt(L2 - b2) + np.sqrt(R * R - b2)  # (n, m), T[-1] = L + R
+        lo, hi = _tangent_span(xy, zs, R, frame.focal, frame.centre)
+        clipped = (lo < -0.5).any(axis=0) | (hi > frame.edge).any(axis=0)
+        low = window_min(frame.flat, H, W, lo, hi)
+        margin = np.where(low >= T[-1], low - T[-1], low - T[0])
+        known = low >= 0.0
+        inner = np.flatnonzero((low >= T[0]) & (low < T[-1]))  # the outer ring passes
+        if len(inner) and len(q) > 2:
+            n, m = len(q) - 2, len(inner)
+            radii = np.repeat(q[1:-1] * R, m)  # window k: the sphere B(c, q_k R)
+            lo, hi = _tangent_span(np.tile(xy[:, inner], n), np.tile(zs[inner], n), radii,
+                                   frame.focal, frame.centre)
+            rings = window_min(frame.flat, H, W, lo, hi).reshape(n, m)
+            margin[inner] = np.minimum(margin[inner], (rings - T[1:, inner]).min(axis=0))
+            known[inner] = rings.min(axis=0) >= 0.0
+        is_free = known & (margin >= 0.0)
+        free[whole] = is_free
+        strong[whole] = known & (~is_free | ~clipped)
+        gap[whole] = np.where(known, margin, np.nan)
+        return clipped
+
+
+def check_camera(camera) -> None:
+    """A TypeError or ValueError naming why the history cannot use ``camera``."""
+    if not isinstance(camera, PinholeCamera):
+        raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+    if 2 * camera.height < camera.width or 2 * camera.width < camera.height:
+        raise ValueError(f"camera {camera.width}x{camera.height} is more elongated than "
+                         "2:1, which the window look-up does not support")
+    if min(camera.width, camera.height) < NEAR_BLOCK_PX[0]:
+        raise ValueError(f"camera {camera.width}x{camera.height} is smaller than the "
+                         f"{NEAR_BLOCK_PX[0]}-pixel blocks of the near-vehicle check")
 
 
 def min_table(image: np.ndarray) -> np.ndarray:
@@ -446,61 +502,49 @@ def min_table(image: np.ndarray) -> np.ndarray:
     return table
 
 
-def window_min(flat: np.ndarray, H: int, W: int, u_lo, u_hi, v_lo, v_hi) -> np.ndarray:
+def window_min(flat: np.ndarray, H: int, W: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Minimum of a sparse table's image (``flat``, the table raveled) over the pixels whose
-    squares ``[i - 1/2, i + 1/2]`` meet ``[u_lo, u_hi] x [v_lo, v_hi]``, clipped to the image.
+    squares ``[i - 1/2, i + 1/2]`` meet the windows ``[lo, hi]`` (``lo``, ``hi`` (2, M): image
+    ``u`` then ``v``), clipped to the image.
 
     A window thinner than 2:1 is first widened inside the image; then with
     ``b = 2^floor(log2(short side)) > short side / 2``, ``n`` squares of side ``b`` per axis,
     evenly placed from one end to the other, cover it exactly: ``n = 2`` when the long side is
     at most ``2 b`` (every window no more elongated than ``2 b / short side``, so every square
     one: 4 look-ups), else ``n = 4`` (``long side <= 2 short side < 4 b``: 16 look-ups).
+    (Written for few numpy calls: the planner calls it twice per frame per round.)
     """
-    i0, i1 = _pixel_range(u_lo, u_hi, W)
-    j0, j1 = _pixel_range(v_lo, v_hi, H)
-    w, h = i1 - i0 + 1, j1 - j0 + 1
-    i0, i1 = _widen(i0, w, (h + 1) // 2, W)
-    j0, j1 = _widen(j0, h, (w + 1) // 2, H)
-    w, h = i1 - i0 + 1, j1 - j0 + 1
-    side = np.minimum(w, h)
-    k = np.frexp(side.astype(np.float64))[1] - 1  # floor(log2(side)), exact for integers
+    last_pixel = np.array([[W - 1], [H - 1]])
+    first, last = (np.minimum(np.maximum(np.floor(x + 0.5), 0), last_pixel).astype(np.intp)
+                   for x in (lo, hi))
+    length = last - first + 1
+    size = np.maximum(length, (length[::-1] + 1) >> 1)  # widened to at most 2:1
+    start = np.minimum(np.maximum(first - ((size - length) >> 1), 0), last_pixel + 1 - size)
+    (i0, j0), (w, h) = start, size
+    k = np.frexp(np.minimum(w, h).astype(np.float64))[1] - 1  # floor(log2(short side))
     b = np.left_shift(1, k)
-    out = np.empty(len(i0), dtype=flat.dtype)
-    two = np.maximum(w, h) <= 2 * b
-    for group, n in ((np.flatnonzero(two), 2), (np.flatnonzero(~two), 4)):
-        if len(group) == 0:
-            continue
-        g_b, g_k = b[group], k[group]
-        steps = np.arange(n)[:, None]
-        cols = i0[group] + steps * (w[group] - g_b) // (n - 1)  # (n, M)
-        rows = (g_k * H + j0[group] + steps * (h[group] - g_b) // (n - 1)) * W
-        out[group] = flat[rows[:, None, :] + cols[None, :, :]].min(axis=(0, 1))
+    base = (k * H + j0) * W + i0  # the top-left square in level k
+    right, down = w - b, (h - b) * W
+    out = np.minimum(np.minimum(flat[base], flat[base + right]),
+                     np.minimum(flat[base + down], flat[base + down + right]))
+    four = np.flatnonzero(np.maximum(w, h) > 2 * b)
+    if len(four):
+        steps = np.arange(4)[:, None]
+        cols = steps * right[four] // 3  # (4, F)
+        rows = steps * (h[four] - b[four]) // 3 * W
+        out[four] = flat[base[four] + rows[:, None, :] + cols[None, :, :]].min(axis=(0, 1))
     return out
 
 
-def _tangent_span(s: np.ndarray, z: np.ndarray, R, f: float, c: float):
+def _tangent_span(s: np.ndarray, z: np.ndarray, R, f, c):
     """Image coordinates ``f tan(alpha -+ beta) + c`` of the tangent lines from the camera to
     the disc of radius R (a number or one per disc) at ``(s, z)``, z > R: ``tan alpha = s / z``,
-    ``tan beta = R / sqrt(s² + z² - R²)``, by the tangent addition formula."""
+    ``tan beta = R / sqrt(s² + z² - R²)``, by the tangent addition formula. With ``s`` (2, M)
+    the image ``x`` and ``y`` of spheres and ``f``, ``c`` (2, 1): their windows' corners."""
     ta = s / z
     tb = R / np.sqrt(s * s + z * z - R * R)
     with np.errstate(divide="ignore"):
         return f * (ta - tb) / (1.0 + ta * tb) + c, f * (ta + tb) / (1.0 - ta * tb) + c
-
-
-def _pixel_range(lo: np.ndarray, hi: np.ndarray, size: int):
-    """First and last pixel index (inclusive) meeting ``[lo, hi]``, clipped to the image."""
-    first = np.clip(np.floor(lo + 0.5), 0, size - 1).astype(np.intp)
-    last = np.clip(np.floor(hi + 0.5), 0, size - 1).astype(np.intp)
-    return first, last
-
-
-def _widen(first: np.ndarray, length: np.ndarray, need: np.ndarray, size: int):
-    """A range of at least ``need`` pixels containing ``[first, first + length)``, about the
-    same centre, inside ``[0, size)`` (``need <= size``)."""
-    new = np.maximum(length, need)
-    start = np.clip(first - (new - length) // 2, 0, size - new)
-    return start, start + new - 1
 
 
 def block_rays(camera: PinholeCamera, block: int) -> tuple[np.ndarray, np.ndarray]:
@@ -527,6 +571,15 @@ def block_rays(camera: PinholeCamera, block: int) -> tuple[np.ndarray, np.ndarra
             cos = np.sum(centre * unit(u[None, :], v[:, None]), axis=-1)
             spread = np.maximum(spread, np.arccos(np.clip(cos, -1.0, 1.0)))
     return centre.reshape(-1, 3), spread.reshape(-1)
+
+
+def _cells(p: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
+    """The centres of the cubes of ``side`` (a grid through the origin) that hold the points
+    ``p`` (M, 3), and each point's cube."""
+    index = np.floor(p / side).astype(np.int64) + (1 << 20)  # >= 0 within 50 km at 5 cm
+    keys = (index[:, 0] << 42) | (index[:, 1] << 21) | index[:, 2]
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return (np.floor(p[first] / side) + 0.5) * side, inverse
 
 
 def ray_norms(camera: PinholeCamera) -> np.ndarray:

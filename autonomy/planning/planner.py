@@ -45,7 +45,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera, make_pose, rot_z, yaw_of
 from autonomy.messages import MetricDepth
 from autonomy.options import OptionError, option
-from autonomy.planning.history import DepthHistory, as_pose
+from autonomy.planning.history import DepthHistory, as_pose, check_camera
 from autonomy.planning.primitives import (
     Primitive, PrimitiveOptions, forward_arc, library, stop_primitive, tier_speeds,
 )
@@ -147,8 +147,7 @@ class Planner:
     """Checks the library against the newest depth frames and chooses, every round."""
 
     def __init__(self, camera: PinholeCamera, options: PlannerOptions | None = None):
-        if not isinstance(camera, PinholeCamera):
-            raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+        check_camera(camera)
         o = options or PlannerOptions()
         self.camera = camera
         self.options = o
@@ -214,12 +213,14 @@ class Planner:
               ) -> tuple[np.ndarray, np.ndarray]:
         """``(safe, clearance)`` of every primitive of ``tier`` (default the fastest) and its
         branch, placed at the start frame ``T_W_S``, against the frames no older than
-        ``t - history_s``: ``safe`` (P,) bool; ``clearance`` (P,) the least clearance along it
-        (metres between the sphere's far side and the surface behind it; inf where only rays
-        judged it)."""
+        ``t - history_s``: ``safe`` (P,) bool; ``clearance`` (P,) the least clearance along a
+        safe one (metres between the sphere's far side and the surface behind it; inf where
+        only rays judged it). An unsafe primitive's points are not all judged (the check
+        stops at the first occupied one), so its clearance means nothing."""
         tier = self.tiers[0] if tier is None else tier
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
-        result = self.history.check(tier.points_S @ R.T + start, start_W=start, now=t)
+        result = self.history.check(tier.points_S @ R.T + start, start_W=start, now=t,
+                                    groups=tier.primitive_of_point)
         safe = np.logical_and.reduceat(result.free, tier.starts)
         return safe, np.fmin.reduceat(result.clearance, tier.starts)
 
@@ -328,6 +329,7 @@ class PrimitiveTier:
                   for a, b in zip(self.library, self.branches)]
         self.points_S = np.vstack(groups)
         self.starts = np.cumsum([0] + [len(g) for g in groups[:-1]])
+        self.primitive_of_point = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
         self.ends_S = np.array([a.points_S[-1] for a in self.library])
         #: How far ahead the straight arc comes to rest: its length and braking, v (D + T / 2).
         self.reach = speed * (options.duration_s + options.stop_duration_s / 2.0)
