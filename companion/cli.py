@@ -282,6 +282,40 @@ def _add_eval_commands(commands: argparse._SubParsersAction,
                     "([depth], [rescale]); score every frame's metric depth against depth0 with "
                     "AbsRel, delta1, RMSE and the over-estimate rate, and time the stage.")
     depth.set_defaults(command=_eval_depth)
+    _add_eval_rescale(actions, configured)
+
+
+def _add_eval_rescale(actions: argparse._SubParsersAction,
+                      configured: argparse.ArgumentParser) -> None:
+    from drivers.sim.options import WORLD_NAMES
+
+    rescale = actions.add_parser(
+        "rescale", parents=[configured], help="compare every rescaling method (paper Table I)",
+        description="Record (or reuse from the cache) a simulated flight in each world, as "
+                    "many frames as the paper (mine 850, sewer 700, dome 1000), run the VINS "
+                    "and the depth network once over it, and fit every rescaling method with "
+                    "sparse depth from the ground truth at the VINS feature pixels (GT) and "
+                    "from the VINS map (VINS), with the config's [rescale] options whatever "
+                    "rescale.method says; report AbsRel, delta1 and the over-estimate rate per "
+                    "world and their frame-weighted average as a Markdown table shaped like "
+                    "the paper's Table I.")
+    _add_json_flag(rescale, instead_of="the Markdown report")
+    rescale.add_argument("--quick", action="store_true",
+                         help="80 frames per world instead of the paper's counts (for CI)")
+    rescale.add_argument("--seed", type=_non_negative_int, metavar="N",
+                         help="seed of the worlds, flights and the synthetic network "
+                              "(default: [sim] seed)")
+    rescale.add_argument("--worlds", nargs="+", choices=WORLD_NAMES, default=list(WORLD_NAMES),
+                         metavar="WORLD", help="worlds to evaluate, of "
+                                               f"{', '.join(WORLD_NAMES)} (default: all)")
+    rescale.add_argument("--cache", type=Path, metavar="DIR",
+                         help="where recorded datasets are kept and reused (default: "
+                              "$XDG_CACHE_HOME/companion/eval, else ~/.cache/companion/eval)")
+    rescale.add_argument("--plot", type=_png_path, metavar="PNG",
+                         help="draw the weighted AbsRel per method, GT against VINS, here")
+    rescale.add_argument("--markdown", type=Path, metavar="FILE",
+                         help="also write the Markdown report to FILE")
+    rescale.set_defaults(command=_eval_rescale)
 
 
 def _add_depth_commands(commands: argparse._SubParsersAction,
@@ -341,6 +375,38 @@ def _eval_depth(args: argparse.Namespace, config: Config) -> int:
         print(f"eval depth: {error}", file=sys.stderr)
         return EXIT_FAILED
     print(json.dumps(result) if args.json else depth.format_depth_report(result))
+    return EXIT_OK
+
+
+def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.depth.network import NetworkError
+    from companion.eval import depth, rescale
+    from companion.eval.vio import EvaluationError
+
+    seed = config.sim.seed if args.seed is None else args.seed
+    try:
+        result = rescale.evaluate_rescaling(
+            rescale.frames_per_world(args.worlds, quick=args.quick), seed=seed,
+            cache=args.cache or rescale.default_cache_dir(),
+            recording=rescale.Recording(config.camera, config.vehicle, config.imu),
+            options=depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
+                                           config.vins_frontend, config.vins_init),
+            open_network=lambda: depth.open_relative_depth_source(
+                config.depth_network, config.synthetic_depth, seed=seed))
+    except (NetworkError, EvaluationError) as error:
+        print(f"eval rescale: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    report = rescale.format_markdown(result, seed=seed)
+    print(json.dumps(result) if args.json else report)
+    try:
+        if args.markdown is not None:
+            args.markdown.parent.mkdir(parents=True, exist_ok=True)
+            args.markdown.write_text(report + "\n")
+        if args.plot is not None:
+            rescale.plot_absrel(result, args.plot)
+    except OSError as error:
+        print(f"eval rescale: {error}", file=sys.stderr)
+        return EXIT_FAILED
     return EXIT_OK
 
 
@@ -448,6 +514,13 @@ def _point(text: str) -> tuple[float, float, float]:
 def _add_json_flag(parser: argparse.ArgumentParser, instead_of: str) -> None:
     parser.add_argument("--json", action="store_true",
                         help=f"print the result as one JSON object instead of {instead_of}")
+
+
+def _png_path(text: str) -> Path:
+    """A path ending in .png (checked before a long run, not after it)."""
+    if not text.lower().endswith(".png"):
+        raise argparse.ArgumentTypeError(f"expected a .png file name, got {text!r}")
+    return Path(text)
 
 
 def _positive_float(text: str) -> float:

@@ -1,0 +1,492 @@
+"""Every rescaling method on simulated flights, behind ``companion eval rescale`` (issue 7).
+
+The paper's Table I (Yang, Tian, Goel, Tabib, Section IV) compares the rescaling methods in
+three worlds, each method anchored twice: on the ground-truth depth at the VINS feature pixels
+("GT") and on the VINS map's own depth ("VINS"). Here, per world:
+
+1. a simulator flight is recorded as a EuRoC dataset with ``depth0`` (:func:`cached_dataset`),
+   or reused from the cache, keyed by world, seed, frame count and the recording's options;
+2. the VINS and the depth network (the synthetic stand-in, or the user's model) run once over
+   its frames, as in flight;
+3. at every frame with a sparse map, the anchors are the landmarks the metric depth stage would
+   use (:meth:`~autonomy.depth.stage.MetricDepthStage.anchors`): their relative disparity x,
+   and as metric depth either the landmark's VINS depth z or the ground truth z* at its pixel;
+4. every method of :data:`~autonomy.depth.rescale.METHODS` is fitted on both anchor sets and,
+   where all of them fit, each depth image is scored against ``depth0``
+   (:func:`autonomy.depth.metrics.evaluate`).
+
+So every number of a world is over the same frames, a paired comparison: a frame where one
+fit fails (too few anchors, say: early in a flight, where the few anchors span a narrow depth
+range and a fit that succeeds extrapolates badly) would otherwise count for some rows and not
+others. Per world a metric is the mean over the frames scored, each frame weighing the same;
+the weighted average over worlds weighs world w by its frames n_w: m = Σ n_w m_w / Σ n_w.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from autonomy.depth import metrics
+from autonomy.depth.anchors import sample_nearest_surface
+from autonomy.depth.rescale import METHODS, RescaleOptions, fit
+from autonomy.depth.stage import MetricDepthStage, check_relative_disparity
+from autonomy.messages import SparseMap
+from companion.eval.depth import DepthEvalOptions, RelativeDepthSource
+from companion.eval.numbers import mean_or_none, show
+from companion.eval.vio import (
+    EvaluationError, VioDataset, build_vins, read_frame_depth, read_vio_dataset, vio_frames,
+)
+from drivers.camera.options import CameraOptions
+from drivers.sim.imu import ImuOptions
+from drivers.sim.options import SimOptions, WORLD_NAMES
+from drivers.sim.record import RecordError, record_dataset
+from drivers.sim.render import RenderError
+from drivers.sim.vehicle import VehicleOptions
+
+log = logging.getLogger(__name__)
+
+#: Frames per world in the paper's simulation datasets (Section IV).
+PAPER_FRAMES = {"mine": 850, "sewer": 700, "dome": 1000}
+#: Frames per world of ``--quick`` at 20 Hz: 2 s still on the ground, then 2 s of the climb
+#: (the VINS has a map once the climb gives parallax, about 35 frames are scored).
+QUICK_FRAMES = 80
+#: Sources of the anchors' metric depth: ground truth at the feature pixels, the VINS map.
+SOURCES = ("gt", "vins")
+#: Methods beyond the paper's comparison (docs/rescaling.md, "Beyond the paper").
+BEYOND_PAPER = ("ransac_affine",)
+#: Issue 7's goal: the best method's AbsRel with VINS anchors within this factor of its AbsRel
+#: with ground-truth anchors.
+GOAL_RATIO = 1.3
+#: The paper's weighted average for the monotone spline, (AbsRel, δ1) per source.
+PAPER_MONOTONE_SPLINE = {"gt": (0.096, 0.917), "vins": (0.185, 0.748)}
+#: The file a recording's folder holds once it is complete; a folder without it is not used.
+COMPLETE = "recording.json"
+
+#: Opens a fresh depth network for one world's frames (the stand-in keeps state per frame).
+NetworkFactory = Callable[[], RelativeDepthSource]
+
+
+@dataclass(frozen=True)
+class Recording:
+    """How the simulator datasets are made: the config's ``[camera]``, ``[vehicle]``, ``[imu]``."""
+
+    camera: CameraOptions
+    vehicle: VehicleOptions
+    imu: ImuOptions
+
+
+def frames_per_world(worlds, *, quick: bool) -> dict[str, int]:
+    """``{world: frames}`` in the order given, duplicates dropped: the paper's counts, or
+    :data:`QUICK_FRAMES` each with ``quick``; EvaluationError for an unknown world."""
+    unknown = [w for w in worlds if w not in WORLD_NAMES]
+    if unknown:
+        raise EvaluationError(f"unknown world {unknown[0]!r}; choose from "
+                              f"{', '.join(WORLD_NAMES)}")
+    return {w: QUICK_FRAMES if quick else PAPER_FRAMES[w] for w in dict.fromkeys(worlds)}
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/companion/eval``, ``~/.cache/companion/eval`` when that is unset."""
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "companion" / "eval"
+
+
+# --------------------------------------------------------------------------------------------
+# Datasets, recorded once and cached
+
+def dataset_key(world: str, seed: int, frames: int, recording: Recording) -> str:
+    """The cache name of a recording: world, seed, frames, and a digest of the recording's
+    options (another camera rate or IMU noise is another dataset)."""
+    options = json.dumps(dataclasses.asdict(recording), sort_keys=True, default=str)
+    digest = hashlib.sha256(options.encode()).hexdigest()[:12]
+    return f"{world}-seed{seed}-{frames}f-{digest}"
+
+
+def cached_dataset(cache: Path, world: str, seed: int, frames: int,
+                   recording: Recording) -> Path:
+    """The folder of the ``frames``-frame flight in ``world`` from ``seed``, recorded into
+    ``cache`` unless a complete recording is there already.
+
+    A recording is made in a partial folder and renamed into place only once complete (its
+    :data:`COMPLETE` file written), so an interrupted run never leaves a folder that is used.
+    """
+    final = Path(cache) / dataset_key(world, seed, frames, recording)
+    if (final / COMPLETE).is_file():
+        log.info("%s: reusing %s", world, final)
+        return final
+    _make_cache(Path(cache))
+    try:
+        _record_into(final, world, seed, frames, recording)
+    except OSError as error:
+        raise EvaluationError(f"cannot record into the cache {cache}: "
+                              f"{error.strerror or error}") from None
+    return final
+
+
+def _make_cache(cache: Path) -> None:
+    if cache.exists() and not cache.is_dir():
+        raise EvaluationError(f"cannot use {cache} as the dataset cache: not a folder")
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise EvaluationError(f"cannot use {cache} as the dataset cache: "
+                              f"{error.strerror or error}") from None
+
+
+def _record_into(final: Path, world: str, seed: int, frames: int, recording: Recording) -> None:
+    """Record into ``.partial-<key>.<pid>`` beside ``final``, then rename it to ``final``
+    (atomic on one file system); a folder at ``final`` without :data:`COMPLETE` is removed."""
+    _sweep_partials(final)
+    partial = final.with_name(f".partial-{final.name}.{os.getpid()}")
+    partial.mkdir()
+    try:
+        summary = _record(partial, world, seed, frames, recording)
+        (partial / COMPLETE).write_text(json.dumps(dataclasses.asdict(summary)) + "\n")
+        if final.exists() and not (final / COMPLETE).is_file():
+            log.warning("%s: removing an incomplete recording", final)
+            shutil.rmtree(final)
+        try:
+            os.rename(partial, final)
+        except OSError:
+            if not (final / COMPLETE).is_file():  # else another process finished it first
+                raise
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)  # gone already after the rename
+
+
+def _sweep_partials(final: Path) -> None:
+    """Remove the partial folders of ``final``'s recording whose process is gone."""
+    for partial in final.parent.glob(f".partial-{final.name}.*"):
+        pid = partial.suffix[1:]
+        if not pid.isdigit() or int(pid) == os.getpid() or not _running(int(pid)):
+            shutil.rmtree(partial, ignore_errors=True)
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` exists (signal 0 probes, it sends nothing)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, owned by another user
+        pass
+    return True
+
+
+def _record(out: Path, world: str, seed: int, frames: int, recording: Recording):
+    """Record ``frames`` camera frames: ``(frames - 1) / rate_hz`` seconds, the first frame at
+    t = 0 (:func:`drivers.sim.record.fly`)."""
+    duration = (frames - 1) / recording.camera.rate_hz
+    log.info("%s: recording %d frames (%.2f s, seed %d) into %s", world, frames, duration, seed,
+             out)
+    try:
+        return record_dataset(out, SimOptions(world=world, seed=seed), recording.camera,
+                              recording.vehicle, recording.imu, duration=duration)
+    except (RecordError, RenderError) as error:
+        raise EvaluationError(f"recording {world} (seed {seed}): {error}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Fitting every method on both anchor sets
+
+@dataclass
+class WorldScores:
+    """One world's per-frame metrics: ``scores[method][source]`` holds one
+    :class:`~autonomy.depth.metrics.DepthMetrics` per scored frame (every fit succeeded);
+    ``frames`` counts the frames run, ``scored`` those scored."""
+
+    frames: int
+    scored: int
+    scores: dict[str, dict[str, list[metrics.DepthMetrics]]]
+
+
+def evaluate_rescaling(frames: dict[str, int], *, seed: int, cache: Path, recording: Recording,
+                       options: DepthEvalOptions, open_network: NetworkFactory) -> dict:
+    """Record (or reuse) each world's dataset, score every method in it (:func:`score_world`)
+    with a fresh network per world, and summarise (:func:`summarise`). The first network is
+    opened and every dataset made before anything is scored, so a model that cannot run or a
+    cache that cannot be written fails at once."""
+    network = open_network()
+    roots = {w: cached_dataset(cache, w, seed, n, recording) for w, n in frames.items()}
+    worlds: dict[str, WorldScores] = {}
+    for world, root in roots.items():
+        log.info("%s: fitting %d methods on %d frames", world, len(METHODS), frames[world])
+        worlds[world] = score_world(read_vio_dataset(root), options,
+                                    open_network() if worlds else network, frames[world])
+        log.info("%s: %d of %d frames scored (with a VINS map where every method fits with "
+                 "both sparse depths)", world, worlds[world].scored, worlds[world].frames)
+    return summarise(worlds)
+
+
+def score_world(data: VioDataset, options: DepthEvalOptions, network: RelativeDepthSource,
+                frames: int) -> WorldScores:
+    """Run the VINS and ``network`` once over the first ``frames`` frames of ``data`` and, at
+    each frame with a sparse map (and a network output the stage would accept:
+    :func:`~autonomy.depth.stage.check_relative_disparity`), fit and score every method on
+    both anchor sets (:func:`frame_anchors`)."""
+    vins = build_vins(data, options.vins, frontend=options.frontend, static=options.static)
+    stage = MetricDepthStage(options.rescale, options.stage)
+    methods = {m: dataclasses.replace(options.rescale, method=m) for m in METHODS}
+    result = WorldScores(0, 0, {m: {s: [] for s in SOURCES} for m in METHODS})
+    for frame in vio_frames(data, frames):
+        if frame.depth_path is None:
+            raise EvaluationError(f"{data.root}: frame at t={frame.t:.3f} s has no depth0 image")
+        for sample in frame.imu:
+            vins.add_imu(sample)
+        update = vins.add_frame(frame.t, vins.track(frame.image))
+        truth = read_frame_depth(frame.depth_path, data.camera.camera)
+        disparity = np.asarray(network(frame, truth), dtype=np.float32)  # each frame, as in flight
+        result.frames += 1
+        if update.sparse_map is not None and check_relative_disparity(disparity) is None:
+            anchors = frame_anchors(stage, update.sparse_map, disparity, truth)
+            result.scored += score_frame(result, methods, anchors, disparity, truth)
+    return result
+
+
+def frame_anchors(stage: MetricDepthStage, sparse_map: SparseMap, disparity: np.ndarray,
+                  truth: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{source: (x, z)}`` for the landmarks the stage takes from ``sparse_map``: x their
+    relative disparity, z their VINS depth (``"vins"``) or the ground truth at their pixel
+    (``"gt"``).
+
+    The ground truth is read by the rule x is read by, the nearest surface of the four pixels
+    around the feature (:func:`~autonomy.depth.anchors.sample_nearest_surface`):
+    z* = 1 / max_ij(1 / z*_ij), NaN on sky, which the fit drops as an invalid anchor.
+    """
+    with np.errstate(divide="ignore"):
+        z_true = 1.0 / sample_nearest_surface(1.0 / truth, np.reshape(sparse_map.pixels, (-1, 2)))
+    points = np.array(sparse_map.points_C, dtype=float).reshape(-1, 3)
+    points[:, 2] = z_true
+    true_map = dataclasses.replace(sparse_map, points_C=points)
+    return {"gt": stage.anchors(true_map, disparity),
+            "vins": stage.anchors(sparse_map, disparity)}
+
+
+def score_frame(result: WorldScores, methods: dict[str, RescaleOptions],
+                anchors: dict[str, tuple[np.ndarray, np.ndarray]], disparity: np.ndarray,
+                truth: np.ndarray) -> bool:
+    """Fit each method on each anchor set and, if every fit succeeds (no
+    :class:`~autonomy.depth.rescale.NoFit`), score each depth image against ``truth``.
+    Whether the frame was scored."""
+    fits = {(method, source): fit(x, z, options=options)
+            for method, options in methods.items() for source, (x, z) in anchors.items()}
+    if not all(model.ok for model in fits.values()):
+        return False
+    for (method, source), model in fits.items():
+        result.scores[method][source].append(metrics.evaluate(model.depth(disparity), truth))
+    return True
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+
+def summarise(worlds: dict[str, WorldScores]) -> dict:
+    """The JSON result: per world its frames and per method and source the means
+    (:func:`mean_metrics`), and their frame-weighted average over the worlds
+    (:func:`weighted_average`)."""
+    per_world = {
+        world: {"frames": scores.frames,
+                "methods": {m: {s: mean_metrics(scores.scores[m][s]) for s in SOURCES}
+                            for m in METHODS}}
+        for world, scores in worlds.items()}
+    return {"worlds": per_world, "weighted": weighted_average(per_world)}
+
+
+def mean_metrics(per_frame: list[metrics.DepthMetrics]) -> dict:
+    """AbsRel and δ1 averaged over the frames, each weighing the same; the over-estimate
+    rate over the frames with near pixels (z* < 5 m) only. None where there is no frame."""
+    return {
+        "absrel": mean_or_none([m.abs_rel for m in per_frame]),
+        "delta1": mean_or_none([m.delta1 for m in per_frame]),
+        "overestimate_rate": mean_or_none([m.overestimate_rate for m in per_frame
+                                           if m.near_pixels > 0]),
+    }
+
+
+def weighted_average(per_world: dict[str, dict]) -> dict:
+    """``{method: {source: {metric: Σ n_w m_w / Σ n_w}}}``, n_w the frames of world w, over
+    the worlds where the metric is known (None where it is known in none)."""
+    def average(method: str, source: str, metric: str) -> float | None:
+        pairs = [(w["frames"], w["methods"][method][source][metric])
+                 for w in per_world.values()]
+        known = [(n, value) for n, value in pairs if value is not None and n > 0]
+        if not known:
+            return None
+        return sum(n * value for n, value in known) / sum(n for n, _ in known)
+
+    return {m: {s: {metric: average(m, s, metric)
+                    for metric in ("absrel", "delta1", "overestimate_rate")}
+                for s in SOURCES}
+            for m in METHODS}
+
+
+def goal(result: dict) -> dict | None:
+    """Issue 7's goal on the weighted average: the method with the lowest AbsRel with VINS
+    anchors, and the ratio of that AbsRel to the same method's with ground-truth anchors;
+    ``met`` when the ratio is at most :data:`GOAL_RATIO`. None without numbers."""
+    rows = [(numbers["vins"]["absrel"], numbers["gt"]["absrel"], method)
+            for method, numbers in result["weighted"].items()
+            if numbers["vins"]["absrel"] is not None and numbers["gt"]["absrel"]]
+    if not rows:
+        return None
+    vins, gt, method = min(rows)
+    return {"method": method, "vins_absrel": vins, "gt_absrel": gt, "ratio": vins / gt,
+            "met": vins / gt <= GOAL_RATIO}
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+
+def format_markdown(result: dict, *, seed: int) -> str:
+    """Markdown: Table I's shape (rows methods; per world and weighted, GT and VINS
+    AbsRel / δ1), the over-estimate rates, and the goal line."""
+    worlds = list(result["worlds"])
+    frames = ", ".join(f"{w} {result['worlds'][w]['frames']}" for w in worlds)
+    columns = [(w, result["worlds"][w]["methods"]) for w in worlds]
+    columns.append(("weighted", result["weighted"]))
+    return "\n".join([
+        f"## Rescaling methods on simulated flights (seed {seed}; frames: {frames})",
+        "",
+        "AbsRel / δ1 with sparse depth from the ground truth at the VINS feature pixels (GT) "
+        "and from the VINS map (VINS). Per world each frame weighs the same; *weighted* "
+        "weighs each world by its frames. Scored: the frames with a VINS map where every "
+        "method fits with both sparse depths. **Bold**: the lowest of the column (of AbsRel "
+        "in the first table).",
+        "",
+        *_table(columns, lambda n: f"{show(n['absrel'], '.3f')} / {show(n['delta1'], '.3f')}",
+                lambda n: n["absrel"], "AbsRel / δ1"),
+        "",
+        "Over-estimate rate: the share of pixels nearer than 5 m placed more than 25 % too far.",
+        "",
+        *_table(columns, lambda n: show(n["overestimate_rate"], ".2%"),
+                lambda n: n["overestimate_rate"], "over-estimate"),
+        "",
+        _goal_line(goal(result)),
+        _paper_line(),
+    ])
+
+
+def _table(columns, cell, key, what: str) -> list[str]:
+    """Rows of a Markdown table: one per method, one column per (group, source)."""
+    header = [f"{group} {source.upper()} {what}" for group, _ in columns for source in SOURCES]
+    best = {(group, source): _lowest(numbers, source, key) for group, numbers in columns
+            for source in SOURCES}
+    lines = ["| method | " + " | ".join(header) + " |",
+             "|---|" + "---:|" * len(header)]
+    for method in METHODS:
+        label = method + (" (beyond the paper)" if method in BEYOND_PAPER else "")
+        cells = []
+        for group, numbers in columns:
+            for source in SOURCES:
+                text = cell(numbers[method][source])
+                cells.append(f"**{text}**" if method in best[group, source] else text)
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _lowest(numbers: dict, source: str, key) -> set[str]:
+    """The methods whose ``key`` for ``source`` is the lowest (ties all), none if none has one."""
+    known = {m: key(n[source]) for m, n in numbers.items() if key(n[source]) is not None}
+    return {m for m, value in known.items() if value == min(known.values())}
+
+
+def _goal_line(reached: dict | None) -> str:
+    if reached is None:
+        return "Goal (best VINS AbsRel within 1.3x its GT AbsRel): no numbers."
+    verdict = "met" if reached["met"] else "not met"
+    return (f"Goal, best VINS AbsRel within {GOAL_RATIO}x the same method's GT AbsRel: "
+            f"{reached['method']}, VINS {reached['vins_absrel']:.3f} / GT "
+            f"{reached['gt_absrel']:.3f} = {reached['ratio']:.2f}x: **{verdict}**.")
+
+
+def _paper_line() -> str:
+    (gt_rel, gt_d1), (vins_rel, vins_d1) = PAPER_MONOTONE_SPLINE["gt"], \
+        PAPER_MONOTONE_SPLINE["vins"]
+    return (f"Paper, weighted average, monotone spline: GT {gt_rel} / {gt_d1}, VINS "
+            f"{vins_rel} / {vins_d1} ({vins_rel / gt_rel:.2f}x).")
+
+
+# --------------------------------------------------------------------------------------------
+# Plot
+
+_GT_COLOUR, _VINS_COLOUR = (180, 119, 31), (14, 127, 255)  # BGR: blue, orange
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_LABELS, _BAR, _GAP, _TOP, _WIDTH = 230, 14, 12, 60, 560
+
+
+def plot_absrel(result: dict, out: Path) -> Path:
+    """Draw the weighted AbsRel of every method, a GT and a VINS bar each, as a PNG at ``out``
+    with OpenCV (as :mod:`companion.plot`); parent folders are created. ValueError for a name
+    that does not end in .png."""
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise ValueError(f"{out}: the plot is a PNG; give a name ending in .png")
+    weighted = result["weighted"]
+    values = [n[s]["absrel"] for n in weighted.values() for s in SOURCES]
+    top = max([v for v in values if v is not None] + [1e-3])
+    step = _tick_step(top / 4)
+    top = math.ceil(top / step) * step
+    height = _TOP + len(weighted) * (2 * _BAR + _GAP) + 40
+    canvas = np.full((height, _LABELS + _WIDTH + 80, 3), 255, np.uint8)
+    cv2.putText(canvas, "AbsRel per method, weighted over " + ", ".join(result["worlds"]),
+                (10, 22), _FONT, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    _legend(canvas)
+    for row, (method, numbers) in enumerate(weighted.items()):
+        _bars(canvas, row, method, numbers, top)
+    _axis(canvas, height - 40, top, step)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), canvas):
+        raise OSError(f"could not write the image to {out}")
+    return out
+
+
+def _tick_step(span: float) -> float:
+    """The largest of 1, 2, 5 times a power of ten not above ``span``."""
+    power = 10.0 ** math.floor(math.log10(span))
+    return max(m * power for m in (1, 2, 5) if m * power <= span)
+
+
+def _legend(canvas: np.ndarray) -> None:
+    for k, (name, colour) in enumerate((("GT sparse depth", _GT_COLOUR),
+                                        ("VINS sparse depth", _VINS_COLOUR))):
+        left = _LABELS + 200 * k
+        cv2.rectangle(canvas, (left, 34), (left + 14, 46), colour, -1)
+        cv2.putText(canvas, name, (left + 20, 45), _FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+
+
+def _bars(canvas: np.ndarray, row: int, method: str, numbers: dict, top: float) -> None:
+    """The method's name and its two bars, each labelled with its value ("no fit": none)."""
+    y = _TOP + row * (2 * _BAR + _GAP)
+    cv2.putText(canvas, method, (10, y + _BAR + 4), _FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for k, (source, colour) in enumerate(zip(SOURCES, (_GT_COLOUR, _VINS_COLOUR))):
+        value, y0 = numbers[source]["absrel"], y + k * _BAR
+        right = _LABELS + (0 if value is None else round(_WIDTH * value / top))
+        if value is not None:
+            cv2.rectangle(canvas, (_LABELS, y0), (right, y0 + _BAR - 2), colour, -1)
+        cv2.putText(canvas, show(value, ".3f") if value is not None else "no fit",
+                    (right + 4, y0 + _BAR - 3), _FONT, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+
+
+def _axis(canvas: np.ndarray, y: int, top: float, step: float) -> None:
+    """The AbsRel axis under the bars, ticked every ``step``."""
+    black = (0, 0, 0)
+    cv2.line(canvas, (_LABELS, _TOP - 4), (_LABELS, y), black, 1)
+    cv2.line(canvas, (_LABELS, y), (_LABELS + _WIDTH, y), black, 1)
+    for tick in np.arange(0.0, top + step / 2, step):
+        x = _LABELS + round(_WIDTH * tick / top)
+        cv2.line(canvas, (x, y), (x, y + 5), black, 1)
+        cv2.putText(canvas, f"{tick:g}", (x - 10, y + 20), _FONT, 0.4, black, 1, cv2.LINE_AA)
+    cv2.putText(canvas, "AbsRel", (_LABELS + _WIDTH + 10, y + 5), _FONT, 0.45, black, 1,
+                cv2.LINE_AA)
