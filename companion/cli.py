@@ -283,6 +283,7 @@ def _add_eval_commands(commands: argparse._SubParsersAction,
                     "AbsRel, delta1, RMSE and the over-estimate rate, and time the stage.")
     depth.set_defaults(command=_eval_depth)
     _add_eval_rescale(actions, configured)
+    _add_eval_nav(actions, configured)
 
 
 def _add_eval_rescale(actions: argparse._SubParsersAction,
@@ -316,6 +317,87 @@ def _add_eval_rescale(actions: argparse._SubParsersAction,
     rescale.add_argument("--markdown", type=Path, metavar="FILE",
                          help="also write the Markdown report to FILE")
     rescale.set_defaults(command=_eval_rescale)
+
+
+def _add_eval_nav(actions: argparse._SubParsersAction,
+                  configured: argparse.ArgumentParser) -> None:
+    from drivers.sim.options import WORLD_NAMES
+
+    # defaults (None here) are companion.eval.nav's, resolved by _eval_nav: the parser does not
+    # import the simulator
+    command = actions.add_parser(
+        "nav", parents=[configured], help="count navigation successes (paper's navigation "
+                                          "figure)",
+        description="Fly every start/goal pair of each world, --trials times (trial k on seed "
+                    "SEED+k), once planning on the renderer's true depth (gt) and once on the "
+                    "estimate (estimated), each trial a lockstep 'companion sim fly' in a "
+                    "worker process; count successes (goal reached, no collision), collisions "
+                    "and timeouts (neither within --timeout seconds of navigation, or ended "
+                    "early by a failsafe), with the successes' mean flight time. Progress on "
+                    "stderr; the result on stdout as a Markdown table, or JSON "
+                    '{"gt"|"estimated": {WORLD: {"trials", "success", "collision", "timeout", '
+                    '"mean_time_s"}}}.')
+    _add_json_flag(command, instead_of="the Markdown report")
+    command.add_argument("--trials", type=_positive_int, metavar="N",
+                         help="trials per start/goal pair and depth source (default: 5)")
+    command.add_argument("--seed", type=_non_negative_int, metavar="N",
+                         help="base seed: trial k flies seed N+k, its world, noise and network "
+                              "errors (default: [sim] seed)")
+    command.add_argument("--worlds", nargs="+", choices=WORLD_NAMES, metavar="WORLD",
+                         help=f"worlds to fly, of {', '.join(WORLD_NAMES)} (default: all)")
+    command.add_argument("--pairs", nargs="+", type=_non_negative_int, metavar="P",
+                         help="start/goal pairs to fly in every world (default: all)")
+    command.add_argument("--timeout", type=_positive_float, metavar="SECONDS",
+                         help="simulated seconds of navigation to reach the goal, the "
+                              "application's [flight] mission_timeout_s in the trials "
+                              "(default: 120)")
+    command.add_argument("--workers", type=_positive_int, metavar="N",
+                         help="trials flown at once, each in its own process (default: the "
+                              "number of CPUs)")
+    command.add_argument("--quick", action="store_true",
+                         help="one trial of pair 0 in one world (the first of --worlds, else "
+                              "dome), for CI; overrides --trials and --pairs")
+    command.add_argument("--plot", type=_png_path, metavar="PNG",
+                         help="draw the outcomes per world and depth source here")
+    command.add_argument("--markdown", type=Path, metavar="FILE",
+                         help="also write the Markdown report to FILE")
+    command.add_argument("--runs", type=Path, metavar="FILE",
+                         help="write every trial's record (seed, outcome, times, path length, "
+                              "failsafes) to FILE as JSON lines")
+    command.set_defaults(command=_eval_nav)
+
+
+def _eval_nav(args: argparse.Namespace, config: Config) -> int:
+    from companion.eval import nav
+    from companion.eval.vio import EvaluationError
+    from drivers.sim.options import WORLD_NAMES
+
+    seed = config.sim.seed if args.seed is None else args.seed
+    timeout = nav.TIMEOUT_S if args.timeout is None else args.timeout
+    worlds, pairs, trials = args.worlds or list(WORLD_NAMES), args.pairs, args.trials or nav.TRIALS
+    if args.quick:
+        worlds, pairs, trials = (args.worlds or [nav.QUICK_WORLD])[:1], [0], 1
+    try:
+        result, records = nav.evaluate_navigation(
+            config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
+            workers=args.workers, progress=sys.stderr)
+    except EvaluationError as error:
+        print(f"eval nav: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    report = nav.format_markdown(result, records, seed=seed, timeout_s=timeout)
+    print(json.dumps(result) if args.json else report)
+    try:
+        if args.markdown is not None:
+            args.markdown.parent.mkdir(parents=True, exist_ok=True)
+            args.markdown.write_text(report + "\n")
+        if args.runs is not None:
+            nav.write_runs(records, args.runs)
+        if args.plot is not None:
+            nav.plot_navigation(result, args.plot)
+    except OSError as error:
+        print(f"eval nav: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    return EXIT_OK
 
 
 def _add_depth_commands(commands: argparse._SubParsersAction,

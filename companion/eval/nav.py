@@ -1,0 +1,447 @@
+"""Navigation success over worlds, start/goal pairs and seeds, behind ``companion eval nav``.
+
+The paper's navigation experiment (Yang, Tian, Goel, Tabib, Section IV) flies every start/goal
+pair of each world several times, planning once on ground-truth depth ("GT") and once on the
+rescaled estimate, and counts successes, collisions and timeouts. Here each trial is one
+``companion sim fly`` (:func:`companion.simfly.run`, lockstep, deterministic): the whole stack
+over MAVLink against the simulator, ``--depth truth`` for ``gt`` and ``--depth estimated``.
+
+Trials and seeds. Trial k (k = 0, 1, ...) of every pair flies seed ``s_k = S + k``
+(:func:`trial_seed`), S the base ``--seed``. The seed draws the world (the layout of its trunks,
+pillars, tunnel bends and room sizes), the sensor noise and the stand-in network's errors, so
+the trials of a pair are different draws of its world; both depth sources fly the same seeds
+(a paired comparison), and trial k is exactly ``companion sim fly --world W --pair P
+--seed S+k --depth truth|estimated``. Lockstep flights do not depend on the machine's speed
+or on how many run side by side, so the result depends only on the arguments and the config.
+
+Time limit. ``timeout_s`` (120 s) of simulated navigation, from the switch to Offboard (after
+the take-off) to the goal: it is the application's own ``[flight] mission_timeout_s``, set to
+``timeout_s`` for the trials, so a trial out of time ends as on the vehicle (the "mission
+timeout" failsafe: stop, hold, land).
+
+Outcomes (:func:`outcome`), one per trial:
+
+- ``collision``: the simulator recorded a collision, whatever else happened;
+- ``success``: the goal was reached (the application said so and the true closest approach
+  confirms it, :func:`companion.simfly.run`) without a collision, within the time limit;
+- ``timeout``: everything else: out of time, and also a flight that ended early without the
+  goal (a failsafe such as no safe primitive, an abort on the ground, or a landing the truth
+  did not confirm). The Markdown report counts those separately as "ended early" within the
+  timeouts; the JSON keeps the three counts, which add up to ``trials``.
+
+``mean_time_s`` is the mean ``flight_time_s`` (take-off to landed) of the successful trials,
+None without one. Trials run in worker processes (``spawn``: each starts clean, its own OpenGL
+context); a one-line progress bar goes to stderr as they finish.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import json
+import logging
+import math
+import multiprocessing
+import os
+import sys
+import time
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, TextIO
+
+import cv2
+import numpy as np
+
+from companion import simfly
+from companion.eval.numbers import mean_or_none, show
+from companion.eval.vio import EvaluationError
+from drivers.sim.options import WORLD_NAMES
+from drivers.sim.render import RenderError
+from drivers.sim.world import build_world
+
+#: The report's depth sources and what each flies (:data:`companion.simfly.DEPTH_SOURCES`).
+DEPTH_SOURCES = {"gt": "truth", "estimated": "estimated"}
+#: A trial's outcomes, in the order they are counted and drawn.
+OUTCOMES = ("success", "collision", "timeout")
+#: Trials per start/goal pair and depth source by default.
+TRIALS = 5
+#: Simulated seconds of navigation a trial may take to reach its goal (the paper's 120 s).
+TIMEOUT_S = 120.0
+#: The failsafe the application raises when ``[flight] mission_timeout_s`` runs out.
+MISSION_TIMEOUT = "mission timeout"
+#: The world of ``--quick`` when none is given: the fastest to fly.
+QUICK_WORLD = "dome"
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One flight: ``pair`` of ``world`` on ``depth`` (a key of :data:`DEPTH_SOURCES`), the
+    ``index``-th trial of its pair, flying ``seed``."""
+
+    world: str
+    pair: int
+    depth: str
+    index: int
+    seed: int
+
+    def mission(self) -> simfly.SimMission:
+        """The simulated mission this trial flies (lockstep)."""
+        return simfly.SimMission(world=self.world, seed=self.seed, pair=self.pair,
+                                 depth=DEPTH_SOURCES[self.depth])
+
+    def label(self) -> str:
+        return f"{self.world} pair {self.pair} {self.depth} trial {self.index} (seed {self.seed})"
+
+
+def trial_seed(base: int, index: int) -> int:
+    """The seed of trial ``index`` (0, 1, ...) of every pair: ``base + index``, so trial k is
+    ``companion sim fly --seed base+k`` and trial 0 flies the base seed itself."""
+    if base < 0 or index < 0:
+        raise ValueError(f"seed and trial index must be non-negative, got {base}, {index}")
+    return base + index
+
+
+def plan_trials(worlds: Iterable[str], pairs: Iterable[int] | None, trials: int,
+                seed: int) -> list[Trial]:
+    """Every trial to fly: per world (in the order given, duplicates dropped) each pair of
+    ``pairs`` (default: all the world's pairs) × ``trials`` × both depth sources, the two
+    sources of one seed side by side. EvaluationError for an unknown world, a pair the world
+    does not have, or fewer than one trial."""
+    if trials < 1:
+        raise EvaluationError(f"trials must be at least 1, got {trials}")
+    if seed < 0:
+        raise EvaluationError(f"seed must be non-negative, got {seed}")
+    worlds, pairs = list(dict.fromkeys(worlds)), None if pairs is None else tuple(pairs)
+    if not worlds:
+        raise EvaluationError("no world to fly")
+    unknown = [w for w in worlds if w not in WORLD_NAMES]
+    if unknown:
+        raise EvaluationError(f"unknown world {unknown[0]!r}; choose from "
+                              f"{', '.join(WORLD_NAMES)}")
+    return [Trial(world, pair, depth, k, trial_seed(seed, k))
+            for world in worlds for pair in _pairs_of(world, pairs, seed)
+            for k in range(trials) for depth in DEPTH_SOURCES]
+
+
+def _pairs_of(world: str, pairs: tuple[int, ...] | None, seed: int) -> list[int]:
+    """``pairs`` (duplicates dropped), checked against the world's start/goal pairs."""
+    count = len(build_world(world, seed).routes)
+    if pairs is None:
+        return list(range(count))
+    chosen = list(dict.fromkeys(pairs))
+    bad = [p for p in chosen if not 0 <= p < count]
+    if bad:
+        raise EvaluationError(f"{world} has start/goal pairs 0..{count - 1}, not {bad[0]}")
+    return chosen
+
+
+def trial_config(config, timeout_s: float):
+    """``config`` with ``[flight] mission_timeout_s`` set to ``timeout_s``: the application
+    itself ends a trial that runs out of time (module docstring)."""
+    if not (math.isfinite(timeout_s) and timeout_s > 0):
+        raise EvaluationError(f"timeout must be a positive number of seconds, got {timeout_s}")
+    try:
+        flight = dataclasses.replace(config.flight, mission_timeout_s=float(timeout_s))
+    except ValueError as error:
+        raise EvaluationError(f"timeout: {error}") from None
+    return dataclasses.replace(config, flight=flight)
+
+
+# --------------------------------------------------------------------------------------------
+# One trial (in a worker process)
+
+def fly_trial(config, trial: Trial) -> dict:
+    """Fly ``trial`` with ``config`` (its time limit already set, :func:`trial_config`) and
+    return its record (:func:`trial_record`). EvaluationError naming the trial when the flight
+    cannot be set up."""
+    started = time.perf_counter()
+    try:
+        summary = simfly.run(config, trial.mission())
+    except (simfly.SimFlyError, RenderError, ValueError, OSError) as error:
+        raise EvaluationError(f"{trial.label()}: {error}") from None
+    return trial_record(trial, summary, wall_s=time.perf_counter() - started)
+
+
+def trial_record(trial: Trial, summary: dict, *, wall_s: float | None = None) -> dict:
+    """The plain-number record of a flown trial: what it was, its :func:`outcome`, whether it
+    :func:`ended_early`, and the summary's numbers (``wall_s``: the flight's wall time)."""
+    keys = ("reached_goal", "collisions", "failsafes", "final_state", "flight_time_s",
+            "navigation_time_s", "path_length_m", "min_clearance_m", "closest_to_goal_m",
+            "vins_resets")
+    record = {**dataclasses.asdict(trial), "outcome": outcome(summary),
+              "ended_early": ended_early(summary),
+              "time_to_goal_s": time_to_goal(summary)}
+    record.update({key: summary.get(key) for key in keys})
+    record["wall_s"] = wall_s
+    return record
+
+
+def outcome(summary: dict) -> str:
+    """``collision`` if any, else ``success`` if the goal was reached, else ``timeout``
+    (module docstring). The time limit is the application's mission timeout: a goal reached is
+    a goal reached within it."""
+    if summary["collisions"]:
+        return "collision"
+    return "success" if summary["reached_goal"] else "timeout"
+
+
+def ended_early(summary: dict) -> bool:
+    """Whether a trial that neither collided nor reached its goal ended before its time limit:
+    no "mission timeout" failsafe (another failsafe, an abort, or an unconfirmed landing)."""
+    return outcome(summary) == "timeout" and MISSION_TIMEOUT not in summary["failsafes"]
+
+
+def time_to_goal(summary: dict) -> float | None:
+    """Simulated seconds from the switch to Offboard to "goal reached", None if not reached."""
+    times = {t["reason"]: t["t"] for t in reversed(summary.get("transitions", []))}
+    if "goal reached" not in times or "Offboard" not in times:
+        return None
+    return times["goal reached"] - times["Offboard"]
+
+
+def _init_worker(level: int) -> None:
+    """A worker's logging: errors only, on stderr. A trial's warnings (failsafes, VINS
+    smoother rebuilds with GTSAM's ten-line explanation) would bury the progress bar; its
+    failsafes and VINS resets are in its record, and ``companion sim fly --seed S+k`` replays
+    the trial with every line."""
+    logging.basicConfig(level=max(level, logging.ERROR), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(processName)s %(name)s: "
+                               "%(message)s")
+
+
+# --------------------------------------------------------------------------------------------
+# Many trials, in parallel
+
+class ProgressBar:
+    """One line on ``stream`` redrawn as trials finish: a bar, the count, the outcomes so far
+    and the last trial. Redrawn in place on a terminal, one line per update elsewhere (a log)."""
+
+    WIDTH = 24
+
+    def __init__(self, total: int, stream: TextIO | None = None):
+        self.total, self.done = total, 0
+        self.stream = sys.stderr if stream is None else stream
+        self.counts = dict.fromkeys(OUTCOMES, 0)
+        self.started = time.monotonic()
+        self._tty = getattr(self.stream, "isatty", lambda: False)()
+
+    def start(self, workers: int) -> None:
+        self._write(f"{self.total} trials in {workers} worker processes")
+
+    def update(self, record: dict) -> None:
+        self.done += 1
+        self.counts[record["outcome"]] += 1
+        filled = round(self.WIDTH * self.done / self.total)
+        counts = " ".join(f"{name} {n}" for name, n in self.counts.items())
+        last = f"{record['world']} pair {record['pair']} {record['depth']} #{record['index']}"
+        self._write(f"[{'#' * filled}{'.' * (self.WIDTH - filled)}] {self.done}/{self.total}  "
+                    f"{counts}  last: {last} {record['outcome']}  {self._elapsed()}")
+
+    def finish(self) -> None:
+        if self._tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+    def _elapsed(self) -> str:
+        minutes, seconds = divmod(round(time.monotonic() - self.started), 60)
+        return f"{minutes}m{seconds:02d}s"
+
+    def _write(self, line: str) -> None:
+        self.stream.write(f"\r{line}\033[K" if self._tty else line + "\n")
+        self.stream.flush()
+
+
+def run_trials(config, trials: list[Trial], *, workers: int | None = None,
+               progress: ProgressBar | None = None) -> list[dict]:
+    """Fly ``trials`` in up to ``workers`` ``spawn`` processes (default: the CPU count) and
+    return their records in the order of ``trials``. The first error stops the run (trials not
+    started are cancelled) and is raised as EvaluationError."""
+    if workers is not None and workers < 1:
+        raise EvaluationError(f"workers must be at least 1, got {workers}")
+    if not trials:
+        return []
+    workers = min(workers or os.cpu_count() or 1, len(trials))
+    if progress is not None:
+        progress.start(workers)
+    records: list[dict | None] = [None] * len(trials)
+    pool = concurrent.futures.ProcessPoolExecutor(
+        workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+        initargs=(logging.getLogger().getEffectiveLevel(),))
+    try:
+        futures = {pool.submit(fly_trial, config, trial): k for k, trial in enumerate(trials)}
+        for future in concurrent.futures.as_completed(futures):
+            records[futures[future]] = future.result()
+            if progress is not None:
+                progress.update(records[futures[future]])
+    except BrokenProcessPool:
+        raise EvaluationError("a worker process died (out of memory?); no result") from None
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        if progress is not None:
+            progress.finish()
+    return records
+
+
+def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] | None = None,
+                        trials: int = TRIALS, seed: int = 0, timeout_s: float = TIMEOUT_S,
+                        workers: int | None = None, progress: TextIO | None = None
+                        ) -> tuple[dict, list[dict]]:
+    """Plan (:func:`plan_trials`), fly (:func:`run_trials`) and count (:func:`summarise`):
+    ``(result, records)``; a :class:`ProgressBar` on the ``progress`` stream if given."""
+    planned = plan_trials(worlds, pairs, trials, seed)
+    flown = trial_config(config, timeout_s)
+    bar = None if progress is None else ProgressBar(len(planned), progress)
+    records = run_trials(flown, planned, workers=workers, progress=bar)
+    return summarise(records), records
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+
+def summarise(records: list[dict]) -> dict:
+    """The JSON result: ``{source: {world: {"trials", "success", "collision", "timeout",
+    "mean_time_s"}}}``, sources in the order of :data:`DEPTH_SOURCES`, worlds in the order
+    they were flown."""
+    worlds = list(dict.fromkeys(r["world"] for r in records))
+    return {source: {world: count([r for r in records
+                                   if r["depth"] == source and r["world"] == world])
+                     for world in worlds}
+            for source in DEPTH_SOURCES}
+
+
+def count(records: list[dict]) -> dict:
+    """Trials, each outcome's count, and the mean flight time of the successes (None if
+    none)."""
+    successes = [r["flight_time_s"] for r in records if r["outcome"] == "success"]
+    return {"trials": len(records),
+            **{name: sum(r["outcome"] == name for r in records) for name in OUTCOMES},
+            "mean_time_s": mean_or_none(successes)}
+
+
+def write_runs(records: list[dict], out: Path) -> Path:
+    """Every trial's record as JSON lines at ``out`` (parent folders created)."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("".join(json.dumps(r) + "\n" for r in records))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+
+def format_markdown(result: dict, records: list[dict], *, seed: int, timeout_s: float) -> str:
+    """Markdown: one row per world and depth source with the counts, the success rate, the
+    timeouts that ended early, and the successes' mean flight time and path length."""
+    trials = max((r["index"] for r in records), default=0) + 1
+    seeds = f"seed {seed}" if trials == 1 else f"seeds {seed}..{seed + trials - 1}"
+    lines = [
+        f"## Navigation in simulated flights ({trials} per start/goal pair and depth source, "
+        f"{seeds}, {timeout_s:g} s to reach the goal)",
+        "",
+        "GT: planning on the renderer's true depth; estimated: on the network rescaled with "
+        "the VINS map. Success: the goal reached without a collision within the time; "
+        "collision: any collision; timeout: neither (of which *ended early*: stopped by a "
+        "failsafe or landed away from the goal before the time ran out). Mean flight time "
+        "(take-off to landed) and path length over the successes.",
+        "",
+        "| world | depth | trials | success | collision | timeout | ended early | "
+        "success rate | mean flight s | mean path m |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for source, worlds in result.items():
+        for world, numbers in worlds.items():
+            lines.append(_row(world, source, numbers, [
+                r for r in records if r["depth"] == source and r["world"] == world]))
+    return "\n".join(lines)
+
+
+def _row(world: str, source: str, numbers: dict, records: list[dict]) -> str:
+    early = sum(r["ended_early"] for r in records)
+    path = mean_or_none([r["path_length_m"] for r in records if r["outcome"] == "success"])
+    rate = numbers["success"] / numbers["trials"] if numbers["trials"] else None
+    cells = [world, _SOURCE_NAMES[source], numbers["trials"], *(numbers[o] for o in OUTCOMES),
+             early, show(rate, ".0%"), show(numbers["mean_time_s"], ".1f"), show(path, ".1f")]
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+
+_SOURCE_NAMES = {"gt": "GT", "estimated": "estimated"}
+
+
+# --------------------------------------------------------------------------------------------
+# Plot
+
+#: BGR colours of the outcomes: green, red, grey.
+_COLOURS = {"success": (60, 160, 40), "collision": (40, 40, 210), "timeout": (150, 150, 150)}
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_LEFT, _TOP, _BAR, _PLOT_H, _GROUP_GAP, _MIN_WIDTH = 60, 100, 56, 300, 50, 480
+
+
+def plot_navigation(result: dict, out: Path) -> Path:
+    """Draw, per world, a stacked bar per depth source (successes, collisions, timeouts, from
+    the bottom, each labelled with its count) with its mean flight time above it, as a PNG at
+    ``out`` with OpenCV (as :mod:`companion.plot`); parent folders are created. ValueError for
+    a name that does not end in .png."""
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise ValueError(f"{out}: the plot is a PNG; give a name ending in .png")
+    worlds = list(next(iter(result.values()), {}))
+    top = max([n["trials"] for w in result.values() for n in w.values()] + [1])
+    group = len(result) * (_BAR + 8) + _GROUP_GAP
+    width = max(_LEFT + len(worlds) * group + 20, _MIN_WIDTH)
+    canvas = np.full((_TOP + _PLOT_H + 60, width, 3), 255, np.uint8)
+    _text(canvas, "Navigation outcomes per world and depth source", (10, 22), 0.55)
+    _plot_legend(canvas)
+    _text(canvas, "above each bar: the mean flight time of its successes", (_LEFT, 68))
+    _y_axis(canvas, top)
+    for w, world in enumerate(worlds):
+        left = _LEFT + 20 + w * group
+        for s, source in enumerate(result):
+            _stacked_bar(canvas, left + s * (_BAR + 8), result[source][world], top, source)
+        _text(canvas, world, (left + (group - _GROUP_GAP) // 2 - 20, _TOP + _PLOT_H + 40), 0.5)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), canvas):
+        raise OSError(f"could not write the image to {out}")
+    return out
+
+
+def _text(canvas: np.ndarray, text: str, at: tuple[int, int], scale: float = 0.4) -> None:
+    cv2.putText(canvas, text, at, _FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
+
+
+def _plot_legend(canvas: np.ndarray) -> None:
+    for k, name in enumerate(OUTCOMES):
+        left = _LEFT + 130 * k
+        cv2.rectangle(canvas, (left, 36), (left + 14, 48), _COLOURS[name], -1)
+        _text(canvas, name, (left + 20, 47), 0.45)
+
+
+def _y_axis(canvas: np.ndarray, top: int) -> None:
+    """The trial-count axis, ticked at whole trials (at most about ten ticks)."""
+    bottom = _TOP + _PLOT_H
+    cv2.line(canvas, (_LEFT, _TOP - 10), (_LEFT, bottom), (0, 0, 0), 1)
+    cv2.line(canvas, (_LEFT, bottom), (canvas.shape[1] - 10, bottom), (0, 0, 0), 1)
+    step = max(1, math.ceil(top / 10))
+    for tick in range(0, top + 1, step):
+        y = bottom - round(_PLOT_H * tick / top)
+        cv2.line(canvas, (_LEFT - 5, y), (_LEFT, y), (0, 0, 0), 1)
+        _text(canvas, str(tick), (_LEFT - 30, y + 4))
+    _text(canvas, "trials", (8, _TOP - 16))
+
+
+def _stacked_bar(canvas: np.ndarray, left: int, numbers: dict, top: int, source: str) -> None:
+    """One bar: its outcome segments, their counts, the mean time above, the source below."""
+    bottom = _TOP + _PLOT_H
+    y = bottom
+    for name in OUTCOMES:
+        height = round(_PLOT_H * numbers[name] / top)
+        if height:
+            cv2.rectangle(canvas, (left, y - height), (left + _BAR, y), _COLOURS[name], -1)
+            if height >= 14:
+                at = (left + _BAR // 2 - 6, y - height // 2 + 5)
+                cv2.putText(canvas, str(numbers[name]), at, _FONT, 0.45, (255, 255, 255), 1,
+                            cv2.LINE_AA)
+        y -= height
+    mean = numbers["mean_time_s"]
+    _text(canvas, "n/a" if mean is None else f"{mean:.0f} s", (left + 6, y - 6))
+    _text(canvas, _SOURCE_NAMES[source], (left + 2, bottom + 18))

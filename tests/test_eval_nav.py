@@ -1,0 +1,284 @@
+"""`companion eval nav` (issue 7): navigation trials over worlds, pairs and seeds, on
+ground-truth and on estimated depth, flown in parallel worker processes.
+
+One run of the command, as a user runs it, is made once for the module: the shortest start/goal
+pair of all worlds (the sewer's pair 3, 10.5 m straight across a room), one trial, both depth
+sources side by side in two worker processes, every flight the real stack over MAVLink. The
+other tests read its output or call the library's pure parts on made-up summaries.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import pytest
+
+from companion.cli import main
+from companion.config import Config
+from companion.eval import nav
+from companion.eval.vio import EvaluationError
+from drivers.camera.options import CameraOptions
+from drivers.sim.render import Renderer, RenderError
+from drivers.sim.world import build_world
+
+WORLD, PAIR = "sewer", 3  # a_far -> a_top: the shortest pair of the three worlds (seed 0)
+KEYS = {"trials", "success", "collision", "timeout", "mean_time_s"}
+
+
+def _skip_without_opengl() -> None:
+    """Skip where the simulator's renderer has no OpenGL (as tests/test_sim_record.py)."""
+    try:
+        Renderer(build_world("dome", 0), CameraOptions(width=16, height=16).pinhole()).close()
+    except RenderError as error:
+        pytest.skip(f"EGL/OpenGL unavailable here: {error}")
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    """``(json, stderr, markdown, plot, runs)`` of one trial of the shortest pair, both depth
+    sources in two workers."""
+    _skip_without_opengl()
+    out = tmp_path_factory.mktemp("nav")
+    plot, markdown, runs = out / "nav.png", out / "nav.md", out / "runs.jsonl"
+    run = subprocess.run(
+        [sys.executable, "-m", "companion", "eval", "nav", "--json", "--worlds", WORLD,
+         "--pairs", str(PAIR), "--trials", "1", "--workers", "2", "--plot", str(plot),
+         "--markdown", str(markdown), "--runs", str(runs)],
+        capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr
+    records = [json.loads(line) for line in runs.read_text().splitlines()]
+    return json.loads(run.stdout), run.stderr, markdown.read_text(), plot, records
+
+
+# ---------------------------------------------------------------- the command, flown
+
+def test_stdout_is_exactly_the_json_shape_issue_7_gives(short_run):
+    result, *_ = short_run
+    assert list(result) == ["gt", "estimated"]
+    for source in result.values():
+        assert list(source) == [WORLD]
+        numbers = source[WORLD]
+        assert set(numbers) == KEYS
+        assert numbers["trials"] == 1
+        assert numbers["success"] + numbers["collision"] + numbers["timeout"] == 1
+        assert numbers["mean_time_s"] is None or numbers["mean_time_s"] > 0
+
+
+def test_the_ground_truth_depth_trial_reaches_its_goal_without_collision(short_run):
+    result, _, _, _, records = short_run
+    assert result["gt"][WORLD] | {"mean_time_s": None} == {
+        "trials": 1, "success": 1, "collision": 0, "timeout": 0, "mean_time_s": None}
+    gt = next(r for r in records if r["depth"] == "gt")
+    assert gt["reached_goal"] and gt["collisions"] == 0 and gt["failsafes"] == [], gt
+    assert result["gt"][WORLD]["mean_time_s"] == gt["flight_time_s"]
+    assert 0 < gt["time_to_goal_s"] < gt["flight_time_s"]
+
+
+def test_every_trial_is_recorded_with_its_seed_and_counted_once(short_run):
+    result, _, _, _, records = short_run
+    assert [(r["depth"], r["world"], r["pair"], r["index"], r["seed"]) for r in records] == [
+        ("gt", WORLD, PAIR, 0, nav.trial_seed(0, 0)),
+        ("estimated", WORLD, PAIR, 0, nav.trial_seed(0, 0))]
+    assert nav.summarise(records) == result
+    for record in records:
+        assert record["outcome"] == nav.outcome(record)
+        assert record["path_length_m"] > 5.0  # it flew across the room
+
+
+def test_progress_goes_to_stderr_as_trials_finish(short_run):
+    _, stderr, *_ = short_run
+    assert "2 trials in 2 worker processes" in stderr
+    assert "1/2" in stderr and "2/2" in stderr
+    assert f"last: {WORLD} pair {PAIR}" in stderr
+
+
+def test_markdown_and_plot_are_written(short_run):
+    _, _, markdown, plot, _ = short_run
+    assert markdown.startswith("## Navigation in simulated flights (1 per start/goal pair")
+    assert f"| {WORLD} | GT | 1 | 1 | 0 | 0 |" in markdown
+    assert f"| {WORLD} | estimated | 1 |" in markdown
+    image = cv2.imread(str(plot))
+    assert image is not None and image.shape[0] > 300 and image.shape[1] > 200
+
+
+# ---------------------------------------------------------------- the command's errors
+
+@pytest.mark.parametrize("argv, words", [
+    (["--worlds", "moon"], "invalid choice: 'moon'"),
+    (["--trials", "0"], "expected a positive integer, got '0'"),
+    (["--workers", "0"], "expected a positive integer, got '0'"),
+    (["--plot", "nav.jpg"], "expected a .png file name"),
+])
+def test_bad_arguments_are_usage_errors_with_a_one_line_reason(capsys, argv, words):
+    assert main(["eval", "nav", *argv]) == 2
+    err = capsys.readouterr().err
+    assert words in err.splitlines()[-1] and "Traceback" not in err
+
+
+def test_a_pair_the_world_lacks_fails_with_one_line_before_any_flight(capsys):
+    assert main(["eval", "nav", "--worlds", "dome", "mine", "--pairs", "0", "9"]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == ["eval nav: dome has start/goal pairs 0..5, not 9"]
+    assert captured.out == ""
+
+
+@pytest.mark.parametrize("argv, expected", [
+    ([], dict(worlds=["mine", "sewer", "dome"], pairs=None, trials=5, seed=0, timeout_s=120.0,
+              workers=None)),
+    (["--quick"], dict(worlds=["dome"], pairs=[0], trials=1)),
+    (["--quick", "--worlds", "mine", "sewer", "--trials", "3"],
+     dict(worlds=["mine"], pairs=[0], trials=1)),
+    (["--seed", "4", "--set", "sim.seed=9", "--pairs", "2", "1", "--timeout", "60",
+      "--workers", "3"], dict(pairs=[2, 1], seed=4, timeout_s=60.0, workers=3)),
+    (["--set", "sim.seed=9"], dict(seed=9)),
+])
+def test_the_command_passes_its_options_to_the_library(monkeypatch, capsys, argv, expected):
+    calls = []
+
+    def evaluate(config, **kwargs):
+        calls.append(kwargs)
+        return nav.summarise([]), []
+    monkeypatch.setattr(nav, "evaluate_navigation", evaluate)
+    assert main(["eval", "nav", "--json", *argv]) == 0
+    assert expected.items() <= calls[0].items()
+    assert json.loads(capsys.readouterr().out) == {"gt": {}, "estimated": {}}
+
+
+# ---------------------------------------------------------------- seeds and trials
+
+def test_trial_k_flies_the_base_seed_plus_k():
+    assert [nav.trial_seed(7, k) for k in range(4)] == [7, 8, 9, 10]
+    assert nav.trial_seed(7, 2) == nav.trial_seed(7, 2)  # a pure function
+    with pytest.raises(ValueError):
+        nav.trial_seed(-1, 0)
+
+
+def test_both_depth_sources_fly_the_same_seeds_of_every_pair():
+    trials = nav.plan_trials(["dome", "sewer", "dome"], [1, 0, 1], 3, seed=5)
+    assert len(trials) == 2 * 2 * 3 * 2  # worlds x pairs x trials x depth sources
+    assert list(dict.fromkeys(t.world for t in trials)) == ["dome", "sewer"]
+    for trial in trials:
+        assert trial.seed == 5 + trial.index
+    gt = [(t.world, t.pair, t.seed) for t in trials if t.depth == "gt"]
+    assert gt == [(t.world, t.pair, t.seed) for t in trials if t.depth == "estimated"]
+    mission = trials[1].mission()
+    assert (mission.world, mission.pair, mission.seed, mission.depth, mission.clock) == (
+        "dome", 1, 5, "estimated", "lockstep")
+    assert trials[0].mission().depth == "truth"
+
+
+def test_every_pair_by_default():
+    trials = nav.plan_trials(["dome"], None, 1, seed=0)
+    assert sorted({t.pair for t in trials}) == list(range(len(build_world("dome", 0).routes)))
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(worlds=["moon"]), "unknown world 'moon'"),
+    (dict(worlds=[]), "no world"),
+    (dict(trials=0), "trials must be at least 1"),
+    (dict(pairs=[6]), "dome has start/goal pairs 0..5, not 6"),
+])
+def test_plan_trials_refuses_what_cannot_be_flown(kwargs, words):
+    arguments = dict(worlds=["dome"], pairs=None, trials=1, seed=0) | kwargs
+    with pytest.raises(EvaluationError, match=words):
+        nav.plan_trials(**arguments)
+
+
+def test_the_time_limit_is_the_applications_mission_timeout():
+    config = nav.trial_config(Config(), 42.0)
+    assert config.flight.mission_timeout_s == 42.0
+    assert config.flight.goal_tolerance == Config().flight.goal_tolerance
+    with pytest.raises(EvaluationError, match="positive"):
+        nav.trial_config(Config(), 0.0)
+
+
+def test_workers_must_be_at_least_one():
+    with pytest.raises(EvaluationError, match="workers"):
+        nav.run_trials(Config(), nav.plan_trials(["dome"], [0], 1, 0), workers=0)
+
+
+# ---------------------------------------------------------------- outcomes and counts
+
+def _summary(*, reached=False, collisions=0, failsafes=(), flight_time=30.0, path=20.0):
+    transitions = [{"t": 10.0, "from": "entering_offboard", "to": "navigating",
+                    "reason": "Offboard"}]
+    if reached:
+        transitions.append({"t": 35.0, "from": "navigating", "to": "stopping",
+                            "reason": "goal reached"})
+    return {"reached_goal": reached, "collisions": collisions, "failsafes": list(failsafes),
+            "final_state": "landed", "flight_time_s": flight_time, "navigation_time_s": 26.0,
+            "path_length_m": path, "min_clearance_m": 1.2, "closest_to_goal_m": 0.6,
+            "transitions": transitions}
+
+
+@pytest.mark.parametrize("summary, expected, early", [
+    (_summary(reached=True), "success", False),
+    (_summary(reached=True, collisions=1), "collision", False),
+    (_summary(collisions=1, failsafes=["mission timeout"]), "collision", False),
+    (_summary(failsafes=["mission timeout"]), "timeout", False),
+    (_summary(failsafes=["no safe primitive"]), "timeout", True),
+    (_summary(), "timeout", True),  # landed, but the truth did not confirm the goal
+])
+def test_outcome_of_a_trial(summary, expected, early):
+    assert nav.outcome(summary) == expected
+    assert nav.ended_early(summary) == early
+
+
+def test_time_to_goal_counts_from_offboard():
+    assert nav.time_to_goal(_summary(reached=True)) == 25.0
+    assert nav.time_to_goal(_summary()) is None
+
+
+def _records():
+    trial = nav.Trial("dome", 0, "estimated", 0, 0)
+    summaries = [_summary(reached=True, flight_time=30.0, path=20.0),
+                 _summary(reached=True, flight_time=40.0, path=30.0),
+                 _summary(collisions=1),
+                 _summary(failsafes=["no safe primitive"])]
+    records = [nav.trial_record(nav.Trial("dome", 0, "gt", k, k), s)
+               for k, s in enumerate(summaries)]
+    return records + [nav.trial_record(trial, _summary(failsafes=["mission timeout"]))]
+
+
+def test_counts_and_mean_time_of_the_successes():
+    result = nav.summarise(_records())
+    assert result == {
+        "gt": {"dome": {"trials": 4, "success": 2, "collision": 1, "timeout": 1,
+                        "mean_time_s": 35.0}},
+        "estimated": {"dome": {"trials": 1, "success": 0, "collision": 0, "timeout": 1,
+                               "mean_time_s": None}}}
+
+
+def test_markdown_counts_the_timeouts_that_ended_early():
+    records = _records()
+    text = nav.format_markdown(nav.summarise(records), records, seed=3, timeout_s=120.0)
+    assert "seeds 3..6, 120 s to reach the goal" in text
+    assert "| dome | GT | 4 | 2 | 1 | 1 | 1 | 50% | 35.0 | 25.0 |" in text
+    assert "| dome | estimated | 1 | 0 | 0 | 1 | 0 | 0% | n/a | n/a |" in text
+
+
+def test_the_plot_is_a_png_with_a_bar_per_world_and_source(tmp_path):
+    records = _records()
+    out = nav.plot_navigation(nav.summarise(records), tmp_path / "deep" / "nav.png")
+    image = cv2.imread(str(out))
+    assert image is not None and image.shape[1] > 150
+    assert (image != 255).any(axis=2).mean() > 0.02  # bars drawn, not a blank canvas
+    with pytest.raises(ValueError, match="PNG"):
+        nav.plot_navigation(nav.summarise(records), tmp_path / "nav.jpg")
+
+
+def test_progress_bar_counts_outcomes_one_line_per_update_off_a_terminal():
+    import io
+
+    stream = io.StringIO()
+    bar = nav.ProgressBar(2, stream)
+    bar.start(2)
+    for record in _records()[:2]:
+        bar.update(record)
+    bar.finish()
+    lines = stream.getvalue().splitlines()
+    assert lines[0] == "2 trials in 2 worker processes"
+    assert lines[2].startswith("[" + "#" * nav.ProgressBar.WIDTH + "] 2/2  success 2 ")
