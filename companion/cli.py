@@ -14,7 +14,7 @@ import logging
 import math
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 from autonomy.options import OptionError
 from companion import __version__
@@ -384,20 +384,10 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
     except EvaluationError as error:
         print(f"eval nav: {error}", file=sys.stderr)
         return EXIT_FAILED
-    report = nav.format_markdown(result, records, seed=seed, timeout_s=timeout)
-    print(json.dumps(result) if args.json else report)
-    try:
-        if args.markdown is not None:
-            args.markdown.parent.mkdir(parents=True, exist_ok=True)
-            args.markdown.write_text(report + "\n")
-        if args.runs is not None:
-            nav.write_runs(records, args.runs)
-        if args.plot is not None:
-            nav.plot_navigation(result, args.plot)
-    except OSError as error:
-        print(f"eval nav: {error}", file=sys.stderr)
-        return EXIT_FAILED
-    return EXIT_OK
+    return _report("eval nav", args, result,
+                   nav.format_markdown(result, records, seed=seed, timeout_s=timeout),
+                   (args.runs, lambda path: nav.write_runs(records, path)),
+                   (args.plot, lambda path: nav.plot_navigation(result, path)))
 
 
 def _add_depth_commands(commands: argparse._SubParsersAction,
@@ -478,16 +468,25 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
     except (NetworkError, EvaluationError) as error:
         print(f"eval rescale: {error}", file=sys.stderr)
         return EXIT_FAILED
-    report = rescale.format_markdown(result, seed=seed)
+    return _report("eval rescale", args, result, rescale.format_markdown(result, seed=seed),
+                   (args.plot, lambda path: rescale.plot_absrel(result, path)))
+
+
+def _report(command: str, args: argparse.Namespace, result: dict, report: str,
+            *files: tuple[Path | None, Callable[[Path], object]]) -> int:
+    """Print an evaluation's ``result`` (``--json``) or Markdown ``report``, then write
+    ``--markdown`` and each of ``files`` (path or None, writer): exit 1 with one line when
+    one cannot be written (the result is printed already)."""
     print(json.dumps(result) if args.json else report)
     try:
         if args.markdown is not None:
             args.markdown.parent.mkdir(parents=True, exist_ok=True)
             args.markdown.write_text(report + "\n")
-        if args.plot is not None:
-            rescale.plot_absrel(result, args.plot)
+        for path, write in files:
+            if path is not None:
+                write(path)
     except OSError as error:
-        print(f"eval rescale: {error}", file=sys.stderr)
+        print(f"{command}: {error}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
 

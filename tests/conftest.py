@@ -16,6 +16,19 @@ if os.environ.get("CI"):
 
 
 @pytest.fixture(scope="session")
+def opengl():
+    """Skips the test where the simulator's renderer has no OpenGL (EGL) here."""
+    from drivers.camera.options import CameraOptions
+    from drivers.sim.render import Renderer, RenderError
+    from drivers.sim.world import build_world
+
+    try:
+        Renderer(build_world("dome", 0), CameraOptions(width=16, height=16).pinhole()).close()
+    except RenderError as error:
+        pytest.skip(f"EGL/OpenGL unavailable here: {error}")
+
+
+@pytest.fixture(scope="session")
 def record_flight(tmp_path_factory):
     """``record_flight(world, seconds)``: the folder of a simulated flight (seed 0) recorded
     once per test session; skips the test when OpenGL is unavailable here."""

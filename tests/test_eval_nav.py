@@ -20,27 +20,16 @@ from companion.cli import main
 from companion.config import Config
 from companion.eval import nav
 from companion.eval.vio import EvaluationError
-from drivers.camera.options import CameraOptions
-from drivers.sim.render import Renderer, RenderError
 from drivers.sim.world import build_world
 
 WORLD, PAIR = "sewer", 3  # a_far -> a_top: the shortest pair of the three worlds (seed 0)
 KEYS = {"trials", "success", "collision", "timeout", "mean_time_s"}
 
 
-def _skip_without_opengl() -> None:
-    """Skip where the simulator's renderer has no OpenGL (as tests/test_sim_record.py)."""
-    try:
-        Renderer(build_world("dome", 0), CameraOptions(width=16, height=16).pinhole()).close()
-    except RenderError as error:
-        pytest.skip(f"EGL/OpenGL unavailable here: {error}")
-
-
 @pytest.fixture(scope="module")
-def short_run(tmp_path_factory):
+def short_run(tmp_path_factory, opengl):
     """``(json, stderr, markdown, plot, runs)`` of one trial of the shortest pair, both depth
     sources in two workers."""
-    _skip_without_opengl()
     out = tmp_path_factory.mktemp("nav")
     plot, markdown, runs = out / "nav.png", out / "nav.md", out / "runs.jsonl"
     run = subprocess.run(

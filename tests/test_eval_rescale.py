@@ -25,9 +25,6 @@ from companion.cli import main
 from companion.config import Config
 from companion.eval import rescale
 from companion.eval.vio import EvaluationError
-from drivers.camera.options import CameraOptions
-from drivers.sim.render import Renderer, RenderError
-from drivers.sim.world import build_world
 
 METRICS = {"absrel", "delta1", "overestimate_rate"}
 NO_SUCH_PID = 2**31 - 1  # above Linux's largest pid (2^22): never a running process
@@ -38,18 +35,9 @@ def _recording() -> rescale.Recording:
     return rescale.Recording(config.camera, config.vehicle, config.imu)
 
 
-def _skip_without_opengl() -> None:
-    """Skip where the simulator's renderer has no OpenGL (as tests/test_sim_record.py)."""
-    try:
-        Renderer(build_world("dome", 0), CameraOptions(width=16, height=16).pinhole()).close()
-    except RenderError as error:
-        pytest.skip(f"EGL/OpenGL unavailable here: {error}")
-
-
 @pytest.fixture(scope="module")
-def quick_run(tmp_path_factory):
+def quick_run(tmp_path_factory, opengl):
     """``(json, markdown, plot, cache)`` of ``companion eval rescale --quick --worlds mine``."""
-    _skip_without_opengl()
     out = tmp_path_factory.mktemp("rescale")
     cache, plot, markdown = out / "cache", out / "absrel.png", out / "table.md"
     stdout, stderr = io.StringIO(), io.StringIO()
@@ -139,14 +127,13 @@ def test_a_second_call_reuses_the_cached_recording(quick_run, monkeypatch):
     assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
 
 
-def test_a_half_written_recording_is_not_reused(tmp_path):
+def test_a_half_written_recording_is_not_reused(tmp_path, opengl):
     key = rescale.dataset_key("sewer", 3, 3, _recording())
     incomplete = tmp_path / key  # a folder of the key's name without recording.json
     (incomplete / "mav0").mkdir(parents=True)
     (incomplete / "mav0" / "leftover").write_text("half")
     stale = tmp_path / f".partial-{key}.{NO_SUCH_PID}"  # left by a process that died
     stale.mkdir()
-    _skip_without_opengl()
     root = rescale.cached_dataset(tmp_path, "sewer", 3, 3, _recording())
     assert root == incomplete
     assert (root / rescale.COMPLETE).is_file()

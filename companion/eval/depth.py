@@ -111,18 +111,11 @@ def run_depth(data: VioDataset, options: DepthEvalOptions, network: RelativeDept
               max_frames: int | None = None) -> DepthTrace:
     """Feed every frame of ``data`` to the VINS, ``network`` and the stage, as in flight, and
     trace the stage's output scored against the frame's ground-truth depth."""
-    vins = build_vins(data, options.vins, frontend=options.frontend, static=options.static)
     stage = MetricDepthStage(options.rescale, options.stage)
     trace = DepthTrace(method=options.rescale.method)
-    for frame in vio_frames(data, max_frames):
-        if frame.depth_path is None:
-            raise EvaluationError(f"{data.root}: frame at t={frame.t:.3f} s has no depth0 image")
-        for sample in frame.imu:
-            vins.add_imu(sample)
-        update = vins.add_frame(frame.t, vins.track(frame.image))
+    for frame, update, truth in tracked_frames(data, options, max_frames):
         if update.sparse_map is not None:
             stage.add_sparse_map(update.sparse_map)
-        truth = read_frame_depth(frame.depth_path, data.camera.camera)
         relative = RelativeDepth(frame.t, network(frame, truth))
         start = time.perf_counter()
         result = stage.process(relative)
@@ -130,6 +123,20 @@ def run_depth(data: VioDataset, options: DepthEvalOptions, network: RelativeDept
         _record(trace, result, truth, relative.disparity)
     trace.no_fit, trace.rejected = dict(stage.no_fit), dict(stage.rejected)
     return trace
+
+
+def tracked_frames(data: VioDataset, options: DepthEvalOptions, max_frames: int | None = None):
+    """Each of the first ``max_frames`` frames of ``data`` (all by default) with the VINS's
+    update after it and its ground-truth depth: ``(frame, update, truth)``; the VINS fed the
+    frame's IMU samples and image as in flight. EvaluationError for a frame without depth0."""
+    vins = build_vins(data, options.vins, frontend=options.frontend, static=options.static)
+    for frame in vio_frames(data, max_frames):
+        if frame.depth_path is None:
+            raise EvaluationError(f"{data.root}: frame at t={frame.t:.3f} s has no depth0 image")
+        for sample in frame.imu:
+            vins.add_imu(sample)
+        update = vins.add_frame(frame.t, vins.track(frame.image))
+        yield frame, update, read_frame_depth(frame.depth_path, data.camera.camera)
 
 
 def _record(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,

@@ -43,11 +43,9 @@ from autonomy.depth.anchors import sample_nearest_surface
 from autonomy.depth.rescale import METHODS, RescaleOptions, fit
 from autonomy.depth.stage import MetricDepthStage, check_relative_disparity
 from autonomy.messages import SparseMap
-from companion.eval.depth import DepthEvalOptions, RelativeDepthSource
+from companion.eval.depth import DepthEvalOptions, RelativeDepthSource, tracked_frames
 from companion.eval.numbers import mean_or_none, show
-from companion.eval.vio import (
-    EvaluationError, VioDataset, build_vins, read_frame_depth, read_vio_dataset, vio_frames,
-)
+from companion.eval.vio import EvaluationError, VioDataset, read_vio_dataset
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions, WORLD_NAMES
@@ -236,17 +234,10 @@ def score_world(data: VioDataset, options: DepthEvalOptions, network: RelativeDe
     each frame with a sparse map (and a network output the stage would accept:
     :func:`~autonomy.depth.stage.check_relative_disparity`), fit and score every method on
     both anchor sets (:func:`frame_anchors`)."""
-    vins = build_vins(data, options.vins, frontend=options.frontend, static=options.static)
     stage = MetricDepthStage(options.rescale, options.stage)
     methods = {m: dataclasses.replace(options.rescale, method=m) for m in METHODS}
     result = WorldScores(0, 0, {m: {s: [] for s in SOURCES} for m in METHODS})
-    for frame in vio_frames(data, frames):
-        if frame.depth_path is None:
-            raise EvaluationError(f"{data.root}: frame at t={frame.t:.3f} s has no depth0 image")
-        for sample in frame.imu:
-            vins.add_imu(sample)
-        update = vins.add_frame(frame.t, vins.track(frame.image))
-        truth = read_frame_depth(frame.depth_path, data.camera.camera)
+    for frame, update, truth in tracked_frames(data, options, frames):
         disparity = np.asarray(network(frame, truth), dtype=np.float32)  # each frame, as in flight
         result.frames += 1
         if update.sparse_map is not None and check_relative_disparity(disparity) is None:
