@@ -100,10 +100,31 @@ def top_view(world: World, path_xyz, *, start, goal, waypoints=(), collisions=()
     _draw_scale_bar(canvas, view, map_h, x1 - x0)
     cv2.putText(canvas, title, (_LEFT, 20), _FONT, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
 
-    view.path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(view.path), canvas):
-        raise OSError(f"could not write the image to {view.path} (is the name a .png?)")
+    write_image(canvas, view.path)
     return view
+
+
+def write_image(canvas: np.ndarray, out: Path) -> Path:
+    """Write ``canvas`` to ``out`` (its folders created); OSError if OpenCV cannot."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), canvas):
+        raise OSError(f"could not write the image to {out} (is the name a .png?)")
+    return out
+
+
+def png_path(out) -> Path:
+    """``out`` as a Path, or a ValueError unless its name ends in .png (before the drawing)."""
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise ValueError(f"{out}: the plot is a PNG; give a name ending in .png")
+    return out
+
+
+def text(canvas: np.ndarray, words: str, at: tuple[int, int], scale: float = 0.4,
+         colour=(0, 0, 0)) -> None:
+    """Anti-aliased Hershey text with its baseline's left end at ``at``."""
+    cv2.putText(canvas, words, at, _FONT, scale, colour, 1, cv2.LINE_AA)
 
 
 def _points(name: str, value, *, columns: tuple[int, ...], allow_empty: bool) -> np.ndarray:
@@ -157,7 +178,7 @@ def _draw_marker(canvas: np.ndarray, view: TopView, xy, colour, kind: int) -> No
     cv2.drawMarker(canvas, at, colour, kind, 16, 2, cv2.LINE_AA)
 
 
-def _nice(length: float) -> float:
+def nice_step(length: float) -> float:
     """The largest of 1, 2, 5 times a power of ten not above ``length``."""
     power = 10.0 ** math.floor(math.log10(length))
     return max(m * power for m in (1, 2, 5) if m * power <= length)
@@ -168,7 +189,7 @@ def _draw_axes(canvas: np.ndarray, view: TopView, map_w: int, map_h: int, x1: fl
     """Ticks in metres along the bottom (x, east) and left (y, north) edges, axis names, and
     a north arrow in the map's top-right corner."""
     black, small = (0, 0, 0), 0.4
-    step = _nice(max(x1 - view.x0, view.y1 - y0) / 6)
+    step = nice_step(max(x1 - view.x0, view.y1 - y0) / 6)
     cv2.rectangle(canvas, (_LEFT - 1, _TOP - 1), (_LEFT + map_w, _TOP + map_h), black, 1)
     for x in np.arange(math.ceil(view.x0 / step) * step, x1, step):
         col = view.pixel((x, 0))[0]
@@ -189,7 +210,7 @@ def _draw_axes(canvas: np.ndarray, view: TopView, map_w: int, map_h: int, x1: fl
 
 def _draw_scale_bar(canvas: np.ndarray, view: TopView, map_h: int, width_m: float) -> None:
     """A bar of a round number of metres, about a fifth of the map wide, bottom left."""
-    metres = _nice(width_m / 5)
+    metres = nice_step(width_m / 5)
     left, base = _LEFT + 12, _TOP + map_h - 14
     right = left + round(metres * view.px_per_m)
     cv2.rectangle(canvas, (left - 3, base - 20), (right + 3, base + 6), (255, 255, 255), -1)

@@ -56,6 +56,7 @@ import numpy as np
 from companion import simfly
 from companion.eval.numbers import mean_or_none, show
 from companion.eval.vio import EvaluationError
+from companion.plot import png_path, text, write_image
 from drivers.sim.options import WORLD_NAMES
 from drivers.sim.render import RenderError
 from drivers.sim.world import build_world
@@ -373,47 +374,37 @@ _SOURCE_NAMES = {"gt": "GT", "estimated": "estimated"}
 
 #: BGR colours of the outcomes: green, red, grey.
 _COLOURS = {"success": (60, 160, 40), "collision": (40, 40, 210), "timeout": (150, 150, 150)}
-_FONT = cv2.FONT_HERSHEY_SIMPLEX
 _LEFT, _TOP, _BAR, _PLOT_H, _GROUP_GAP, _MIN_WIDTH = 60, 100, 56, 300, 50, 480
 
 
 def plot_navigation(result: dict, out: Path) -> Path:
     """Draw, per world, a stacked bar per depth source (successes, collisions, timeouts, from
     the bottom, each labelled with its count) with its mean flight time above it, as a PNG at
-    ``out`` with OpenCV (as :mod:`companion.plot`); parent folders are created. ValueError for
-    a name that does not end in .png."""
-    out = Path(out)
-    if out.suffix.lower() != ".png":
-        raise ValueError(f"{out}: the plot is a PNG; give a name ending in .png")
+    ``out`` with OpenCV (:mod:`companion.plot`'s helpers); parent folders are created.
+    ValueError for a name that does not end in .png."""
+    out = png_path(out)
     worlds = list(next(iter(result.values()), {}))
     top = max([n["trials"] for w in result.values() for n in w.values()] + [1])
     group = len(result) * (_BAR + 8) + _GROUP_GAP
     width = max(_LEFT + len(worlds) * group + 20, _MIN_WIDTH)
     canvas = np.full((_TOP + _PLOT_H + 60, width, 3), 255, np.uint8)
-    _text(canvas, "Navigation outcomes per world and depth source", (10, 22), 0.55)
+    text(canvas, "Navigation outcomes per world and depth source", (10, 22), 0.55)
     _plot_legend(canvas)
-    _text(canvas, "above each bar: the mean flight time of its successes", (_LEFT, 68))
+    text(canvas, "above each bar: the mean flight time of its successes", (_LEFT, 68))
     _y_axis(canvas, top)
     for w, world in enumerate(worlds):
         left = _LEFT + 20 + w * group
         for s, source in enumerate(result):
             _stacked_bar(canvas, left + s * (_BAR + 8), result[source][world], top, source)
-        _text(canvas, world, (left + (group - _GROUP_GAP) // 2 - 20, _TOP + _PLOT_H + 40), 0.5)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), canvas):
-        raise OSError(f"could not write the image to {out}")
-    return out
-
-
-def _text(canvas: np.ndarray, text: str, at: tuple[int, int], scale: float = 0.4) -> None:
-    cv2.putText(canvas, text, at, _FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
+        text(canvas, world, (left + (group - _GROUP_GAP) // 2 - 20, _TOP + _PLOT_H + 40), 0.5)
+    return write_image(canvas, out)
 
 
 def _plot_legend(canvas: np.ndarray) -> None:
     for k, name in enumerate(OUTCOMES):
         left = _LEFT + 130 * k
         cv2.rectangle(canvas, (left, 36), (left + 14, 48), _COLOURS[name], -1)
-        _text(canvas, name, (left + 20, 47), 0.45)
+        text(canvas, name, (left + 20, 47), 0.45)
 
 
 def _y_axis(canvas: np.ndarray, top: int) -> None:
@@ -425,8 +416,8 @@ def _y_axis(canvas: np.ndarray, top: int) -> None:
     for tick in range(0, top + 1, step):
         y = bottom - round(_PLOT_H * tick / top)
         cv2.line(canvas, (_LEFT - 5, y), (_LEFT, y), (0, 0, 0), 1)
-        _text(canvas, str(tick), (_LEFT - 30, y + 4))
-    _text(canvas, "trials", (8, _TOP - 16))
+        text(canvas, str(tick), (_LEFT - 30, y + 4))
+    text(canvas, "trials", (8, _TOP - 16))
 
 
 def _stacked_bar(canvas: np.ndarray, left: int, numbers: dict, top: int, source: str) -> None:
@@ -438,10 +429,9 @@ def _stacked_bar(canvas: np.ndarray, left: int, numbers: dict, top: int, source:
         if height:
             cv2.rectangle(canvas, (left, y - height), (left + _BAR, y), _COLOURS[name], -1)
             if height >= 14:
-                at = (left + _BAR // 2 - 6, y - height // 2 + 5)
-                cv2.putText(canvas, str(numbers[name]), at, _FONT, 0.45, (255, 255, 255), 1,
-                            cv2.LINE_AA)
+                text(canvas, str(numbers[name]), (left + _BAR // 2 - 6, y - height // 2 + 5),
+                     0.45, (255, 255, 255))
         y -= height
     mean = numbers["mean_time_s"]
-    _text(canvas, "n/a" if mean is None else f"{mean:.0f} s", (left + 6, y - 6))
-    _text(canvas, _SOURCE_NAMES[source], (left + 2, bottom + 18))
+    text(canvas, "n/a" if mean is None else f"{mean:.0f} s", (left + 6, y - 6))
+    text(canvas, _SOURCE_NAMES[source], (left + 2, bottom + 18))

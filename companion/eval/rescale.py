@@ -45,6 +45,7 @@ from autonomy.depth.stage import MetricDepthStage, check_relative_disparity
 from autonomy.messages import SparseMap
 from companion.eval.depth import DepthEvalOptions, RelativeDepthSource, tracked_frames
 from companion.eval.numbers import mean_or_none, show
+from companion.plot import nice_step, png_path, text, write_image
 from companion.eval.vio import EvaluationError, VioDataset, read_vio_dataset
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
@@ -413,40 +414,28 @@ def _paper_line() -> str:
 # Plot
 
 _GT_COLOUR, _VINS_COLOUR = (180, 119, 31), (14, 127, 255)  # BGR: blue, orange
-_FONT = cv2.FONT_HERSHEY_SIMPLEX
 _LABELS, _BAR, _GAP, _TOP, _WIDTH = 230, 14, 12, 60, 560
 
 
 def plot_absrel(result: dict, out: Path) -> Path:
     """Draw the weighted AbsRel of every method, a GT and a VINS bar each, as a PNG at ``out``
-    with OpenCV (as :mod:`companion.plot`); parent folders are created. ValueError for a name
-    that does not end in .png."""
-    out = Path(out)
-    if out.suffix.lower() != ".png":
-        raise ValueError(f"{out}: the plot is a PNG; give a name ending in .png")
+    with OpenCV (:mod:`companion.plot`'s helpers); parent folders are created. ValueError for
+    a name that does not end in .png."""
+    out = png_path(out)
     weighted = result["weighted"]
     values = [n[s]["absrel"] for n in weighted.values() for s in SOURCES]
     top = max([v for v in values if v is not None] + [1e-3])
-    step = _tick_step(top / 4)
+    step = nice_step(top / 4)
     top = math.ceil(top / step) * step
     height = _TOP + len(weighted) * (2 * _BAR + _GAP) + 40
     canvas = np.full((height, _LABELS + _WIDTH + 80, 3), 255, np.uint8)
-    cv2.putText(canvas, "AbsRel per method, weighted over " + ", ".join(result["worlds"]),
-                (10, 22), _FONT, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    text(canvas, "AbsRel per method, weighted over " + ", ".join(result["worlds"]), (10, 22),
+         0.55)
     _legend(canvas)
     for row, (method, numbers) in enumerate(weighted.items()):
         _bars(canvas, row, method, numbers, top)
     _axis(canvas, height - 40, top, step)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), canvas):
-        raise OSError(f"could not write the image to {out}")
-    return out
-
-
-def _tick_step(span: float) -> float:
-    """The largest of 1, 2, 5 times a power of ten not above ``span``."""
-    power = 10.0 ** math.floor(math.log10(span))
-    return max(m * power for m in (1, 2, 5) if m * power <= span)
+    return write_image(canvas, out)
 
 
 def _legend(canvas: np.ndarray) -> None:
@@ -454,20 +443,20 @@ def _legend(canvas: np.ndarray) -> None:
                                         ("VINS sparse depth", _VINS_COLOUR))):
         left = _LABELS + 200 * k
         cv2.rectangle(canvas, (left, 34), (left + 14, 46), colour, -1)
-        cv2.putText(canvas, name, (left + 20, 45), _FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        text(canvas, name, (left + 20, 45), 0.45)
 
 
 def _bars(canvas: np.ndarray, row: int, method: str, numbers: dict, top: float) -> None:
     """The method's name and its two bars, each labelled with its value ("no fit": none)."""
     y = _TOP + row * (2 * _BAR + _GAP)
-    cv2.putText(canvas, method, (10, y + _BAR + 4), _FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    text(canvas, method, (10, y + _BAR + 4), 0.45)
     for k, (source, colour) in enumerate(zip(SOURCES, (_GT_COLOUR, _VINS_COLOUR))):
         value, y0 = numbers[source]["absrel"], y + k * _BAR
         right = _LABELS + (0 if value is None else round(_WIDTH * value / top))
         if value is not None:
             cv2.rectangle(canvas, (_LABELS, y0), (right, y0 + _BAR - 2), colour, -1)
-        cv2.putText(canvas, show(value, ".3f") if value is not None else "no fit",
-                    (right + 4, y0 + _BAR - 3), _FONT, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+        text(canvas, show(value, ".3f") if value is not None else "no fit",
+             (right + 4, y0 + _BAR - 3), 0.38)
 
 
 def _axis(canvas: np.ndarray, y: int, top: float, step: float) -> None:
@@ -478,6 +467,5 @@ def _axis(canvas: np.ndarray, y: int, top: float, step: float) -> None:
     for tick in np.arange(0.0, top + step / 2, step):
         x = _LABELS + round(_WIDTH * tick / top)
         cv2.line(canvas, (x, y), (x, y + 5), black, 1)
-        cv2.putText(canvas, f"{tick:g}", (x - 10, y + 20), _FONT, 0.4, black, 1, cv2.LINE_AA)
-    cv2.putText(canvas, "AbsRel", (_LABELS + _WIDTH + 10, y + 5), _FONT, 0.45, black, 1,
-                cv2.LINE_AA)
+        text(canvas, f"{tick:g}", (x - 10, y + 20))
+    text(canvas, "AbsRel", (_LABELS + _WIDTH + 10, y + 5), 0.45)
