@@ -62,10 +62,12 @@ TRACKING_MAX_AGE_S = 0.2
 #: how far back along the approach (m), and the reason its plans carry.
 PARALLAX_WAIT_S = 0.3
 PARALLAX_GLIDE_M = 0.5
-#: Planning rounds' positions kept as the flown trail (5 s at 12 Hz): a glide back to one of
-#: them goes over ground just flown.
+#: Positions kept as the flown trail, one a planning period (5 s at 12 Hz), the take-off
+#: climb included: a glide back to one of them goes over ground just flown.
 TRAIL_LENGTH = 60
 PARALLAX_REASON = "gliding for parallax"
+#: From the take-off to Offboard: the vehicle climbs its take-off column and holds on top.
+CLIMBING_STATES = frozenset({FlightState.TAKING_OFF, FlightState.ENTERING_OFFBOARD})
 
 
 @dataclass
@@ -407,7 +409,16 @@ class FlightApp:
         while True:
             if self.mission.state == FlightState.NAVIGATING:
                 await self._plan_round()
+            elif self.mission.state in CLIMBING_STATES:
+                await self._record_climb()
             await self.clock.sleep(period)
+
+    async def _record_climb(self) -> None:
+        """Keep the take-off column in the trail: the first turn, toward the first waypoint,
+        has no flown leg behind it, and gliding down the column is the parallax move then."""
+        odometry = await self._refresh_odometry()
+        if odometry is not None:
+            self.corner.trail.append(odometry.T_W_B[:3, 3].copy())
 
     async def _plan_round(self) -> None:
         odometry = await self._refresh_odometry()
@@ -486,7 +497,8 @@ class FlightApp:
         checked. Then glide back to the newest point of the trail just flown half a metre off
         (the straight line to it stays within centimetres of ground the vehicle was on a
         moment ago) and return to the corner: the camera, facing the next leg, moves across
-        its view. True while doing so."""
+        its view. At the first turn, right after take-off, that point is down the take-off
+        column, and the camera moves across its view vertically. True while doing so."""
         moves = self.corner.parallax_moves
         if not moves:
             return False
@@ -502,8 +514,8 @@ class FlightApp:
         glide = self.planner.glide(odometry.t, odometry.T_W_B, target, PARALLAX_REASON)
         if glide is not None:
             self.plan = self.checked_stop = glide
-        log.info("no depth after turning at the corner; gliding %s along the approach",
-                 "back" if moves else "to the corner")
+        log.info("no depth after turning; gliding %s along the flown trail",
+                 "back" if moves else "to the turning point")
         return True
 
     async def _turn_at_corner(self) -> None:
@@ -519,7 +531,7 @@ class FlightApp:
         corner, position = self.corner, self.odometry.T_W_B[:3, 3]
         corner.pending = False
         back = next((p for p in reversed(corner.trail)
-                     if np.hypot(*(p - position)[:2]) >= PARALLAX_GLIDE_M), None)
+                     if np.linalg.norm(p - position) >= PARALLAX_GLIDE_M), None)
         if back is not None:
             corner.parallax_moves = [back.copy(), position.copy()]
         if abs(self._heading_error()) > math.radians(self.options.align_done_deg):

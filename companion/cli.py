@@ -234,6 +234,9 @@ def _add_sim_commands(commands: argparse._SubParsersAction,
     fly.add_argument("--goal", type=_point, metavar="X,Y,Z",
                      help="fly to this point (metres, world frame, z up) instead of the pair's "
                           "goal, from the pair's start")
+    fly.add_argument("--start-yaw", type=float, metavar="DEG",
+                     help="heading the vehicle stands at before take-off, degrees "
+                          "counter-clockwise from east (default: facing the first leg)")
     fly.add_argument("--clock", choices=CLOCK_MODES, default="lockstep",
                      help="lockstep: deterministic, as fast as the CPU allows; realtime: the "
                           "simulator in its own thread on the wall clock (default: %(default)s)")
@@ -566,7 +569,8 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
     sim = _sim_options(args, config)
     try:
         mission = simfly.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
-                                    goal=args.goal, clock=args.clock, depth=args.depth,
+                                    goal=args.goal, start_yaw_deg=args.start_yaw,
+                                    clock=args.clock, depth=args.depth,
                                     faults=tuple(Fault.parse(f) for f in args.faults))
         summary = simfly.run(config, mission, plot=None if args.no_plot else args.plot,
                              progress=None if args.json else _print_progress)

@@ -73,7 +73,8 @@ DEPTH_SOURCES = ("estimated", "truth")
 @dataclass(frozen=True)
 class SimMission:
     """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z);
-    ``depth`` one of :data:`DEPTH_SOURCES`."""
+    ``depth`` one of :data:`DEPTH_SOURCES`; ``start_yaw_deg`` the heading the vehicle stands at
+    on the ground (degrees counter-clockwise from east; default: facing the first leg)."""
 
     world: str = "dome"
     seed: int = 0
@@ -82,13 +83,14 @@ class SimMission:
     faults: tuple[Fault, ...] = ()
     clock: str = "lockstep"
     depth: str = "estimated"
+    start_yaw_deg: float | None = None
 
 
 def mission_waypoints(world: World, mission: SimMission, height: float
                       ) -> tuple[np.ndarray, np.ndarray, float]:
     """``(start, waypoints (N, 3), start_yaw)`` of the mission: the route's start, the corners
     of its collision-free path at ``height`` ending at its goal (or just ``mission.goal``), and
-    the heading of the first leg."""
+    the heading it stands at (the first leg's unless the mission gives one)."""
     if not 0 <= mission.pair < len(world.routes):
         raise SimFlyError(f"{world.name} has start/goal pairs 0..{len(world.routes) - 1}, "
                           f"not {mission.pair}")
@@ -107,7 +109,12 @@ def mission_waypoints(world: World, mission: SimMission, height: float
         waypoints = np.column_stack([corners[1:], np.full(len(corners) - 1, height)])
         waypoints[-1] = route.goal
     first = waypoints[0, :2] - start[:2]
-    return start, waypoints, math.atan2(first[1], first[0])
+    if mission.start_yaw_deg is None:
+        return start, waypoints, math.atan2(first[1], first[0])
+    if not math.isfinite(mission.start_yaw_deg):
+        raise SimFlyError(f"start yaw must be a finite number of degrees, "
+                          f"got {mission.start_yaw_deg}")
+    return start, waypoints, math.radians(mission.start_yaw_deg)
 
 
 def goal_distance(position, goal) -> float:
@@ -180,10 +187,12 @@ class TruthTrack:
     def score(self, world: World, goal: np.ndarray) -> dict:
         path = np.array(self.positions).reshape(-1, 3)
         if len(path) == 0:
-            return {"path_length_m": 0.0, "min_clearance_m": None, "closest_to_goal_m": None}
+            return {"start": None, "path_length_m": 0.0, "min_clearance_m": None,
+                    "closest_to_goal_m": None}
         airborne = path[path[:, 2] > 0.3]
         clearance = world.obstacle_clearance(airborne) if len(airborne) else np.array([np.inf])
         return {
+            "start": [round(float(v), 3) for v in path[0]],
             "path_length_m": float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
             "min_clearance_m": float(clearance.min()) if np.isfinite(clearance.min()) else None,
             "closest_to_goal_m": float(np.linalg.norm(path[:, :2] - goal[:2], axis=1).min()),
@@ -217,7 +226,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
                           "shares the stalled loop, so simulated time stalls with it")
     port = free_udp_port()
     side = (_LockstepSimulator if mission.clock == "lockstep" else _ThreadedSimulator)(
-        config, world, mission, port, start_yaw, faults, waypoints[-1], progress)
+        config, world, mission, port, (start, start_yaw), faults, waypoints[-1], progress)
     sim, camera, clock = await side.start()
     stall = asyncio.create_task(_stall_when_due(faults, sim))
     try:
@@ -255,9 +264,10 @@ async def _stall_when_due(faults: FaultSchedule, sim) -> None:
 class _Simulator:
     """The simulator side of a flight: what it serves, and the true path it tracks."""
 
-    def __init__(self, config, world, mission, port, start_yaw, faults, goal, progress):
+    def __init__(self, config, world, mission, port, start, faults, goal, progress):
+        # start_pose: (position, yaw) the vehicle stands at on the ground, the mission's
         self.config, self.world, self.mission, self.port = config, world, mission, port
-        self.start_yaw, self.faults, self.goal, self.progress = start_yaw, faults, goal, progress
+        self.start_pose, self.faults, self.goal, self.progress = start, faults, goal, progress
         self.track = TruthTrack()
 
     def _serve(self, clock_mode: str, stop, on_ready, sim_clock=None):
@@ -265,7 +275,7 @@ class _Simulator:
         return serve(f"udpin://127.0.0.1:{self.port}", self.world, seed=self.mission.seed,
                      clock_mode=clock_mode, vehicle_options=c.vehicle, imu_options=c.imu,
                      px4_options=c.px4, stop=stop, sim_clock=sim_clock, on_ready=on_ready,
-                     start_yaw=self.start_yaw, faults=self.faults)
+                     start=self.start_pose[0], start_yaw=self.start_pose[1], faults=self.faults)
 
 
 class _LockstepSimulator(_Simulator):

@@ -72,8 +72,10 @@ def test_every_trial_is_recorded_with_its_seed_and_counted_once(short_run):
         ("gt", WORLD, PAIR, 0, nav.trial_seed(0, 0)),
         ("estimated", WORLD, PAIR, 0, nav.trial_seed(0, 0))]
     assert nav.summarise(records) == result
+    start = build_world(WORLD, 0).routes[PAIR].start
     for record in records:
         assert record["outcome"] == nav.outcome(record)
+        assert record["start"] == pytest.approx(list(start), abs=0.01)  # the pair's own start
         assert record["path_length_m"] > 5.0  # it flew across the room
 
 

@@ -101,15 +101,25 @@ def test_a_dead_end_is_a_no_safe_primitive_failsafe():
 
 # ---------------------------------------------------------------- the command
 
-def test_sim_fly_json_prints_the_summary_and_exits_by_the_outcome(capsys, tmp_path):
+def test_sim_fly_standing_facing_away_turns_glides_for_parallax_and_flies_on(capsys, tmp_path):
+    """``sim fly --json`` from the sewer's pair 4 start, standing facing away from a goal 8 m
+    up the room. After take-off the vehicle turns in place; a monocular VINS has no landmark
+    in the new view until the camera moves across it, so the application glides down its
+    take-off column and back for parallax, then flies on estimated depth (without that glide
+    the no-metric-depth failsafe stopped it)."""
+    start = build_world("sewer", 0).routes[4].start  # not the world's first start
     plot = tmp_path / "flight.png"
-    status = cli.main(["sim", "fly", "--world", "dome", "--fault", "camera_freeze@0.5",
-                       "--depth", "truth", "--json", "--plot", str(plot)])
+    status = cli.main(["sim", "fly", "--world", "sewer", "--pair", "4", "--json", "--plot",
+                       str(plot), "--goal", f"{start[0]},{start[1] + 8.0},1.5",
+                       "--start-yaw", "-90"])  # the goal is north, the vehicle faces south
     summary = json.loads(capsys.readouterr().out)
     assert SUMMARY_KEYS <= set(summary)
-    assert summary["depth"] == "truth"
-    assert summary["failsafes"][0] == "camera silent"
-    assert status == 0  # a faulted flight that landed safely is a success
+    assert summary["start"] == pytest.approx(list(start), abs=0.01)
+    assert_safe_landing(summary)
+    assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
+    states = [t["to"] for t in summary["transitions"]]
+    assert states[states.index("navigating"):][:3] == ["navigating", "aligning", "navigating"]
+    assert status == 0
     assert plot.stat().st_size > 1000
 
 
@@ -117,6 +127,7 @@ def test_sim_fly_json_prints_the_summary_and_exits_by_the_outcome(capsys, tmp_pa
     (["--pair", "99"], "pairs 0..5"),
     (["--fault", "gremlins"], "unknown fault"),
     (["--fault", "loop_stall"], "needs --clock realtime"),
+    (["--start-yaw", "nan"], "start yaw must be a finite number of degrees, got nan"),
 ])
 def test_sim_fly_refuses_a_bad_mission_clearly(capsys, argv, words):
     assert cli.main(["sim", "fly", "--no-plot", *argv]) == 1

@@ -167,7 +167,7 @@ def fly_trial(config, trial: Trial) -> dict:
 def trial_record(trial: Trial, summary: dict, *, wall_s: float | None = None) -> dict:
     """The plain-number record of a flown trial: what it was, its :func:`outcome`, whether it
     :func:`ended_early`, and the summary's numbers (``wall_s``: the flight's wall time)."""
-    keys = ("reached_goal", "collisions", "failsafes", "final_state", "flight_time_s",
+    keys = ("start", "reached_goal", "collisions", "failsafes", "final_state", "flight_time_s",
             "navigation_time_s", "path_length_m", "min_clearance_m", "closest_to_goal_m",
             "vins_resets")
     record = {**dataclasses.asdict(trial), "outcome": outcome(summary),

@@ -57,19 +57,21 @@ class SimulatedVehicle:
     """The vehicle, its IMU and the mock PX4 on one link, stepped together.
 
     ``faults`` injects the link and flight-controller faults of :mod:`drivers.sim.faults`
-    (link cut, IMU gap); ``start_yaw`` is the heading the vehicle stands at, radians.
+    (link cut, IMU gap). The vehicle stands at ``start`` (x, y, z in the world frame; default
+    :func:`start_position`) heading ``start_yaw``, radians.
     """
 
     def __init__(self, link, world, *, seed: int = 0,
                  vehicle_options: VehicleOptions | None = None,
                  imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
-                 start_yaw: float = 0.0, faults: FaultSchedule | None = None):
+                 start=None, start_yaw: float = 0.0, faults: FaultSchedule | None = None):
         self.imu_options = imu_options or ImuOptions()
         self.dt = 1.0 / self.imu_options.rate_hz
         clearance = getattr(world, "obstacle_clearance", None) if world is not None else None
         imu_seed, estimator_seed = np.random.SeedSequence(seed).spawn(2)
         self.vehicle = Quadrotor(vehicle_options or VehicleOptions(), clearance,
-                                 position=start_position(world), yaw=start_yaw)
+                                 position=start_position(world) if start is None else start,
+                                 yaw=start_yaw)
         self.imu = ImuModel(self.imu_options, np.random.default_rng(imu_seed))
         self.link = CuttableLink(link)
         self.faults = faults or FaultSchedule()
@@ -106,7 +108,7 @@ async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realt
                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
                 duration: float | None = None, stop: StopSignal | None = None,
                 sim_clock: SimClock | None = None, stop_on_collision: bool = False,
-                on_ready=None, start_yaw: float = 0.0,
+                on_ready=None, start=None, start_yaw: float = 0.0,
                 faults: FaultSchedule | None = None) -> ServeSummary:
     """Serve the vehicle on ``url`` until ``duration`` simulated seconds, ``stop`` is set, or
     (with ``stop_on_collision``) a collision; returns a :class:`ServeSummary`.
@@ -114,7 +116,7 @@ async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realt
     ``world`` is a ``drivers.sim.world.World`` (anything with ``obstacle_clearance`` and
     ``routes``) or None for open space. ``sim_clock`` is advanced in lockstep mode (one is made
     if not given). ``on_ready(sim)`` is called with the :class:`SimulatedVehicle` once the link
-    is open (e.g. to print the pty path). ``start_yaw`` and ``faults`` go to the
+    is open (e.g. to print the pty path). ``start``, ``start_yaw`` and ``faults`` go to the
     :class:`SimulatedVehicle`.
     """
     if clock_mode not in CLOCK_MODES:
@@ -126,7 +128,7 @@ async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realt
     try:
         sim = SimulatedVehicle(link, world, seed=seed, vehicle_options=vehicle_options,
                                imu_options=imu_options, px4_options=px4_options,
-                               start_yaw=start_yaw, faults=faults)
+                               start=start, start_yaw=start_yaw, faults=faults)
         if link.pty_path is not None:
             log.info("serving MAVLink on pseudo-terminal %s", link.pty_path)
         if on_ready is not None:
