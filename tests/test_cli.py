@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import subprocess
 import sys
@@ -11,6 +13,7 @@ from pathlib import Path
 import pytest
 
 import companion
+from companion.cli import main
 from companion.config import Config
 
 if sys.version_info >= (3, 11):
@@ -22,12 +25,20 @@ SIM_TOML = Path(__file__).resolve().parent.parent / "config" / "sim.toml"
 
 
 def companion_command(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "companion", *map(str, args)],
-                          capture_output=True, text=True, timeout=60)
+    """``companion ARGS`` through the console script's own :func:`companion.cli.main`, in this
+    process (a new interpreter costs seconds of imports a test): exit status and output."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = main([str(arg) for arg in args])
+    return subprocess.CompletedProcess(args, status, out.getvalue(), err.getvalue())
 
 
-def test_version():
-    run = companion_command("--version")
+@pytest.mark.parametrize("command", [[str(Path(sys.executable).parent / "companion")],
+                                     [sys.executable, "-m", "companion"]],
+                         ids=["console script", "python -m"])
+def test_the_installed_commands_reach_the_same_main(command):
+    """The console script (what systemd and the README run) and ``python -m companion``."""
+    run = subprocess.run([*command, "--version"], capture_output=True, text=True, timeout=60)
     assert (run.returncode, run.stdout) == (0, f"companion {companion.__version__}\n")
     assert companion.__version__ == "0.1.0"
 
