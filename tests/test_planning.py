@@ -159,6 +159,28 @@ def test_low_confidence_counts_as_unknown_when_near_and_as_far_beyond_range():
     assert not unsure.check([[2.0, 0.0, ALTITUDE]]).free.any()
 
 
+def test_low_confidence_nearer_than_a_confident_depth_counts_as_that_depth():
+    """Confidence follows the relative disparity and the curve is monotone, so a
+    low-confidence patch (a floor without landmarks) is at least as far as the confident
+    surface just nearer than it; nearer than every confident surface it stays unknown. A
+    sphere holding the camera (near the vehicle, at the start) needs every pixel known."""
+    T_W_C, start = camera_pose(body()), np.array([0.0, 0.0, ALTITUDE])
+    near = [[0.5, 0.0, ALTITUDE]]
+    depth = np.full((CAMERA.height, CAMERA.width), 6.0, np.float32)  # a wall, confident
+    confidence = np.ones_like(depth)
+    depth[60:110, 40:120], confidence[60:110, 40:120] = 4.0, 0.1  # the floor, unsure
+    alone = DepthHistory()
+    alone.add(depth, confidence, T_W_C, CAMERA, 0.0)
+    assert not alone.check(near, start_W=start).free.any()  # nothing nearer bounds it
+    depth[0:20, 0:20] = 3.0  # a confident surface nearer than the floor
+    bounded = DepthHistory()
+    bounded.add(depth, confidence, T_W_C, CAMERA, 0.0)
+    result = bounded.check(near, start_W=start)
+    assert result.free.all()
+    # the floor counts as (a little less than) 3 m, not its own 4 m: L + R = 1.5 m
+    assert 3.0 * 0.98 - 1.5 <= result.clearance[0] <= 3.0 - 1.5
+
+
 def test_an_older_frame_decides_where_the_newest_cannot_tell():
     T_W_C = camera_pose(body())
     depth = render(T_W_C, ROOM)

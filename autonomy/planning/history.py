@@ -593,27 +593,58 @@ def ray_norms(camera: PinholeCamera) -> np.ndarray:
 def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
                  max_range: float, norms: np.ndarray) -> np.ndarray:
     """float32 range along each pixel's ray of the depth clipped to ``max_range``, -1 where
-    unknown (NaN, <= 0, or low confidence and nearer than the confident pixels).
+    unknown (NaN, <= 0, or low confidence and nearer than every confident pixel).
 
     A low-confidence pixel at or beyond ``max_range`` (the sky, a far wall no landmark lies
     on) counts as ``max_range``: the rescaling curve is monotone, so a pixel less disparate
     than the anchors reads farther than they do, and its error lies beyond the range the check
-    trusts. One nearer than ``max_range`` but beyond every confident pixel (the middle of a
-    long hallway whose walls carry landmarks only near by) counts as the farthest confident
-    depth ``d*``, a lower bound: confidence follows the relative disparity, and the curve is
-    monotone, so a pixel less disparate than every confident one is farther than all of them,
-    whatever its own error. A low-confidence pixel nearer than ``d*`` stays unknown, as its
-    depth could be anything between its confident neighbours in disparity."""
+    trusts. One nearer than ``max_range`` counts as the farthest confident depth not beyond
+    its own (:func:`_confident_floor`), a lower bound: confidence follows the relative
+    disparity, and the curve is monotone, so a pixel less disparate than a confident one is
+    farther than it, whatever its own error. That is the farthest confident depth ``d*`` in
+    the middle of a long hallway whose walls carry landmarks only near by, and the confident
+    surface just nearer on a floor whose disparities fall between the landmarks'. A
+    low-confidence pixel nearer than every confident one stays unknown: nothing bounds it
+    from below."""
     d = depth.astype(np.float32, copy=False)
     with np.errstate(invalid="ignore"):
         valid = d > 0.0  # NaN: False
         confident = valid & (confidence >= min_confidence)
-        farthest = float(d[confident].max()) if confident.any() else math.inf
         far = valid & ~confident & (d >= max_range)
-        bounded = valid & ~confident & ~far & (d >= farthest)
-    d = np.where(bounded, np.float32(farthest), d)
-    return np.where(confident | far | bounded, np.minimum(d, np.float32(max_range)) * norms,
-                    _UNKNOWN)
+        unsure = valid & ~confident & ~far
+    floor = _confident_floor(d, confident & (d < max_range), unsure, max_range)
+    d = np.where(unsure, floor, d)
+    known = confident | far | (unsure & (floor > 0.0))
+    return np.where(known, np.minimum(d, np.float32(max_range)) * norms, _UNKNOWN)
+
+
+#: Log-spaced depth bins over (``max_range`` / 1000, ``max_range``) in which
+#: :func:`_confident_floor` looks up the confident depths: 0.7 % wide.
+FLOOR_BINS = 1024
+
+
+def _confident_floor(depth: np.ndarray, confident: np.ndarray, unsure: np.ndarray,
+                     max_range: float) -> np.ndarray:
+    """float32 image, at each ``unsure`` pixel the greatest depth ``e`` with a ``confident``
+    pixel at a depth in ``[e, own depth)``, 0 where there is none (and off ``unsure``): the
+    lower edge of the farthest of the :data:`FLOOR_BINS` bins below the pixel's own that holds
+    a confident depth. Up to two bins (1.4 %) below the exact farthest confident depth not
+    beyond the pixel's, so still a lower bound, at one histogram's cost."""
+    floor = np.zeros(depth.shape, np.float32)
+    if not unsure.any():
+        return floor
+    low = max_range / 1000.0
+    step = math.log(1000.0) / FLOOR_BINS
+    bins = np.log(np.maximum(depth, np.float32(low)) * np.float32(1.0 / low)) \
+        * np.float32(1.0 / step)  # NaN where the depth is
+    bins = np.minimum(np.nan_to_num(bins), FLOOR_BINS - 1).astype(np.intp)
+    held = np.bincount(bins[confident], minlength=FLOOR_BINS) > 0
+    edges = (low * np.exp(step * np.arange(FLOOR_BINS))).astype(np.float32)
+    edges[0] = 0.0  # the first bin also holds every depth below ``low``
+    # the floor of bin b: the lower edge of the farthest held bin below b
+    below = np.concatenate([[0.0], np.maximum.accumulate(np.where(held, edges, 0.0))[:-1]])
+    floor[unsure] = below.astype(np.float32)[bins[unsure]]
+    return floor
 
 
 def fill_small_holes(image: np.ndarray, reach_px: int) -> np.ndarray:
