@@ -264,10 +264,11 @@ async def _stall_when_due(faults: FaultSchedule, sim) -> None:
 class _Simulator:
     """The simulator side of a flight: what it serves, and the true path it tracks."""
 
-    def __init__(self, config, world, mission, port, start, faults, goal, progress):
+    def __init__(self, config, world, mission, port, start_pose, faults, goal, progress):
         # start_pose: (position, yaw) the vehicle stands at on the ground, the mission's
         self.config, self.world, self.mission, self.port = config, world, mission, port
-        self.start_pose, self.faults, self.goal, self.progress = start, faults, goal, progress
+        self.start_pose, self.faults, self.goal = start_pose, faults, goal
+        self.progress = progress
         self.track = TruthTrack()
 
     def _serve(self, clock_mode: str, stop, on_ready, sim_clock=None):
