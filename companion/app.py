@@ -62,21 +62,62 @@ TRACKING_MAX_AGE_S = 0.2
 #: how far back along the approach (m), and the reason its plans carry.
 PARALLAX_WAIT_S = 0.3
 PARALLAX_GLIDE_M = 0.5
-#: Positions kept as the flown trail, one a planning period (5 s at 12 Hz), the take-off
-#: climb included: a glide back to one of them goes over ground just flown.
+#: The flown trail, the take-off climb included: a position every TRAIL_SPACING_M of flight,
+#: TRAIL_LENGTH of them (6 m, more than [flight] backoff_distance may be); a glide back to one
+#: of them goes over ground just flown.
+TRAIL_SPACING_M = 0.1
 TRAIL_LENGTH = 60
 PARALLAX_REASON = "gliding for parallax"
+BACKOFF_REASON = "backing off along the trail"
 #: From the take-off to Offboard: the vehicle climbs its take-off column and holds on top.
 CLIMBING_STATES = frozenset({FlightState.TAKING_OFF, FlightState.ENTERING_OFFBOARD})
 
 
 @dataclass
 class CornerState:
-    """What the application keeps about the route's stop waypoints (corners, the goal)."""
+    """What the application keeps about the route's stop waypoints (corners, the goal), and
+    about the way back from a dead end."""
 
     pending: bool = False  # one was just passed: stop and turn before going on
     trail: deque = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))  # flown, W
+    climbing: deque = field(default_factory=lambda: deque(maxlen=TRAIL_LENGTH))  # take-off?
     parallax_moves: list = field(default_factory=list)  # glides back and forth, after turning
+    backoff_moves: list = field(default_factory=list)  # glides back along the trail, blocked
+    backoffs: int = 0  # backings-off toward the present waypoint
+
+    def record(self, position_W: np.ndarray, climbing: bool = False) -> None:
+        """Add a flown position to the trail (``climbing``: on the take-off climb), loops
+        erased: a position back within TRAIL_SPACING_M of an older one (a glide back and
+        forth) cuts the trail there, so the trail is the way back without detours."""
+        trail = self.trail
+        for k in range(len(trail) - 1, -1, -1):
+            if np.linalg.norm(position_W - trail[k]) < TRAIL_SPACING_M:
+                while len(trail) > k + 1:
+                    trail.pop()
+                    self.climbing.pop()
+                return
+        trail.append(position_W.copy())
+        self.climbing.append(climbing)
+
+    def way_back(self, position_W: np.ndarray, distance: float) -> list[np.ndarray]:
+        """Points of the trail back from ``position_W`` about every PARALLAX_GLIDE_M of it,
+        ending where it has run ``distance`` back, or at its oldest point above the take-off
+        column (backing off never descends it): the straight glides between them stay within
+        centimetres of the trail."""
+        points, run, previous, since_point = [], 0.0, position_W, 0.0
+        for point, climbing in zip(reversed(self.trail), reversed(self.climbing)):
+            if climbing:
+                break
+            step = float(np.linalg.norm(point - previous))
+            run, since_point, previous = run + step, since_point + step, point
+            if since_point >= PARALLAX_GLIDE_M or run >= distance:
+                points.append(point.copy())
+                since_point = 0.0
+            if run >= distance:
+                break
+        if points and run < distance and since_point > 0.0:
+            points.append(previous.copy())  # the trail ran out: its oldest point
+        return points
 
 
 @dataclass
@@ -89,6 +130,7 @@ class FlightStats:
     network_errors: int = 0
     planning_rounds: int = 0
     stop_rounds: int = 0
+    backoffs: int = 0
     loop_lag_s: list = field(default_factory=list)
     navigation_start: float | None = None
     navigation_end: float | None = None
@@ -418,18 +460,20 @@ class FlightApp:
         has no flown leg behind it, and gliding down the column is the parallax move then."""
         odometry = await self._refresh_odometry()
         if odometry is not None:
-            self.corner.trail.append(odometry.T_W_B[:3, 3].copy())
+            self.corner.record(odometry.T_W_B[:3, 3], climbing=True)
 
     async def _plan_round(self) -> None:
         odometry = await self._refresh_odometry()
         if odometry is None or self.T_L_W is None:
             return
         now = self.clock.now()
-        self.corner.trail.append(odometry.T_W_B[:3, 3].copy())
+        self.corner.record(odometry.T_W_B[:3, 3])
         self._advance_waypoints(odometry.T_W_B[:3, 3])
         if self.mission.state != FlightState.NAVIGATING:
             return
         goal_W = self._to_W(self.waypoints_L[self.waypoint])
+        if self._backing_off(odometry, now):
+            return
         if self.corner.pending or (abs(self._heading_error()) > math.radians(
                 self.options.align_threshold_deg) and not self._gliding()):
             await self._turn_at_corner()
@@ -449,17 +493,60 @@ class FlightApp:
             return
         self.stats.stop_rounds += 1
         self.no_path_since = self.no_path_since if self.no_path_since is not None else now
-        if not self.turned_for_path and self._stopped() and abs(
-                self._heading_error()) > math.radians(self.options.align_done_deg):
+        if not self._stopped():
+            return
+        if not self.turned_for_path and abs(self._heading_error()) > math.radians(
+                self.options.align_done_deg):
             # blocked, at rest and not facing the waypoint: one turn in place for a new view
             # (the arcs only turn while moving on), then the no-path clock starts again
             self.turned_for_path, self.no_path_since = True, None
             self._go(FlightState.ALIGNING, "no safe primitive; turning to face the waypoint")
+        elif now - self.no_path_since >= self.options.no_path_timeout_s / 2.0:
+            self._back_off()
 
     def _gliding(self) -> bool:
         """Is the vehicle on a checked glide to a stop waypoint? Its heading does not matter
         then (near the point, the bearing to it swings wildly)."""
         return self.plan is not None and self.plan.reason == "approach"
+
+    def _on_glide(self, reason: str, now: float) -> bool:
+        """Is the plan a glide for ``reason`` that has not ended yet?"""
+        plan = self.plan
+        return plan is not None and plan.reason == reason and now < plan.end_time
+
+    def _back_off(self) -> None:
+        """Blocked at rest and facing the waypoint (or turned toward it already): a dead end
+        for forward arcs, such as a wall beside a door the arcs drifted past. Glide back
+        ``backoff_distance`` along the flown trail, heading held, and plan again from there:
+        the camera sees the place from farther back, where the arcs have room to line up
+        with the opening. At most ``max_backoffs`` times a waypoint; then the no-path clock
+        runs on to the failsafe."""
+        o, corner = self.options, self.corner
+        if corner.backoffs >= o.max_backoffs:
+            return
+        moves = corner.way_back(self.odometry.T_W_B[:3, 3], o.backoff_distance)
+        if not moves:
+            return
+        corner.backoffs += 1
+        self.stats.backoffs += 1
+        corner.backoff_moves = moves
+        self.no_path_since, self.turned_for_path = None, False
+        log.warning("no safe primitive; backing off %.1f m along the flown trail (%d of %d)",
+                    o.backoff_distance, corner.backoffs, o.max_backoffs)
+
+    def _backing_off(self, odometry: Odometry, now: float) -> bool:
+        """Fly the glides of :meth:`_back_off`, one trail point after the other: unchecked,
+        as the ground is the vehicle's own trail (behind the camera, no frame sees it).
+        True while doing so."""
+        if self._on_glide(BACKOFF_REASON, now):
+            return True
+        moves = self.corner.backoff_moves
+        if not moves:
+            return False
+        glide = self.planner.glide(odometry.t, odometry.T_W_B, moves.pop(0), BACKOFF_REASON)
+        if glide is not None:
+            self.plan = self.checked_stop = glide
+        return True
 
     async def _approach(self, odometry: Odometry, goal_W: np.ndarray) -> bool:
         """Near a stop waypoint (a corner, the goal) and slow: glide straight to it when the
@@ -506,9 +593,7 @@ class FlightApp:
         if not started and self._age(self.last_fit_t, now) <= PARALLAX_WAIT_S:
             moves.clear()  # anchors came back by themselves (a held fit does not count)
             return False
-        plan = self.plan
-        if started and plan is not None and plan.reason == PARALLAX_REASON \
-                and now < plan.end_time:
+        if started and self._on_glide(PARALLAX_REASON, now):
             return True
         target = moves.pop(0)
         glide = self.planner.glide(odometry.t, odometry.T_W_B, target, PARALLAX_REASON)
@@ -563,6 +648,7 @@ class FlightApp:
             if last or distance > tolerance:
                 return
             self.corner.pending = self.stop_at[self.waypoint]
+            self.corner.backoffs = 0
             self.waypoint += 1
             log.info("waypoint %d of %d", self.waypoint + 1, len(self.waypoints_L))
 
@@ -718,19 +804,21 @@ class FlightApp:
             (self._age(self.last_frame_t, now) > o.camera_timeout_s, "camera silent"),
             (self._age(self.autopilot.last_imu_t, now) > o.imu_timeout_s, "IMU silent"),
             (self._vins_problem() != "", self._vins_problem()),
-            (self._age(self.last_depth_t, now) > o.depth_timeout_s and not self._turning(),
+            (self._age(self.last_depth_t, now) > o.depth_timeout_s and not self._on_flown_ground(),
              f"no metric depth ({self.last_depth_reason or 'none yet'})"),
             (self.no_path_since is not None and now - self.no_path_since > o.no_path_timeout_s,
              "no safe primitive"),
         )
         return next((reason for failed, reason in checks if failed), "")
 
-    def _turning(self) -> bool:
-        """Turning in place at a corner, or gliding for parallax after it: the vehicle stays
-        on ground it has flown, and new depth is what these moves are for."""
-        return self.mission.state == FlightState.ALIGNING or bool(self.corner.parallax_moves) or (
-            self.plan is not None and self.plan.reason == PARALLAX_REASON
-            and self.clock.now() < self.plan.end_time)
+    def _on_flown_ground(self) -> bool:
+        """Turning in place at a corner, gliding for parallax after it, or backing off along
+        the trail: the vehicle stays on ground it has flown, so depth may lapse (new depth is
+        what the first two are for)."""
+        now, corner = self.clock.now(), self.corner
+        return self.mission.state == FlightState.ALIGNING or bool(
+            corner.parallax_moves or corner.backoff_moves) or self._on_glide(
+            PARALLAX_REASON, now) or self._on_glide(BACKOFF_REASON, now)
 
     def _vins_problem(self) -> str:
         update = self.last_update
@@ -800,6 +888,7 @@ class FlightApp:
             "depth_failures": dict(s.depth_reasons),
             "planning_rounds": s.planning_rounds,
             "stop_rounds": s.stop_rounds,
+            "backoffs": s.backoffs,
             "vins_resets": self.vins.resets,
             "watchdog_setpoints": self.watchdog.fired,
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
@@ -815,7 +904,8 @@ def format_flight(summary: dict) -> str:
         f"  flight time       {show(summary.get('flight_time_s'), '.1f', ' s')}",
         f"  depth rate        {show(summary.get('depth_rate_hz'), '.1f', ' Hz')}",
         f"  loop lag p99      {show(summary.get('loop_lag_ms_p99'), '.1f', ' ms')}",
-        f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops)",
+        f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops, "
+        f"{summary['backoffs']} backings-off)",
         f"  VINS resets       {summary['vins_resets']}",
     ])
 

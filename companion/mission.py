@@ -59,6 +59,12 @@ class FlightOptions:
         4.0, ge=0.0, le=20.0,
         doc="within this distance of a corner or the goal the vehicle glides straight to it "
             "at the slowest tier's speed when that is safe, metres (0: never)")
+    backoff_distance: float = option(
+        2.0, ge=0.0, le=5.0,
+        doc="blocked at rest facing the next waypoint: glide back this far along the flown "
+            "trail and try again from there, metres (0: never)")
+    max_backoffs: int = option(2, ge=0, le=10,
+                               doc="backings-off per waypoint before the no-path failsafe")
     align_threshold_deg: float = option(
         60.0, gt=0.0, le=180.0,
         doc="heading error to the next waypoint that makes the vehicle turn in place first, "

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import make_pose, rot_z, yaw_alignment
+from companion.app import CornerState
 from companion.mission import FlightState, Mission, stop_waypoints
 from companion.simfly import free_udp_port, truth_metric_source
 from companion.watchdog import SetpointWatchdog
@@ -85,6 +86,49 @@ def test_the_vehicle_stops_at_the_goal_and_at_sharp_corners_only():
                       [20.0, 12.0, 1.5], [10.0, 12.0, 2.5]])  # then 79 and 90 deg: stop
     assert stop_waypoints(route, math.radians(30.0)) == [False, False, True, True, True]
     assert stop_waypoints(route[:1], math.radians(30.0)) == [True]
+
+
+# ---------------------------------------------------------------- the flown trail
+
+def fly_trail(corner: CornerState, points, climbing=False) -> None:
+    for point in points:
+        corner.record(np.asarray(point, dtype=float), climbing)
+
+
+def test_the_way_back_follows_the_flown_trail_and_never_descends_the_take_off_column():
+    corner = CornerState()
+    # steps of 0.125 m (exact in binary), a little over the trail's spacing
+    fly_trail(corner, [(0.0, 0.0, z) for z in np.linspace(0.0, 1.5, 13)], climbing=True)
+    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(0.0, 3.0, 25)[1:]])
+    fly_trail(corner, [(3.0, y, 1.5) for y in np.linspace(0.0, 2.0, 17)[1:]])
+    here = np.array([3.0, 2.0, 1.5])
+    back = corner.way_back(here, 3.0)
+    # every 0.5 m of the trail back: up the north leg, round the corner, down the east leg
+    assert np.allclose(back, [(3.0, 1.5, 1.5), (3.0, 1.0, 1.5), (3.0, 0.5, 1.5),
+                              (3.0, 0.0, 1.5), (2.5, 0.0, 1.5), (2.0, 0.0, 1.5)], atol=1e-9)
+    # farther than the trail above the column: its first point up there, never down the column
+    back = corner.way_back(here, 20.0)
+    assert np.allclose(back[-1], (0.125, 0.0, 1.5)) and min(p[2] for p in back) == 1.5
+
+
+def test_a_glide_back_and_forth_is_erased_from_the_trail():
+    corner = CornerState()
+    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(0.0, 2.0, 17)])
+    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(2.0, 1.5, 5)])  # back for parallax
+    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(1.5, 2.0, 5)])  # and forth again
+    fly_trail(corner, [(2.0, 0.005, 1.5)] * 50)  # hovering adds nothing
+    assert len(corner.trail) == 17 and len(corner.climbing) == 17
+    assert np.allclose(corner.trail[-1], (2.0, 0.0, 1.5))
+    assert np.allclose(corner.way_back(np.array([2.0, 0.0, 1.5]), 1.0),
+                       [(1.5, 0.0, 1.5), (1.0, 0.0, 1.5)])
+
+
+def test_no_way_back_shorter_than_one_glide():
+    corner = CornerState()
+    fly_trail(corner, [(0.0, 0.0, z) for z in np.linspace(0.0, 1.5, 13)], climbing=True)
+    assert corner.way_back(np.array([0.0, 0.0, 1.5]), 2.0) == []
+    fly_trail(corner, [(0.125, 0.0, 1.5), (0.25, 0.0, 1.5), (0.375, 0.0, 1.5)])
+    assert corner.way_back(np.array([0.375, 0.0, 1.5]), 2.0) == []
 
 
 def test_truth_depth_is_fully_confident_and_its_empty_sky_is_far():

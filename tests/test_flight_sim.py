@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from companion import cli, simfly
-from companion.config import Config
+from companion.config import Config, load_config
 from drivers.sim.faults import Fault
 from drivers.sim.world import build_world
 
@@ -97,6 +97,22 @@ def test_a_dead_end_is_a_no_safe_primitive_failsafe():
     assert_safe_landing(summary)
     assert summary["failsafes"] == ["no safe primitive"]
     assert summary["path_length_m"] < 5.0  # it never went anywhere
+
+
+def test_blocked_beside_a_door_it_backs_off_along_its_trail_and_goes_through():
+    """The sewer's pair 2 on true depth: the arcs cut the route's shallow corner at the
+    hallway's east entrance and bring the vehicle against the room's wall beside the opening,
+    where no arc clears the door's edge even after turning to face the hallway. It backs off
+    2 m along its trail and from there flies into the 3 m hallway (without backing off, the
+    no-safe-primitive failsafe ends the flight at the door, 57 m from the goal). A 32 s
+    mission timeout cuts the flight short: the door is what is tested, not the 110 s to the
+    goal."""
+    config = load_config(None, ["flight.mission_timeout_s=32"])
+    summary = simfly.run(config, simfly.SimMission(world="sewer", pair=2, depth="truth"))
+    assert_safe_landing(summary)
+    assert summary["backoffs"] == 1
+    assert summary["failsafes"] == ["mission timeout"], summary["failsafes"]
+    assert summary["closest_to_goal_m"] < 50.0  # 8 m and more into the 40 m hallway
 
 
 # ---------------------------------------------------------------- the command
