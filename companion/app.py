@@ -893,7 +893,16 @@ class FlightApp:
             "watchdog_setpoints": self.watchdog.fired,
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
             "waypoints_passed": self.waypoint,
+            "position_L": self._position_L(),
         }
+
+    def _position_L(self) -> list[float] | None:
+        """The VINS estimate of the vehicle's position in PX4's local frame, metres (None
+        before the frames are tied)."""
+        if self.odometry is None or self.T_L_W is None:
+            return None
+        position = self.T_L_W[:3, :3] @ self.odometry.T_W_B[:3, 3] + self.T_L_W[:3, 3]
+        return [round(float(v), 3) for v in position]
 
 
 def format_flight(summary: dict) -> str:

@@ -184,11 +184,14 @@ class TruthTrack:
                 f"{goal_distance(position, goal):6.1f} m to goal  {speed:4.1f} m/s  "
                 f"height {position[2]:4.1f} m")
 
-    def score(self, world: World, goal: np.ndarray) -> dict:
+    def score(self, world: World, goal: np.ndarray, estimated_end=None) -> dict:
+        """The flight in truth: its start, length, least clearance, closest approach to
+        ``goal`` and, given the application's ``estimated_end`` position (local frame = world
+        frame here), how far that lies from where the vehicle truly ended: the VINS drift."""
         path = np.array(self.positions).reshape(-1, 3)
         if len(path) == 0:
             return {"start": None, "path_length_m": 0.0, "min_clearance_m": None,
-                    "closest_to_goal_m": None}
+                    "closest_to_goal_m": None, "position_error_m": None}
         airborne = path[path[:, 2] > 0.3]
         clearance = world.obstacle_clearance(airborne) if len(airborne) else np.array([np.inf])
         return {
@@ -196,6 +199,8 @@ class TruthTrack:
             "path_length_m": float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
             "min_clearance_m": float(clearance.min()) if np.isfinite(clearance.min()) else None,
             "closest_to_goal_m": float(np.linalg.norm(path[:, :2] - goal[:2], axis=1).min()),
+            "position_error_m": None if estimated_end is None else float(
+                np.linalg.norm(np.asarray(estimated_end) - path[-1])),
         }
 
 
@@ -398,7 +403,7 @@ def build_app(config, clock, url: str, camera, depth_source, waypoints, *,
 def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
                    waypoints, summary: dict) -> dict:
     goal = waypoints[-1]
-    truth = track.score(world, goal)
+    truth = track.score(world, goal, summary.get("position_L"))
     collision = sim.vehicle.collision
     return {
         "world": world.name, "seed": mission.seed, "pair": mission.pair, "depth": mission.depth,
@@ -436,7 +441,8 @@ def format_summary(summary: dict) -> str:
              f" (closest {show(summary.get('closest_to_goal_m'), '.2f', ' m')})",
              f"  collisions        {summary['collisions']}",
              f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
-             f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}"]
+             f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}",
+             f"  VINS error at end {show(summary.get('position_error_m'), '.2f', ' m')}"]
     lines += format_flight(summary).splitlines()
     if summary.get("plot"):
         lines.append(f"  plot              {summary['plot']}")

@@ -15,11 +15,12 @@ import pytest
 from autonomy.geometry import make_pose, rot_z, yaw_alignment
 from companion.app import CornerState
 from companion.mission import FlightState, Mission, stop_waypoints
-from companion.simfly import free_udp_port, truth_metric_source
+from companion.simfly import TruthTrack, free_udp_port, truth_metric_source
 from companion.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
 from drivers.mavlink.link import open_link
 from drivers.sim.faults import CuttableLink, Fault, FaultSchedule
+from drivers.sim.world import build_world
 
 
 # ---------------------------------------------------------------- faults
@@ -129,6 +130,19 @@ def test_no_way_back_shorter_than_one_glide():
     assert corner.way_back(np.array([0.0, 0.0, 1.5]), 2.0) == []
     fly_trail(corner, [(0.125, 0.0, 1.5), (0.25, 0.0, 1.5), (0.375, 0.0, 1.5)])
     assert corner.way_back(np.array([0.375, 0.0, 1.5]), 2.0) == []
+
+
+def test_the_truth_scores_the_flight_and_the_vins_error_where_it_ended():
+    world = build_world("dome", 0)
+    track = TruthTrack()
+    track.positions = [np.array(p) for p in ((0.0, 0.0, 0.0), (0.0, 0.0, 1.5), (4.0, 3.0, 1.5),
+                                             (4.0, 3.0, 0.0))]
+    goal = np.array([4.0, 4.0, 1.5])
+    score = track.score(world, goal, estimated_end=(4.0, 3.0, 2.0))
+    assert score["path_length_m"] == pytest.approx(8.0)
+    assert score["closest_to_goal_m"] == pytest.approx(1.0)
+    assert score["position_error_m"] == pytest.approx(2.0)  # believed 2 m up, truly landed
+    assert track.score(world, goal)["position_error_m"] is None  # no estimate (never tied)
 
 
 def test_truth_depth_is_fully_confident_and_its_empty_sky_is_far():

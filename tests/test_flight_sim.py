@@ -28,7 +28,8 @@ from drivers.sim.world import build_world
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
-                "min_clearance_m", "failsafes", "depth_rate_hz", "loop_lag_ms_p99"}
+                "min_clearance_m", "failsafes", "depth_rate_hz", "loop_lag_ms_p99", "backoffs",
+                "position_L", "position_error_m"}
 
 
 _LOCKSTEP_FLIGHTS: dict[simfly.SimMission, dict] = {}
