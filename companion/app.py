@@ -134,6 +134,7 @@ class FlightStats:
     loop_lag_s: list = field(default_factory=list)
     navigation_start: float | None = None
     navigation_end: float | None = None
+    navigation_end_L: dict | None = None  # t and the VINS position in PX4's local frame then
     takeoff_t: float | None = None
     landed_t: float | None = None
     vins_reinitialisations_at_takeoff: int = 0
@@ -330,6 +331,10 @@ class FlightApp:
             await self._navigation_step()
             await self.clock.sleep(POLL_S)
         self.stats.navigation_end = self.clock.now()
+        position = self._position_L()
+        if position is not None:
+            self.stats.navigation_end_L = {"t": self.stats.navigation_end,
+                                           "position_L": position}
 
     async def _navigation_step(self) -> None:
         state, now = self.mission.state, self.clock.now()
@@ -893,7 +898,7 @@ class FlightApp:
             "watchdog_setpoints": self.watchdog.fired,
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
             "waypoints_passed": self.waypoint,
-            "position_L": self._position_L(),
+            "navigation_end": s.navigation_end_L,
         }
 
     def _position_L(self) -> list[float] | None:

@@ -163,19 +163,24 @@ class TruthTrack:
     """The true path, sampled on the simulator's side, for the summary."""
 
     def __init__(self):
-        self.t: list[float] = []
+        self.t: list[float] = []  # the application's clock at each sample
         self.positions: list[np.ndarray] = []
 
     async def run(self, sim, clock, goal: np.ndarray, progress=None) -> None:
         """Sample until cancelled; every :data:`PROGRESS_PERIOD_S` a line to ``progress``."""
         next_line = 0.0
         while True:
-            self.t.append(sim.time)
+            self.t.append(clock.now())
             self.positions.append(np.array(sim.vehicle.state.position))
             if progress is not None and sim.time >= next_line:
                 progress(self._progress_line(sim, goal))
                 next_line = sim.time + PROGRESS_PERIOD_S
             await clock.sleep(1.0 / TRACK_RATE_HZ)
+
+    def _at(self, t: float) -> np.ndarray:
+        """The true position at the first sample not before ``t`` (the last one after)."""
+        k = min(int(np.searchsorted(self.t, t)), len(self.positions) - 1)
+        return self.positions[k]
 
     def _progress_line(self, sim, goal: np.ndarray) -> str:
         position = self.positions[-1]
@@ -184,10 +189,11 @@ class TruthTrack:
                 f"{goal_distance(position, goal):6.1f} m to goal  {speed:4.1f} m/s  "
                 f"height {position[2]:4.1f} m")
 
-    def score(self, world: World, goal: np.ndarray, estimated_end=None) -> dict:
+    def score(self, world: World, goal: np.ndarray, estimate: dict | None = None) -> dict:
         """The flight in truth: its start, length, least clearance, closest approach to
-        ``goal`` and, given the application's ``estimated_end`` position (local frame = world
-        frame here), how far that lies from where the vehicle truly ended: the VINS drift."""
+        ``goal`` and, given the application's ``estimate`` ``{"t", "position_L"}`` of where it
+        was when navigation ended (local frame = world frame here), how far that lies from the
+        truth at that time: the VINS's drift over the flight."""
         path = np.array(self.positions).reshape(-1, 3)
         if len(path) == 0:
             return {"start": None, "path_length_m": 0.0, "min_clearance_m": None,
@@ -199,8 +205,8 @@ class TruthTrack:
             "path_length_m": float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
             "min_clearance_m": float(clearance.min()) if np.isfinite(clearance.min()) else None,
             "closest_to_goal_m": float(np.linalg.norm(path[:, :2] - goal[:2], axis=1).min()),
-            "position_error_m": None if estimated_end is None else float(
-                np.linalg.norm(np.asarray(estimated_end) - path[-1])),
+            "position_error_m": None if estimate is None else float(np.linalg.norm(
+                np.asarray(estimate["position_L"]) - self._at(estimate["t"]))),
         }
 
 
@@ -403,7 +409,7 @@ def build_app(config, clock, url: str, camera, depth_source, waypoints, *,
 def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
                    waypoints, summary: dict) -> dict:
     goal = waypoints[-1]
-    truth = track.score(world, goal, summary.get("position_L"))
+    truth = track.score(world, goal, summary.get("navigation_end"))
     collision = sim.vehicle.collision
     return {
         "world": world.name, "seed": mission.seed, "pair": mission.pair, "depth": mission.depth,
@@ -442,7 +448,7 @@ def format_summary(summary: dict) -> str:
              f"  collisions        {summary['collisions']}",
              f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
              f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}",
-             f"  VINS error at end {show(summary.get('position_error_m'), '.2f', ' m')}"]
+             f"  VINS error        {show(summary.get('position_error_m'), '.2f', ' m')}"]
     lines += format_flight(summary).splitlines()
     if summary.get("plot"):
         lines.append(f"  plot              {summary['plot']}")

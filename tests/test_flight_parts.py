@@ -132,16 +132,18 @@ def test_no_way_back_shorter_than_one_glide():
     assert corner.way_back(np.array([0.375, 0.0, 1.5]), 2.0) == []
 
 
-def test_the_truth_scores_the_flight_and_the_vins_error_where_it_ended():
+def test_the_truth_scores_the_flight_and_the_vins_error_when_navigation_ended():
     world = build_world("dome", 0)
     track = TruthTrack()
+    track.t = [0.0, 2.0, 6.0, 9.0]
     track.positions = [np.array(p) for p in ((0.0, 0.0, 0.0), (0.0, 0.0, 1.5), (4.0, 3.0, 1.5),
                                              (4.0, 3.0, 0.0))]
     goal = np.array([4.0, 4.0, 1.5])
-    score = track.score(world, goal, estimated_end=(4.0, 3.0, 2.0))
+    # navigation ended at t = 6 with the vehicle believing itself 0.5 m higher than it was
+    score = track.score(world, goal, {"t": 6.0, "position_L": [4.0, 3.0, 2.0]})
     assert score["path_length_m"] == pytest.approx(8.0)
     assert score["closest_to_goal_m"] == pytest.approx(1.0)
-    assert score["position_error_m"] == pytest.approx(2.0)  # believed 2 m up, truly landed
+    assert score["position_error_m"] == pytest.approx(0.5)
     assert track.score(world, goal)["position_error_m"] is None  # no estimate (never tied)
 
 

@@ -29,7 +29,7 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
                 "min_clearance_m", "failsafes", "depth_rate_hz", "loop_lag_ms_p99", "backoffs",
-                "position_L", "position_error_m"}
+                "navigation_end", "position_error_m"}
 
 
 _LOCKSTEP_FLIGHTS: dict[simfly.SimMission, dict] = {}
