@@ -269,6 +269,7 @@ class SlidingWindowSmoother:
         params.setRelinearizeThreshold(self.options.relinearize_threshold)
         params.relinearizeSkip = 1
         params.findUnusedFactorSlots = True
+        params.setFactorization(self.options.factorization.upper())
         return gtsam.IncrementalFixedLagSmoother(self.options.smoother_lag_s, params)
 
     @staticmethod

@@ -22,6 +22,9 @@ class VinsOptions:
                                           "whose update exceeds this (tangent-space norm)")
     extra_iterations: int = option(0, ge=0, le=10, doc="extra iSAM2 iterations after each "
                                    "keyframe's update (each relinearises what moved)")
+    factorization: str = option("cholesky", choices=("cholesky", "qr"), doc="iSAM2's "
+                                "elimination: cholesky, or qr (no indeterminate-system rebuilds "
+                                "in the sewer's hallway, about 3x the update time)")
     # --- keyframes
     keyframe_interval_s: float = option(0.1, gt=0.0, le=5.0, doc="a frame this long after the "
                                         "last keyframe becomes one, seconds")
