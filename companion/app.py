@@ -809,7 +809,8 @@ class FlightApp:
             (self._age(self.last_frame_t, now) > o.camera_timeout_s, "camera silent"),
             (self._age(self.autopilot.last_imu_t, now) > o.imu_timeout_s, "IMU silent"),
             (self._vins_problem() != "", self._vins_problem()),
-            (self._age(self.last_depth_t, now) > o.depth_timeout_s and not self._on_flown_ground(),
+            (self._age(self.last_depth_t, now) > o.depth_timeout_s
+             and not self._on_flown_ground(),
              f"no metric depth ({self.last_depth_reason or 'none yet'})"),
             (self.no_path_since is not None and now - self.no_path_since > o.no_path_timeout_s,
              "no safe primitive"),
