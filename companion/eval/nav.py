@@ -169,7 +169,7 @@ def trial_record(trial: Trial, summary: dict, *, wall_s: float | None = None) ->
     :func:`ended_early`, and the summary's numbers (``wall_s``: the flight's wall time)."""
     keys = ("start", "reached_goal", "collisions", "failsafes", "final_state", "flight_time_s",
             "navigation_time_s", "path_length_m", "min_clearance_m", "closest_to_goal_m",
-            "vins_resets", "position_error_m")
+            "vins_resets", "position_error_m", "backoffs")
     record = {**dataclasses.asdict(trial), "outcome": outcome(summary),
               "ended_early": ended_early(summary),
               "time_to_goal_s": time_to_goal(summary)}
