@@ -907,8 +907,7 @@ class FlightApp:
         before the frames are tied)."""
         if self.odometry is None or self.T_L_W is None:
             return None
-        position = self.T_L_W[:3, :3] @ self.odometry.T_W_B[:3, 3] + self.T_L_W[:3, 3]
-        return [round(float(v), 3) for v in position]
+        return [round(float(v), 3) for v in (self.T_L_W @ self.odometry.T_W_B)[:3, 3]]
 
 
 def format_flight(summary: dict) -> str:
