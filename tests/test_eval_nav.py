@@ -229,9 +229,10 @@ def _records():
                  _summary(reached=True, flight_time=40.0, path=30.0),
                  _summary(collisions=1),
                  _summary(failsafes=["no safe primitive"])]
-    records = [nav.trial_record(nav.Trial("dome", 0, "gt", k, k), s)
+    records = [nav.trial_record(nav.Trial("dome", 0, "gt", k, k), s, timeout_s=120.0)
                for k, s in enumerate(summaries)]
-    return records + [nav.trial_record(trial, _summary(failsafes=["mission timeout"]))]
+    timed_out = _summary(failsafes=["mission timeout"])
+    return records + [nav.trial_record(trial, timed_out, timeout_s=120.0)]
 
 
 def test_counts_and_mean_time_of_the_successes():

@@ -161,16 +161,19 @@ def fly_trial(config, trial: Trial) -> dict:
         summary = simfly.run(config, trial.mission())
     except (simfly.SimFlyError, RenderError, ValueError, OSError) as error:
         raise EvaluationError(f"{trial.label()}: {error}") from None
-    return trial_record(trial, summary, wall_s=time.perf_counter() - started)
+    return trial_record(trial, summary, timeout_s=config.flight.mission_timeout_s,
+                        wall_s=time.perf_counter() - started)
 
 
-def trial_record(trial: Trial, summary: dict, *, wall_s: float | None = None) -> dict:
-    """The plain-number record of a flown trial: what it was, its :func:`outcome`, whether it
-    :func:`ended_early`, and the summary's numbers (``wall_s``: the flight's wall time)."""
+def trial_record(trial: Trial, summary: dict, *, timeout_s: float,
+                 wall_s: float | None = None) -> dict:
+    """The plain-number record of a flown trial: what it was, its time limit, its
+    :func:`outcome`, whether it :func:`ended_early`, and the summary's numbers (``wall_s``: the
+    flight's wall time)."""
     keys = ("start", "reached_goal", "collisions", "failsafes", "final_state", "flight_time_s",
             "navigation_time_s", "path_length_m", "min_clearance_m", "closest_to_goal_m",
             "vins_resets", "position_error_m", "backoffs")
-    record = {**dataclasses.asdict(trial), "outcome": outcome(summary),
+    record = {**dataclasses.asdict(trial), "timeout_s": timeout_s, "outcome": outcome(summary),
               "ended_early": ended_early(summary),
               "time_to_goal_s": time_to_goal(summary)}
     record.update({key: summary.get(key) for key in keys})
