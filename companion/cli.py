@@ -367,12 +367,41 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
     command.add_argument("--runs", type=Path, metavar="FILE",
                          help="write every trial's record (seed, outcome, times, path length, "
                               "failsafes) to FILE as JSON lines")
+    command.add_argument("--merge", nargs="+", type=Path, metavar="RUNS",
+                         help="fly nothing: report the records of these --runs files (an "
+                              "evaluation flown in parts, e.g. one --seed each) as one run; "
+                              "takes none of the flight options")
     command.set_defaults(command=_eval_nav)
 
 
 def _eval_nav(args: argparse.Namespace, config: Config) -> int:
     from companion.eval import nav
     from companion.eval.vio import EvaluationError
+
+    if args.merge:
+        flight_options = [f"--{name}" for name in _NAV_FLIGHT_OPTIONS
+                          if getattr(args, name) not in (None, False)]
+        if flight_options:
+            print(f"eval nav: --merge flies nothing; drop {', '.join(flight_options)}",
+                  file=sys.stderr)
+            return EXIT_USAGE
+    try:
+        records = nav.read_runs(args.merge) if args.merge else _fly_nav(args, config)
+    except EvaluationError as error:
+        print(f"eval nav: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    result = nav.summarise(records)
+    return _report("eval nav", args, result, nav.format_markdown(result, records),
+                   (args.runs, lambda path: nav.write_runs(records, path)),
+                   (args.plot, lambda path: nav.plot_navigation(result, path)))
+
+
+#: The options of ``eval nav`` that choose what to fly, which ``--merge`` does not take.
+_NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers", "quick")
+
+
+def _fly_nav(args: argparse.Namespace, config: Config) -> list[dict]:
+    from companion.eval import nav
     from drivers.sim.options import WORLD_NAMES
 
     seed = config.sim.seed if args.seed is None else args.seed
@@ -380,17 +409,10 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
     worlds, pairs, trials = args.worlds or list(WORLD_NAMES), args.pairs, args.trials or nav.TRIALS
     if args.quick:
         worlds, pairs, trials = (args.worlds or [nav.QUICK_WORLD])[:1], [0], 1
-    try:
-        result, records = nav.evaluate_navigation(
-            config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
-            workers=args.workers, progress=sys.stderr)
-    except EvaluationError as error:
-        print(f"eval nav: {error}", file=sys.stderr)
-        return EXIT_FAILED
-    return _report("eval nav", args, result,
-                   nav.format_markdown(result, records, seed=seed, timeout_s=timeout),
-                   (args.runs, lambda path: nav.write_runs(records, path)),
-                   (args.plot, lambda path: nav.plot_navigation(result, path)))
+    _, records = nav.evaluate_navigation(
+        config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
+        workers=args.workers, progress=sys.stderr)
+    return records
 
 
 def _add_depth_commands(commands: argparse._SubParsersAction,

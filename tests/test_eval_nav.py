@@ -75,6 +75,7 @@ def test_every_trial_is_recorded_with_its_seed_and_counted_once(short_run):
     start = build_world(WORLD, 0).routes[PAIR].start
     for record in records:
         assert record["outcome"] == nav.outcome(record)
+        assert record["timeout_s"] == nav.TIMEOUT_S  # what a merge of parts checks
         assert record["start"] == pytest.approx(list(start), abs=0.01)  # the pair's own start
         assert record["path_length_m"] > 5.0  # it flew across the room
 
@@ -246,8 +247,9 @@ def test_counts_and_mean_time_of_the_successes():
 
 def test_markdown_counts_the_timeouts_that_ended_early():
     records = _records()
-    text = nav.format_markdown(nav.summarise(records), records, seed=3, timeout_s=120.0)
-    assert "seeds 3..6, 120 s to reach the goal" in text
+    text = nav.format_markdown(nav.summarise(records), records)
+    assert "(1 to 4 per start/goal pair and depth source, seeds 0..3, 120 s to reach the goal)" \
+        in text
     assert "| dome | GT | 4 | 2 | 1 | 1 | 1 | 50% | 35.0 | 25.0 |" in text
     assert "| dome | estimated | 1 | 0 | 0 | 1 | 0 | 0% | n/a | n/a |" in text
 
@@ -274,3 +276,99 @@ def test_progress_bar_counts_outcomes_one_line_per_update_off_a_terminal():
     lines = stream.getvalue().splitlines()
     assert lines[0] == "2 trials in 2 worker processes"
     assert lines[2].startswith("[" + "#" * nav.ProgressBar.WIDTH + "] 2/2  success 2 ")
+
+
+# ---------------------------------------------------------------- runs flown in parts, merged
+
+def _flown_records(seed: int, trials: int, *, pairs=(0, 1), timeout_s=120.0) -> list[dict]:
+    """The records one run of ``--worlds dome sewer --pairs PAIRS --seed SEED --trials N``
+    would write, every flight made up: the goal reached on odd seeds only."""
+    return [nav.trial_record(trial, _summary(reached=trial.seed % 2 == 1,
+                                             flight_time=30.0 + trial.seed),
+                             timeout_s=timeout_s, wall_s=60.0)
+            for trial in nav.plan_trials(["dome", "sewer"], pairs, trials, seed)]
+
+
+def _write(path, records):
+    return nav.write_runs(records, path)
+
+
+def test_parts_flown_one_seed_each_merge_into_the_records_of_one_run(tmp_path):
+    parts = [_write(tmp_path / f"seed{s}.jsonl", _flown_records(s, 1)) for s in (2, 0, 1)]
+    assert nav.read_runs(parts) == _flown_records(0, 3)
+    by_world = [_write(tmp_path / f"{world}.jsonl",
+                       [r for r in _flown_records(0, 3)[::-1] if r["world"] == world])
+                for world in ("dome", "sewer")]
+    assert nav.read_runs(by_world) == _flown_records(0, 3)
+
+
+def test_the_merged_report_says_how_many_trials_of_which_seeds(tmp_path):
+    parts = [_write(tmp_path / f"seed{s}.jsonl", _flown_records(s, 1)) for s in (4, 0, 1)]
+    records = nav.read_runs(parts)
+    text = nav.format_markdown(nav.summarise(records), records)
+    assert "(3 per start/goal pair and depth source, seeds 0, 1, 4, 120 s to reach" in text
+    assert "| dome | GT | 6 | 2 | 0 | 4 | 4 | 33% | 31.0 | 20.0 |" in text
+
+
+def test_eval_nav_merge_reports_the_parts_as_one_run(tmp_path, capsys):
+    parts = [_write(tmp_path / f"seed{s}.jsonl", _flown_records(s, 1)) for s in (0, 1)]
+    merged, markdown = tmp_path / "merged.jsonl", tmp_path / "nav.md"
+    assert main(["eval", "nav", "--json", "--merge", *map(str, parts), "--runs", str(merged),
+                 "--markdown", str(markdown)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    one_run = _flown_records(0, 2)
+    assert result == nav.summarise(one_run)
+    assert result["gt"]["sewer"] == {"trials": 4, "success": 2, "collision": 0, "timeout": 2,
+                                     "mean_time_s": 31.0}
+    assert [json.loads(line) for line in merged.read_text().splitlines()] == one_run
+    assert "seeds 0..1" in markdown.read_text()
+
+
+def _record_file(tmp_path, records, name="bad.jsonl"):
+    return str(_write(tmp_path / name, records))
+
+
+@pytest.mark.parametrize("make_files, words", [
+    (lambda d: [_record_file(d, _flown_records(0, 1))] * 2,
+     "dome pair 0 gt seed 0 is in more than one record"),
+    (lambda d: [_record_file(d, _flown_records(0, 1)),
+                _record_file(d, _flown_records(1, 1, timeout_s=60.0), "b.jsonl")],
+     "the runs flew different time limits (60 s, 120 s)"),
+    (lambda d: [_record_file(d, [r for r in _flown_records(0, 1)
+                                 if (r["pair"], r["depth"]) != (1, "estimated")])],
+     "dome pair 1 gt seed 0 has no estimated flight of the same seed"),
+    (lambda d: [str(d / "absent.jsonl")], "absent.jsonl: cannot read"),
+    (lambda d: [_record_file(d, [])], "bad.jsonl: no trial records"),
+])
+def test_parts_that_do_not_make_one_evaluation_fail_with_one_line(tmp_path, capsys,
+                                                                  make_files, words):
+    assert main(["eval", "nav", "--merge", *make_files(tmp_path)]) == 1
+    captured = capsys.readouterr()
+    assert len(captured.err.splitlines()) == 1 and words in captured.err
+    assert captured.out == ""
+
+
+@pytest.mark.parametrize("line, words", [
+    ("{not json", "bad.jsonl:2: not JSON"),
+    ("[1, 2]", "bad.jsonl:2: not a trial record"),
+    ('{"world": "dome"}', "bad.jsonl:2: trial record without pair, depth, index, seed"),
+])
+def test_a_record_that_cannot_be_read_is_named_by_file_and_line(tmp_path, line, words):
+    good = json.dumps(_flown_records(0, 1)[0])
+    path = tmp_path / "bad.jsonl"
+    path.write_text(f"{good}\n{line}\n")
+    with pytest.raises(EvaluationError, match=words.replace("[", "\\[")):
+        nav.read_runs([path])
+
+
+def test_a_record_of_an_unknown_world_is_refused(tmp_path):
+    path = _write(tmp_path / "bad.jsonl", [{**_flown_records(0, 1)[0], "world": "moon"}])
+    with pytest.raises(EvaluationError, match="bad.jsonl:1: world 'moon' is not one of mine"):
+        nav.read_runs([path])
+
+
+def test_merge_flies_nothing_so_it_takes_no_flight_option(tmp_path, capsys):
+    part = _write(tmp_path / "seed0.jsonl", _flown_records(0, 1))
+    assert main(["eval", "nav", "--merge", str(part), "--trials", "5", "--quick"]) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines() == ["eval nav: --merge flies nothing; drop --trials, --quick"]

@@ -30,12 +30,19 @@ Outcomes (:func:`outcome`), one per trial:
   timeouts; the JSON keeps the three counts, which add up to ``trials``.
 
 ``mean_time_s`` is the mean ``flight_time_s`` (take-off to landed) of the successful trials,
-None without one. Trials run in worker processes (``spawn``: each starts clean, its own OpenGL
+None without one.
+
+Parts. Since the result depends only on the arguments, an evaluation too long for one sitting
+can be flown in parts (one ``--seed S --trials 1`` or one ``--worlds W`` each, every part with
+``--runs``) and reported as one: :func:`read_runs` merges the parts' records into those of
+the whole run, refusing parts that overlap, flew different time limits, or fly one depth source
+without the other. Trials run in worker processes (``spawn``: each starts clean, its own OpenGL
 context); a one-line progress bar goes to stderr as they finish.
 """
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import dataclasses
 import json
@@ -332,16 +339,104 @@ def write_runs(records: list[dict], out: Path) -> Path:
 
 
 # --------------------------------------------------------------------------------------------
+# Runs flown in parts, merged
+
+#: What a record must hold to be merged, counted and reported.
+RECORD_KEYS = ("world", "pair", "depth", "index", "seed", "timeout_s", "outcome",
+               "ended_early", "flight_time_s", "path_length_m")
+
+
+def read_runs(paths: Iterable[Path]) -> list[dict]:
+    """The records of the ``--runs`` files at ``paths`` as one evaluation
+    (:func:`merge_records`): an evaluation flown in parts, say one seed per run, reported as
+    if flown at once. EvaluationError naming the file and line of a record that cannot be
+    read, or naming what keeps the parts from making one evaluation."""
+    records = []
+    for path in paths:
+        records += _read_run_file(Path(path))
+    return merge_records(records)
+
+
+def _read_run_file(path: Path) -> list[dict]:
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as error:
+        raise EvaluationError(f"{path}: cannot read: {error}") from None
+    records = [_parse_record(line, f"{path}:{n}")
+               for n, line in enumerate(lines, 1) if line.strip()]
+    if not records:
+        raise EvaluationError(f"{path}: no trial records (is it an 'eval nav --runs' file?)")
+    return records
+
+
+def _parse_record(line: str, where: str) -> dict:
+    try:
+        record = json.loads(line)
+    except json.JSONDecodeError as error:
+        raise EvaluationError(f"{where}: not JSON: {error.msg}") from None
+    if not isinstance(record, dict):
+        raise EvaluationError(f"{where}: not a trial record (a JSON object)")
+    missing = [key for key in RECORD_KEYS if key not in record]
+    if missing:
+        raise EvaluationError(f"{where}: trial record without {', '.join(missing)}")
+    for key, allowed in (("world", WORLD_NAMES), ("depth", tuple(DEPTH_SOURCES)),
+                         ("outcome", OUTCOMES)):
+        if record[key] not in allowed:
+            raise EvaluationError(f"{where}: {key} {record[key]!r} is not one of "
+                                  f"{', '.join(allowed)}")
+    return record
+
+
+def merge_records(records: list[dict]) -> list[dict]:
+    """``records`` of one or more runs as one evaluation's: in the order one run flies them
+    (:func:`plan_trials`: world, pair, seed, depth source; the worlds in the order they first
+    appear) with ``index`` the rank of the seed among its pair's, so the parts ``--seed S --trials 1`` for S = 0..4 merge into the
+    records of ``--seed 0 --trials 5``. EvaluationError when a trial is in two records, when
+    the parts flew different time limits, or when a seed of a pair was flown on one depth
+    source only (the comparison is paired)."""
+    trials = collections.Counter(_trial_key(r) for r in records)
+    twice = [key for key, n in trials.items() if n > 1]
+    if twice:
+        raise EvaluationError(f"{_describe(twice[0])} is in more than one record "
+                              "(a part merged twice?)")
+    limits = sorted({r["timeout_s"] for r in records})
+    if len(limits) > 1:
+        raise EvaluationError("the runs flew different time limits ("
+                              + ", ".join(f"{t:g} s" for t in limits) + "); merge runs of "
+                              "one --timeout")
+    for world, pair, depth, seed in trials:
+        other = next(d for d in DEPTH_SOURCES if d != depth)
+        if (world, pair, other, seed) not in trials:
+            raise EvaluationError(f"{_describe((world, pair, depth, seed))} has no {other} "
+                                  "flight of the same seed (the comparison is paired)")
+    worlds = list(dict.fromkeys(r["world"] for r in records))
+    ordered = sorted(records, key=lambda r: (worlds.index(r["world"]), r["pair"], r["seed"],
+                                             list(DEPTH_SOURCES).index(r["depth"])))
+    seeds = collections.defaultdict(list)
+    for record in ordered:
+        seeds[record["world"], record["pair"], record["depth"]].append(record["seed"])
+    return [{**r, "index": seeds[r["world"], r["pair"], r["depth"]].index(r["seed"])}
+            for r in ordered]
+
+
+def _trial_key(record: dict) -> tuple:
+    return record["world"], record["pair"], record["depth"], record["seed"]
+
+
+def _describe(key: tuple) -> str:
+    world, pair, depth, seed = key
+    return f"{world} pair {pair} {depth} seed {seed}"
+
+
+# --------------------------------------------------------------------------------------------
 # Report
 
-def format_markdown(result: dict, records: list[dict], *, seed: int, timeout_s: float) -> str:
-    """Markdown: one row per world and depth source with the counts, the success rate, the
-    timeouts that ended early, and the successes' mean flight time and path length."""
-    trials = max((r["index"] for r in records), default=0) + 1
-    seeds = f"seed {seed}" if trials == 1 else f"seeds {seed}..{seed + trials - 1}"
+def format_markdown(result: dict, records: list[dict]) -> str:
+    """Markdown: a heading with the trials per pair, their seeds and time limit (read off
+    ``records``), then one row per world and depth source with the counts, the success rate,
+    the timeouts that ended early, and the successes' mean flight time and path length."""
     lines = [
-        f"## Navigation in simulated flights ({trials} per start/goal pair and depth source, "
-        f"{seeds}, {timeout_s:g} s to reach the goal)",
+        f"## Navigation in simulated flights ({_flown(records)})",
         "",
         "GT: planning on the renderer's true depth; estimated: on the network rescaled with "
         "the VINS map. Success: the goal reached without a collision within the time; "
@@ -358,6 +453,25 @@ def format_markdown(result: dict, records: list[dict], *, seed: int, timeout_s: 
             lines.append(_row(world, source, numbers, [
                 r for r in records if r["depth"] == source and r["world"] == world]))
     return "\n".join(lines)
+
+
+def _flown(records: list[dict]) -> str:
+    """"5 per start/goal pair and depth source, seeds 0..4, 120 s to reach the goal"."""
+    if not records:
+        return "no trials"
+    per_pair = collections.Counter((r["world"], r["pair"], r["depth"]) for r in records)
+    fewest, most = min(per_pair.values()), max(per_pair.values())
+    trials = str(most) if fewest == most else f"{fewest} to {most}"
+    seeds = sorted({r["seed"] for r in records})
+    if len(seeds) == 1:
+        seeds_text = f"seed {seeds[0]}"
+    elif seeds == list(range(seeds[0], seeds[-1] + 1)):
+        seeds_text = f"seeds {seeds[0]}..{seeds[-1]}"
+    else:
+        seeds_text = "seeds " + ", ".join(map(str, seeds))
+    limits = " or ".join(f"{t:g}" for t in sorted({r["timeout_s"] for r in records}))
+    return (f"{trials} per start/goal pair and depth source, {seeds_text}, "
+            f"{limits} s to reach the goal")
 
 
 def _row(world: str, source: str, numbers: dict, records: list[dict]) -> str:
