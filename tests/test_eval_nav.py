@@ -361,9 +361,16 @@ def test_a_record_that_cannot_be_read_is_named_by_file_and_line(tmp_path, line, 
         nav.read_runs([path])
 
 
-def test_a_record_of_an_unknown_world_is_refused(tmp_path):
-    path = _write(tmp_path / "bad.jsonl", [{**_flown_records(0, 1)[0], "world": "moon"}])
-    with pytest.raises(EvaluationError, match="bad.jsonl:1: world 'moon' is not one of mine"):
+@pytest.mark.parametrize("change, words", [
+    (dict(world="moon"), "world 'moon' is not one of mine, sewer, dome"),
+    (dict(outcome="crash"), "outcome 'crash' is not one of success, collision, timeout"),
+    (dict(pair="2"), "pair must be a non-negative integer, got '2'"),
+    (dict(seed=-1), "seed must be a non-negative integer, got -1"),
+    (dict(timeout_s=None), "timeout_s must be a positive number of seconds, got None"),
+])
+def test_a_record_with_a_wrong_value_is_refused(tmp_path, change, words):
+    path = _write(tmp_path / "bad.jsonl", [{**_flown_records(0, 1)[0], **change}])
+    with pytest.raises(EvaluationError, match=f"bad.jsonl:1: {words}"):
         nav.read_runs([path])
 
 

@@ -384,16 +384,24 @@ def _parse_record(line: str, where: str) -> dict:
         if record[key] not in allowed:
             raise EvaluationError(f"{where}: {key} {record[key]!r} is not one of "
                                   f"{', '.join(allowed)}")
+    for key in ("pair", "index", "seed"):
+        if type(record[key]) is not int or record[key] < 0:
+            raise EvaluationError(f"{where}: {key} must be a non-negative integer, "
+                                  f"got {record[key]!r}")
+    if type(record["timeout_s"]) not in (int, float) or not record["timeout_s"] > 0:
+        raise EvaluationError(f"{where}: timeout_s must be a positive number of seconds, "
+                              f"got {record['timeout_s']!r}")
     return record
 
 
 def merge_records(records: list[dict]) -> list[dict]:
     """``records`` of one or more runs as one evaluation's: in the order one run flies them
     (:func:`plan_trials`: world, pair, seed, depth source; the worlds in the order they first
-    appear) with ``index`` the rank of the seed among its pair's, so the parts ``--seed S --trials 1`` for S = 0..4 merge into the
-    records of ``--seed 0 --trials 5``. EvaluationError when a trial is in two records, when
-    the parts flew different time limits, or when a seed of a pair was flown on one depth
-    source only (the comparison is paired)."""
+    appear) with ``index`` the rank of the seed among its pair's, so the parts ``--seed S
+    --trials 1`` for S = 0..4 merge into the records of ``--seed 0 --trials 5``.
+    EvaluationError when a trial is in two records, when the parts flew different time
+    limits, or when a seed of a pair was flown on one depth source only (the comparison is
+    paired)."""
     trials = collections.Counter(_trial_key(r) for r in records)
     twice = [key for key, n in trials.items() if n > 1]
     if twice:
