@@ -10,6 +10,7 @@ import asyncio
 import math
 import socket
 import threading
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -372,6 +373,65 @@ def test_link_loss_is_detected_and_the_imu_rate_requested_again_after_it():
         autopilot.take_imu()
         assert await until(clock, lambda: len(autopilot.take_imu()) > 0, 2.0)
     fly(body, clock=clock)
+
+
+class Px4StandIn(threading.Thread):
+    """A flight controller in its own thread, as on the vehicle: HEARTBEAT at 1 Hz and a
+    flood of 10,000 small messages a second, so that while nobody reads our socket its buffer
+    fills within tens of milliseconds and whatever comes after, HEARTBEATs too, is dropped."""
+
+    def __init__(self, port: int):
+        super().__init__(name="px4-stand-in", daemon=True)
+        self.port, self.quiet = port, threading.Event()
+
+    def run(self) -> None:
+        link = open_link(f"udpout://127.0.0.1:{self.port}", source_system=1, source_component=1)
+        next_heartbeat = 0.0
+        try:
+            while not self.quiet.is_set():
+                if time.monotonic() >= next_heartbeat:
+                    link.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR,
+                                            mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0)
+                    next_heartbeat = time.monotonic() + 1.0
+                for _ in range(100):
+                    link.mav.system_time_send(0, 0)
+                time.sleep(0.01)
+        finally:
+            link.close()
+
+
+def test_a_stalled_event_loop_is_not_taken_for_a_lost_link():
+    """While our own loop is blocked nobody reads the link: PX4's HEARTBEATs are lost in our
+    socket's full buffer, not on the wire, and that time must not count as PX4's silence.
+    A real silence after it is still caught within the link timeout."""
+    clock, port = MonotonicClock(), free_udp_port()
+    options = MavlinkOptions(url=f"udpin://127.0.0.1:{port}", command_retries=0)
+    stand_in = Px4StandIn(port)
+
+    async def body(autopilot):
+        assert await until(clock, lambda: autopilot.connected, 5.0)
+        await clock.sleep(0.5)
+        time.sleep(2.0 * options.link_timeout_s)  # the loop stalls (a blocking call)
+        await clock.sleep(0.2)
+        assert autopilot.connected and autopilot.link_losses == 0
+        stand_in.quiet.set()  # now PX4 does go silent
+        assert await until(clock, lambda: not autopilot.connected,
+                           options.link_timeout_s + 1.0)
+        assert autopilot.link_losses == 1
+
+    async def main():
+        autopilot = Autopilot.open(options, clock)
+        runner = asyncio.create_task(autopilot.run())
+        stand_in.start()
+        try:
+            await body(autopilot)
+        finally:
+            stand_in.quiet.set()
+            runner.cancel()
+            await asyncio.gather(runner, return_exceptions=True)
+            autopilot.close()
+            stand_in.join(2.0)
+    asyncio.run(asyncio.wait_for(main(), WALL_TIMEOUT))
 
 
 def test_signing_on_both_ends_works_with_a_watchdog_thread_sending_too():

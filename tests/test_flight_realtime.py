@@ -5,9 +5,16 @@ simulated time with it. Here the simulator runs in its own thread on the wall cl
 application's stages in worker threads, as on the vehicle; the watchdog thread must send the
 stop while the loop is blocked. Its own module: a real-time flight wants the machine to itself,
 not beside the minutes-long lockstep flights of ``test_flight_sim``.
+
+On a shared two-core host the real-time pipeline can fall behind for seconds, and the
+camera, IMU and depth monitors would rightly stop the flight before the stall comes (what
+they catch is tested in lockstep). So this flight flies on true depth (no network to run)
+with those three timeouts widened past the stall: the stall is then what it must catch.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import pytest
 
@@ -20,8 +27,10 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 def test_an_event_loop_stall_is_caught_by_the_watchdog_in_real_time():
     mission = simfly.SimMission(world="dome", faults=(Fault.parse("loop_stall@1+1.5"),),
-                                clock="realtime")
-    summary = simfly.run(Config(), mission)
+                                clock="realtime", depth="truth")
+    flight = replace(Config().flight, camera_timeout_s=2.0, imu_timeout_s=1.0,
+                     depth_timeout_s=3.0)
+    summary = simfly.run(replace(Config(), flight=flight), mission)
     assert summary["collisions"] == 0, summary["collision"]
     assert summary["final_state"] == "landed", summary["transitions"]
     assert summary["watchdog_setpoints"] > 0

@@ -57,6 +57,10 @@ IMU_REREQUEST_S = 3.0
 STATUSTEXT_HISTORY = 50
 #: TIMESYNC requests awaiting an answer, at most (older ones are forgotten).
 TIMESYNC_PENDING = 16
+#: A gap between two polls longer than this means our own loop was starved (a stall, a
+#: blocking call): nobody read the socket, whose buffer may have overflowed and dropped PX4's
+#: HEARTBEATs, so the gap does not count as PX4's silence. Far above a loaded loop's lag.
+DEAF_POLL_GAP_S = 0.1
 #: STATUSTEXT chunk length: a shorter chunk ends a multi-chunk text (MAVLink 2).
 STATUSTEXT_CHUNK = 50
 
@@ -218,6 +222,8 @@ class Autopilot:
         self._attitude: tuple[np.ndarray, np.ndarray] | None = None
         self._last_odometry = -math.inf
         self._last_heartbeat = -math.inf
+        self._last_poll: float | None = None
+        self._deaf_s = 0.0  # time since the last HEARTBEAT we were not reading the link
         self._next_heartbeat = -math.inf
         self._next_timesync = -math.inf
         self._timesync_sent: dict[int, float] = {}
@@ -310,6 +316,7 @@ class Autopilot:
                 self._imu_request.cancel()
 
     def _poll(self, now: float) -> None:
+        self._count_deaf_time(now)
         for message in self._receive():
             self._dispatch(message, now)
         self._watch_link(now)
@@ -339,12 +346,20 @@ class Autopilot:
             self.counts["handler_errors"] += 1
             log.warning("ignored %s: %s: %s", message.get_type(), type(error).__name__, error)
 
+    def _count_deaf_time(self, now: float) -> None:
+        if self._last_poll is not None and now - self._last_poll > DEAF_POLL_GAP_S:
+            self._deaf_s += now - self._last_poll
+        self._last_poll = now
+
     def _watch_link(self, now: float) -> None:
-        if not self.connected or now - self._last_heartbeat <= self.options.link_timeout_s:
+        """The link is lost after ``link_timeout_s`` of PX4's silence while we listened."""
+        silent_s = now - self._last_heartbeat - self._deaf_s
+        if not self.connected or silent_s <= self.options.link_timeout_s:
             return
         self.connected = False
         self.link_losses += 1
-        log.warning("PX4 link lost: no HEARTBEAT for %.1f s", now - self._last_heartbeat)
+        log.warning("PX4 link lost: no HEARTBEAT for %.1f s (%.1f s of it not listening)",
+                    now - self._last_heartbeat, self._deaf_s)
         self._imu.restart()
         self.timesync.reset()
         self._timesync_sent.clear()
@@ -415,7 +430,7 @@ class Autopilot:
     # ---------------------------------------------------------------- incoming
 
     def _on_heartbeat(self, message, now: float) -> None:
-        self._last_heartbeat = now
+        self._last_heartbeat, self._deaf_s = now, 0.0
         self.armed = bool(message.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         try:
             self.mode = px4.Px4Mode.from_custom_mode(message.custom_mode)
