@@ -377,8 +377,9 @@ def test_link_loss_is_detected_and_the_imu_rate_requested_again_after_it():
 
 class Px4StandIn(threading.Thread):
     """A flight controller in its own thread, as on the vehicle: HEARTBEAT at 1 Hz and a
-    flood of 10,000 small messages a second, so that while nobody reads our socket its buffer
-    fills within tens of milliseconds and whatever comes after, HEARTBEATs too, is dropped."""
+    flood of small messages (100 every 10 ms), so that while nobody reads our socket its
+    buffer fills within tens of milliseconds and whatever comes after, HEARTBEATs too, is
+    dropped."""
 
     def __init__(self, port: int):
         super().__init__(name="px4-stand-in", daemon=True)

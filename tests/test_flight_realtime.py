@@ -9,7 +9,8 @@ not beside the minutes-long lockstep flights of ``test_flight_sim``.
 On a shared two-core host the real-time pipeline can fall behind for seconds, and the
 camera, IMU and depth monitors would rightly stop the flight before the stall comes (what
 they catch is tested in lockstep). So this flight flies on true depth (no network to run)
-with those three timeouts widened past the stall: the stall is then what it must catch.
+with those three timeouts widened (0.5, 0.25 and 1 s to 2, 1 and 3 s), and the stall is what
+it must catch: after it the loop's lag is checked before the sensors' ages.
 """
 
 from __future__ import annotations
