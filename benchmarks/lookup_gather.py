@@ -14,7 +14,7 @@ import json
 import cv2
 import numpy as np
 
-from companion.bench import interleaved_medians_ms
+from companion.tools.bench import interleaved_medians_ms
 
 
 def main() -> None:

@@ -26,10 +26,10 @@ import numpy as np
 from drivers.camera.options import CameraOptions
 from drivers.sim import record
 from drivers.sim.imu import ImuOptions
-from drivers.sim.px4 import Px4Options
+from drivers.sim.mock_px4 import Px4Options
 from drivers.sim.render import Renderer
 from drivers.sim.serve import serve
-from drivers.sim.vehicle import VehicleOptions
+from drivers.sim.quadrotor import VehicleOptions
 from drivers.sim.world import WORLD_NAMES, build_world
 
 

@@ -19,12 +19,12 @@ from pathlib import Path
 import cv2
 
 from autonomy.vins import VinsOptions
-from companion.eval.vio import read_vio_dataset, run_vins, score_vio
+from companion.tools.eval.vio import read_vio_dataset, run_vins, score_vio
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import WORLD_NAMES, SimOptions
 from drivers.sim.record import record_dataset
-from drivers.sim.vehicle import VehicleOptions
+from drivers.sim.quadrotor import VehicleOptions
 
 
 def measure(root: Path) -> dict:

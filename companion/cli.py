@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 from autonomy.options import OptionError
 from companion import __version__
 from companion.config import LOG_LEVELS, Config, ConfigError, dump_toml, load_config
-from companion.mission import parse_point
+from autonomy.navigation.mission import parse_point
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -60,7 +60,7 @@ def _config_show(args: argparse.Namespace, config: Config) -> int:
 
 def _bench_rescale(args: argparse.Namespace, config: Config) -> int:
     # Imported here: the benchmark pulls in the whole rescaler, which no other command needs.
-    from companion import bench
+    from companion.tools import bench
 
     try:
         result = bench.run_rescale_benchmark(config.rescale, anchors=args.anchors,
@@ -117,14 +117,14 @@ def _add_fly_command(commands: argparse._SubParsersAction,
 
 def _fly(args: argparse.Namespace, config: Config) -> int:
     from autonomy.depth.network import NetworkError
-    from companion import vehicle
-    from companion.app import format_flight
+    from companion.launch import real
+    from companion.flight.app import format_flight
     from drivers.camera.v4l2 import CameraError
 
     waypoints = args.goals or config.flight.waypoint_points()
     try:
-        summary = vehicle.run(config, waypoints)
-    except (vehicle.FlyError, NetworkError, CameraError, ValueError, OSError) as error:
+        summary = real.run(config, waypoints)
+    except (real.FlyError, NetworkError, CameraError, ValueError, OSError) as error:
         print(f"fly: {error}", file=sys.stderr)
         return EXIT_FAILED
     print(json.dumps(summary) if args.json else format_flight(summary))
@@ -326,7 +326,7 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                   configured: argparse.ArgumentParser) -> None:
     from drivers.sim.options import WORLD_NAMES
 
-    # defaults (None here) are companion.eval.nav's, resolved by _eval_nav: the parser does not
+    # defaults (None here) are companion.tools.eval.nav's, resolved by _eval_nav: the parser does not
     # import the simulator
     command = actions.add_parser(
         "nav", parents=[configured], help="count navigation successes (paper's navigation "
@@ -375,8 +375,8 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
 
 
 def _eval_nav(args: argparse.Namespace, config: Config) -> int:
-    from companion.eval import nav
-    from companion.eval.vio import EvaluationError
+    from companion.tools.eval import nav
+    from companion.tools.eval.vio import EvaluationError
 
     if args.merge:
         flight_options = [f"--{name}" for name in _NAV_FLIGHT_OPTIONS
@@ -401,7 +401,7 @@ _NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers"
 
 
 def _fly_nav(args: argparse.Namespace, config: Config) -> list[dict]:
-    from companion.eval import nav
+    from companion.tools.eval import nav
     from drivers.sim.options import WORLD_NAMES
 
     seed = config.sim.seed if args.seed is None else args.seed
@@ -441,7 +441,7 @@ def _add_depth_commands(commands: argparse._SubParsersAction,
 
 def _depth_bench(args: argparse.Namespace, config: Config) -> int:
     from autonomy.depth.network import NetworkError
-    from companion import bench, depth_bench
+    from companion.tools import bench, depth_bench
 
     network = config.depth_network
     if args.model is not None:
@@ -458,8 +458,8 @@ def _depth_bench(args: argparse.Namespace, config: Config) -> int:
 
 def _eval_depth(args: argparse.Namespace, config: Config) -> int:
     from autonomy.depth.network import NetworkError
-    from companion.eval import depth
-    from companion.eval.vio import EvaluationError
+    from companion.tools.eval import depth
+    from companion.tools.eval.vio import EvaluationError
 
     try:
         network = depth.open_relative_depth_source(config.depth_network,
@@ -477,8 +477,8 @@ def _eval_depth(args: argparse.Namespace, config: Config) -> int:
 
 def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
     from autonomy.depth.network import NetworkError
-    from companion.eval import depth, rescale
-    from companion.eval.vio import EvaluationError
+    from companion.tools.eval import depth, rescale
+    from companion.tools.eval.vio import EvaluationError
 
     seed = config.sim.seed if args.seed is None else args.seed
     try:
@@ -518,7 +518,7 @@ def _report(command: str, args: argparse.Namespace, result: dict, report: str,
 
 def _eval_vio(args: argparse.Namespace, config: Config) -> int:
     # Imported here: the evaluation pulls in the dataset readers and the estimator.
-    from companion.eval import vio as evaluation
+    from companion.tools.eval import vio as evaluation
 
     try:
         result = evaluation.evaluate_vio(args.dataset, config.vins, frontend=config.vins_frontend,
@@ -584,22 +584,22 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
 
 
 def _sim_fly(args: argparse.Namespace, config: Config) -> int:
-    from companion import simfly
+    from companion.launch import simulated
     from drivers.sim.faults import Fault
     from drivers.sim.render import RenderError
 
     sim = _sim_options(args, config)
     try:
-        mission = simfly.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
+        mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
                                     goal=args.goal, start_yaw_deg=args.start_yaw,
                                     clock=args.clock, depth=args.depth,
                                     faults=tuple(Fault.parse(f) for f in args.faults))
-        summary = simfly.run(config, mission, plot=None if args.no_plot else args.plot,
+        summary = simulated.run(config, mission, plot=None if args.no_plot else args.plot,
                              progress=None if args.json else _print_progress)
-    except (simfly.SimFlyError, RenderError, ValueError, OSError) as error:
+    except (simulated.SimError, RenderError, ValueError, OSError) as error:
         print(f"sim fly: {error}", file=sys.stderr)
         return EXIT_FAILED
-    print(json.dumps(summary) if args.json else simfly.format_summary(summary))
+    print(json.dumps(summary) if args.json else simulated.format_summary(summary))
     # a fault-free flight must reach its goal; any flight must end without a collision
     safe = summary["collisions"] == 0 and summary["final_state"] == "landed"
     return EXIT_OK if safe and (summary["reached_goal"] or mission.faults) else EXIT_FAILED
@@ -610,7 +610,7 @@ def _print_progress(line: str) -> None:
 
 
 def _point(text: str) -> tuple[float, float, float]:
-    """``x,y,z`` metres -> a finite 3-tuple (:func:`companion.mission.parse_point`)."""
+    """``x,y,z`` metres -> a finite 3-tuple (:func:`autonomy.navigation.mission.parse_point`)."""
     try:
         return parse_point(text)
     except OptionError:

@@ -27,19 +27,20 @@ from autonomy.depth.network import NetworkOptions
 from autonomy.depth.options import RescaleOptions
 from autonomy.depth.stage import DepthStageOptions
 from autonomy.depth.synthetic import SyntheticDepthOptions
-from autonomy.planning.planner import PlannerOptions
+from autonomy.navigation.mission import FlightOptions
 from autonomy.options import OptionError, field_types, option, validate
+from autonomy.planning.planner import PlannerOptions
 from autonomy.vins.frontend import FrontendOptions
 from autonomy.vins.options import VinsOptions
+from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import StaticInitOptions
-from companion.mission import FlightOptions
 from drivers.camera.options import CameraOptions
 from drivers.camera.v4l2 import V4l2Options
 from drivers.mavlink.autopilot import MavlinkOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
-from drivers.sim.px4 import Px4Options
-from drivers.sim.vehicle import VehicleOptions
+from drivers.sim.mock_px4 import Px4Options
+from drivers.sim.quadrotor import VehicleOptions
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
@@ -72,6 +73,7 @@ class Config:
     vins: VinsOptions = field(default_factory=VinsOptions)
     vins_frontend: FrontendOptions = field(default_factory=FrontendOptions)
     vins_init: StaticInitOptions = field(default_factory=StaticInitOptions)
+    vins_imu: ImuNoise = field(default_factory=ImuNoise.icm42688p)
     planner: PlannerOptions = field(default_factory=PlannerOptions)
     flight: FlightOptions = field(default_factory=FlightOptions)
     mavlink: MavlinkOptions = field(default_factory=MavlinkOptions)
@@ -143,8 +145,8 @@ def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Confi
     for text in overrides:
         override = parse_override(text)
         _set(settings, override.source, override.section, override.key, override.value)
-    return Config(**{name: _build_section(name, kind, settings.get(name, {}))
-                     for name, kind in field_types(Config).items()})
+    return Config(**{section.name: _build_section(section, settings.get(section.name, {}))
+                     for section in dataclasses.fields(Config)})
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
@@ -197,13 +199,17 @@ def _reject_unknown(source: str, what: str, name: str, known: list[str], where: 
     raise ConfigError(source, f"unknown {what}; {hint}", where)
 
 
-def _build_section(section: str, kind: type, values: dict[str, tuple[Any, str]]) -> Any:
-    types = field_types(kind)
+def _build_section(section: dataclasses.Field, values: dict[str, tuple[Any, str]]) -> Any:
+    """The section's default (the ``Config`` field's, which may differ from its class's, as
+    ``[vins_imu]``'s does) with ``values`` set."""
+    default = section.default_factory()
+    types = field_types(type(default))
     try:
-        return kind(**{key: _coerce(value, types[key]) for key, (value, _) in values.items()})
+        return dataclasses.replace(default, **{key: _coerce(value, types[key])
+                                               for key, (value, _) in values.items()})
     except OptionError as error:
         raise ConfigError(_culprit(values, error.key), error.message,
-                          f"{section}.{error.key}") from None
+                          f"{section.name}.{error.key}") from None
 
 
 def _coerce(value: Any, kind: Any) -> Any:

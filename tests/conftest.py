@@ -37,7 +37,7 @@ def record_flight(tmp_path_factory):
     from drivers.sim.options import SimOptions
     from drivers.sim.record import record_dataset
     from drivers.sim.render import RenderError
-    from drivers.sim.vehicle import VehicleOptions
+    from drivers.sim.quadrotor import VehicleOptions
 
     recorded = {}
 

@@ -19,7 +19,7 @@ import pytest
 from autonomy.geometry import GRAVITY
 from autonomy.options import OptionError
 from drivers.clock import MonotonicClock, SimClock
-from drivers.mavlink import px4
+from drivers.mavlink import px4_protocol
 from drivers.mavlink.autopilot import (Autopilot, CommandDenied, CommandTimeout,
                                        CompanionStatus, MavlinkOptions, NotConnected)
 from drivers.mavlink.imu_stream import ImuStamper
@@ -27,7 +27,7 @@ from drivers.mavlink.link import mavlink, open_link
 from drivers.mavlink.odometry import pose_covariance_to_mavlink
 from drivers.mavlink.timesync import RESET_AFTER_OUTLIERS, TimesyncFilter
 from drivers.sim.imu import ImuOptions
-from drivers.sim.px4 import Px4Options
+from drivers.sim.mock_px4 import Px4Options
 from drivers.sim.serve import serve
 
 DT = 0.005  # the simulator's physics and IMU period
@@ -208,7 +208,7 @@ def test_connects_and_streams_imu_at_200hz_in_flu_on_the_companion_clock():
         assert np.mean([s.accel[2] for s in samples]) == pytest.approx(GRAVITY, abs=0.05)
         assert autopilot.last_imu_t == samples[-1].t
         assert autopilot.landed and not autopilot.in_air and not autopilot.armed
-        assert autopilot.mode == px4.AUTO_LOITER
+        assert autopilot.mode == px4_protocol.AUTO_LOITER
     fly(body)
 
 
@@ -255,7 +255,7 @@ def test_arm_take_off_offboard_velocity_in_enu_hold_land():
     async def body(flight):
         autopilot, clock = flight.autopilot, flight.clock
         assert await flight.connected()
-        assert not await autopilot.set_mode(px4.OFFBOARD)
+        assert not await autopilot.set_mode(px4_protocol.OFFBOARD)
         error = autopilot.last_command_error
         assert isinstance(error, CommandDenied)
         assert error.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -264,21 +264,21 @@ def test_arm_take_off_offboard_velocity_in_enu_hold_land():
         assert await autopilot.takeoff(3.0)
         assert await until(clock, lambda: autopilot.in_air, 2.0)
         assert await until(clock, lambda: autopilot.state.position_L[2] > 2.8
-                           and autopilot.mode == px4.AUTO_LOITER, 10.0)
+                           and autopilot.mode == px4_protocol.AUTO_LOITER, 10.0)
         await clock.sleep(3.0)  # the climb overshoots a little, then holds
         assert flight.sim.vehicle.state.position[2] == pytest.approx(3.0, abs=0.3)
         start = autopilot.state.position_L.copy()
         await stream_velocity(flight, (0.0, 0.0, 0.0), 1.2)  # PX4 wants a stream first
         streaming = asyncio.create_task(stream_velocity(flight, (1.0, 0.0, 0.0), 4.0))
-        assert await autopilot.set_mode(px4.OFFBOARD)
-        assert await until(clock, lambda: autopilot.mode == px4.OFFBOARD, 2.0)
+        assert await autopilot.set_mode(px4_protocol.OFFBOARD)
+        assert await until(clock, lambda: autopilot.mode == px4_protocol.OFFBOARD, 2.0)
         await streaming
         moved = autopilot.state.position_L - start
         assert moved[0] > 2.0 and abs(moved[1]) < 0.3 and abs(moved[2]) < 0.3  # east
         assert flight.sim.vehicle.state.position[0] > 2.0
         assert autopilot.state.velocity_L[0] > 0.5
         assert await autopilot.hold()
-        assert await until(clock, lambda: autopilot.mode == px4.AUTO_LOITER, 1.0)
+        assert await until(clock, lambda: autopilot.mode == px4_protocol.AUTO_LOITER, 1.0)
         assert await autopilot.land()
         assert await until(clock, lambda: autopilot.landed, 15.0)
         assert await autopilot.disarm()
@@ -309,11 +309,11 @@ def test_acceleration_feed_forward_lets_the_vehicle_brake_as_commanded():
         autopilot, clock = flight.autopilot, flight.clock
         assert await flight.connected()
         assert await autopilot.arm() and await autopilot.takeoff(3.0)
-        assert await until(clock, lambda: autopilot.mode == px4.AUTO_LOITER
+        assert await until(clock, lambda: autopilot.mode == px4_protocol.AUTO_LOITER
                            and autopilot.state.position_L[2] > 2.8, 15.0)
         await stream_velocity(flight, (0.0, 0.0, 0.0), 1.2)  # PX4 wants a stream first
         streaming = asyncio.create_task(stream_velocity(flight, (0.0, 0.0, 0.0), 0.5))
-        assert await autopilot.set_mode(px4.OFFBOARD)
+        assert await autopilot.set_mode(px4_protocol.OFFBOARD)
         await streaming
         beyond, still_moving = await brake(flight, feed_forward=False)
         assert beyond > 0.4 and still_moving > 0.4  # the loop's lag

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 
 from autonomy.depth.rescale import METHODS, fit
-from companion.bench import synthetic_scene
+from companion.tools.bench import synthetic_scene
 
 
 def bench(*args):

@@ -8,7 +8,7 @@ import shutil
 import pytest
 
 from companion.cli import main
-from companion.testmodel import build_test_model
+from companion.tools.testmodel import build_test_model
 
 
 @pytest.fixture(scope="module")

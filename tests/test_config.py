@@ -221,3 +221,13 @@ def test_the_camera_mounting_defaults_to_the_simulators_and_turns_as_named():
     np.testing.assert_allclose(view(mount_yaw_deg=90.0), [0, 1, 0], atol=1e-12)
     with pytest.raises(OptionError, match="mount_pitch_deg"):
         CameraOptions(mount_pitch_deg=120.0)
+
+
+def test_the_estimators_imu_defaults_to_the_flight_controllers_whatever_is_set():
+    """[vins_imu]'s default is the Pixhawk 6C/6X's ICM-42688-P, not the EuRoC figures
+    ImuNoise() defaults to: a key set leaves the others at the section's own default."""
+    from autonomy.vins.preintegration import ImuNoise
+
+    assert load_config(None).vins_imu == ImuNoise.icm42688p() != ImuNoise()
+    config = load_config(None, ["vins_imu.gyro_random_walk=1e-4"])
+    assert config.vins_imu == dataclasses.replace(ImuNoise.icm42688p(), gyro_random_walk=1e-4)

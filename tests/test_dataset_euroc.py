@@ -93,7 +93,7 @@ def test_imu_noise_reads_back_and_names_a_missing_key(tmp_path):
         read_imu_noise(tmp_path)
     yaml.write_text(text.replace("accelerometer_random_walk: 0.0001",
                                  "accelerometer_random_walk: -1"))
-    with pytest.raises(DatasetError, match="accel_random_walk: must be a finite number >= 0"):
+    with pytest.raises(DatasetError, match="accel_random_walk: must be >= 0, got -1.0"):
         read_imu_noise(tmp_path)
     yaml.write_text("%YAML:1.0\n[unclosed: {\n")
     with pytest.raises(DatasetError, match="sensor.yaml"):

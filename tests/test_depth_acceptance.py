@@ -15,7 +15,7 @@ import pytest
 from autonomy.depth.rescale import RescaleOptions
 from autonomy.depth.synthetic import SyntheticNetwork
 from autonomy.vins import VinsOptions
-from companion.eval.depth import DepthEvalOptions, evaluate_depth
+from companion.tools.eval.depth import DepthEvalOptions, evaluate_depth
 
 SECONDS = 40.0  # the VINS acceptance test's flights, recorded once per session
 FRAMES = 300  # 15 s at 20 Hz

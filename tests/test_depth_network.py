@@ -20,7 +20,7 @@ from autonomy.depth.network import (
     resize_align_corners,
 )
 from autonomy.options import OptionError
-from companion.testmodel import build_test_model
+from companion.tools.testmodel import build_test_model
 
 MEAN = np.array([0.485, 0.456, 0.406])
 STD = np.array([0.229, 0.224, 0.225])

@@ -61,8 +61,7 @@ def test_a_frame_with_its_sparse_map_gets_metric_depth_and_diagnostics():
     depth = _scene_depth()
     stage = _stage()
     pixels = _grid_pixels()
-    stage.add_sparse_map(_sparse_map(1.0, depth, pixels))
-    result = stage.process(RelativeDepth(1.0, _network(depth)))
+    result = stage.process(RelativeDepth(1.0, _network(depth)), _sparse_map(1.0, depth, pixels))
     assert result.ok and not result.held
     assert result.depth.shape == depth.shape and result.depth.dtype == np.float32
     assert metrics.abs_rel(result.depth, depth) < 0.02
@@ -77,31 +76,32 @@ def test_a_frame_with_its_sparse_map_gets_metric_depth_and_diagnostics():
 def test_the_map_of_the_frames_own_time_is_used_and_no_other():
     depth = _scene_depth()
     stage = _stage(max_map_offset_s=0.002)
-    for t, error in ((0.95, 2.0), (1.0, 1.0), (1.05, 2.0)):  # neighbours twice too deep
-        stage.add_sparse_map(_sparse_map(t, depth, _grid_pixels(), depth_error=error))
-    assert metrics.abs_rel(stage.process(RelativeDepth(1.0005, _network(depth))).depth,
+    own = _sparse_map(1.0, depth, _grid_pixels())
+    assert metrics.abs_rel(stage.process(RelativeDepth(1.0005, _network(depth)), own).depth,
                            depth) < 0.02
-    between = stage.process(RelativeDepth(1.02, _network(depth)))
-    assert between.ok and between.held  # no map at 1.02: the fit of 1.0005 is held
-    assert stage.no_fit[NO_SPARSE_MAP] == 1
+    # a map 20 ms off belongs to another frame: refused, and the fit of 1.0005 is held
+    neighbour = _sparse_map(1.0, depth, _grid_pixels(), depth_error=2.0)  # twice too deep
+    between = stage.process(RelativeDepth(1.02, _network(depth)), neighbour)
+    assert between.ok and between.held
+    assert metrics.abs_rel(between.depth, depth) < 0.02
+    assert stage.process(RelativeDepth(1.04, _network(depth)), None).held
+    assert stage.no_fit[NO_SPARSE_MAP] == 2
 
 
 def test_the_last_good_fit_is_held_for_hold_s_then_there_is_no_depth():
     depth = _scene_depth()
     stage = _stage(hold_s=0.5)
-    stage.add_sparse_map(_sparse_map(0.0, depth, _grid_pixels()))
-    assert stage.process(RelativeDepth(0.0, _network(depth))).ok
+    assert stage.process(RelativeDepth(0.0, _network(depth)),
+                         _sparse_map(0.0, depth, _grid_pixels())).ok
     few = _grid_pixels()[:3]
     for t in (0.3, 0.5):
-        stage.add_sparse_map(_sparse_map(t, depth, few))
-        held = stage.process(RelativeDepth(t, _network(depth)))
+        held = stage.process(RelativeDepth(t, _network(depth)), _sparse_map(t, depth, few))
         assert held.ok and held.held
         assert held.diagnostics.fit_age_s == pytest.approx(t)
         assert held.diagnostics.anchors == 3
         assert "too_few_anchors" in held.diagnostics.reason
         assert metrics.abs_rel(held.depth, depth) < 0.02
-    stage.add_sparse_map(_sparse_map(0.51, depth, few))
-    late = stage.process(RelativeDepth(0.51, _network(depth)))
+    late = stage.process(RelativeDepth(0.51, _network(depth)), _sparse_map(0.51, depth, few))
     assert not late.ok and late.depth is None and late.confidence is None
     assert "too_few_anchors" in late.diagnostics.reason
     assert stage.no_fit["too_few_anchors"] == 3
@@ -109,17 +109,16 @@ def test_the_last_good_fit_is_held_for_hold_s_then_there_is_no_depth():
 
 def test_without_any_fit_yet_there_is_no_depth():
     stage = _stage()
-    result = stage.process(RelativeDepth(0.0, _network(_scene_depth())))
+    result = stage.process(RelativeDepth(0.0, _network(_scene_depth())), None)
     assert not result.ok and "no VINS sparse map" in result.diagnostics.reason
 
 
 def test_hold_zero_never_holds():
     depth = _scene_depth()
     stage = _stage(hold_s=0.0)
-    stage.add_sparse_map(_sparse_map(0.0, depth, _grid_pixels()))
-    stage.process(RelativeDepth(0.0, _network(depth)))
-    stage.add_sparse_map(_sparse_map(0.05, depth, _grid_pixels()[:2]))
-    assert not stage.process(RelativeDepth(0.05, _network(depth))).ok
+    stage.process(RelativeDepth(0.0, _network(depth)), _sparse_map(0.0, depth, _grid_pixels()))
+    assert not stage.process(RelativeDepth(0.05, _network(depth)),
+                             _sparse_map(0.05, depth, _grid_pixels()[:2])).ok
 
 
 def test_untracked_landmarks_are_anchors_only_when_asked():
@@ -133,8 +132,7 @@ def test_untracked_landmarks_are_anchors_only_when_asked():
     results = {}
     for tracked_only in (True, False):
         stage = _stage(tracked_only=tracked_only)
-        stage.add_sparse_map(sparse)
-        results[tracked_only] = stage.process(RelativeDepth(0.0, _network(depth)))
+        results[tracked_only] = stage.process(RelativeDepth(0.0, _network(depth)), sparse)
     assert results[True].diagnostics.anchors == tracked.sum()
     assert results[False].diagnostics.anchors == len(pixels)
     assert metrics.abs_rel(results[True].depth, depth) < 0.02
@@ -144,9 +142,8 @@ def test_landmarks_off_the_image_are_not_anchors():
     depth = _scene_depth()
     pixels = np.vstack([_grid_pixels(), [[-3.0, 10.0], [70.0, 5.0], [10.0, 48.5]]])
     stage = _stage()
-    stage.add_sparse_map(_sparse_map(0.0, depth, pixels))
-    assert stage.process(RelativeDepth(0.0, _network(depth))).diagnostics.anchors \
-        == len(pixels) - 3
+    assert stage.process(RelativeDepth(0.0, _network(depth)),
+                         _sparse_map(0.0, depth, pixels)).diagnostics.anchors == len(pixels) - 3
 
 
 @pytest.mark.parametrize("corrupt, reason", [
@@ -160,12 +157,11 @@ def test_bad_network_output_is_rejected_with_its_reason_counted_and_gives_no_dep
         corrupt, reason):
     depth = _scene_depth()
     stage = _stage()
-    stage.add_sparse_map(_sparse_map(0.0, depth, _grid_pixels()))
-    assert stage.process(RelativeDepth(0.0, _network(depth))).ok
+    assert stage.process(RelativeDepth(0.0, _network(depth)),
+                         _sparse_map(0.0, depth, _grid_pixels())).ok
     bad = _network(depth)
     corrupt(bad)
-    stage.add_sparse_map(_sparse_map(0.05, depth, _grid_pixels()))
-    result = stage.process(RelativeDepth(0.05, bad))
+    result = stage.process(RelativeDepth(0.05, bad), _sparse_map(0.05, depth, _grid_pixels()))
     assert not result.ok  # a rejected image has nothing to hold a fit on
     assert reason.value in result.diagnostics.reason
     assert stage.rejected == {reason.value: 1}
@@ -186,7 +182,7 @@ def test_a_healthy_image_passes_the_check():
 
 
 @pytest.mark.parametrize("key, value", [("hold_s", -0.1), ("max_map_offset_s", 1.0),
-                                        ("map_history", 0), ("tracked_only", 1)])
+                                        ("tracked_only", 1)])
 def test_bad_stage_options_are_named(key, value):
     with pytest.raises(OptionError, match=key):
         DepthStageOptions(**{key: value})

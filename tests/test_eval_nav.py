@@ -18,8 +18,8 @@ import pytest
 
 from companion.cli import main
 from companion.config import Config
-from companion.eval import nav
-from companion.eval.vio import EvaluationError
+from companion.tools.eval import nav
+from companion.tools.eval.vio import EvaluationError
 from drivers.sim.world import build_world
 
 WORLD, PAIR = "sewer", 3  # a_far -> a_top: the shortest pair of the three worlds (seed 0)

@@ -23,8 +23,8 @@ from autonomy.depth.stage import MetricDepthStage
 from autonomy.messages import SparseMap
 from companion.cli import main
 from companion.config import Config
-from companion.eval import rescale
-from companion.eval.vio import EvaluationError
+from companion.tools.eval import rescale
+from companion.tools.eval.vio import EvaluationError
 
 METRICS = {"absrel", "delta1", "overestimate_rate"}
 NO_SUCH_PID = 2**31 - 1  # above Linux's largest pid (2^22): never a running process

@@ -14,7 +14,7 @@ from autonomy.messages import SparseMap
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInit
 from companion.cli import main
-from companion.eval.vio import (
+from companion.tools.eval.vio import (
     EvaluationError, VioTrace, depth_relative_errors, evaluate_vio, format_vio_report,
     read_vio_dataset, score_vio, vio_frames,
 )

@@ -1,5 +1,5 @@
-"""The flight application's parts on their own: faults, mission, watchdog, frame alignment,
-the simulated camera."""
+"""The flight application's parts on their own: faults, the truth's scoring, the watchdog,
+frame alignment, the simulated camera (the navigation decisions: test_navigation.py)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,9 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import make_pose, rot_z, yaw_alignment
-from companion.app import CornerState
-from companion.mission import FlightState, Mission, stop_waypoints
-from companion.simfly import TruthTrack, free_udp_port, truth_metric_source
-from companion.watchdog import SetpointWatchdog
+from companion.flight.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
+from drivers.sim.host import TruthDepth, TruthTrack, free_udp_port
 from drivers.mavlink.link import open_link
 from drivers.sim.faults import CuttableLink, Fault, FaultSchedule
 from drivers.sim.world import build_world
@@ -80,58 +78,6 @@ def test_a_cut_link_neither_sends_nor_delivers():
         assert "HEARTBEAT" in _received(server)
 
 
-# ---------------------------------------------------------------- mission
-
-def test_the_vehicle_stops_at_the_goal_and_at_sharp_corners_only():
-    route = np.array([[0.0, 0.0, 1.5], [10.0, 0.0, 1.5], [20.0, 2.0, 1.5],  # 11 deg: on
-                      [20.0, 12.0, 1.5], [10.0, 12.0, 2.5]])  # then 79 and 90 deg: stop
-    assert stop_waypoints(route, math.radians(30.0)) == [False, False, True, True, True]
-    assert stop_waypoints(route[:1], math.radians(30.0)) == [True]
-
-
-# ---------------------------------------------------------------- the flown trail
-
-def fly_trail(corner: CornerState, points, climbing=False) -> None:
-    for point in points:
-        corner.record(np.asarray(point, dtype=float), climbing)
-
-
-def test_the_way_back_follows_the_flown_trail_and_never_descends_the_take_off_column():
-    corner = CornerState()
-    # steps of 0.125 m (exact in binary), a little over the trail's spacing
-    fly_trail(corner, [(0.0, 0.0, z) for z in np.linspace(0.0, 1.5, 13)], climbing=True)
-    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(0.0, 3.0, 25)[1:]])
-    fly_trail(corner, [(3.0, y, 1.5) for y in np.linspace(0.0, 2.0, 17)[1:]])
-    here = np.array([3.0, 2.0, 1.5])
-    back = corner.way_back(here, 3.0)
-    # every 0.5 m of the trail back: up the north leg, round the corner, down the east leg
-    assert np.allclose(back, [(3.0, 1.5, 1.5), (3.0, 1.0, 1.5), (3.0, 0.5, 1.5),
-                              (3.0, 0.0, 1.5), (2.5, 0.0, 1.5), (2.0, 0.0, 1.5)], atol=1e-9)
-    # farther than the trail above the column: its first point up there, never down the column
-    back = corner.way_back(here, 20.0)
-    assert np.allclose(back[-1], (0.125, 0.0, 1.5)) and min(p[2] for p in back) == 1.5
-
-
-def test_a_glide_back_and_forth_is_erased_from_the_trail():
-    corner = CornerState()
-    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(0.0, 2.0, 17)])
-    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(2.0, 1.5, 5)])  # back for parallax
-    fly_trail(corner, [(x, 0.0, 1.5) for x in np.linspace(1.5, 2.0, 5)])  # and forth again
-    fly_trail(corner, [(2.0, 0.005, 1.5)] * 50)  # hovering adds nothing
-    assert len(corner.trail) == 17 and len(corner.climbing) == 17
-    assert np.allclose(corner.trail[-1], (2.0, 0.0, 1.5))
-    assert np.allclose(corner.way_back(np.array([2.0, 0.0, 1.5]), 1.0),
-                       [(1.5, 0.0, 1.5), (1.0, 0.0, 1.5)])
-
-
-def test_no_way_back_shorter_than_one_glide():
-    corner = CornerState()
-    fly_trail(corner, [(0.0, 0.0, z) for z in np.linspace(0.0, 1.5, 13)], climbing=True)
-    assert corner.way_back(np.array([0.0, 0.0, 1.5]), 2.0) == []
-    fly_trail(corner, [(0.125, 0.0, 1.5), (0.25, 0.0, 1.5), (0.375, 0.0, 1.5)])
-    assert corner.way_back(np.array([0.375, 0.0, 1.5]), 2.0) == []
-
-
 def test_the_truth_scores_the_flight_and_the_vins_error_when_navigation_ended():
     world = build_world("dome", 0)
     track = TruthTrack()
@@ -151,37 +97,12 @@ def test_truth_depth_is_fully_confident_and_its_empty_sky_is_far():
     from autonomy.messages import Frame
     depth = np.array([[2.0, np.nan], [5.0, 7.0]], np.float32)
     frame = Frame(1.5, np.zeros((2, 2, 3), np.uint8), truth_depth=depth)
-    metric = truth_metric_source(10.0)(frame)
+    source = TruthDepth(10.0)
+    metric = source.infer(frame)
+    assert source.metric(metric, None) is metric  # nothing to rescale
     assert metric.ok and metric.t == 1.5 and metric.diagnostics.method == "truth"
     np.testing.assert_array_equal(metric.depth, [[2.0, 10.0], [5.0, 7.0]])
     np.testing.assert_array_equal(metric.confidence, 1.0)
-
-
-def test_mission_keeps_every_transition_with_its_reason():
-    mission = Mission(0.0)
-    mission.go(1.0, FlightState.INITIALISING, "link up")
-    mission.go(1.0, FlightState.INITIALISING, "again")  # no-op
-    mission.go(3.0, FlightState.TAKING_OFF, "VINS initialised")
-    assert [(t.source, t.target, t.reason) for t in mission.transitions] == [
-        (FlightState.PREFLIGHT, FlightState.INITIALISING, "link up"),
-        (FlightState.INITIALISING, FlightState.TAKING_OFF, "VINS initialised")]
-    assert mission.elapsed(4.5) == pytest.approx(1.5)
-
-
-def test_a_failsafe_stops_navigation_once_and_records_every_reason():
-    mission = Mission(0.0)
-    mission.go(1.0, FlightState.NAVIGATING, "offboard")
-    assert mission.failsafe(2.0, "camera silent")
-    assert mission.state == FlightState.FAILSAFE_STOP
-    assert not mission.failsafe(2.1, "IMU silent")  # already stopping
-    assert mission.failsafes == ["camera silent", "IMU silent"]
-    assert mission.transitions[-1].reason == "failsafe: camera silent"
-
-
-def test_a_failsafe_on_the_ground_changes_nothing():
-    mission = Mission(0.0)
-    assert not mission.failsafe(1.0, "camera silent")
-    assert mission.state == FlightState.PREFLIGHT
 
 
 # ---------------------------------------------------------------- watchdog
@@ -261,7 +182,7 @@ def test_yaw_alignment_maps_the_body_pose_from_vins_world_to_px4_local():
 
 class _Vehicle:
     def __init__(self):
-        from drivers.sim.vehicle import Quadrotor
+        from drivers.sim.quadrotor import Quadrotor
         self.vehicle = Quadrotor(position=(0.0, 0.0, 1.5))
         self.faults = FaultSchedule((Fault("camera_freeze", 0.0, 0.2),
                                      Fault("camera_blackout", 0.4, 0.1)))

@@ -19,7 +19,7 @@ from dataclasses import replace
 
 import pytest
 
-from companion import simfly
+from companion.launch import simulated
 from companion.config import Config
 from drivers.sim.faults import Fault
 
@@ -27,11 +27,11 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 
 def test_an_event_loop_stall_is_caught_by_the_watchdog_in_real_time():
-    mission = simfly.SimMission(world="dome", faults=(Fault.parse("loop_stall@1+1.5"),),
+    mission = simulated.SimMission(world="dome", faults=(Fault.parse("loop_stall@1+1.5"),),
                                 clock="realtime", depth="truth")
     flight = replace(Config().flight, camera_timeout_s=2.0, imu_timeout_s=1.0,
                      depth_timeout_s=3.0)
-    summary = simfly.run(replace(Config(), flight=flight), mission)
+    summary = simulated.run(replace(Config(), flight=flight), mission)
     assert summary["collisions"] == 0, summary["collision"]
     assert summary["final_state"] == "landed", summary["transitions"]
     assert summary["watchdog_setpoints"] > 0

@@ -20,7 +20,8 @@ import sys
 import numpy as np
 import pytest
 
-from companion import cli, simfly
+from companion import cli
+from companion.launch import simulated
 from companion.config import Config, load_config
 from drivers.sim.faults import Fault
 from drivers.sim.world import build_world
@@ -32,15 +33,15 @@ SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
                 "navigation_end", "position_error_m"}
 
 
-_LOCKSTEP_FLIGHTS: dict[simfly.SimMission, dict] = {}
+_LOCKSTEP_FLIGHTS: dict[simulated.SimMission, dict] = {}
 
 
 def fly(world: str, *, faults=(), goal=None) -> dict:
     """The lockstep flight's summary; a lockstep flight is deterministic, so one flown already
     is not flown again (several tests read the same fault's flight)."""
-    mission = simfly.SimMission(world=world, faults=tuple(faults), goal=goal)
+    mission = simulated.SimMission(world=world, faults=tuple(faults), goal=goal)
     if mission not in _LOCKSTEP_FLIGHTS:
-        _LOCKSTEP_FLIGHTS[mission] = simfly.run(Config(), mission)
+        _LOCKSTEP_FLIGHTS[mission] = simulated.run(Config(), mission)
     return _LOCKSTEP_FLIGHTS[mission]
 
 
@@ -109,7 +110,7 @@ def test_blocked_beside_a_door_it_backs_off_along_its_trail_and_goes_through():
     mission timeout cuts the flight short: the door is what is tested, not the 110 s to the
     goal."""
     config = load_config(None, ["flight.mission_timeout_s=32"])
-    summary = simfly.run(config, simfly.SimMission(world="sewer", pair=2, depth="truth"))
+    summary = simulated.run(config, simulated.SimMission(world="sewer", pair=2, depth="truth"))
     assert_safe_landing(summary)
     assert summary["backoffs"] == 1
     assert summary["failsafes"] == ["mission timeout"], summary["failsafes"]

@@ -7,7 +7,7 @@ import time
 import pytest
 
 from drivers.mavlink.link import LinkAddress, open_link, parse_url
-from drivers.mavlink import px4
+from drivers.mavlink import px4_protocol
 
 
 def free_udp_port() -> int:
@@ -99,7 +99,7 @@ def test_signing_rejects_unsigned_messages_except_the_allowlist():
     key = bytes(range(32))
     with open_link(f"udpin://127.0.0.1:{port}") as server, \
             open_link(f"udpout://127.0.0.1:{port}", source_system=255) as client:
-        server.setup_signing(key, accept_unsigned=px4.accept_unsigned)
+        server.setup_signing(key, accept_unsigned=px4_protocol.accept_unsigned)
         client.mav.heartbeat_send(6, 8, 0, 0, 0)
         client.mav.radio_status_send(200, 190, 100, 10, 5, 0, 0)
         assert [m.get_type() for m in server.receive_pending()] == ["RADIO_STATUS"]

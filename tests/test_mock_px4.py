@@ -7,10 +7,10 @@ import socket
 import numpy as np
 import pytest
 
-from drivers.mavlink import px4
+from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
-from drivers.sim.px4 import MockPx4, Px4Options
-from drivers.sim.vehicle import Quadrotor
+from drivers.sim.mock_px4 import MockPx4, Px4Options
+from drivers.sim.quadrotor import Quadrotor
 
 DT = 0.005  # 200 Hz physics, the IMU rate
 KEY = bytes(range(100, 132))
@@ -64,7 +64,7 @@ class Bench:
                 and m.command == command]
         return acks[-1].result if acks else None
 
-    def set_mode(self, mode: px4.Px4Mode):
+    def set_mode(self, mode: px4_protocol.Px4Mode):
         return self.command(mavlink.MAV_CMD_DO_SET_MODE,
                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode.main, mode.sub)
 
@@ -73,8 +73,8 @@ class Bench:
 
     def send_velocity(self, v_ned, frame=mavlink.MAV_FRAME_LOCAL_NED, yaw=0.0):
         """A velocity setpoint with an absolute yaw (NED heading), or a zero yaw rate if None."""
-        type_mask = (px4.TYPE_MASK_VELOCITY_YAW if yaw is not None
-                     else px4.TYPE_MASK_VELOCITY_YAW_RATE)
+        type_mask = (px4_protocol.TYPE_MASK_VELOCITY_YAW if yaw is not None
+                     else px4_protocol.TYPE_MASK_VELOCITY_YAW_RATE)
         self.client.mav.set_position_target_local_ned_send(
             0, 1, 1, frame, type_mask, 0, 0, 0, *v_ned, 0, 0, 0, yaw or 0.0, 0.0)
 
@@ -107,7 +107,7 @@ def test_heartbeat_shows_a_px4_quadrotor_in_hold(bench):
     assert heartbeat.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     assert not heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     assert heartbeat.system_status == mavlink.MAV_STATE_STANDBY
-    assert px4.Px4Mode.from_custom_mode(heartbeat.custom_mode).name == "AUTO.LOITER"
+    assert px4_protocol.Px4Mode.from_custom_mode(heartbeat.custom_mode).name == "AUTO.LOITER"
     assert heartbeat.custom_mode == (4 << 16) | (3 << 24)
     assert heartbeat.get_srcSystem() == 1 and heartbeat.get_srcComponent() == 1
     for kind in ("SYS_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION", "LOCAL_POSITION_NED",
@@ -143,7 +143,7 @@ def test_in_flight_disarm_needs_px4s_force_magic(bench):
     assert "Disarming denied: not landed" in bench.texts()
     assert bench.vehicle.armed
     assert bench.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
-                         px4.FORCE_ARM_DISARM_MAGIC) == mavlink.MAV_RESULT_ACCEPTED
+                         px4_protocol.FORCE_ARM_DISARM_MAGIC) == mavlink.MAV_RESULT_ACCEPTED
     assert not bench.vehicle.armed
 
 
@@ -182,21 +182,22 @@ def test_request_message_sends_autopilot_version_with_capabilities(bench):
 
 def test_offboard_is_refused_without_a_setpoint_stream(bench):
     bench.arm()
-    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
     bench.stream_velocity((0, 0, 0), 0.6)  # streaming, but not yet for a second
-    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
     bench.stream_velocity((0, 0, 0), 0.6, rate_hz=1)  # for long enough, but below 2 Hz
-    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    assert bench.px4.mode == px4.AUTO_LOITER
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert bench.px4.mode == px4_protocol.AUTO_LOITER
 
 
 def test_offboard_after_streaming_flies_the_velocity_in_ned(bench):
     bench.arm()
     bench.stream_velocity((1.0, 0.0, -0.5), 1.2)
-    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_ACCEPTED
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_ACCEPTED
     bench.stream_velocity((1.0, 0.0, -0.5), 3.0)
     bench.run(1.1)
-    assert px4.Px4Mode.from_custom_mode(bench.last("HEARTBEAT").custom_mode) == px4.OFFBOARD
+    assert px4_protocol.Px4Mode.from_custom_mode(bench.last("HEARTBEAT").custom_mode) \
+        == px4_protocol.OFFBOARD
     position = bench.last("LOCAL_POSITION_NED")
     assert position.x > 1.5 and position.z < -0.8 and abs(position.y) < 0.2  # north and up
     assert bench.vehicle.state.position[1] > 1.5  # north is the world's +y (ENU)
@@ -206,22 +207,23 @@ def test_body_ned_velocity_is_rotated_by_the_attitude(bench):
     bench.arm()
     body = {"frame": mavlink.MAV_FRAME_BODY_NED, "yaw": None}
     bench.stream_velocity((1.0, 0.0, -0.5), 1.2, **body)
-    bench.set_mode(px4.OFFBOARD)
+    bench.set_mode(px4_protocol.OFFBOARD)
     bench.stream_velocity((1.0, 0.0, -0.5), 3.0, **body)
     x, y, z = bench.vehicle.state.position
     assert x > 1.5 and abs(y) < 0.2 and z > 0.5  # yaw 0 faces east: body forward is +x ENU
 
 
-@pytest.mark.parametrize("action, mode", [("hold", px4.AUTO_LOITER), ("land", px4.AUTO_LAND)])
+@pytest.mark.parametrize("action, mode", [("hold", px4_protocol.AUTO_LOITER),
+                                          ("land", px4_protocol.AUTO_LAND)])
 def test_offboard_loss_failsafe_after_com_of_loss_t(action, mode):
     bench = Bench(Px4Options(offboard_loss_action=action, disarm_after_land=0.5))
     try:
         bench.arm()
         bench.stream_velocity((0.0, 0.0, -1.0), 1.2)
-        bench.set_mode(px4.OFFBOARD)
+        bench.set_mode(px4_protocol.OFFBOARD)
         bench.stream_velocity((0.0, 0.0, -1.0), 1.0)
         bench.run(0.9)
-        assert bench.px4.mode == px4.OFFBOARD
+        assert bench.px4.mode == px4_protocol.OFFBOARD
         bench.run(0.2)
         assert bench.px4.mode == mode
         assert any("offboard lost" in text for text in bench.texts())
@@ -238,7 +240,7 @@ def test_unsupported_frames_are_rejected_and_do_not_move_the_vehicle(bench):
     messages = bench.stream_velocity((1.0, 0.0, -1.0), 1.2, frame=mavlink.MAV_FRAME_LOCAL_ENU)
     assert any("coordinate frame 4" in text
                for text in bench.texts(messages))
-    assert bench.set_mode(px4.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
     assert np.linalg.norm(bench.vehicle.state.position - start) < 0.01
 
 
@@ -247,7 +249,7 @@ def test_takeoff_climbs_to_the_takeoff_altitude_then_holds_and_land_disarms(benc
     assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
                          math.nan) == mavlink.MAV_RESULT_ACCEPTED
     bench.run(4.0)
-    assert bench.px4.mode == px4.AUTO_LOITER
+    assert bench.px4.mode == px4_protocol.AUTO_LOITER
     assert bench.vehicle.state.position[2] == pytest.approx(2.5, abs=0.3)
     assert bench.last("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
     assert bench.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
@@ -328,7 +330,7 @@ def test_a_collision_ends_the_flight():
     try:
         bench.arm()
         bench.stream_velocity((0.0, 2.0, -0.5), 1.2)  # NED east = ENU +x, towards the wall
-        bench.set_mode(px4.OFFBOARD)
+        bench.set_mode(px4_protocol.OFFBOARD)
         bench.stream_velocity((0.0, 2.0, -0.5), 3.0)
         assert bench.vehicle.collision is not None and not bench.vehicle.armed
         assert any("Collision" in text for text in bench.texts())
@@ -365,7 +367,7 @@ def test_commands_with_nan_where_a_number_is_needed_are_denied(bench):
         mavlink.MAV_RESULT_DENIED
     assert bench.command(mavlink.MAV_CMD_DO_SET_MODE, 1, math.nan, 0) == \
         mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    assert bench.px4.mode == px4.AUTO_LOITER
+    assert bench.px4.mode == px4_protocol.AUTO_LOITER
 
 
 def test_serve_in_lockstep_runs_simulated_time_and_wakes_sleepers_on_it():

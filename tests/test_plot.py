@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.plot import top_view
+from companion.tools.plot import top_view
 from drivers.sim.world import build_world
 
 

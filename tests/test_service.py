@@ -7,7 +7,7 @@ import uuid
 
 import pytest
 
-from companion.service import SystemdNotifier, watchdog_interval_s
+from companion.launch.systemd import SystemdNotifier, watchdog_interval_s
 
 
 @pytest.fixture

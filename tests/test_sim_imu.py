@@ -9,7 +9,7 @@ import pytest
 from autonomy.geometry import GRAVITY
 from autonomy.options import OptionError
 from drivers.sim.imu import ImuModel, ImuOptions
-from drivers.sim.vehicle import ImuTruth
+from drivers.sim.quadrotor import ImuTruth
 
 TRUTH = ImuTruth(angular_velocity=np.array([0.1, -0.2, 0.3]),
                  specific_force=np.array([0.5, -0.4, GRAVITY]))

@@ -14,7 +14,7 @@ from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
 from drivers.sim.record import RecordError, record_dataset
 from drivers.sim.render import RenderError, Renderer
-from drivers.sim.vehicle import VehicleOptions
+from drivers.sim.quadrotor import VehicleOptions
 from drivers.sim.world import build_world
 
 DURATION = 9.0  # 2 s on the ground, a climb, and the start of the path

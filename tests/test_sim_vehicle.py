@@ -8,7 +8,7 @@ import pytest
 
 from autonomy.geometry import GRAVITY, quat_to_rot, rot_to_quat, so3_exp, yaw_of
 from autonomy.options import OptionError
-from drivers.sim.vehicle import (
+from drivers.sim.quadrotor import (
     MAX_STEP,
     ControlTarget,
     ImuTruth,

@@ -10,7 +10,7 @@ divergence).
 import pytest
 
 from autonomy.vins import VinsOptions
-from companion.eval.vio import evaluate_vio
+from companion.tools.eval.vio import evaluate_vio
 
 SECONDS = 40.0
 

@@ -4,9 +4,10 @@ For the frame taken at ``t`` (Yang et al., Section III-B):
 
 1. check the network's output (:func:`check_relative_disparity`): an image with NaN, ±∞ or
    negative values, or a constant one, is rejected with its reason and counted;
-2. take the VINS sparse map of the same frame (the one whose time is nearest ``t``, within
-   ``max_map_offset_s``), keep the landmarks the front-end saw in this frame (all landmarks
-   in view with ``tracked_only`` off), and sample the relative disparity at each one's pixel,
+2. take the VINS sparse map of the same frame (given with it; one whose time is more than
+   ``max_map_offset_s`` from ``t`` belongs to another frame and is refused), keep the
+   landmarks the front-end saw in this frame (all landmarks in view with ``tracked_only``
+   off), and sample the relative disparity at each one's pixel,
    the nearest surface of the four pixels around it
    (:func:`~autonomy.depth.anchors.sample_nearest_surface`);
 3. fit the configured map from relative to metric disparity on those anchors
@@ -21,7 +22,7 @@ A frame whose fit fails (too few anchors, say) is given the last good fit while 
 from __future__ import annotations
 
 import math
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
 from enum import Enum
 
@@ -35,7 +36,8 @@ from autonomy.options import option, validate
 
 @dataclass(frozen=True)
 class DepthStageOptions:
-    """How the stage pairs frames with sparse maps and bridges frames without a fit."""
+    """Which anchors the stage takes from a frame's sparse map, and how it bridges frames
+    without a fit."""
 
     hold_s: float = option(0.5, ge=0.0, le=5.0, doc="how long the last good fit is applied to "
                            "frames that get none, seconds; after that there is no depth")
@@ -43,14 +45,12 @@ class DepthStageOptions:
                                 "(a landmark merely projected into view may be occluded)")
     max_map_offset_s: float = option(0.002, ge=0.0, le=0.1, doc="largest difference between "
                                      "a frame's time and its sparse map's time, seconds")
-    map_history: int = option(32, ge=1, le=1000, doc="sparse maps kept to pair with frames "
-                              "whose network output arrives later")
 
     def __post_init__(self) -> None:
         validate(self)
 
 
-#: The :attr:`MetricDepthStage.no_fit` key of frames that had no sparse map to pair with.
+#: The :attr:`MetricDepthStage.no_fit` key of frames that came without their sparse map.
 NO_SPARSE_MAP = "no_sparse_map"
 
 
@@ -98,9 +98,9 @@ class _GoodFit:
 class MetricDepthStage:
     """Relative disparity + VINS sparse maps → :class:`MetricDepth`, one frame at a time.
 
-    Feed every sparse map the VINS produces with :meth:`add_sparse_map` and each network
-    output with :meth:`process`, in time order. ``rejected`` counts rejected network outputs
-    by :class:`Rejection` value; ``no_fit`` counts frames without a fresh fit by reason.
+    Feed each network output with the VINS sparse map of the same frame to :meth:`process`,
+    in time order. ``rejected`` counts rejected network outputs by :class:`Rejection` value;
+    ``no_fit`` counts frames without a fresh fit by reason.
     """
 
     def __init__(self, rescale: RescaleOptions | None = None,
@@ -109,23 +109,12 @@ class MetricDepthStage:
         self.options = options or DepthStageOptions()
         self.rejected: Counter[str] = Counter()
         self.no_fit: Counter[str] = Counter()
-        self._maps: deque[SparseMap] = deque(maxlen=self.options.map_history)
         self._blend = TemporalBlend(self.rescale.temporal_blend)
         self._last_good: _GoodFit | None = None
 
-    def add_sparse_map(self, sparse_map: SparseMap) -> None:
-        """Keep the VINS map of one frame for pairing with that frame's network output."""
-        self._maps.append(sparse_map)
-
-    def map_at(self, t: float) -> SparseMap | None:
-        """The kept sparse map nearest ``t``, if within ``max_map_offset_s`` of it."""
-        if not self._maps:
-            return None
-        nearest = min(self._maps, key=lambda m: abs(m.t - t))
-        return nearest if abs(nearest.t - t) <= self.options.max_map_offset_s else None
-
-    def process(self, relative: RelativeDepth) -> MetricDepth:
-        """The metric depth of one frame (module docstring)."""
+    def process(self, relative: RelativeDepth, sparse_map: SparseMap | None) -> MetricDepth:
+        """The metric depth of one frame, from its network output and the VINS sparse map of
+        the same frame (None when the VINS had none; module docstring)."""
         t = relative.t
         problem = check_relative_disparity(relative.disparity)
         if problem is not None:
@@ -134,7 +123,8 @@ class MetricDepthStage:
             self._blend = TemporalBlend(self.rescale.temporal_blend)  # no curve across a gap
             return _no_depth(t, f"network output rejected ({reason.value}): {detail}")
         disparity = np.asarray(relative.disparity, dtype=np.float32)
-        sparse_map = self.map_at(t)
+        if sparse_map is not None and abs(sparse_map.t - t) > self.options.max_map_offset_s:
+            sparse_map = None  # another frame's map: its landmarks are not at these pixels
         if sparse_map is None:
             self.no_fit[NO_SPARSE_MAP] += 1
             return self._hold(t, disparity, 0, "no VINS sparse map for this frame")

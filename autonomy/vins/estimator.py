@@ -8,7 +8,7 @@ application can time and schedule them apart; nothing here reads a clock.
 Per frame, once initialised:
 
 1. the body state at the frame time is the last keyframe's smoothed estimate carried forward
-   through the IMU (:func:`autonomy.vins.imu_buffer.propagate`);
+   through the IMU (:class:`autonomy.vins.imu_buffer.Propagator`);
 2. the frame becomes a keyframe when ``keyframe_interval_s`` has passed since the last one, or
    sooner (not before ``keyframe_min_interval_s``) when the features have moved by
    ``keyframe_parallax_px`` on average; a keyframe goes to the smoother with the IMU
@@ -36,7 +36,7 @@ from autonomy.messages import ImuSample, Odometry, SparseMap
 from autonomy.vins.backend import BackendError, KeyframeState, PriorSigmas, SlidingWindowSmoother
 from autonomy.vins.frontend import FeatureTracker, FrontendOptions, Tracks
 from autonomy.vins.health import Health, HealthInputs, HealthState, assess
-from autonomy.vins.imu_buffer import ImuBuffer, NavState, propagate
+from autonomy.vins.imu_buffer import ImuBuffer, NavState, Propagator
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import NotStill, StaticInit, StaticInitOptions, static_initialise
@@ -92,6 +92,7 @@ class Vins:
         self.static_init: StaticInit | None = None
         self.reinitialisations = 0
         self._imu = ImuBuffer()
+        self._propagator = Propagator()
         self._anchor: _Anchor | None = None
         self._last_frame_t = -math.inf
         self._keyframe_tracks: Tracks | None = None
@@ -238,7 +239,8 @@ class Vins:
 
     def _propagate_to(self, t: float) -> NavState:
         a = self._anchor
-        return propagate(a.state, self._imu.pieces(a.state.t, t), a.bias_g, a.bias_a)
+        return self._propagator.propagate(a.state, self._imu.pieces(a.state.t, t), a.bias_g,
+                                          a.bias_a)
 
     def _imu_gap(self, t: float) -> str:
         last = self._imu.last_time

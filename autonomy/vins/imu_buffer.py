@@ -1,9 +1,9 @@
 """IMU samples held for preintegration and forward propagation.
 
 A sample at ``t_k`` holds over ``[t_k, t_{k+1})`` (zero-order hold); the newest holds until the
-time asked for. :func:`propagate` integrates the navigation state through such pieces with the
-same model the preintegration uses (Forster et al., TRO 2017, eq. 31 with constant
-measurements over each piece):
+time asked for. :func:`propagate` integrates the navigation state through such pieces
+(:class:`Propagator` incrementally) with the same model the preintegration uses (Forster et
+al., TRO 2017, eq. 31 with constant measurements over each piece):
 
     R <- R Exp((w - b_g) dt)
     v <- v + (g + R (a - b_a)) dt
@@ -119,11 +119,71 @@ class ImuBuffer:
 def propagate(state: NavState, pieces: ImuPieces, bias_g: np.ndarray, bias_a: np.ndarray,
               gravity: float = GRAVITY) -> NavState:
     """``state`` carried through ``pieces`` (see the module docstring for the model)."""
-    R, p, v = state.R_W_B, state.position, state.velocity
-    g = np.array([0.0, 0.0, -gravity])
-    for w, a, dt in zip(pieces.gyro - bias_g, pieces.accel - bias_a, pieces.dt):
-        acc = g + R @ a
-        p = p + v * dt + 0.5 * acc * dt * dt
-        v = v + acc * dt
-        R = R @ so3_exp(w * dt)
+    R, p, v = _integrate((state.R_W_B, state.position, state.velocity), pieces.gyro - bias_g,
+                         pieces.accel - bias_a, pieces.dt, gravity)
     return NavState(state.t + float(pieces.dt.sum()), R, p, v)
+
+
+def _integrate(Rpv: tuple, gyro: np.ndarray, accel: np.ndarray, dt: np.ndarray,
+               gravity: float) -> tuple:
+    """``(R, p, v)`` through bias-corrected pieces, one after the other."""
+    R, p, v = Rpv
+    g = np.array([0.0, 0.0, -gravity])
+    for w, a, step in zip(gyro, accel, dt):
+        acc = g + R @ a
+        p = p + v * step + 0.5 * acc * step * step
+        v = v + acc * step
+        R = R @ so3_exp(w * step)
+    return R, p, v
+
+
+class Propagator:
+    """:func:`propagate` from one start state again and again, to ever later times, without
+    integrating the same samples twice.
+
+    The odometry asks for the state at the newest IMU sample tens of times a second, each time
+    from the same keyframe state through every sample since (hundreds, and growing until the
+    next keyframe). The pieces up to the last are whole sample intervals that the next call
+    shares, so their result is kept and the next call goes on from it. The arithmetic is the
+    same, piece after piece, so the result is bit for bit :func:`propagate`'s.
+    """
+
+    def __init__(self, gravity: float = GRAVITY):
+        self.gravity = gravity
+        self._start: tuple | None = None  # (state, bias_g, bias_a) the kept prefix starts at
+        self._prefix: ImuPieces | None = None  # whole pieces integrated
+        self._Rpv: tuple | None = None  # the state after them
+
+    def propagate(self, state: NavState, pieces: ImuPieces, bias_g: np.ndarray,
+                  bias_a: np.ndarray) -> NavState:
+        """Exactly ``propagate(state, pieces, bias_g, bias_a)``."""
+        done = self._resumable(state, pieces, bias_g, bias_a)
+        if done == 0:
+            self._start, self._Rpv = (state, bias_g, bias_a), (state.R_W_B, state.position,
+                                                               state.velocity)
+        whole = len(pieces.dt) - 1  # the last piece may end inside a sample's interval
+        if whole > done:
+            self._Rpv = _integrate(self._Rpv, pieces.gyro[done:whole] - bias_g,
+                                   pieces.accel[done:whole] - bias_a, pieces.dt[done:whole],
+                                   self.gravity)
+            done = whole
+        self._prefix = ImuPieces(pieces.gyro[:done], pieces.accel[:done], pieces.dt[:done])
+        R, p, v = _integrate(self._Rpv, pieces.gyro[done:] - bias_g,
+                             pieces.accel[done:] - bias_a, pieces.dt[done:], self.gravity)
+        return NavState(state.t + float(pieces.dt.sum()), R, p, v)
+
+    def _resumable(self, state: NavState, pieces: ImuPieces, bias_g, bias_a) -> int:
+        """How many leading pieces were integrated already from this very start (0: none)."""
+        if self._start is None or self._prefix is None:
+            return 0
+        start, kept_g, kept_a = self._start
+        k = len(self._prefix.dt)
+        same_start = start is state and kept_g is bias_g and kept_a is bias_a
+        if not same_start or len(pieces.dt) <= k:
+            return 0
+        prefix = self._prefix
+        if not (np.array_equal(pieces.dt[:k], prefix.dt)
+                and np.array_equal(pieces.gyro[:k], prefix.gyro)
+                and np.array_equal(pieces.accel[:k], prefix.accel)):
+            return 0
+        return k

@@ -29,26 +29,42 @@ from dataclasses import dataclass
 import numpy as np
 
 from autonomy.geometry import GRAVITY, skew
+from autonomy.options import option, validate
+
+
+#: ICM-42688-P (the IMU of the Pixhawk 6C / 6X) gyroscope rate noise density, datasheet
+#: DS-000347 rev. 1.7: 0.0028 deg/s/sqrt(Hz), in rad/s/sqrt(Hz).
+ICM42688P_GYRO_NOISE_DENSITY = math.radians(0.0028)
+#: ICM-42688-P accelerometer noise density, 70 ug/sqrt(Hz), in m/s^2/sqrt(Hz).
+ICM42688P_ACCEL_NOISE_DENSITY = 70e-6 * GRAVITY
 
 
 @dataclass(frozen=True)
 class ImuNoise:
     """Continuous-time IMU noise model (Kalibr / EuRoC ``sensor.yaml`` names and units).
 
-    Defaults are the EuRoC ADIS16448 values of ``mav0/imu0/sensor.yaml``.
+    Defaults are the EuRoC ADIS16448 values of ``mav0/imu0/sensor.yaml``; the flight's
+    ``[vins_imu]`` table defaults to :meth:`icm42688p`.
     """
 
-    gyro_noise_density: float = 1.6968e-4   #: rad/s/sqrt(Hz)
-    accel_noise_density: float = 2.0e-3     #: m/s^2/sqrt(Hz)
-    gyro_random_walk: float = 1.9393e-5     #: rad/s^2/sqrt(Hz)
-    accel_random_walk: float = 3.0e-3       #: m/s^3/sqrt(Hz)
+    gyro_noise_density: float = option(1.6968e-4, ge=0.0, le=1.0,
+                                       doc="gyroscope white noise, rad/s/sqrt(Hz)")
+    accel_noise_density: float = option(2.0e-3, ge=0.0, le=10.0,
+                                        doc="accelerometer white noise, m/s^2/sqrt(Hz)")
+    gyro_random_walk: float = option(1.9393e-5, ge=0.0, le=1.0,
+                                     doc="gyroscope bias random walk, rad/s^2/sqrt(Hz)")
+    accel_random_walk: float = option(3.0e-3, ge=0.0, le=10.0,
+                                      doc="accelerometer bias random walk, m/s^3/sqrt(Hz)")
 
     def __post_init__(self) -> None:
-        for name in ("gyro_noise_density", "accel_noise_density", "gyro_random_walk",
-                     "accel_random_walk"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name}: must be a finite number >= 0, got {value!r}")
+        validate(self)
+
+    @classmethod
+    def icm42688p(cls) -> "ImuNoise":
+        """The flight controller's IMU of the Pixhawk 6C / 6X: the ICM-42688-P's datasheet
+        white-noise densities; datasheets give no bias random walk, so EuRoC's (the figures
+        VIO pipelines are most often tuned with) stand in."""
+        return cls(ICM42688P_GYRO_NOISE_DENSITY, ICM42688P_ACCEL_NOISE_DENSITY)
 
 
 @dataclass(frozen=True)

@@ -37,11 +37,11 @@ from autonomy.geometry import make_pose, quat_to_rot
 from autonomy.messages import ImuSample
 from autonomy.options import OptionError, option, validate
 from drivers.clock import Clock
-from drivers.mavlink import px4
+from drivers.mavlink import px4_protocol
 from drivers.mavlink.frames import (enu_to_ned, frd_to_flu, ned_to_enu,
                                     quat_ned_frd_to_enu_flu)
 from drivers.mavlink.imu_stream import ImuStamper
-from drivers.mavlink.link import MavlinkLink, mavlink, open_link, parse_url
+from drivers.mavlink.link import MavlinkLink, mavlink, open_link, parse_url, signing_secret
 from drivers.mavlink.odometry import odometry_fields, pose_covariance_to_mavlink
 from drivers.mavlink.timesync import TimesyncFilter
 
@@ -115,18 +115,11 @@ class MavlinkOptions:
             parse_url(self.url)
         except ValueError as error:
             raise OptionError("url", str(error)) from None
-        if self.signing_key:
-            try:
-                key = bytes.fromhex(self.signing_key)
-            except ValueError:
-                key = b""
-            if len(key) != 32:
-                raise OptionError("signing_key", "must be 64 hex digits (a 32-byte key), "
-                                  f"got {len(self.signing_key)} characters")
+        signing_secret(self.signing_key)
 
     @property
     def signing_secret(self) -> bytes | None:
-        return bytes.fromhex(self.signing_key) if self.signing_key else None
+        return signing_secret(self.signing_key)
 
 
 @dataclass(frozen=True)
@@ -196,14 +189,15 @@ class Autopilot:
         self.clock = clock
         self.options = options or MavlinkOptions()
         if self.options.signing_secret is not None:
-            link.setup_signing(self.options.signing_secret, accept_unsigned=px4.accept_unsigned)
+            link.setup_signing(self.options.signing_secret,
+                               accept_unsigned=px4_protocol.accept_unsigned)
         self.timesync = TimesyncFilter()
         self.counts: Counter = Counter()
         self.statustexts: deque[StatusText] = deque(maxlen=STATUSTEXT_HISTORY)
         self.connected = False
         self.link_losses = 0
         self.armed = False
-        self.mode: px4.Px4Mode | None = None
+        self.mode: px4_protocol.Px4Mode | None = None
         self.state: VehicleState | None = None
         self.home_altitude_amsl: float | None = None
         self.home_position_L: np.ndarray | None = None
@@ -433,7 +427,7 @@ class Autopilot:
         self._last_heartbeat, self._deaf_s = now, 0.0
         self.armed = bool(message.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         try:
-            self.mode = px4.Px4Mode.from_custom_mode(message.custom_mode)
+            self.mode = px4_protocol.Px4Mode.from_custom_mode(message.custom_mode)
         except ValueError:
             self.mode = None
             self.counts["unknown_mode"] += 1
@@ -621,9 +615,9 @@ class Autopilot:
     async def disarm(self, force: bool = False) -> bool:
         """Disarm; ``force`` also in the air (PX4's 21196 magic: the motors stop)."""
         return await self._verb(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
-                                px4.FORCE_ARM_DISARM_MAGIC if force else 0)
+                                px4_protocol.FORCE_ARM_DISARM_MAGIC if force else 0)
 
-    async def set_mode(self, mode: px4.Px4Mode) -> bool:
+    async def set_mode(self, mode: px4_protocol.Px4Mode) -> bool:
         """Switch PX4's flight mode (MAV_CMD_DO_SET_MODE with the custom main/sub mode).
         OFFBOARD needs setpoints streamed at more than 2 Hz for over a second first."""
         return await self._verb(mavlink.MAV_CMD_DO_SET_MODE,
@@ -670,7 +664,7 @@ class Autopilot:
 
     async def hold(self) -> bool:
         """Hold position (AUTO.LOITER, "Hold" in QGroundControl)."""
-        return await self.set_mode(px4.AUTO_LOITER)
+        return await self.set_mode(px4_protocol.AUTO_LOITER)
 
     # ---------------------------------------------------------------- thread-safe sends
 
@@ -696,9 +690,9 @@ class Autopilot:
         if not math.isfinite(yaw_rate):
             raise ValueError(f"yaw_rate must be a finite number (rad/s), got {yaw_rate!r}")
         if acceleration_L is None:
-            mask, acceleration = px4.TYPE_MASK_VELOCITY_YAW_RATE, np.zeros(3)
+            mask, acceleration = px4_protocol.TYPE_MASK_VELOCITY_YAW_RATE, np.zeros(3)
         else:
-            mask = px4.TYPE_MASK_VELOCITY_ACCELERATION_YAW_RATE
+            mask = px4_protocol.TYPE_MASK_VELOCITY_ACCELERATION_YAW_RATE
             acceleration = _finite_vector(acceleration_L, "acceleration_L", "m/s²")
         self._send(self.link.mav.set_position_target_local_ned_encode(
             self._boot_ms(), self.options.target_system, self.options.target_component,

@@ -16,7 +16,7 @@ URLs follow MAVSDK's connection strings, so a person types what they already kno
 Every link speaks MAVLink 2 with the ``common`` dialect (everything PX4 sends and accepts
 here is in it). Signing follows the MAVLink 2 message signing spec: a 32-byte secret key,
 outgoing messages signed, and unsigned incoming ones accepted only when a callback allows
-their message id (see :func:`drivers.mavlink.px4.accept_unsigned`).
+their message id (see :func:`drivers.mavlink.px4_protocol.accept_unsigned`).
 """
 
 from __future__ import annotations
@@ -28,6 +28,8 @@ import tty
 from dataclasses import dataclass
 from typing import Callable
 from urllib.parse import urlsplit
+
+from autonomy.options import OptionError
 
 os.environ["MAVLINK20"] = "1"  # pymavlink picks the wire protocol when a dialect is loaded
 
@@ -54,6 +56,22 @@ class LinkAddress:
     port: int = 0
     device: str = ""
     baud: int = 0
+
+
+def signing_secret(key_hex: str) -> bytes | None:
+    """The MAVLink 2 signing secret written as 64 hex digits (a 32-byte key; PX4's
+    ``MAV_SIGN_CFG`` key is the same), None for "" (signing off); an
+    :class:`~autonomy.options.OptionError` naming ``signing_key`` otherwise."""
+    if not key_hex:
+        return None
+    try:
+        key = bytes.fromhex(key_hex)
+    except ValueError:
+        key = b""
+    if len(key) != 32:
+        raise OptionError("signing_key", "must be 64 hex digits (a 32-byte key), "
+                          f"got {len(key_hex)} characters")
+    return key
 
 
 def parse_url(url: str) -> LinkAddress:

@@ -29,15 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from autonomy.geometry import GRAVITY
 from autonomy.options import option, validate
-from drivers.sim.vehicle import ImuTruth
-
-#: ICM-42688-P gyroscope rate noise density, 0.0028 deg/s/sqrt(Hz), in rad/s/sqrt(Hz).
-ICM42688P_GYRO_NOISE_DENSITY = math.radians(0.0028)
-#: ICM-42688-P accelerometer noise density, 70 ug/sqrt(Hz), in m/s^2/sqrt(Hz).
-ICM42688P_ACCEL_NOISE_DENSITY = 70e-6 * GRAVITY
-
+from autonomy.vins.preintegration import (ICM42688P_ACCEL_NOISE_DENSITY,
+                                          ICM42688P_GYRO_NOISE_DENSITY)
+from drivers.sim.quadrotor import ImuTruth
 
 @dataclass(frozen=True)
 class ImuOptions:

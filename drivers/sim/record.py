@@ -23,15 +23,12 @@ from drivers.dataset.euroc import EurocWriter
 from drivers.sim.imu import ImuModel, ImuOptions
 from drivers.sim.options import SimOptions
 from drivers.sim.render import Renderer
-from drivers.sim.vehicle import ControlTarget, Quadrotor, VehicleOptions
-from drivers.sim.world import Route, World, build_world
+from drivers.sim.quadrotor import ControlTarget, Quadrotor, VehicleOptions
+from drivers.sim.world import ROBOT_RADIUS, Route, World, build_world
 
 #: The default camera mounting (``[camera]`` mount_*): optical frame looking along body x,
 #: 10 cm ahead of the body origin and 5 cm above it.
 T_BODY_CAMERA = CameraOptions().T_B_C()
-
-ROBOT_RADIUS = 1.0
-"""Clearance the recorded path keeps from every obstacle, metres (the paper's robot radius)."""
 
 SPEED = 1.0
 """Cruise speed along the path, m/s: gentle enough that consecutive 20 Hz frames overlap."""

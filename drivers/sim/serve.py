@@ -25,8 +25,8 @@ from drivers.mavlink.link import mavlink, open_link
 from drivers.sim.faults import CuttableLink, FaultSchedule
 from drivers.sim.imu import ImuModel, ImuOptions
 from drivers.sim.options import CLOCK_MODES
-from drivers.sim.px4 import MockPx4, Px4Options
-from drivers.sim.vehicle import Collision, Quadrotor, VehicleOptions
+from drivers.sim.mock_px4 import MockPx4, Px4Options
+from drivers.sim.quadrotor import Collision, Quadrotor, VehicleOptions
 
 log = logging.getLogger(__name__)
 

@@ -24,8 +24,8 @@ from autonomy.depth.synthetic import (
     SyntheticDepthOptions, SyntheticNetwork, affine_fit_abs_rel,
 )
 from autonomy.messages import MetricDepth, RelativeDepth
-from companion.eval.numbers import finite_or_none, mean_or_none, median_or_none, show
-from companion.eval.vio import (
+from companion.report import finite_or_none, mean_or_none, median_or_none, show
+from companion.tools.eval.vio import (
     EvaluationError, VioDataset, VioFrame, build_vins, read_frame_depth, read_vio_dataset,
     vio_frames,
 )
@@ -114,11 +114,9 @@ def run_depth(data: VioDataset, options: DepthEvalOptions, network: RelativeDept
     stage = MetricDepthStage(options.rescale, options.stage)
     trace = DepthTrace(method=options.rescale.method)
     for frame, update, truth in tracked_frames(data, options, max_frames):
-        if update.sparse_map is not None:
-            stage.add_sparse_map(update.sparse_map)
         relative = RelativeDepth(frame.t, network(frame, truth))
         start = time.perf_counter()
-        result = stage.process(relative)
+        result = stage.process(relative, update.sparse_map)
         trace.stage_ms.append(1e3 * (time.perf_counter() - start))
         _record(trace, result, truth, relative.disparity)
     trace.no_fit, trace.rejected = dict(stage.no_fit), dict(stage.rejected)

@@ -1,12 +1,12 @@
 """``companion fly``: the application on the real vehicle.
 
-The same :class:`~companion.app.FlightApp` the simulator flies, wired to real devices: the
+The same :class:`~companion.flight.app.FlightApp` the simulator flies, wired to real devices: the
 flight controller over ``[mavlink] url`` (serial on the Orin's UART, or UDP), the V4L2 camera of
 ``[v4l2]``, the user's ONNX depth network of ``[depth_network]`` (required here: the synthetic
 stand-in needs a simulator's ground truth), the wall clock and worker threads. The mission is
 ``[flight] waypoints`` (or ``--goal`` on the command line).
 
-Run by systemd (``systemd/companion.service``, Type=notify): ``READY=1`` once preflight has
+Run by systemd (``systemd/companion.launch.systemd``, Type=notify): ``READY=1`` once preflight has
 passed, ``WATCHDOG=1`` from the event loop's monitor (a stalled loop stops the pings and systemd
 restarts the service), ``STOPPING=1`` at the end; SIGTERM or SIGINT ask the mission to stop,
 which in the air means stop, hold and land.
@@ -19,8 +19,8 @@ import logging
 import signal
 
 from autonomy.depth.network import DepthNetwork
-from companion.app import FlightApp
-from companion.service import SystemdNotifier
+from companion.flight.app import FlightApp
+from companion.launch.systemd import SystemdNotifier
 from drivers.camera.v4l2 import V4l2Camera
 from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot

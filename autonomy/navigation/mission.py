@@ -23,8 +23,6 @@ import logging
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
 from autonomy.options import OptionError, option, validate
 
 log = logging.getLogger(__name__)
@@ -174,8 +172,9 @@ class Transition:
 class Mission:
     """The present state, every transition so far, and the failsafes that fired."""
 
-    def __init__(self, t: float = 0.0):
+    def __init__(self, t: float = 0.0, on_transition=None):
         self.state = FlightState.PREFLIGHT
+        self._on_transition = on_transition  # called with each Transition (a channel)
         self.since = t
         self.transitions: list[Transition] = []
         self.failsafes: list[str] = []
@@ -184,7 +183,10 @@ class Mission:
         """Enter ``target`` at ``t`` for ``reason`` (logged; a no-op when already there)."""
         if target == self.state:
             return
-        self.transitions.append(Transition(t, self.state, target, reason))
+        transition = Transition(t, self.state, target, reason)
+        self.transitions.append(transition)
+        if self._on_transition is not None:
+            self._on_transition(transition)
         log.info("t=%.2f %s -> %s: %s", t, self.state.value, target.value, reason)
         self.state, self.since = target, t
 
@@ -206,15 +208,3 @@ class Mission:
     def elapsed(self, t: float) -> float:
         """Seconds in the present state."""
         return t - self.since
-
-
-def stop_waypoints(waypoints: np.ndarray, sharpest: float) -> list[bool]:
-    """Per waypoint of ``waypoints`` (N, 3): does the vehicle stop there? The last (the goal)
-    and every corner where the route turns by more than ``sharpest`` radians horizontally."""
-    stops = [False] * len(waypoints)
-    stops[-1] = True
-    for k in range(1, len(waypoints) - 1):
-        into, out = np.diff(waypoints[k - 1:k + 2, :2], axis=0)
-        turn = math.atan2(into[0] * out[1] - into[1] * out[0], into @ out)
-        stops[k] = abs(turn) > sharpest
-    return stops

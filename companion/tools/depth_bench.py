@@ -4,7 +4,7 @@ input size and execution provider, and the metric depth stage without the networ
 The network is timed in its three steps: ``preprocess_ms`` (colour order, resize,
 normalisation), ``inference_ms`` (onnxruntime) and ``postprocess_ms`` (upsampling to the
 camera); ``total_ms`` is the median of the three in a row. With no user model the numbers are
-the small generated test model's (:mod:`companion.testmodel`): they measure the pre- and
+the small generated test model's (:mod:`companion.tools.testmodel`): they measure the pre- and
 post-processing honestly, but its inference is a few convolutions, not a depth network's.
 """
 
@@ -21,7 +21,7 @@ from autonomy.depth.network import PROVIDERS, DepthNetwork, NetworkOptions, choo
 from autonomy.depth.rescale import RescaleOptions
 from autonomy.depth.stage import DepthStageOptions, MetricDepthStage
 from autonomy.messages import RelativeDepth, SparseMap
-from companion.bench import BenchmarkError, interleaved_medians_ms, synthetic_scene
+from companion.tools.bench import BenchmarkError, interleaved_medians_ms, synthetic_scene
 
 #: (preset, input size) pairs the test model is timed at: the defaults, and smaller DA-V2
 #: inputs a user picks for speed.
@@ -62,7 +62,7 @@ def run_depth_benchmark(network: NetworkOptions, rescale: RescaleOptions,
 def _write_test_model(folder: Path) -> Path:
     # Imported here: building the model needs the onnx package, which nothing else at run
     # time does.
-    from companion.testmodel import build_test_model
+    from companion.tools.testmodel import build_test_model
 
     path = folder / "test_model.onnx"
     path.write_bytes(build_test_model())
@@ -96,11 +96,10 @@ def _time_stage(rescale: RescaleOptions, options: DepthStageOptions,
     sparse = SparseMap(0.0, np.arange(len(z)), points, 0.02 * z, scene.anchor_pixels,
                        np.ones(len(z), dtype=bool))
     stage = MetricDepthStage(rescale, options)
-    stage.add_sparse_map(sparse)
     frame = RelativeDepth(0.0, scene.relative_disparity)
-    if not stage.process(frame).ok:
+    if not stage.process(frame, sparse).ok:
         raise BenchmarkError("the stage found no fit on the benchmark scene")
-    stage_ms, = interleaved_medians_ms([lambda: stage.process(frame)], repeats)
+    stage_ms, = interleaved_medians_ms([lambda: stage.process(frame, sparse)], repeats)
     return stage_ms
 
 

@@ -24,7 +24,7 @@ from autonomy.geometry import PinholeCamera, quat_to_rot
 from autonomy.messages import ImuSample, SparseMap
 from autonomy.trajectory import align_umeyama, ate_rmse, interpolate_poses, path_length
 from autonomy.vins.preintegration import ImuNoise
-from companion.eval.numbers import finite_or_none, median_or_none, show
+from companion.report import finite_or_none, median_or_none, show
 from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
     read_groundtruth, read_imu, read_imu_noise,

@@ -63,7 +63,7 @@ def build_test_model(*, fixed_size: tuple[int, int] | None = None,
         initializer=weights,
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
-                              producer_name="companion.testmodel")
+                              producer_name="companion.tools.testmodel")
     model.ir_version = IR_VERSION
     onnx.checker.check_model(model, full_check=True)
     return model.SerializeToString()

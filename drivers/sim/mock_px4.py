@@ -29,11 +29,11 @@ import numpy as np
 
 from autonomy.geometry import GRAVITY, quat_multiply, quat_to_rot, rot_to_quat, so3_exp, yaw_of
 from autonomy.options import option, validate
-from drivers.mavlink import px4
+from drivers.mavlink import px4_protocol
 from drivers.mavlink.frames import (enu_to_ned, flu_to_frd, ned_to_enu,
                                     quat_enu_flu_to_ned_frd)
-from drivers.mavlink.link import MavlinkLink, mavlink
-from drivers.sim.vehicle import ControlTarget, Quadrotor
+from drivers.mavlink.link import MavlinkLink, mavlink, signing_secret
+from drivers.sim.quadrotor import ControlTarget, Quadrotor
 
 log = logging.getLogger(__name__)
 
@@ -120,22 +120,15 @@ class Px4Options:
 
     def __post_init__(self) -> None:
         validate(self)
-        if self.signing_key:
-            try:
-                key = bytes.fromhex(self.signing_key)
-            except ValueError:
-                key = b""
-            if len(key) != 32:
-                raise ValueError("signing_key: must be 64 hex digits (a 32-byte key), "
-                                 f"got {len(self.signing_key)} characters")
+        signing_secret(self.signing_key)
 
     @property
     def signing_secret(self) -> bytes | None:
-        return bytes.fromhex(self.signing_key) if self.signing_key else None
+        return signing_secret(self.signing_key)
 
 
 @dataclass(frozen=True)
-class Setpoint:
+class OffboardSetpoint:
     """An accepted SET_POSITION_TARGET_LOCAL_NED in the world frame (ENU), NaN = ignored."""
 
     time: float
@@ -167,15 +160,16 @@ class MockPx4:
         self._rng = rng if rng is not None else np.random.default_rng(0)
         self._min_interval = 1.0 / physics_rate_hz
         if self.options.signing_secret is not None:
-            link.setup_signing(self.options.signing_secret, accept_unsigned=px4.accept_unsigned)
-        self.mode = px4.AUTO_LOITER
+            link.setup_signing(self.options.signing_secret,
+                               accept_unsigned=px4_protocol.accept_unsigned)
+        self.mode = px4_protocol.AUTO_LOITER
         self.time = float(vehicle.state.time)
         self._intervals: dict[int, float | None] = {}
         self._next_due = {}
         for message_id, rate in DEFAULT_STREAM_RATES_HZ.items():
             self._set_rate(message_id, rate)
         self._set_rate(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, self.options.imu_rate_hz)
-        self._setpoint: Setpoint | None = None
+        self._setpoint: OffboardSetpoint | None = None
         self._stream_start: float | None = None
         self._hold_position: np.ndarray | None = None
         self._hold_yaw = 0.0
@@ -286,7 +280,7 @@ class MockPx4:
             mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
             mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
             mavlink.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
-            mavlink.MAV_CMD_NAV_LAND: lambda p: self._change_mode(px4.AUTO_LAND),
+            mavlink.MAV_CMD_NAV_LAND: lambda p: self._change_mode(px4_protocol.AUTO_LAND),
             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
             mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
             mavlink.MAV_CMD_REQUEST_MESSAGE: lambda p: self._cmd_request_message(int(p[0])),
@@ -314,7 +308,8 @@ class MockPx4:
     def _cmd_arm_disarm(self, params) -> int:
         action = _round(params[0])
         # MAVSDK sends NaN for unused params; anything but the magic number is "not forced"
-        forced = math.isfinite(params[1]) and _round(params[1]) == px4.FORCE_ARM_DISARM_MAGIC
+        forced = math.isfinite(params[1]) \
+            and _round(params[1]) == px4_protocol.FORCE_ARM_DISARM_MAGIC
         if action == 1:
             return self._arm()
         if action == 0:
@@ -330,13 +325,13 @@ class MockPx4:
         if self.vehicle.collision is not None:
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: vehicle crashed")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if self.mode == px4.OFFBOARD and not self._offboard_stream_ok():
+        if self.mode == px4_protocol.OFFBOARD and not self._offboard_stream_ok():
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no offboard signal")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         self.vehicle.arm()
         self._home = np.array(self.estimate.position)
         self._landed_since = None
-        if self.mode == px4.AUTO_LOITER:
+        if self.mode == px4_protocol.AUTO_LOITER:
             self._enter_hold()
         self._statustext(mavlink.MAV_SEVERITY_INFO, "Armed by external command")
         return mavlink.MAV_RESULT_ACCEPTED
@@ -356,7 +351,7 @@ class MockPx4:
         if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return mavlink.MAV_RESULT_UNSUPPORTED
         try:
-            mode = px4.Px4Mode.from_numbers(_round(params[1]), _round(params[2]))
+            mode = px4_protocol.Px4Mode.from_numbers(_round(params[1]), _round(params[2]))
         except ValueError as error:
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL, str(error))
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -368,17 +363,18 @@ class MockPx4:
             self._takeoff_height = max(0.5, altitude_amsl - HOME_ALTITUDE_M)
         else:
             self._takeoff_height = self.options.takeoff_altitude
-        return self._change_mode(px4.AUTO_TAKEOFF)
+        return self._change_mode(px4_protocol.AUTO_TAKEOFF)
 
-    SUPPORTED_MODES = (px4.OFFBOARD, px4.AUTO_LOITER, px4.AUTO_LAND, px4.AUTO_TAKEOFF)
+    SUPPORTED_MODES = (px4_protocol.OFFBOARD, px4_protocol.AUTO_LOITER, px4_protocol.AUTO_LAND,
+                       px4_protocol.AUTO_TAKEOFF)
 
-    def _change_mode(self, mode: px4.Px4Mode) -> int:
+    def _change_mode(self, mode: px4_protocol.Px4Mode) -> int:
         """PX4's mode-change rules as far as the mock flies them; rejected: TEMPORARILY_REJECTED."""
         if mode not in self.SUPPORTED_MODES:
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
                              f"Switching to {mode.name} is not supported here")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if mode == px4.OFFBOARD and not self._offboard_stream_ok():
+        if mode == px4_protocol.OFFBOARD and not self._offboard_stream_ok():
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
                              "Switching to Offboard is currently not available")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -386,9 +382,9 @@ class MockPx4:
             self._set_mode(mode)
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _set_mode(self, mode: px4.Px4Mode) -> None:
+    def _set_mode(self, mode: px4_protocol.Px4Mode) -> None:
         self.mode = mode
-        if mode == px4.AUTO_LOITER:
+        if mode == px4_protocol.AUTO_LOITER:
             self._enter_hold()
         log.info("mode %s at t=%.3f", mode.name, self.time)
 
@@ -440,33 +436,33 @@ class MockPx4:
             self._stream_start = setpoint.time
         self._setpoint = setpoint
 
-    def _decode_setpoint(self, message) -> Setpoint | None:
+    def _decode_setpoint(self, message) -> OffboardSetpoint | None:
         mask = message.type_mask
         frame = message.coordinate_frame
-        if frame not in px4.SUPPORTED_SETPOINT_FRAMES:
+        if frame not in px4_protocol.SUPPORTED_SETPOINT_FRAMES:
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
                              f"SET_POSITION_TARGET_LOCAL_NED coordinate frame {frame} unsupported")
             return None
-        position = _masked((message.x, message.y, message.z), mask, px4.IGNORE_POSITION)
-        velocity = _masked((message.vx, message.vy, message.vz), mask, px4.IGNORE_VELOCITY)
+        position = _masked((message.x, message.y, message.z), mask, px4_protocol.IGNORE_POSITION)
+        velocity = _masked((message.vx, message.vy, message.vz), mask, px4_protocol.IGNORE_VELOCITY)
         acceleration = _masked((message.afx, message.afy, message.afz), mask,
-                               px4.IGNORE_ACCELERATION)
+                               px4_protocol.IGNORE_ACCELERATION)
         if frame == mavlink.MAV_FRAME_BODY_NED:
             R_NED_FRD = quat_to_rot(quat_enu_flu_to_ned_frd(self.estimate.q_W_B))
             position = np.full(3, np.nan)
             velocity = _rotate_body(R_NED_FRD, velocity)
             acceleration = _rotate_body(R_NED_FRD, acceleration)
         has_acceleration = bool(np.isfinite(acceleration).any())
-        if has_acceleration and mask & px4.FORCE_SET:
+        if has_acceleration and mask & px4_protocol.FORCE_SET:
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
                              "SET_POSITION_TARGET_LOCAL_NED force not supported")
             return None
         if not (np.isfinite(position).any() or np.isfinite(velocity).any() or has_acceleration):
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_LOCAL_NED invalid")
             return None
-        yaw_ned = math.nan if mask & px4.IGNORE_YAW else float(message.yaw)
-        yaw_rate_ned = math.nan if mask & px4.IGNORE_YAW_RATE else float(message.yaw_rate)
-        return Setpoint(
+        yaw_ned = math.nan if mask & px4_protocol.IGNORE_YAW else float(message.yaw)
+        yaw_rate_ned = math.nan if mask & px4_protocol.IGNORE_YAW_RATE else float(message.yaw_rate)
+        return OffboardSetpoint(
             time=self.time,
             position=ned_to_enu(position),
             velocity=ned_to_enu(velocity),
@@ -506,11 +502,11 @@ class MockPx4:
         log.warning("collision at t=%.3f position %s", collision.time, collision.position)
 
     def _fly(self) -> None:
-        if self.mode == px4.OFFBOARD:
+        if self.mode == px4_protocol.OFFBOARD:
             self._fly_offboard()
-        elif self.mode == px4.AUTO_TAKEOFF:
+        elif self.mode == px4_protocol.AUTO_TAKEOFF:
             self._fly_takeoff()
-        elif self.mode == px4.AUTO_LAND:
+        elif self.mode == px4_protocol.AUTO_LAND:
             self._fly_land()
         else:
             self._fly_hold()
@@ -520,7 +516,7 @@ class MockPx4:
         setpoint = self._setpoint
         if setpoint is None or self.time - setpoint.time > self.options.offboard_loss_timeout:
             action = self.options.offboard_loss_action
-            mode = px4.AUTO_LAND if action == "land" else px4.AUTO_LOITER
+            mode = px4_protocol.AUTO_LAND if action == "land" else px4_protocol.AUTO_LOITER
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
                              f"Failsafe activated: offboard lost, switching to {mode.name}")
             self._set_mode(mode)
@@ -528,7 +524,7 @@ class MockPx4:
             return
         self.vehicle.set_target(self._offboard_target(setpoint))
 
-    def _offboard_target(self, setpoint: Setpoint) -> ControlTarget:
+    def _offboard_target(self, setpoint: OffboardSetpoint) -> ControlTarget:
         """PX4's per-axis rule (PositionControl): a position axis is tracked with the velocity as
         feed-forward; an axis with only a velocity tracks that velocity; an axis with neither
         holds where it is. The vehicle's controller takes whole vectors, so a velocity-only axis
@@ -571,7 +567,7 @@ class MockPx4:
         goal = np.array([self._hold_position[0], self._hold_position[1],
                          self._home[2] + self._takeoff_height])
         if self.estimate.position[2] >= goal[2] - 0.1:
-            self._set_mode(px4.AUTO_LOITER)
+            self._set_mode(px4_protocol.AUTO_LOITER)
             self._hold_position = goal
             self._fly_hold()
             return
@@ -584,14 +580,14 @@ class MockPx4:
 
     def _auto_disarm(self) -> None:
         """Disarm COM_DISARM_LAND seconds after touching down (Land, or armed and left idle)."""
-        if not self.vehicle.armed or not self.vehicle.landed or self.mode != px4.AUTO_LAND:
+        if not self.vehicle.armed or not self.vehicle.landed or self.mode != px4_protocol.AUTO_LAND:
             self._landed_since = None
             return
         if self._landed_since is None:
             self._landed_since = self.time
         if self.time - self._landed_since >= self.options.disarm_after_land:
             self._disarm(forced=True, reason="landing")
-            self._set_mode(px4.AUTO_LOITER)
+            self._set_mode(px4_protocol.AUTO_LOITER)
 
     # ---------------------------------------------------------------- outgoing
 
@@ -692,9 +688,9 @@ class MockPx4:
     def _landed_state(self) -> int:
         if self.vehicle.landed:
             return mavlink.MAV_LANDED_STATE_ON_GROUND
-        if self.mode == px4.AUTO_TAKEOFF:
+        if self.mode == px4_protocol.AUTO_TAKEOFF:
             return mavlink.MAV_LANDED_STATE_TAKEOFF
-        if self.mode == px4.AUTO_LAND:
+        if self.mode == px4_protocol.AUTO_LAND:
             return mavlink.MAV_LANDED_STATE_LANDING
         return mavlink.MAV_LANDED_STATE_IN_AIR
 

@@ -3,8 +3,8 @@
 The paper's navigation experiment (Yang, Tian, Goel, Tabib, Section IV) flies every start/goal
 pair of each world several times, planning once on ground-truth depth ("GT") and once on the
 rescaled estimate, and counts successes, collisions and timeouts. Here each trial is one
-``companion sim fly`` (:func:`companion.simfly.run`, lockstep, deterministic): the whole stack
-over MAVLink against the simulator, ``--depth truth`` for ``gt`` and ``--depth estimated``.
+``companion sim fly`` (:func:`companion.launch.simulated.run`, lockstep, deterministic): the
+whole stack over MAVLink against the simulator, ``--depth truth`` for ``gt`` and ``--depth estimated``.
 
 Trials and seeds. Trial k (k = 0, 1, ...) of every pair flies seed ``s_k = S + k``
 (:func:`trial_seed`), S the base ``--seed``. The seed draws the world (the layout of its trunks,
@@ -23,7 +23,7 @@ Outcomes (:func:`outcome`), one per trial:
 
 - ``collision``: the simulator recorded a collision, whatever else happened;
 - ``success``: the goal was reached (the application said so and the true closest approach
-  confirms it, :func:`companion.simfly.run`) without a collision, within the time limit;
+  confirms it, :func:`companion.launch.simulated.run`) without a collision, within the time limit;
 - ``timeout``: everything else: out of time, and also a flight that ended early without the
   goal (a failsafe such as no safe primitive, an abort on the ground, or a landing the truth
   did not confirm). The Markdown report counts those separately as "ended early" within the
@@ -60,15 +60,16 @@ from typing import Iterable, TextIO
 import cv2
 import numpy as np
 
-from companion import simfly
-from companion.eval.numbers import mean_or_none, show
-from companion.eval.vio import EvaluationError
-from companion.plot import png_path, text, write_image
+from companion.launch import simulated
+from companion.report import mean_or_none, show
+from companion.tools.eval.vio import EvaluationError
+from companion.tools.plot import png_path, text, write_image
 from drivers.sim.options import WORLD_NAMES
 from drivers.sim.render import RenderError
 from drivers.sim.world import build_world
 
-#: The report's depth sources and what each flies (:data:`companion.simfly.DEPTH_SOURCES`).
+#: The report's depth sources and what each flies
+#: (:data:`companion.launch.simulated.DEPTH_SOURCES`).
 DEPTH_SOURCES = {"gt": "truth", "estimated": "estimated"}
 #: A trial's outcomes, in the order they are counted and drawn.
 OUTCOMES = ("success", "collision", "timeout")
@@ -93,9 +94,9 @@ class Trial:
     index: int
     seed: int
 
-    def mission(self) -> simfly.SimMission:
+    def mission(self) -> simulated.SimMission:
         """The simulated mission this trial flies (lockstep)."""
-        return simfly.SimMission(world=self.world, seed=self.seed, pair=self.pair,
+        return simulated.SimMission(world=self.world, seed=self.seed, pair=self.pair,
                                  depth=DEPTH_SOURCES[self.depth])
 
     def label(self) -> str:
@@ -165,8 +166,8 @@ def fly_trial(config, trial: Trial) -> dict:
     cannot be set up."""
     started = time.perf_counter()
     try:
-        summary = simfly.run(config, trial.mission())
-    except (simfly.SimFlyError, RenderError, ValueError, OSError) as error:
+        summary = simulated.run(config, trial.mission())
+    except (simulated.SimError, RenderError, ValueError, OSError) as error:
         raise EvaluationError(f"{trial.label()}: {error}") from None
     return trial_record(trial, summary, timeout_s=config.flight.mission_timeout_s,
                         wall_s=time.perf_counter() - started)
@@ -505,7 +506,7 @@ _LEFT, _TOP, _BAR, _PLOT_H, _GROUP_GAP, _MIN_WIDTH = 60, 100, 56, 300, 50, 480
 def plot_navigation(result: dict, out: Path) -> Path:
     """Draw, per world, a stacked bar per depth source (successes, collisions, timeouts, from
     the bottom, each labelled with its count) with its mean flight time above it, as a PNG at
-    ``out`` with OpenCV (:mod:`companion.plot`'s helpers); parent folders are created.
+    ``out`` with OpenCV (:mod:`companion.tools.plot`'s helpers); parent folders are created.
     ValueError for a name that does not end in .png."""
     out = png_path(out)
     worlds = list(next(iter(result.values()), {}))

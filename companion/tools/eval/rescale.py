@@ -43,16 +43,16 @@ from autonomy.depth.anchors import sample_nearest_surface
 from autonomy.depth.rescale import METHODS, RescaleOptions, fit
 from autonomy.depth.stage import MetricDepthStage, check_relative_disparity
 from autonomy.messages import SparseMap
-from companion.eval.depth import DepthEvalOptions, RelativeDepthSource, tracked_frames
-from companion.eval.numbers import mean_or_none, show
-from companion.plot import nice_step, png_path, text, write_image
-from companion.eval.vio import EvaluationError, VioDataset, read_vio_dataset
+from companion.tools.eval.depth import DepthEvalOptions, RelativeDepthSource, tracked_frames
+from companion.report import mean_or_none, show
+from companion.tools.plot import nice_step, png_path, text, write_image
+from companion.tools.eval.vio import EvaluationError, VioDataset, read_vio_dataset
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions, WORLD_NAMES
 from drivers.sim.record import RecordError, record_dataset
 from drivers.sim.render import RenderError
-from drivers.sim.vehicle import VehicleOptions
+from drivers.sim.quadrotor import VehicleOptions
 
 log = logging.getLogger(__name__)
 
@@ -419,7 +419,7 @@ _LABELS, _BAR, _GAP, _TOP, _WIDTH = 230, 14, 12, 60, 560
 
 def plot_absrel(result: dict, out: Path) -> Path:
     """Draw the weighted AbsRel of every method, a GT and a VINS bar each, as a PNG at ``out``
-    with OpenCV (:mod:`companion.plot`'s helpers); parent folders are created. ValueError for
+    with OpenCV (:mod:`companion.tools.plot`'s helpers); parent folders are created. ValueError for
     a name that does not end in .png."""
     out = png_path(out)
     weighted = result["weighted"]

@@ -1,67 +1,55 @@
-"""``companion sim fly``: the whole stack against the simulated vehicle, over real MAVLink.
+"""The simulator host: the simulated vehicle served for one flight, beside the application.
 
-The simulator (:mod:`drivers.sim`) serves the mock PX4 on loopback UDP; the application
-(:class:`companion.app.FlightApp`) connects to it as it would to a real flight controller, sees
-the world through the simulated camera, estimates its state with the VINS and its depth with
-the network (the synthetic stand-in of ``[synthetic_depth]`` unless ``[depth_network] model``
-names an ONNX file) and the rescaler, and flies the planner's arcs to the goal.
+What ``companion sim fly`` and ``companion eval nav`` fly against (docs/simulator.md): the
+mock PX4 on loopback UDP (:func:`drivers.sim.serve.serve`), the rendered camera, the network
+the application runs (the user's ONNX model on the image, or the synthetic stand-in on the
+rendered depth) or the true depth, injected faults, and the true path for scoring.
 
-The mission: a world's start/goal pair (``pair``), flown through the corners of the route's
-collision-free path as waypoints (what an operator would give as a mission), or one ``goal``.
-Waypoints and goals are in PX4's local frame, which in the simulator is the world frame (ENU).
+Clocks: :class:`LockstepSimulator` runs on the application's loop and one
+:class:`~drivers.clock.SimClock` (deterministic, as fast as the CPU allows);
+:class:`ThreadedSimulator` runs in its own thread on the wall clock, its frames crossing to the
+application's loop through a :class:`FrameSlot`, as a real camera's would.
 
-Ground truth stays on the simulator's side and is used only for the summary: the flown path,
-its clearance from the obstacles, collisions, the distance to the goal at the end.
-
-Clocks: ``lockstep`` (default) runs the simulator and the application on one event loop and one
-:class:`~drivers.clock.SimClock`, heavy stages inline (deterministic, as fast as the CPU
-allows); ``realtime`` runs the simulator in its own thread on the wall clock and the application
-on the main thread with its stages in worker threads, as on the vehicle.
+Ground truth stays here and is used only for scoring: the flown path, its clearance from the
+obstacles, collisions, the distance to the goal at the end.
 """
 
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
 import math
 import socket
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from autonomy.depth.network import DepthNetwork
 from autonomy.depth.synthetic import SyntheticNetwork
-from autonomy.messages import DepthDiagnostics, MetricDepth
-from companion.app import FlightApp, format_flight
-from companion.eval.numbers import show
+from autonomy.messages import DepthDiagnostics, Frame, MetricDepth
 from drivers.clock import MonotonicClock, SimClock
-from drivers.mavlink.autopilot import Autopilot
 from drivers.sim.camera import SimCamera
 from drivers.sim.faults import Fault, FaultSchedule
-from drivers.sim.record import ROBOT_RADIUS
 from drivers.sim.render import Renderer
 from drivers.sim.serve import serve
-from drivers.sim.world import World, build_world
+from drivers.sim.world import ROBOT_RADIUS, World
 
 log = logging.getLogger(__name__)
 
 #: How often the simulator side samples the true path for the summary, Hz.
 TRACK_RATE_HZ = 20.0
-#: How much further than ``[flight] goal_tolerance`` the true closest approach may be when the
-#: application says it reached the goal: the VINS's drift over a flight, metres.
-GOAL_DRIFT_ALLOWANCE = 1.0
+#: Simulated seconds between progress lines.
+PROGRESS_PERIOD_S = 2.0
 #: Longest event-loop stall a ``loop_stall`` fault injects, seconds.
 MAX_STALL_S = 5.0
 #: Longest wait for the simulator thread to come up, seconds.
 SIM_START_TIMEOUT_S = 30.0
 
 
-class SimFlyError(RuntimeError):
+class SimError(RuntimeError):
     """The simulated flight could not be set up; the message says why."""
 
 
@@ -92,19 +80,19 @@ def mission_waypoints(world: World, mission: SimMission, height: float
     of its collision-free path at ``height`` ending at its goal (or just ``mission.goal``), and
     the heading it stands at (the first leg's unless the mission gives one)."""
     if not 0 <= mission.pair < len(world.routes):
-        raise SimFlyError(f"{world.name} has start/goal pairs 0..{len(world.routes) - 1}, "
+        raise SimError(f"{world.name} has start/goal pairs 0..{len(world.routes) - 1}, "
                           f"not {mission.pair}")
     route = world.routes[mission.pair]
     start = np.asarray(route.start, dtype=float)
     if mission.goal is not None:
         goal = np.asarray(mission.goal, dtype=float)
         if goal.shape != (3,) or not np.isfinite(goal).all():
-            raise SimFlyError(f"goal must be three finite numbers x,y,z, got {mission.goal}")
+            raise SimError(f"goal must be three finite numbers x,y,z, got {mission.goal}")
         waypoints = goal[None, :]
     else:
         corners = world.find_path(start[:2], route.goal[:2], ROBOT_RADIUS)
         if corners is None:
-            raise SimFlyError(f"{world.name}: route {route.name} has no path with "
+            raise SimError(f"{world.name}: route {route.name} has no path with "
                               f"{ROBOT_RADIUS} m clearance")
         waypoints = np.column_stack([corners[1:], np.full(len(corners) - 1, height)])
         waypoints[-1] = route.goal
@@ -112,7 +100,7 @@ def mission_waypoints(world: World, mission: SimMission, height: float
     if mission.start_yaw_deg is None:
         return start, waypoints, math.atan2(first[1], first[0])
     if not math.isfinite(mission.start_yaw_deg):
-        raise SimFlyError(f"start yaw must be a finite number of degrees, "
+        raise SimError(f"start yaw must be a finite number of degrees, "
                           f"got {mission.start_yaw_deg}")
     return start, waypoints, math.radians(mission.start_yaw_deg)
 
@@ -128,7 +116,7 @@ def free_udp_port() -> int:
         return probe.getsockname()[1]
 
 
-def depth_source_for(config, seed: int, faults: FaultSchedule, sim_time: Callable[[], float]):
+def simulated_network(config, seed: int, faults: FaultSchedule, sim_time: Callable[[], float]):
     """The network the application runs: the user's ONNX model on the image, else the
     synthetic stand-in on the rendered depth; NaN everywhere while a ``network_nan`` fault is
     on (what a broken engine outputs)."""
@@ -148,15 +136,24 @@ def depth_source_for(config, seed: int, faults: FaultSchedule, sim_time: Callabl
     return source
 
 
-def truth_metric_source(max_range: float) -> Callable:
-    """The renderer's true depth as the application's metric depth, fully confident; NaN
-    (nothing within the far plane) becomes ``max_range``, which the planner knows to be free
-    beyond (:mod:`autonomy.planning.history`)."""
-    def source(frame) -> MetricDepth:
-        depth = np.nan_to_num(frame.truth_depth, nan=max_range).astype(np.float32)
+class TruthDepth:
+    """The renderer's true depth as the application's metric depth, fully confident (the
+    evaluation's baseline, as the paper's ground-truth runs); NaN (nothing within the far
+    plane) becomes ``max_range``, which the planner knows to be free beyond
+    (:mod:`autonomy.planning.history`). A depth source of the application
+    (:class:`companion.flight.perception.DepthSource`): no rescaling, so :meth:`metric` passes
+    :meth:`infer`'s result through."""
+
+    def __init__(self, max_range: float):
+        self.max_range = max_range
+
+    def infer(self, frame: Frame) -> MetricDepth:
+        depth = np.nan_to_num(frame.truth_depth, nan=self.max_range).astype(np.float32)
         return MetricDepth(frame.t, depth, np.ones_like(depth), False,
                            DepthDiagnostics(0, 0, math.nan, "truth", 0.0))
-    return source
+
+    def metric(self, depth: MetricDepth, sparse_map) -> MetricDepth:
+        return depth
 
 
 class TruthTrack:
@@ -210,57 +207,7 @@ class TruthTrack:
         }
 
 
-#: Simulated seconds between progress lines.
-PROGRESS_PERIOD_S = 2.0
-
-
-def run(config, mission: SimMission, *, plot: Path | None = None,
-        progress: Callable[[str], None] | None = None) -> dict:
-    """Fly ``mission`` to its end and return the summary (module docstring)."""
-    if mission.clock not in ("lockstep", "realtime"):
-        raise SimFlyError(f"clock must be lockstep or realtime, got {mission.clock!r}")
-    if mission.depth not in DEPTH_SOURCES:
-        raise SimFlyError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
-                          f"got {mission.depth!r}")
-    return asyncio.run(fly(config, mission, plot=plot, progress=progress))
-
-
-async def fly(config, mission: SimMission, *, plot: Path | None = None,
-              progress: Callable[[str], None] | None = None) -> dict:
-    """Fly ``mission`` on the running loop and return the summary (module docstring)."""
-    world = build_world(mission.world, mission.seed)
-    start, waypoints, start_yaw = mission_waypoints(world, mission,
-                                                    config.flight.takeoff_altitude)
-    faults = FaultSchedule(mission.faults)
-    if faults.has("loop_stall") and mission.clock != "realtime":
-        raise SimFlyError("a loop_stall fault needs --clock realtime: in lockstep the simulator "
-                          "shares the stalled loop, so simulated time stalls with it")
-    port = free_udp_port()
-    side = (_LockstepSimulator if mission.clock == "lockstep" else _ThreadedSimulator)(
-        config, world, mission, port, (start, start_yaw), faults, waypoints[-1], progress)
-    sim, camera, clock = await side.start()
-    stall = asyncio.create_task(_stall_when_due(faults, sim))
-    try:
-        truth = truth_metric_source(config.planner.max_range) if mission.depth == "truth" \
-            else None
-        app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera,
-                        depth_source_for(config, mission.seed, faults, lambda: sim.time),
-                        waypoints, lockstep=mission.clock == "lockstep", metric_source=truth)
-        try:
-            summary = await app.run()
-        finally:
-            app.autopilot.close()
-    finally:
-        stall.cancel()
-        await side.stop()
-    summary.update(_truth_summary(config, world, mission, sim, side.track, waypoints, summary))
-    if plot is not None:
-        _plot(world, side.track, start, waypoints, sim, plot, summary)
-        summary["plot"] = str(plot)
-    return summary
-
-
-async def _stall_when_due(faults: FaultSchedule, sim) -> None:
+async def stall_when_due(faults: FaultSchedule, sim) -> None:
     """The ``loop_stall`` fault: block this event loop (a runaway computation) for the
     fault's duration, at most :data:`MAX_STALL_S`."""
     stall = next((f for f in faults.faults if f.kind == "loop_stall"), None)
@@ -272,7 +219,7 @@ async def _stall_when_due(faults: FaultSchedule, sim) -> None:
     time.sleep(min(stall.duration_s, MAX_STALL_S))
 
 
-class _Simulator:
+class Simulator:
     """The simulator side of a flight: what it serves, and the true path it tracks."""
 
     def __init__(self, config, world, mission, port, start_pose, faults, goal, progress):
@@ -290,7 +237,7 @@ class _Simulator:
                      start=self.start_pose[0], start_yaw=self.start_pose[1], faults=self.faults)
 
 
-class _LockstepSimulator(_Simulator):
+class LockstepSimulator(Simulator):
     """The simulator on the application's loop and clock (a :class:`SimClock`)."""
 
     def __init__(self, *args):
@@ -318,7 +265,7 @@ class _LockstepSimulator(_Simulator):
         self._renderer.close()
 
 
-class _ThreadedSimulator(_Simulator):
+class ThreadedSimulator(Simulator):
     """The simulator in its own thread and event loop on the wall clock (real time): its
     physics, mock PX4 and camera keep going whatever the application's loop does. Frames
     cross to the application's loop through a newest-frame slot."""
@@ -334,9 +281,9 @@ class _ThreadedSimulator(_Simulator):
         self._thread = threading.Thread(target=self._main, name="simulator", daemon=True)
         self._thread.start()
         if not await asyncio.to_thread(self._ready.wait, SIM_START_TIMEOUT_S):
-            raise SimFlyError("the simulator thread did not start")
+            raise SimError("the simulator thread did not start")
         if self._error is not None:
-            raise SimFlyError(f"the simulator thread failed: {self._error}")
+            raise SimError(f"the simulator thread failed: {self._error}")
         return self.sim, self.frames, MonotonicClock()
 
     async def stop(self) -> None:
@@ -394,62 +341,3 @@ class FrameSlot:
         self._arrived.clear()
         frame, self._frame = self._frame, None
         return frame
-
-
-def build_app(config, clock, url: str, camera, depth_source, waypoints, *,
-              lockstep: bool, metric_source=None) -> FlightApp:
-    """The application wired to a camera, a depth source and the autopilot at ``url``."""
-    autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
-    return FlightApp.from_config(config, autopilot=autopilot, camera=camera,
-                                 depth_source=depth_source, T_B_C=config.camera.T_B_C(),
-                                 waypoints_L=waypoints, clock=clock, lockstep=lockstep,
-                                 metric_source=metric_source)
-
-
-def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
-                   waypoints, summary: dict) -> dict:
-    goal = waypoints[-1]
-    truth = track.score(world, goal, summary.get("navigation_end"))
-    collision = sim.vehicle.collision
-    return {
-        "world": world.name, "seed": mission.seed, "pair": mission.pair, "depth": mission.depth,
-        "goal": [round(float(v), 3) for v in goal],
-        "faults": [dataclasses.asdict(f) for f in mission.faults],
-        "collisions": 0 if collision is None else 1,
-        "collision": None if collision is None else {
-            "t": round(collision.time, 3),
-            "position": [round(float(v), 3) for v in collision.position]},
-        **truth,
-        # the application's own judgement, confirmed by the truth (with room for VINS drift)
-        "reached_goal": bool(summary["reached_goal"] and truth["closest_to_goal_m"] is not None
-                             and truth["closest_to_goal_m"]
-                             <= config.flight.goal_tolerance + GOAL_DRIFT_ALLOWANCE),
-    }
-
-
-def _plot(world, track, start, waypoints, sim, out: Path, summary: dict) -> None:
-    from companion.plot import top_view
-
-    collision = sim.vehicle.collision
-    top_view(world, np.array(track.positions), start=start, goal=waypoints[-1],
-             waypoints=waypoints[:-1],
-             collisions=() if collision is None else (collision.position,), out=out,
-             title=f"{world.name} pair {summary['pair']}: "
-                   f"{'reached' if summary['reached_goal'] else 'not reached'}")
-
-
-
-def format_summary(summary: dict) -> str:
-    """A simulated flight's summary as a few lines for a person."""
-    lines = [f"{summary['world']} pair {summary['pair']} (seed {summary['seed']}) -> goal "
-             f"{summary['goal']}",
-             f"  reached goal      {'yes' if summary['reached_goal'] else 'no'}"
-             f" (closest {show(summary.get('closest_to_goal_m'), '.2f', ' m')})",
-             f"  collisions        {summary['collisions']}",
-             f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
-             f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}",
-             f"  VINS error        {show(summary.get('position_error_m'), '.2f', ' m')}"]
-    lines += format_flight(summary).splitlines()
-    if summary.get("plot"):
-        lines.append(f"  plot              {summary['plot']}")
-    return "\n".join(lines)

@@ -1,0 +1,193 @@
+"""What the vehicle does beside following the planner's arcs (docs/flight.md):
+
+- **Turn at a corner.** At a stop waypoint just passed, or with the next waypoint far off the
+  heading, the vehicle comes to rest and turns in place to face it: the arcs would sweep wide.
+- **Parallax glide.** After the turn the view is new, and a monocular VINS has no landmarks in
+  it until the camera moves sideways: no anchors, no metric depth, no arc checked. The vehicle
+  glides back to the trail point half a metre behind and returns to the corner, the camera
+  moving across its view.
+- **Approach.** Near a stop waypoint and slow, it glides straight to the point when that is
+  checked safe (the arcs cannot stop on a point, and a narrow passage leaves no room off its
+  axis).
+- **Blocked.** With no safe primitive, at rest: first one turn in place toward the waypoint (the
+  arcs only turn while moving on), then, blocked for half the no-path time, backing off along
+  the flown trail to see the place from farther back; at most ``max_backoffs`` times a
+  waypoint, then the no-path failsafe.
+
+Each is a small rule or state machine here; :mod:`companion.flight.navigation` runs them with
+the planner on its worker.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+
+import numpy as np
+
+from autonomy.navigation.trail import Trail
+
+#: After a turn: how long without a fresh fit before the parallax glide starts, seconds.
+PARALLAX_WAIT_S = 0.3
+#: The reasons the glides' plans carry (what the failsafe checks and the logs read).
+PARALLAX_REASON = "gliding for parallax"
+BACKOFF_REASON = "backing off along the trail"
+APPROACH_REASON = "approach"
+
+
+def on_glide(plan, reason: str, now: float) -> bool:
+    """Is ``plan`` a glide for ``reason`` that has not come to rest by ``now``?"""
+    return plan is not None and plan.reason == reason and now < plan.end_time
+
+
+def must_turn(corner_pending: bool, heading_error: float, plan, options) -> bool:
+    """Turn in place before planning on: a corner was just passed, or the next waypoint is
+    more than ``align_threshold_deg`` off the heading while not on an approach glide (near the
+    point, the bearing to it swings wildly)."""
+    approaching = plan is not None and plan.reason == APPROACH_REASON
+    return corner_pending or (abs(heading_error) > math.radians(options.align_threshold_deg)
+                              and not approaching)
+
+
+def still_turning(heading_error: float, options) -> bool:
+    """Is the heading error beyond ``align_done_deg`` (keep turning in place)?"""
+    return abs(heading_error) > math.radians(options.align_done_deg)
+
+
+def approach_targets(goal_W: np.ndarray, position_W: np.ndarray, speed: float, *,
+                     stop_here: bool, is_goal: bool, slowest_speed: float,
+                     options) -> list[np.ndarray]:
+    """Where to try gliding, in order, near a stop waypoint ``goal_W``: none unless it is one,
+    within ``approach_distance`` horizontally, and the vehicle no faster than the slowest
+    tier plus ``stopped_speed``. A corner exactly; the goal half ``goal_tolerance`` short of
+    it, then 0.9 of it (horizontally, at its height), since a goal near a wall may leave no
+    room for the robot's sphere on the point."""
+    offset = goal_W - position_W
+    distance = float(np.hypot(offset[0], offset[1]))
+    if not stop_here or distance > options.approach_distance \
+            or speed > slowest_speed + options.stopped_speed:
+        return []
+    targets = []
+    for short in ((0.5, 0.9) if is_goal else (0.0,)):
+        target = goal_W.copy()
+        if short > 0.0 and distance > 0.0:
+            target[:2] -= offset[:2] * (min(distance, short * options.goal_tolerance)
+                                        / distance)
+        targets.append(target)
+    return targets
+
+
+class Step(enum.Enum):
+    """What a glide sequence wants this round."""
+
+    IDLE = "idle"  # not active: decide otherwise
+    KEEP = "keep"  # on its present glide: plan nothing
+
+
+class GlideSequence:
+    """Trail points flown one after the other by straight glides carrying ``reason``."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+        self.targets: list[np.ndarray] = []
+
+    @property
+    def active(self) -> bool:
+        return bool(self.targets)
+
+    def clear(self) -> None:
+        self.targets.clear()
+
+
+class ParallaxGlide(GlideSequence):
+    """Back to the trail point :data:`~autonomy.navigation.trail.GLIDE_STEP_M` behind the
+    turning point, then to the turning point again; given up as soon as a fresh fit comes
+    (the anchors came back by themselves; a held fit does not count)."""
+
+    def __init__(self):
+        super().__init__(PARALLAX_REASON)
+
+    def start(self, trail: Trail, position_W: np.ndarray) -> None:
+        """Arm the glides from ``position_W`` at rest after a turn (none without a trail
+        point far enough behind)."""
+        back = trail.point_behind(position_W)
+        if back is not None:
+            self.targets = [back, position_W.copy()]
+
+    def step(self, plan, now: float, fit_age_s: float) -> Step | np.ndarray:
+        """The next target, :attr:`Step.KEEP` while gliding, :attr:`Step.IDLE` when done."""
+        if not self.targets:
+            return Step.IDLE
+        started = len(self.targets) < 2
+        if not started and fit_age_s <= PARALLAX_WAIT_S:
+            self.targets.clear()
+            return Step.IDLE
+        if started and on_glide(plan, self.reason, now):
+            return Step.KEEP
+        return self.targets.pop(0)
+
+
+class Backoff(GlideSequence):
+    """Backing off along the flown trail from a dead end, ``backoff_distance`` at a time, at
+    most ``max_backoffs`` times per waypoint (``count`` is reset when one is passed)."""
+
+    def __init__(self):
+        super().__init__(BACKOFF_REASON)
+        self.count = 0
+
+    def start(self, trail: Trail, position_W: np.ndarray, options) -> bool:
+        """Arm a backing-off from ``position_W``; False when none is left for this waypoint
+        or the trail has no way back."""
+        if self.count >= options.max_backoffs:
+            return False
+        moves = trail.way_back(position_W, options.backoff_distance)
+        if not moves:
+            return False
+        self.count += 1
+        self.targets = moves
+        return True
+
+    def step(self, plan, now: float) -> Step | np.ndarray:
+        """The next trail point, :attr:`Step.KEEP` while gliding, :attr:`Step.IDLE` when done.
+        Unchecked glides: the ground is the vehicle's own trail, behind the camera."""
+        if on_glide(plan, self.reason, now):
+            return Step.KEEP
+        if not self.targets:
+            return Step.IDLE
+        return self.targets.pop(0)
+
+
+class Blocked(enum.Enum):
+    """What a round with no safe primitive leads to."""
+
+    WAIT = "wait"  # braking, or the no-path clock still running
+    TURN = "turn"  # at rest, not facing the waypoint: turn in place once
+    BACK_OFF = "back_off"  # at rest, facing it, blocked for half the no-path time
+
+
+class NoPathClock:
+    """How long the planner has found no safe primitive, and whether the one turn in place
+    toward the waypoint it allows has been made (both reset by a safe plan)."""
+
+    def __init__(self):
+        self.since: float | None = None
+        self.turned = False
+
+    def reset(self) -> None:
+        self.since, self.turned = None, False
+
+    def blocked(self, now: float, stopped: bool, heading_error: float, options) -> Blocked:
+        """A stop round at ``now``: start the clock, and say what to do."""
+        self.since = self.since if self.since is not None else now
+        if not stopped:
+            return Blocked.WAIT
+        if not self.turned and still_turning(heading_error, options):
+            self.since, self.turned = None, True
+            return Blocked.TURN
+        if now - self.since >= options.no_path_timeout_s / 2.0:
+            return Blocked.BACK_OFF
+        return Blocked.WAIT
+
+    def expired(self, now: float, options) -> bool:
+        """Blocked for longer than ``no_path_timeout_s``: the failsafe."""
+        return self.since is not None and now - self.since > options.no_path_timeout_s

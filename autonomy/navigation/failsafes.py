@@ -1,0 +1,66 @@
+"""The failsafe rules (DESIGN.md, "Flight behaviour"): which failure, if any, stops the
+flight now. The health monitor measures; this decides, in a fixed order of precedence, so the
+reason a flight stopped is the most basic one that held (an operator's stop before a stalled
+loop, before a silent sensor, before what follows from it)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from autonomy.vins.health import HealthState
+
+
+@dataclass(frozen=True)
+class Vitals:
+    """What the monitor measured at one check. Ages are seconds since the newest camera frame,
+    IMU sample and metric depth (inf: none yet)."""
+
+    stop_requested: str  # an operator's stop, with its reason ("" if none)
+    loop_lag_s: float
+    watchdog_in_charge: bool  # the setpoint watchdog has sent the stop
+    camera_age_s: float
+    imu_age_s: float
+    vins_problem: str  # see vins_problem ("" if none)
+    depth_age_s: float
+    depth_reason: str  # why the newest frame had no metric depth
+    on_flown_ground: bool  # turning in place or gliding over the flown trail
+    no_path_expired: bool  # no safe primitive for longer than no_path_timeout_s
+
+
+def age(t: float | None, now: float) -> float:
+    """Seconds from ``t`` to ``now`` (inf when there was no ``t``)."""
+    return math.inf if t is None else now - t
+
+
+def vins_problem(health_state: HealthState | None, health_reason: str,
+                 reinitialisations: int, reinitialisations_at_takeoff: int) -> str:
+    """Why the VINS cannot be flown on ("" when it can): lost, or reinitialised since the
+    take-off (its world frame, and so the route's tie to PX4's frame, has moved)."""
+    if health_state is None:
+        return ""
+    if health_state == HealthState.LOST:
+        return f"VINS lost ({health_reason})"
+    if reinitialisations > reinitialisations_at_takeoff:
+        return "VINS reset in flight"
+    return ""
+
+
+def failsafe_reason(vitals: Vitals, options) -> str:
+    """The first failed check's reason ("" when all pass); ``options`` the
+    :class:`~autonomy.navigation.mission.FlightOptions`. Depth may lapse over flown ground
+    (the turn and the glides are there to get new depth)."""
+    o = options
+    checks = (
+        (bool(vitals.stop_requested), vitals.stop_requested),
+        (vitals.loop_lag_s > o.max_loop_lag_s,
+         f"event loop stalled ({1e3 * vitals.loop_lag_s:.0f} ms late)"),
+        (vitals.watchdog_in_charge, "setpoint deadline missed (watchdog sent the stop)"),
+        (vitals.camera_age_s > o.camera_timeout_s, "camera silent"),
+        (vitals.imu_age_s > o.imu_timeout_s, "IMU silent"),
+        (vitals.vins_problem != "", vitals.vins_problem),
+        (vitals.depth_age_s > o.depth_timeout_s and not vitals.on_flown_ground,
+         f"no metric depth ({vitals.depth_reason or 'none yet'})"),
+        (vitals.no_path_expired, "no safe primitive"),
+    )
+    return next((reason for failed, reason in checks if failed), "")

@@ -1,0 +1,199 @@
+"""The flight application: one asyncio process from camera and IMU to PX4 setpoints.
+
+DESIGN.md, "The process"; docs/architecture.md draws the flow of one frame to one setpoint.
+Stages, each a few short coroutines on one event loop, exchanging messages over channels
+(:class:`~companion.flight.context.Channels`):
+
+- the MAVLink driver (:class:`drivers.mavlink.autopilot.Autopilot`): heartbeats, TIMESYNC,
+  HIGHRES_IMU, commands;
+- perception (:mod:`~companion.flight.perception`): per camera frame the VINS and the depth
+  source, then metric depth into the planner's history;
+- navigation (:mod:`~companion.flight.navigation`): the route, the behaviours at corners and
+  dead ends and the planner, every ``[planner] period_s``;
+- command (:mod:`~companion.flight.command`): setpoints and ODOMETRY to PX4, and the
+  setpoint watchdog thread;
+- health (:mod:`~companion.flight.health`): loop lag and the failsafe checks;
+- the mission's steps (:mod:`~companion.flight.steps`): preflight to landing.
+
+Heavy work runs on workers (:mod:`~companion.flight.workers`): inline in lockstep, a thread
+per stage in real time.
+
+Frames: the VINS world ``W`` is fixed at its static initialisation; PX4's local frame ``L``
+(ENU here, NED on the wire) is its own. They are tied once, on the ground, by the yaw and
+position of the two estimates at the same instant
+(:func:`autonomy.geometry.yaw_alignment`); goals are given in ``L``, planned in ``W``, and
+setpoints and odometry go back to ``L``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+
+import numpy as np
+
+from autonomy.depth.stage import MetricDepthStage
+from autonomy.navigation.mission import FlightState
+from autonomy.navigation.route import Route
+from autonomy.planning.planner import Planner
+from autonomy.vins.estimator import Vins
+from companion.flight.command import Command
+from companion.flight.context import FlightContext
+from companion.flight.health import Health
+from companion.flight.navigation import Navigation
+from companion.flight.perception import DepthSource, NetworkDepth, Perception
+from companion.flight.steps import MissionSteps
+from companion.flight.workers import make_workers
+from companion.report import show
+
+log = logging.getLogger(__name__)
+
+#: The workers heavy stages run on.
+WORKERS = ("vins", "network", "planner")
+
+
+class FlightApp:
+    """The whole stack against one autopilot, camera and depth source (module docstring).
+
+    ``waypoints_L``: (N, 3) points in PX4's local frame (ENU), the last one the goal.
+    ``depth``: a :class:`~companion.flight.perception.DepthSource` (the network and the
+    rescaler, :class:`~companion.flight.perception.NetworkDepth`, or in simulation the true
+    depth). ``workers`` maps :data:`WORKERS` to a worker.
+    """
+
+    @classmethod
+    def from_config(cls, config, *, autopilot, camera, network, T_B_C, waypoints_L, clock,
+                    lockstep: bool, notifier=None, depth: DepthSource | None = None
+                    ) -> "FlightApp":
+        """The application with its VINS, planner and workers built from ``config``: an
+        undistorted ``[camera]`` mounted at ``T_B_C``, the ``[vins_imu]`` noise model; the
+        depth network ``network(frame) -> relative disparity`` rescaled as ``[rescale]`` and
+        ``[depth]`` say, unless ``depth`` replaces it; workers inline in lockstep, threads
+        otherwise (closed when :meth:`run` ends)."""
+        pinhole = config.camera.pinhole()
+        vins = Vins(pinhole, (0.0,) * 4, T_B_C, config.vins_imu, config.vins,
+                    frontend=config.vins_frontend, static=config.vins_init)
+        if depth is None:
+            depth = NetworkDepth(network, MetricDepthStage(config.rescale, config.depth))
+        return cls(config, autopilot=autopilot, camera=camera, depth=depth, vins=vins,
+                   T_B_C=T_B_C, planner=Planner(pinhole, config.planner),
+                   waypoints_L=waypoints_L, clock=clock, notifier=notifier,
+                   workers=make_workers(lockstep, WORKERS))
+
+    def __init__(self, config, *, autopilot, camera, depth: DepthSource, vins: Vins,
+                 T_B_C: np.ndarray, planner: Planner, waypoints_L, clock, workers: dict,
+                 notifier=None):
+        options = config.flight
+        self.context = FlightContext(options, clock, autopilot, workers)
+        self.perception = Perception(self.context, camera, vins, depth, planner, T_B_C)
+        self.navigation = Navigation(self.context, self.perception, planner,
+                                     Route(waypoints_L, math.radians(options.corner_turn_deg)))
+        self.command = Command(self.context, self.perception, self.navigation)
+        self.health = Health(self.context, self.perception, self.navigation,
+                             self.command.watchdog, notifier)
+        self.steps = MissionSteps(self.context, self.perception, self.navigation, notifier)
+
+    @property
+    def channels(self):
+        """The stages' channels, for taps (a recorder, a live view, a test)."""
+        return self.context.channels
+
+    @property
+    def mission(self):
+        return self.context.mission
+
+    @property
+    def autopilot(self):
+        return self.context.autopilot
+
+    async def run(self) -> dict:
+        """Fly the mission to its end (landed or aborted) and return the summary."""
+        c = self.context
+        watchdog = self.command.watchdog
+        watchdog.start()
+        tasks = [asyncio.create_task(self._guard(name, coroutine), name=name)
+                 for name, coroutine in (
+                     ("autopilot", c.autopilot.run()), ("perception", self.perception.run()),
+                     ("planner", self.navigation.run()),
+                     ("setpoints", self.command.send_setpoints()),
+                     ("odometry", self.command.send_odometry()),
+                     ("monitor", self.health.run()))]
+        try:
+            await self.steps.fly()
+        finally:
+            watchdog.close()
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            for worker in c.workers.values():
+                worker.close()
+        return self.summary()
+
+    async def _guard(self, name: str, coroutine) -> None:
+        """Run one task; an error in it is a failsafe (logged with its traceback once), never
+        an exception out of the application. The watchdog covers a dead setpoint task."""
+        c = self.context
+        try:
+            await coroutine
+        except asyncio.CancelledError:
+            raise
+        except Exception as error:  # noqa: BLE001 - every failure must end in the safe state
+            log.exception("%s task failed", name)
+            c.mission.failsafe(c.clock.now(), f"{name} failed: {error}")
+            if c.state == FlightState.FAILSAFE_STOP:
+                c.channels.plan.publish(c.channels.checked_stop.value)  # immutable: safe
+            elif not c.mission.done and c.state in (FlightState.PREFLIGHT,
+                                                    FlightState.INITIALISING):
+                c.abort(f"{name} failed: {error}")
+
+    def stop_requested(self, reason: str) -> None:
+        """An operator's stop (SIGTERM from systemd): on the ground the mission ends; in the
+        air it is a failsafe (stop, hold, land) at the next check."""
+        self.health.stop_reason = reason
+        if self.context.state in (FlightState.PREFLIGHT, FlightState.INITIALISING):
+            self.context.abort(reason)
+
+    def summary(self) -> dict:
+        """The run in plain numbers for JSON (the simulator adds the ground truth)."""
+        c = self.context
+        s, mission, now = c.stats, c.mission, c.clock.now()
+        navigation = ((s.navigation_end or now) - s.navigation_start
+                      if s.navigation_start is not None else 0.0)
+        lag = np.asarray(s.loop_lag_s) if s.loop_lag_s else np.zeros(1)
+        return {
+            "final_state": mission.state.value,
+            "reached_goal": any(t.reason == "goal reached" for t in mission.transitions),
+            "failsafes": list(mission.failsafes),
+            "transitions": [{"t": round(t.t, 3), "from": t.source.value, "to": t.target.value,
+                             "reason": t.reason} for t in mission.transitions],
+            "flight_time_s": ((s.landed_t or now) - s.takeoff_t
+                              if s.takeoff_t is not None else 0.0),
+            "navigation_time_s": navigation,
+            "frames": s.frames,
+            # metric depth frames the planner got per second of navigation
+            "depth_rate_hz": s.depth_ok / navigation if navigation > 0 else 0.0,
+            "depth_failures": dict(s.depth_reasons),
+            "planning_rounds": s.planning_rounds,
+            "stop_rounds": s.stop_rounds,
+            "backoffs": s.backoffs,
+            "vins_resets": self.perception.vins.resets,
+            "watchdog_setpoints": self.command.watchdog.fired,
+            "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
+            "waypoints_passed": self.navigation.route.index,
+            "navigation_end": s.navigation_end_L,
+        }
+
+
+def format_flight(summary: dict) -> str:
+    """The application's own summary (real or simulated flight) as a few lines."""
+    return "\n".join([
+        f"  final state       {summary['final_state']}",
+        f"  failsafes         {', '.join(summary['failsafes']) or 'none'}",
+        f"  flight time       {show(summary.get('flight_time_s'), '.1f', ' s')}",
+        f"  depth rate        {show(summary.get('depth_rate_hz'), '.1f', ' Hz')}",
+        f"  loop lag p99      {show(summary.get('loop_lag_ms_p99'), '.1f', ' ms')}",
+        f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops, "
+        f"{summary['backoffs']} backings-off)",
+        f"  VINS resets       {summary['vins_resets']}",
+    ])

@@ -1,0 +1,104 @@
+"""What the flight process's stages share: the clock, the mission, the channels and the run's
+counters. A stage gets this and the parts it owns; it never reaches into another stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from autonomy.messages import Frame, ImuSample, MetricDepth, Odometry
+from autonomy.navigation.mission import FlightOptions, FlightState, Mission, Transition
+from autonomy.planning.planner import Plan, Setpoint
+from autonomy.vins.estimator import FrameUpdate
+from companion.flight.channels import Latest
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The tie of the VINS world ``W`` to PX4's local frame ``L``, made once on the ground
+    (:func:`autonomy.geometry.yaw_alignment`), and the ground's height in ``L`` then."""
+
+    T_L_W: np.ndarray
+    home_z: float
+
+
+class Channels:
+    """Every channel of the flight process (docs/architecture.md lists who publishes and who
+    reads each). Each keeps the newest value; its taps see every one, in order."""
+
+    def __init__(self):
+        self.frames: Latest[Frame] = Latest("frames")  # perception: each camera frame
+        self.imu: Latest[ImuSample] = Latest("imu")  # perception: each sample fed to the VINS
+        self.vins: Latest[FrameUpdate] = Latest("vins")  # perception: the VINS on each frame
+        self.depth: Latest[MetricDepth] = Latest("depth")  # perception: each frame's depth
+        self.alignment: Latest[Alignment] = Latest("alignment")  # perception: once
+        self.odometry: Latest[Odometry] = Latest("odometry")  # perception: on request
+        self.plan: Latest[Plan] = Latest("plan")  # navigation, health: what to fly
+        self.checked_stop: Latest[Plan] = Latest("checked_stop")  # the watchdog's fallback
+        self.setpoints: Latest[Setpoint] = Latest("setpoints")  # command: each one sent (W)
+        self.transitions: Latest[Transition] = Latest("transitions")  # the mission's
+
+
+@dataclass
+class FlightStats:
+    """What the run measured, for the summary."""
+
+    frames: int = 0
+    depth_ok: int = 0
+    depth_reasons: dict = field(default_factory=dict)
+    planning_rounds: int = 0
+    stop_rounds: int = 0
+    backoffs: int = 0
+    loop_lag_s: list = field(default_factory=list)
+    navigation_start: float | None = None
+    navigation_end: float | None = None
+    navigation_end_L: dict | None = None  # t and the VINS position in PX4's local frame then
+    takeoff_t: float | None = None
+    landed_t: float | None = None
+    vins_reinitialisations_at_takeoff: int = 0
+    vins_rebuilds_seen: int = 0
+
+    @property
+    def navigating(self) -> bool:
+        """Between Offboard and the end of navigation."""
+        return self.navigation_start is not None and self.navigation_end is None
+
+
+class FlightContext:
+    """The clock, the ``[flight]`` options, the autopilot, the mission state machine, the
+    channels and the counters of one flight."""
+
+    def __init__(self, options: FlightOptions, clock, autopilot, workers: dict):
+        self.options, self.clock, self.autopilot, self.workers = options, clock, autopilot, workers
+        self.mission = Mission(clock.now(), on_transition=self._transition)
+        self.channels = Channels()
+        self.stats = FlightStats()
+
+    def _transition(self, transition: Transition) -> None:
+        self.channels.transitions.publish(transition)
+
+    @property
+    def state(self) -> FlightState:
+        return self.mission.state
+
+    @property
+    def T_L_W(self) -> np.ndarray | None:
+        """The tie of the VINS world to PX4's local frame; None before it is made."""
+        alignment = self.channels.alignment.value
+        return None if alignment is None else alignment.T_L_W
+
+    def go(self, state: FlightState, reason: str) -> None:
+        self.mission.go(self.clock.now(), state, reason)
+
+    def abort(self, reason: str) -> None:
+        self.go(FlightState.ABORTED, reason)
+
+    async def wait(self, condition, timeout_s: float, poll_s: float) -> bool:
+        """Until ``condition()`` (True), ``timeout_s`` or the mission's end (False)."""
+        deadline = self.clock.now() + timeout_s
+        while not condition():
+            if self.clock.now() >= deadline or self.mission.done:
+                return False
+            await self.clock.sleep(poll_s)
+        return True

@@ -1,0 +1,254 @@
+"""Navigation: every ``[planner] period_s``, the route's next waypoint, the behaviours at
+corners and dead ends (:mod:`autonomy.navigation.behaviours`) and the planner's arcs, on the
+newest VINS state; the plan goes out on the ``plan`` channel, the braking branch it checked
+on ``checked_stop`` (the watchdog's fallback).
+
+A round (docs/flight.md): record the trail; pass waypoints or reach the goal; then the first
+behaviour that applies: backing off along the trail, turning at a corner, the parallax glide
+after a turn, the approach glide to a stop waypoint, and else the planner's arcs. A round with
+no safe arc starts the no-path clock, and at rest turns once toward the waypoint, then backs
+off. Decisions are autonomy's; this stage runs them and the planner (on its worker).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from autonomy.messages import Odometry
+from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, Backoff,
+                                            Blocked, NoPathClock, ParallaxGlide, Step,
+                                            approach_targets, must_turn, on_glide,
+                                            still_turning)
+from autonomy.navigation.failsafes import age
+from autonomy.navigation.mission import FlightState
+from autonomy.navigation.route import Route, heading_error
+from autonomy.navigation.trail import Trail
+from autonomy.planning.planner import Plan, Planner
+from companion.flight.context import FlightContext
+from companion.flight.perception import Perception
+
+log = logging.getLogger(__name__)
+
+#: From the take-off to Offboard: the vehicle climbs its take-off column and holds on top.
+CLIMBING_STATES = frozenset({FlightState.TAKING_OFF, FlightState.ENTERING_OFFBOARD})
+
+
+class Navigation:
+    """The stage (module docstring)."""
+
+    def __init__(self, context: FlightContext, perception: Perception, planner: Planner,
+                 route: Route):
+        self.context, self.perception, self.planner, self.route = (context, perception,
+                                                                   planner, route)
+        self.trail = Trail()
+        self.corner_pending = False  # a stop waypoint was just passed: stop and turn
+        self.parallax, self.backoff, self.no_path = ParallaxGlide(), Backoff(), NoPathClock()
+
+    # ------------------------------------------------------------------ for the other stages
+
+    @property
+    def plan(self) -> Plan | None:
+        return self.context.channels.plan.value
+
+    def heading_error(self) -> float:
+        """Angle from the body's heading to the next waypoint, radians (0 without a state)."""
+        c = self.context
+        odometry = c.channels.odometry.value
+        if odometry is None or c.T_L_W is None:
+            return 0.0
+        return heading_error(odometry.T_W_B, self.route.next_W(c.T_L_W))
+
+    def stopped(self) -> bool:
+        odometry = self.context.channels.odometry.value
+        return odometry is not None and float(np.linalg.norm(odometry.velocity_W)) < \
+            self.context.options.stopped_speed
+
+    def on_flown_ground(self) -> bool:
+        """Turning in place at a corner, gliding for parallax after it, or backing off along
+        the trail: the vehicle stays on ground it has flown, so depth may lapse (new depth is
+        what the first two are for)."""
+        now, plan = self.context.clock.now(), self.plan
+        return self.context.state == FlightState.ALIGNING or self.parallax.active \
+            or self.backoff.active or on_glide(plan, PARALLAX_REASON, now) \
+            or on_glide(plan, BACKOFF_REASON, now)
+
+    def stop_plan(self, reason: str) -> Plan | None:
+        """The stop checked at the last planning round while it lasts (braking from the
+        newest state's velocity after it, or when there was no round)."""
+        odometry = self.context.channels.odometry.value
+        if odometry is None:
+            return self.plan
+        return self.planner.stop_plan(odometry.t, odometry.T_W_B, odometry.velocity_W, reason)
+
+    def stop(self, reason: str) -> None:
+        """Fly :meth:`stop_plan` from now on."""
+        self.context.channels.plan.publish(self.stop_plan(reason))
+
+    # ------------------------------------------------------------------ the loop
+
+    async def run(self) -> None:
+        c = self.context
+        period = self.planner.options.period_s
+        while True:
+            if c.state == FlightState.NAVIGATING:
+                await self._round()
+            elif c.state in CLIMBING_STATES:
+                await self._record_climb()
+            await c.clock.sleep(period)
+
+    async def _record_climb(self) -> None:
+        """Keep the take-off column in the trail: the first turn, toward the first waypoint,
+        has no flown leg behind it, and gliding down the column is the parallax move then."""
+        odometry = await self.perception.odometry()
+        if odometry is not None:
+            self.trail.record(odometry.T_W_B[:3, 3], climbing=True)
+
+    async def _round(self) -> None:
+        c = self.context
+        odometry = await self.perception.odometry()
+        if odometry is None or c.T_L_W is None:
+            return
+        now, position = c.clock.now(), odometry.T_W_B[:3, 3]
+        self.trail.record(position)
+        self._advance(position)
+        if c.state != FlightState.NAVIGATING:
+            return
+        if self._back_off_step(odometry, now):
+            return
+        if must_turn(self.corner_pending, self.heading_error(), self.plan, c.options):
+            await self._turn_at_corner()
+            return
+        if self._parallax_step(odometry, now):
+            return
+        if await self._approach(odometry):
+            return
+        await self._plan_arcs(odometry, now)
+
+    def _advance(self, position_W: np.ndarray) -> None:
+        c, route = self.context, self.route
+        progress = route.advance(position_W, c.T_L_W, c.options)
+        if progress.passed:
+            self.corner_pending = progress.corner
+            self.backoff.count = 0
+            log.info("waypoint %d of %d", route.index + 1, len(route.waypoints_L))
+        if progress.goal_reached:
+            self.stop("goal reached")
+            c.go(FlightState.STOPPING, "goal reached")
+
+    def _fly(self, plan: Plan | None, *, checked: bool = True) -> None:
+        """Fly ``plan``; ``checked``: it is also the watchdog's fallback (a glide or an
+        approach, which end at rest)."""
+        if plan is None:
+            return
+        self.context.channels.plan.publish(plan)
+        if checked:
+            self.context.channels.checked_stop.publish(plan)
+
+    def _back_off_step(self, odometry: Odometry, now: float) -> bool:
+        """Fly the glides of a backing-off, one trail point after the other. True while
+        doing so."""
+        step = self.backoff.step(self.plan, now)
+        if isinstance(step, Step):
+            return step == Step.KEEP
+        self._fly(self.planner.glide(odometry.t, odometry.T_W_B, step, BACKOFF_REASON))
+        return True
+
+    def _parallax_step(self, odometry: Odometry, now: float) -> bool:
+        """Glide back along the trail after a turn and return to the turning point, until a
+        fresh fit comes. True while doing so."""
+        step = self.parallax.step(self.plan, now, age(self.perception.last_fit_t, now))
+        if isinstance(step, Step):
+            return step == Step.KEEP
+        self._fly(self.planner.glide(odometry.t, odometry.T_W_B, step, PARALLAX_REASON))
+        log.info("no depth after turning; gliding %s along the flown trail",
+                 "back" if self.parallax.active else "to the turning point")
+        return True
+
+    async def _turn_at_corner(self) -> None:
+        """Come to rest on the stop checked at the last round, then turn in place to face the
+        next waypoint. A stop by choice: the no-path clock does not run."""
+        c = self.context
+        self.no_path.since = None
+        if not self.stopped():
+            c.channels.plan.publish(await c.workers["planner"].run(
+                self.stop_plan, "stopping to turn to the next waypoint"))
+            return
+        self.corner_pending = False
+        self.parallax.start(self.trail, c.channels.odometry.value.T_W_B[:3, 3])
+        if still_turning(self.heading_error(), c.options):
+            c.go(FlightState.ALIGNING, "at a corner; turning to face the next waypoint")
+
+    async def _approach(self, odometry: Odometry) -> bool:
+        """Glide straight to a near stop waypoint when the planner finds that safe (True)."""
+        c, route = self.context, self.route
+        targets = approach_targets(
+            route.next_W(c.T_L_W), odometry.T_W_B[:3, 3],
+            float(np.linalg.norm(odometry.velocity_W)), stop_here=route.stops_next,
+            is_goal=route.at_last, slowest_speed=self.planner.tiers[-1].speed,
+            options=c.options)
+        for target in targets:
+            plan = await c.workers["planner"].run(self.planner.approach, odometry.t,
+                                                  odometry.T_W_B, target)
+            if plan is not None:
+                self._fly(plan)
+                c.stats.planning_rounds += 1
+                self.no_path.reset()
+                return True
+        return False
+
+    async def _plan_arcs(self, odometry: Odometry, now: float) -> None:
+        c = self.context
+        plan, checked_stop = await c.workers["planner"].run(
+            self._plan_with_stop, odometry, self.route.next_W(c.T_L_W))
+        if c.state != FlightState.NAVIGATING:
+            return  # a failsafe took over while planning
+        c.channels.plan.publish(plan)
+        c.channels.checked_stop.publish(checked_stop)
+        c.stats.planning_rounds += 1
+        if plan.kind != "stop":
+            self.no_path.reset()
+            return
+        c.stats.stop_rounds += 1
+        blocked = self.no_path.blocked(now, self.stopped(), self.heading_error(), c.options)
+        if blocked == Blocked.TURN:
+            # at rest and not facing the waypoint: one turn in place for a new view (the arcs
+            # only turn while moving on), then the no-path clock starts again
+            c.go(FlightState.ALIGNING, "no safe primitive; turning to face the waypoint")
+        elif blocked == Blocked.BACK_OFF:
+            self._back_off(odometry)
+
+    def _back_off(self, odometry: Odometry) -> None:
+        """Blocked at rest and facing the waypoint: a dead end for forward arcs, such as a wall
+        beside a door the arcs drifted past. Glide back ``backoff_distance`` along the flown
+        trail, heading held, and plan again from there, where the arcs have room to line up
+        with the opening."""
+        o = self.context.options
+        if not self.backoff.start(self.trail, odometry.T_W_B[:3, 3], o):
+            return
+        self.context.stats.backoffs += 1
+        self.no_path.reset()
+        log.warning("no safe primitive; backing off %.1f m along the flown trail (%d of %d)",
+                    o.backoff_distance, self.backoff.count, o.max_backoffs)
+
+    def _plan_with_stop(self, odometry: Odometry, goal_W: np.ndarray) -> tuple[Plan, Plan]:
+        """This round's plan, and the braking branch it checked; on the planner's worker."""
+        args = (odometry.t, odometry.T_W_B, odometry.velocity_W)
+        return (self.planner.plan(*args, goal_W, stop_at_goal=self.route.stops_next),
+                self.planner.stop_plan(*args, "setpoint deadline"))
+
+    def position_L(self) -> list[float] | None:
+        """The VINS estimate of the vehicle's position in PX4's local frame, metres (None
+        before the frames are tied)."""
+        c = self.context
+        odometry = c.channels.odometry.value
+        if odometry is None or c.T_L_W is None:
+            return None
+        return [round(float(v), 3) for v in (c.T_L_W @ odometry.T_W_B)[:3, 3]]
+
+
+def turn_rate(heading_error: float, options) -> float:
+    """Yaw rate of a turn in place toward a heading ``heading_error`` away, rad/s."""
+    return math.copysign(math.radians(options.align_yaw_rate_deg), heading_error)

@@ -1,0 +1,161 @@
+"""Perception: each camera frame through the VINS and the depth source to metric depth in the
+planner's history; the VINS state on request.
+
+Per frame (DESIGN.md, "The process"): wait briefly for the IMU to reach the frame's time, then
+the VINS (front-end and back-end, on the ``vins`` worker) and the depth source's inference (on
+the ``network`` worker) side by side; then the depth source makes the frame's metric depth with
+the sparse map of this very frame, and the depth goes into the planner's history (on the
+``planner`` worker, in order with planning). The first VINS pose ties the VINS world to PX4's
+local frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Callable, Protocol
+
+import numpy as np
+
+from autonomy.depth.stage import MetricDepthStage
+from autonomy.geometry import yaw_alignment
+from autonomy.messages import Frame, MetricDepth, Odometry, RelativeDepth, SparseMap
+from autonomy.planning.planner import Planner
+from autonomy.vins.estimator import FrameUpdate, Vins
+from companion.flight.context import Alignment, FlightContext
+
+log = logging.getLogger(__name__)
+
+#: Longest wait for the IMU to reach a frame's time before the frame is processed anyway, s.
+IMU_WAIT_S = 0.05
+#: How often that wait polls, seconds.
+IMU_POLL_S = 0.002
+
+
+class DepthSource(Protocol):
+    """Where a frame's metric depth comes from, in two steps: :meth:`infer` on the frame alone
+    (beside the VINS), then :meth:`metric` with the VINS sparse map of the same frame."""
+
+    def infer(self, frame: Frame) -> object | None: ...
+
+    def metric(self, inferred, sparse_map: SparseMap | None) -> MetricDepth | None: ...
+
+
+class NetworkDepth:
+    """The depth network's relative disparity, made metric by the rescaler on the frame's
+    sparse map (Yang et al., Section III-B; :class:`~autonomy.depth.stage.MetricDepthStage`).
+    ``network(frame) -> disparity`` is the ONNX model or, in simulation, its stand-in; one
+    that fails on a frame (ValueError, RuntimeError) costs that frame, counted in
+    ``errors``."""
+
+    def __init__(self, network: Callable[[Frame], np.ndarray], stage: MetricDepthStage):
+        self.network, self.stage = network, stage
+        self.errors = 0
+
+    def infer(self, frame: Frame) -> RelativeDepth | None:
+        try:
+            return RelativeDepth(frame.t, self.network(frame))
+        except (ValueError, RuntimeError) as error:
+            self.errors += 1
+            log.warning("depth network failed on frame t=%.3f: %s", frame.t, error)
+            return None
+
+    def metric(self, relative: RelativeDepth | None,
+               sparse_map: SparseMap | None) -> MetricDepth | None:
+        return None if relative is None else self.stage.process(relative, sparse_map)
+
+
+class Perception:
+    """The stage (module docstring). ``vins`` is touched on its worker only, in order."""
+
+    def __init__(self, context: FlightContext, camera, vins: Vins, depth: DepthSource,
+                 planner: Planner, T_B_C: np.ndarray):
+        self.context, self.camera, self.vins, self.depth = context, camera, vins, depth
+        self.planner, self.T_B_C = planner, np.asarray(T_B_C, dtype=float)
+        self.last_depth_t: float | None = None  # newest depth in the planner's history
+        self.last_fit_t: float | None = None  # newest depth rescaled by its own frame's fit
+        self.last_depth_reason = ""  # why the newest frame without depth had none
+
+    @property
+    def last_frame_t(self) -> float | None:
+        frame = self.context.channels.frames.value
+        return None if frame is None else frame.t
+
+    async def run(self) -> None:
+        c = self.context
+        workers, channels = c.workers, c.channels
+        while True:
+            frame = await self.camera.next_frame()
+            channels.frames.publish(frame)
+            c.stats.frames += 1
+            await self._wait_for_imu(frame.t)
+            update, inferred = await asyncio.gather(workers["vins"].run(self._track, frame),
+                                                    workers["network"].run(self.depth.infer,
+                                                                           frame))
+            self._after_vins(update)
+            metric = await workers["network"].run(self.depth.metric, inferred,
+                                                  update.sparse_map)
+            await self._after_depth(metric, update)
+
+    async def odometry(self) -> Odometry | None:
+        """The VINS state at the newest IMU sample (published on ``odometry``); on the VINS
+        worker, in order with its frames."""
+        odometry = await self.context.workers["vins"].run(self._estimate)
+        self.context.channels.odometry.publish(odometry)
+        return odometry
+
+    def _estimate(self) -> Odometry | None:
+        self._feed_imu()
+        return self.vins.odometry()
+
+    async def _wait_for_imu(self, t: float) -> None:
+        clock, autopilot = self.context.clock, self.context.autopilot
+        give_up = clock.now() + IMU_WAIT_S
+        while (autopilot.last_imu_t is None or autopilot.last_imu_t < t) \
+                and clock.now() < give_up:
+            await clock.sleep(IMU_POLL_S)
+
+    def _feed_imu(self) -> None:
+        imu = self.context.channels.imu
+        for sample in self.context.autopilot.take_imu():
+            imu.publish(sample)
+            try:
+                self.vins.add_imu(sample)
+            except ValueError as error:
+                log.debug("IMU sample refused: %s", error)
+
+    def _track(self, frame: Frame) -> FrameUpdate:
+        """The VINS on one frame, with the IMU up to it (on the VINS worker)."""
+        self._feed_imu()
+        return self.vins.add_frame(frame.t, self.vins.track(frame.image))
+
+    def _after_vins(self, update: FrameUpdate) -> None:
+        c = self.context
+        c.channels.vins.publish(update)
+        state = c.autopilot.state
+        if c.T_L_W is None and update.T_W_B is not None and state is not None:
+            c.channels.alignment.publish(Alignment(yaw_alignment(state.T_L_B, update.T_W_B),
+                                                   float(state.position_L[2])))
+
+    async def _after_depth(self, metric: MetricDepth | None, update: FrameUpdate) -> None:
+        c = self.context
+        if metric is None:
+            self._depth_failed("depth network failed")
+            return
+        c.channels.depth.publish(metric)
+        if not metric.ok or update.T_W_B is None:
+            self._depth_failed(metric.diagnostics.reason or "no VINS pose for the frame")
+            return
+        # on the planner's worker: the history is only touched there, in order with planning
+        await c.workers["planner"].run(self.planner.add_depth, metric, update.T_W_B @ self.T_B_C)
+        self.last_depth_t = metric.t
+        if not metric.held:
+            self.last_fit_t = metric.t
+        if c.stats.navigating:
+            c.stats.depth_ok += 1
+
+    def _depth_failed(self, reason: str) -> None:
+        self.last_depth_reason = reason
+        kind = reason.split(":")[0]  # counted by kind, without the frame's own numbers
+        reasons = self.context.stats.depth_reasons
+        reasons[kind] = reasons.get(kind, 0) + 1

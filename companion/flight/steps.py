@@ -1,0 +1,164 @@
+"""The mission's steps, in order (DESIGN.md, "Flight behaviour"): preflight, the VINS's static
+initialisation, arming and take-off, entering Offboard, navigating until the goal is reached
+or a failsafe stops the vehicle, and coming down. Each step waits on the other stages'
+channels and moves the mission's state machine (:class:`autonomy.navigation.mission.Mission`);
+a step that fails on the ground aborts, one that fails in the air lands."""
+
+from __future__ import annotations
+
+import logging
+
+from autonomy.navigation.behaviours import still_turning
+from autonomy.navigation.mission import FlightState
+from companion.flight.context import FlightContext
+from companion.flight.navigation import Navigation
+from companion.flight.perception import Perception
+from drivers.mavlink import px4_protocol
+
+log = logging.getLogger(__name__)
+
+#: How often a waiting step polls, seconds.
+POLL_S = 0.01
+#: PX4 takes Offboard only after a second of setpoints (> 2 Hz); wait a little longer.
+OFFBOARD_STREAM_S = 1.2
+#: How far under the take-off height counts as there, metres.
+TAKEOFF_HEIGHT_MARGIN = 0.25
+NAVIGATING_STATES = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
+                               FlightState.STOPPING, FlightState.FAILSAFE_STOP})
+
+
+class MissionSteps:
+    """The steps (module docstring); ``notifier`` is systemd's (READY=1 after preflight)."""
+
+    def __init__(self, context: FlightContext, perception: Perception,
+                 navigation: Navigation, notifier=None):
+        self.context, self.perception, self.navigation = context, perception, navigation
+        self.notifier = notifier
+
+    async def fly(self) -> None:
+        steps = (self._preflight, self._initialise, self._take_off, self._enter_offboard,
+                 self._navigate, self._come_down)
+        for step in steps:
+            if self.context.mission.done:
+                return
+            await step()
+
+    async def _wait(self, condition, timeout_s: float) -> bool:
+        return await self.context.wait(condition, timeout_s, POLL_S)
+
+    async def _preflight(self) -> None:
+        c = self.context
+        if not await self._wait(lambda: self.preflight_problem() == "",
+                                c.options.preflight_timeout_s):
+            c.abort(f"preflight: {self.preflight_problem()}")
+            return
+        c.go(FlightState.INITIALISING, "link, IMU and camera up")
+        if self.notifier is not None:
+            self.notifier.ready("preflight passed")
+
+    def preflight_problem(self) -> str:
+        autopilot = self.context.autopilot
+        if not autopilot.connected:
+            return "no heartbeat from the flight controller"
+        if not autopilot.time_synced:
+            return "no TIMESYNC answer from the flight controller"
+        if autopilot.last_imu_t is None:
+            return "no HIGHRES_IMU from the flight controller"
+        if self.perception.last_frame_t is None:
+            return "no camera frame"
+        return ""
+
+    async def _initialise(self) -> None:
+        c = self.context
+        if not await self._wait(lambda: c.T_L_W is not None, c.options.init_timeout_s):
+            update = c.channels.vins.value
+            c.abort(f"VINS did not initialise: {update.health.reason if update else 'no frames'}")
+            return
+        c.go(FlightState.TAKING_OFF, "VINS initialised; frames aligned")
+
+    async def _take_off(self) -> None:
+        c = self.context
+        o, autopilot = c.options, c.autopilot
+        if not await autopilot.arm():
+            c.abort("arming denied")
+            return
+        c.stats.takeoff_t = c.clock.now()
+        c.stats.vins_reinitialisations_at_takeoff = self.perception.vins.reinitialisations
+        if not await autopilot.takeoff(o.takeoff_altitude):
+            c.go(FlightState.LANDING, "take-off denied")
+            return
+        home_z = c.channels.alignment.value.home_z
+
+        def up() -> bool:
+            state = autopilot.state
+            return (state is not None and autopilot.in_air
+                    and autopilot.mode == px4_protocol.AUTO_LOITER
+                    and state.position_L[2] >= home_z + o.takeoff_altitude
+                    - TAKEOFF_HEIGHT_MARGIN)
+        if not await self._wait(up, o.takeoff_timeout_s):
+            c.go(FlightState.LANDING, "take-off did not reach its height")
+            return
+        c.go(FlightState.ENTERING_OFFBOARD, "at take-off height")
+
+    async def _enter_offboard(self) -> None:
+        c = self.context
+        # the setpoint task streams zero velocity in this state
+        await c.clock.sleep(OFFBOARD_STREAM_S)
+        if not await c.autopilot.set_mode(px4_protocol.OFFBOARD):
+            c.go(FlightState.LANDING, "PX4 refused Offboard")
+            return
+        c.stats.navigation_start = c.clock.now()
+        c.go(FlightState.NAVIGATING, "Offboard")
+
+    async def _navigate(self) -> None:
+        c = self.context
+        deadline = c.clock.now() + c.options.mission_timeout_s
+        while c.state in NAVIGATING_STATES:
+            if c.clock.now() > deadline:
+                c.mission.failsafe(c.clock.now(), "mission timeout")
+            await self._navigation_step()
+            await c.clock.sleep(POLL_S)
+        c.stats.navigation_end = c.clock.now()
+        position = self.navigation.position_L()
+        if position is not None:
+            c.stats.navigation_end_L = {"t": c.stats.navigation_end, "position_L": position}
+
+    async def _navigation_step(self) -> None:
+        c = self.context
+        state, now = c.state, c.clock.now()
+        if state in (FlightState.STOPPING, FlightState.FAILSAFE_STOP):
+            if self.navigation.stopped() or c.mission.elapsed(now) > c.options.stop_timeout_s:
+                await self._after_stop(state)
+        elif state == FlightState.ALIGNING and not still_turning(
+                self.navigation.heading_error(), c.options):
+            c.go(FlightState.NAVIGATING, "facing the next waypoint")
+
+    async def _after_stop(self, state: FlightState) -> None:
+        c = self.context
+        if state == FlightState.STOPPING:
+            c.go(FlightState.LANDING, "stopped at the goal")
+            return
+        c.go(FlightState.HOLDING, "stopped after a failsafe")
+        await c.autopilot.hold()
+
+    async def _come_down(self) -> None:
+        c = self.context
+        o, autopilot = c.options, c.autopilot
+        if c.state == FlightState.LINK_LOST:
+            await self._wait(lambda: autopilot.connected, o.land_timeout_s)
+            if not autopilot.connected:
+                c.go(FlightState.ABORTED, "link never came back; PX4's failsafe flies")
+                return
+            c.go(FlightState.HOLDING, "link back")
+            await autopilot.hold()
+        if c.state == FlightState.HOLDING:
+            await c.clock.sleep(o.hold_before_land_s)
+            c.go(FlightState.LANDING, "hold time over")
+        if not await autopilot.land():
+            log.warning("land command not acknowledged; waiting for PX4 anyway")
+        if await self._wait(lambda: not autopilot.armed, o.land_timeout_s):
+            c.stats.landed_t = c.clock.now()
+            c.go(FlightState.LANDED, "disarmed on the ground")
+        else:
+            c.go(FlightState.ABORTED, "did not land in time")
+

@@ -1,0 +1,155 @@
+"""``companion sim fly``: the whole stack against the simulated vehicle, over real MAVLink.
+
+The simulator host (:mod:`drivers.sim.host`) serves the mock PX4 on loopback UDP; the
+application (:class:`companion.flight.app.FlightApp`) connects to it as it would to a real
+flight controller, sees
+the world through the simulated camera, estimates its state with the VINS and its depth with
+the network (the synthetic stand-in of ``[synthetic_depth]`` unless ``[depth_network] model``
+names an ONNX file) and the rescaler, and flies the planner's arcs to the goal.
+
+The mission: a world's start/goal pair (``pair``), flown through the corners of the route's
+collision-free path as waypoints (what an operator would give as a mission), or one ``goal``.
+Waypoints and goals are in PX4's local frame, which in the simulator is the world frame (ENU).
+
+Ground truth stays on the simulator's side and is used only for the summary: the flown path,
+its clearance from the obstacles, collisions, the distance to the goal at the end.
+
+Clocks: ``lockstep`` (default) runs the simulator and the application on one event loop and one
+:class:`~drivers.clock.SimClock`, heavy stages inline (deterministic, as fast as the CPU
+allows); ``realtime`` runs the simulator in its own thread on the wall clock and the application
+on the main thread with its stages in worker threads, as on the vehicle.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from companion.flight.app import FlightApp, format_flight
+from companion.report import show
+from drivers.mavlink.autopilot import Autopilot
+from drivers.sim.faults import FaultSchedule
+from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMission,
+                              ThreadedSimulator, TruthDepth, TruthTrack, free_udp_port,
+                              mission_waypoints, simulated_network, stall_when_due)
+from drivers.sim.world import World, build_world
+
+log = logging.getLogger(__name__)
+
+#: How much further than ``[flight] goal_tolerance`` the true closest approach may be when the
+#: application says it reached the goal: the VINS's drift over a flight, metres.
+GOAL_DRIFT_ALLOWANCE = 1.0
+
+__all__ = ["DEPTH_SOURCES", "SimError", "SimMission", "run", "fly", "format_summary"]
+
+
+def run(config, mission: SimMission, *, plot: Path | None = None,
+        progress: Callable[[str], None] | None = None) -> dict:
+    """Fly ``mission`` to its end and return the summary (module docstring)."""
+    if mission.clock not in ("lockstep", "realtime"):
+        raise SimError(f"clock must be lockstep or realtime, got {mission.clock!r}")
+    if mission.depth not in DEPTH_SOURCES:
+        raise SimError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
+                          f"got {mission.depth!r}")
+    return asyncio.run(fly(config, mission, plot=plot, progress=progress))
+
+
+async def fly(config, mission: SimMission, *, plot: Path | None = None,
+              progress: Callable[[str], None] | None = None) -> dict:
+    """Fly ``mission`` on the running loop and return the summary (module docstring)."""
+    world = build_world(mission.world, mission.seed)
+    start, waypoints, start_yaw = mission_waypoints(world, mission,
+                                                    config.flight.takeoff_altitude)
+    faults = FaultSchedule(mission.faults)
+    if faults.has("loop_stall") and mission.clock != "realtime":
+        raise SimError("a loop_stall fault needs --clock realtime: in lockstep the simulator "
+                          "shares the stalled loop, so simulated time stalls with it")
+    port = free_udp_port()
+    side = (LockstepSimulator if mission.clock == "lockstep" else ThreadedSimulator)(
+        config, world, mission, port, (start, start_yaw), faults, waypoints[-1], progress)
+    sim, camera, clock = await side.start()
+    stall = asyncio.create_task(stall_when_due(faults, sim))
+    try:
+        if mission.depth == "truth":
+            network, depth = None, TruthDepth(config.planner.max_range)
+        else:
+            network, depth = simulated_network(config, mission.seed, faults,
+                                               lambda: sim.time), None
+        app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera, network,
+                        waypoints, lockstep=mission.clock == "lockstep", depth=depth)
+        try:
+            summary = await app.run()
+        finally:
+            app.autopilot.close()
+    finally:
+        stall.cancel()
+        await side.stop()
+    summary.update(_truth_summary(config, world, mission, sim, side.track, waypoints, summary))
+    if plot is not None:
+        _plot(world, side.track, start, waypoints, sim, plot, summary)
+        summary["plot"] = str(plot)
+    return summary
+
+
+def build_app(config, clock, url: str, camera, network, waypoints, *,
+              lockstep: bool, depth=None) -> FlightApp:
+    """The application wired to a camera, a depth network (or a whole ``depth`` source) and
+    the autopilot at ``url``."""
+    autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
+    return FlightApp.from_config(config, autopilot=autopilot, camera=camera, network=network,
+                                 T_B_C=config.camera.T_B_C(), waypoints_L=waypoints,
+                                 clock=clock, lockstep=lockstep, depth=depth)
+
+
+def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
+                   waypoints, summary: dict) -> dict:
+    goal = waypoints[-1]
+    truth = track.score(world, goal, summary.get("navigation_end"))
+    collision = sim.vehicle.collision
+    return {
+        "world": world.name, "seed": mission.seed, "pair": mission.pair, "depth": mission.depth,
+        "goal": [round(float(v), 3) for v in goal],
+        "faults": [dataclasses.asdict(f) for f in mission.faults],
+        "collisions": 0 if collision is None else 1,
+        "collision": None if collision is None else {
+            "t": round(collision.time, 3),
+            "position": [round(float(v), 3) for v in collision.position]},
+        **truth,
+        # the application's own judgement, confirmed by the truth (with room for VINS drift)
+        "reached_goal": bool(summary["reached_goal"] and truth["closest_to_goal_m"] is not None
+                             and truth["closest_to_goal_m"]
+                             <= config.flight.goal_tolerance + GOAL_DRIFT_ALLOWANCE),
+    }
+
+
+def _plot(world, track, start, waypoints, sim, out: Path, summary: dict) -> None:
+    from companion.tools.plot import top_view
+
+    collision = sim.vehicle.collision
+    top_view(world, np.array(track.positions), start=start, goal=waypoints[-1],
+             waypoints=waypoints[:-1],
+             collisions=() if collision is None else (collision.position,), out=out,
+             title=f"{world.name} pair {summary['pair']}: "
+                   f"{'reached' if summary['reached_goal'] else 'not reached'}")
+
+
+
+def format_summary(summary: dict) -> str:
+    """A simulated flight's summary as a few lines for a person."""
+    lines = [f"{summary['world']} pair {summary['pair']} (seed {summary['seed']}) -> goal "
+             f"{summary['goal']}",
+             f"  reached goal      {'yes' if summary['reached_goal'] else 'no'}"
+             f" (closest {show(summary.get('closest_to_goal_m'), '.2f', ' m')})",
+             f"  collisions        {summary['collisions']}",
+             f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
+             f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}",
+             f"  VINS error        {show(summary.get('position_error_m'), '.2f', ' m')}"]
+    lines += format_flight(summary).splitlines()
+    if summary.get("plot"):
+        lines.append(f"  plot              {summary['plot']}")
+    return "\n".join(lines)

@@ -1,0 +1,296 @@
+"""The navigation decisions on their own (autonomy/navigation): the route, the flown trail, the
+behaviours at corners and dead ends (turn, parallax glide, approach, backing off) and the
+failsafe rules, without asyncio, a socket or a simulator."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import PinholeCamera, make_pose, rot_z
+from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, PARALLAX_WAIT_S,
+                                            Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
+                                            approach_targets, must_turn)
+from autonomy.navigation.failsafes import Vitals, failsafe_reason, vins_problem
+from autonomy.navigation.mission import FlightOptions, FlightState, Mission
+from autonomy.navigation.route import Route, heading_error, stop_waypoints
+from autonomy.navigation.trail import Trail
+from autonomy.planning.planner import Planner, PlannerOptions
+from autonomy.vins.health import HealthState
+
+OPTIONS = FlightOptions()
+IDENTITY = np.eye(4)
+
+
+def fly_trail(trail: Trail, points, climbing=False) -> None:
+    for point in points:
+        trail.record(np.asarray(point, dtype=float), climbing)
+
+
+def an_l_shaped_trail() -> Trail:
+    """Up the take-off column to 1.5 m, 3 m east, 2 m north (steps of 0.125 m, exact)."""
+    trail = Trail()
+    fly_trail(trail, [(0.0, 0.0, z) for z in np.linspace(0.0, 1.5, 13)], climbing=True)
+    fly_trail(trail, [(x, 0.0, 1.5) for x in np.linspace(0.0, 3.0, 25)[1:]])
+    fly_trail(trail, [(3.0, y, 1.5) for y in np.linspace(0.0, 2.0, 17)[1:]])
+    return trail
+
+
+@pytest.fixture(scope="module")
+def planner() -> Planner:
+    return Planner(PinholeCamera.from_hfov(160, 120, math.radians(90.0)), PlannerOptions())
+
+
+# ---------------------------------------------------------------- the route
+
+def test_the_vehicle_stops_at_the_goal_and_at_sharp_corners_only():
+    route = np.array([[0.0, 0.0, 1.5], [10.0, 0.0, 1.5], [20.0, 2.0, 1.5],  # 11 deg: on
+                      [20.0, 12.0, 1.5], [10.0, 12.0, 2.5]])  # then 79 and 90 deg: stop
+    assert stop_waypoints(route, math.radians(30.0)) == [False, False, True, True, True]
+    assert stop_waypoints(route[:1], math.radians(30.0)) == [True]
+
+
+def test_waypoints_pass_within_their_tolerance_and_a_corner_only_close_up():
+    route = Route([[10.0, 0.0, 1.5], [10.0, 10.0, 1.5], [20.0, 10.0, 1.5]],
+                  math.radians(OPTIONS.corner_turn_deg))
+    assert route.stop_at == [False, True, True]
+    # 2.1 m short of the first waypoint: not passed (waypoint_tolerance 2 m)
+    assert route.advance(np.array([7.9, 0.0, 1.5]), IDENTITY, OPTIONS).passed == 0
+    progress = route.advance(np.array([8.1, 0.0, 1.5]), IDENTITY, OPTIONS)
+    assert (progress.passed, progress.corner, route.index) == (1, False, 1)
+    # the corner needs corner_tolerance (0.5 m); passing it asks for a stop and turn
+    assert route.advance(np.array([10.0, 9.4, 1.5]), IDENTITY, OPTIONS).passed == 0
+    progress = route.advance(np.array([10.0, 9.6, 1.5]), IDENTITY, OPTIONS)
+    assert progress.corner and route.index == 2 and route.at_last
+
+
+def test_the_goal_is_reached_within_its_horizontal_and_height_tolerances():
+    route = Route([[5.0, 0.0, 1.5]], math.radians(30.0))
+    assert not route.advance(np.array([4.0, 0.0, 2.6]), IDENTITY, OPTIONS).goal_reached
+    assert route.advance(np.array([4.0, 0.0, 2.4]), IDENTITY, OPTIONS).goal_reached
+    assert not route.advance(np.array([3.4, 0.0, 1.5]), IDENTITY, OPTIONS).goal_reached
+
+
+def test_waypoints_in_px4s_frame_are_followed_in_the_vins_world():
+    T_L_W = make_pose(rot_z(math.pi / 2), [1.0, 2.0, 0.0])  # W is L turned a quarter left
+    route = Route([[1.0, 12.0, 1.5]], math.radians(30.0))
+    np.testing.assert_allclose(route.next_W(T_L_W), [10.0, 0.0, 1.5], atol=1e-12)
+    assert heading_error(IDENTITY, route.next_W(T_L_W)) == pytest.approx(0.0, abs=1e-9)
+    assert heading_error(make_pose(rot_z(0.5), [0.0, 0.0, 1.5]),
+                         route.next_W(T_L_W)) == pytest.approx(-0.5)
+
+
+@pytest.mark.parametrize("waypoints", [[], [[1.0, 2.0]], [[0.0, math.nan, 1.0]]])
+def test_a_malformed_route_is_refused(waypoints):
+    with pytest.raises(ValueError, match="waypoints must be"):
+        Route(waypoints, 0.5)
+
+
+# ---------------------------------------------------------------- the flown trail
+
+def test_the_way_back_follows_the_flown_trail_and_never_descends_the_take_off_column():
+    trail = an_l_shaped_trail()
+    here = np.array([3.0, 2.0, 1.5])
+    # every 0.5 m of the trail back: up the north leg, round the corner, down the east leg
+    assert np.allclose(trail.way_back(here, 3.0),
+                       [(3.0, 1.5, 1.5), (3.0, 1.0, 1.5), (3.0, 0.5, 1.5),
+                        (3.0, 0.0, 1.5), (2.5, 0.0, 1.5), (2.0, 0.0, 1.5)], atol=1e-9)
+    # farther than the trail above the column: its first point up there, never down the column
+    back = trail.way_back(here, 20.0)
+    assert np.allclose(back[-1], (0.125, 0.0, 1.5)) and min(p[2] for p in back) == 1.5
+
+
+def test_a_glide_back_and_forth_is_erased_from_the_trail():
+    trail = Trail()
+    fly_trail(trail, [(x, 0.0, 1.5) for x in np.linspace(0.0, 2.0, 17)])
+    fly_trail(trail, [(x, 0.0, 1.5) for x in np.linspace(2.0, 1.5, 5)])  # back for parallax
+    fly_trail(trail, [(x, 0.0, 1.5) for x in np.linspace(1.5, 2.0, 5)])  # and forth again
+    fly_trail(trail, [(2.0, 0.005, 1.5)] * 50)  # hovering adds nothing
+    assert len(trail) == 17 and len(trail.climbing) == 17
+    assert np.allclose(trail.points[-1], (2.0, 0.0, 1.5))
+    assert np.allclose(trail.way_back(np.array([2.0, 0.0, 1.5]), 1.0),
+                       [(1.5, 0.0, 1.5), (1.0, 0.0, 1.5)])
+
+
+def test_no_way_back_shorter_than_one_glide():
+    trail = Trail()
+    fly_trail(trail, [(0.0, 0.0, z) for z in np.linspace(0.0, 1.5, 13)], climbing=True)
+    assert trail.way_back(np.array([0.0, 0.0, 1.5]), 2.0) == []
+    fly_trail(trail, [(0.125, 0.0, 1.5), (0.25, 0.0, 1.5), (0.375, 0.0, 1.5)])
+    assert trail.way_back(np.array([0.375, 0.0, 1.5]), 2.0) == []
+
+
+# ---------------------------------------------------------------- turning at a corner
+
+def test_a_passed_corner_or_a_waypoint_far_off_the_heading_makes_the_vehicle_turn(planner):
+    assert must_turn(True, 0.0, None, OPTIONS)
+    assert not must_turn(False, math.radians(59.0), None, OPTIONS)
+    assert must_turn(False, math.radians(61.0), None, OPTIONS)
+    # on an approach glide the bearing to the point swings wildly close to it: no turn
+    approach = planner.glide(0.0, make_pose(np.eye(3), [0.0, 0.0, 1.5]),
+                             np.array([1.0, 0.0, 1.5]), "approach")
+    assert not must_turn(False, math.radians(170.0), approach, OPTIONS)
+    assert must_turn(True, math.radians(170.0), approach, OPTIONS)
+
+
+# ---------------------------------------------------------------- the parallax glide
+
+def test_after_a_turn_it_glides_back_half_a_metre_and_returns_until_depth_comes(planner):
+    trail = an_l_shaped_trail()
+    corner = np.array([3.0, 2.0, 1.5])
+    parallax = ParallaxGlide()
+    parallax.start(trail, corner)
+    no_fit = math.inf
+    back = parallax.step(None, 10.0, no_fit)
+    np.testing.assert_allclose(back, (3.0, 1.5, 1.5))  # half a metre back along the trail
+    glide = planner.glide(10.0, make_pose(np.eye(3), corner), back, PARALLAX_REASON)
+    assert parallax.step(glide, 10.5, no_fit) is Step.KEEP  # gliding back
+    np.testing.assert_allclose(parallax.step(glide, glide.end_time, no_fit), corner)
+    assert not parallax.active and parallax.step(None, 20.0, no_fit) is Step.IDLE
+
+
+def test_the_parallax_glide_is_given_up_when_a_fresh_fit_comes_before_it_starts():
+    parallax = ParallaxGlide()
+    parallax.start(an_l_shaped_trail(), np.array([3.0, 2.0, 1.5]))
+    assert parallax.step(None, 10.0, PARALLAX_WAIT_S) is Step.IDLE
+    assert not parallax.active
+
+
+def test_no_parallax_glide_without_half_a_metre_of_trail_behind():
+    parallax = ParallaxGlide()
+    parallax.start(Trail(), np.array([3.0, 2.0, 1.5]))
+    assert not parallax.active
+
+
+# ---------------------------------------------------------------- the approach
+
+def test_a_corner_is_approached_exactly_and_the_goal_short_of_its_point():
+    here, corner = np.array([0.0, 0.0, 1.5]), np.array([3.0, 0.0, 1.5])
+    kwargs = dict(stop_here=True, slowest_speed=0.5, options=OPTIONS)
+    np.testing.assert_allclose(approach_targets(corner, here, 0.1, is_goal=False, **kwargs),
+                               [corner])
+    # the goal: half goal_tolerance (0.75 m) short, then 0.9 of it (1.35 m) short
+    np.testing.assert_allclose(approach_targets(corner, here, 0.1, is_goal=True, **kwargs),
+                               [(2.25, 0.0, 1.5), (1.65, 0.0, 1.5)])
+
+
+@pytest.mark.parametrize("stop_here, distance, speed", [
+    (False, 3.0, 0.1),  # a waypoint the route flies through
+    (True, 4.1, 0.1),  # beyond approach_distance (4 m)
+    (True, 3.0, 0.71),  # faster than the slowest tier (0.5 m/s) + stopped_speed (0.2 m/s)
+])
+def test_no_approach_far_off_fast_or_to_a_waypoint_flown_through(stop_here, distance, speed):
+    assert approach_targets(np.array([distance, 0.0, 1.5]), np.array([0.0, 0.0, 1.5]), speed,
+                            stop_here=stop_here, is_goal=False, slowest_speed=0.5,
+                            options=OPTIONS) == []
+
+
+# ---------------------------------------------------------------- blocked: turn, back off
+
+def test_blocked_it_brakes_then_turns_once_then_backs_off_after_half_the_no_path_time():
+    clock = NoPathClock()
+    far_off = math.radians(40.0)
+    assert clock.blocked(0.0, False, far_off, OPTIONS) == Blocked.WAIT  # still braking
+    assert clock.blocked(0.5, True, far_off, OPTIONS) == Blocked.TURN
+    assert clock.since is None and clock.turned  # the turn restarts the clock
+    assert clock.blocked(2.0, True, 0.0, OPTIONS) == Blocked.WAIT
+    assert clock.blocked(3.4, True, far_off, OPTIONS) == Blocked.WAIT  # turned once already
+    assert clock.blocked(3.5, True, 0.0, OPTIONS) == Blocked.BACK_OFF  # 1.5 s = half of 3 s
+    assert not clock.expired(5.0, OPTIONS) and clock.expired(5.01, OPTIONS)
+    clock.reset()
+    assert clock.since is None and not clock.turned and not clock.expired(100.0, OPTIONS)
+
+
+def test_backing_off_glides_along_the_trail_at_most_max_backoffs_times(planner):
+    trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
+    backoff = Backoff()
+    assert backoff.start(trail, here, OPTIONS)  # 2 m back: four glides of half a metre
+    targets = list(backoff.targets)
+    np.testing.assert_allclose(targets, [(3.0, 1.5, 1.5), (3.0, 1.0, 1.5), (3.0, 0.5, 1.5),
+                                         (3.0, 0.0, 1.5)], atol=1e-9)
+    first = backoff.step(None, 0.0)
+    np.testing.assert_allclose(first, targets[0])
+    glide = planner.glide(0.0, make_pose(np.eye(3), here), first, BACKOFF_REASON)
+    assert backoff.step(glide, 0.5) is Step.KEEP
+    for target in targets[1:]:
+        np.testing.assert_allclose(backoff.step(glide, glide.end_time), target)
+    assert backoff.step(glide, glide.end_time) is Step.IDLE
+    assert backoff.start(trail, here, OPTIONS)  # the second of max_backoffs = 2
+    assert not backoff.start(trail, here, OPTIONS)
+    backoff.count = 0  # a waypoint passed
+    assert not backoff.start(Trail(), here, OPTIONS)  # no trail, no way back
+
+
+# ---------------------------------------------------------------- failsafe rules
+
+def vitals(**changes) -> Vitals:
+    healthy = dict(stop_requested="", loop_lag_s=0.01, watchdog_in_charge=False,
+                   camera_age_s=0.05, imu_age_s=0.005, vins_problem="", depth_age_s=0.05,
+                   depth_reason="", on_flown_ground=False, no_path_expired=False)
+    return Vitals(**{**healthy, **changes})
+
+
+@pytest.mark.parametrize("changes, reason", [
+    ({}, ""),
+    ({"stop_requested": "stop requested (SIGTERM)"}, "stop requested (SIGTERM)"),
+    ({"loop_lag_s": 0.45}, "event loop stalled (450 ms late)"),
+    ({"watchdog_in_charge": True}, "setpoint deadline missed (watchdog sent the stop)"),
+    ({"camera_age_s": 0.6}, "camera silent"),
+    ({"imu_age_s": math.inf}, "IMU silent"),
+    ({"vins_problem": "VINS reset in flight"}, "VINS reset in flight"),
+    ({"depth_age_s": 1.2, "depth_reason": "no fit (too_few_anchors)"},
+     "no metric depth (no fit (too_few_anchors))"),
+    ({"depth_age_s": math.inf}, "no metric depth (none yet)"),
+    ({"depth_age_s": 5.0, "on_flown_ground": True}, ""),  # depth may lapse on flown ground
+    ({"no_path_expired": True}, "no safe primitive"),
+])
+def test_each_failsafe_rule_names_its_reason(changes, reason):
+    assert failsafe_reason(vitals(**changes), OPTIONS) == reason
+
+
+def test_the_most_basic_failure_is_the_one_reported():
+    # a silent camera starves the depth too: the camera is the cause
+    assert failsafe_reason(vitals(camera_age_s=2.0, depth_age_s=2.0), OPTIONS) == \
+        "camera silent"
+    assert failsafe_reason(vitals(stop_requested="stop", loop_lag_s=9.0), OPTIONS) == "stop"
+
+
+def test_the_vins_is_flown_on_unless_lost_or_reset_since_the_take_off():
+    assert vins_problem(None, "", 0, 0) == ""
+    assert vins_problem(HealthState.OK, "", 1, 1) == ""
+    assert vins_problem(HealthState.DEGRADED, "few tracks", 1, 1) == ""
+    assert vins_problem(HealthState.LOST, "no tracks", 1, 1) == "VINS lost (no tracks)"
+    assert vins_problem(HealthState.OK, "", 2, 1) == "VINS reset in flight"
+
+
+# ---------------------------------------------------------------- the mission
+
+def test_mission_keeps_every_transition_with_its_reason_and_tells_its_listener():
+    heard = []
+    mission = Mission(0.0, on_transition=heard.append)
+    mission.go(1.0, FlightState.INITIALISING, "link up")
+    mission.go(1.0, FlightState.INITIALISING, "again")  # no-op
+    mission.go(3.0, FlightState.TAKING_OFF, "VINS initialised")
+    assert [(t.source, t.target, t.reason) for t in mission.transitions] == [
+        (FlightState.PREFLIGHT, FlightState.INITIALISING, "link up"),
+        (FlightState.INITIALISING, FlightState.TAKING_OFF, "VINS initialised")]
+    assert heard == mission.transitions
+    assert mission.elapsed(4.5) == pytest.approx(1.5)
+
+
+def test_a_failsafe_stops_navigation_once_and_records_every_reason():
+    mission = Mission(0.0)
+    mission.go(1.0, FlightState.NAVIGATING, "offboard")
+    assert mission.failsafe(2.0, "camera silent")
+    assert mission.state == FlightState.FAILSAFE_STOP
+    assert not mission.failsafe(2.1, "IMU silent")  # already stopping
+    assert mission.failsafes == ["camera silent", "IMU silent"]
+    assert mission.transitions[-1].reason == "failsafe: camera silent"
+
+
+def test_a_failsafe_on_the_ground_changes_nothing():
+    mission = Mission(0.0)
+    assert not mission.failsafe(1.0, "camera silent")
+    assert mission.state == FlightState.PREFLIGHT
