@@ -1,5 +1,7 @@
 """Test-wide settings.
 
+The application's single OpenBLAS thread (companion/__init__.py) holds for every test.
+
 Under CI (the environment variable CI is set, as `.ci/run` runs) hypothesis draws the same
 examples every run, so a submission's result does not depend on the draw; a developer's runs
 keep exploring new examples and its database replays any failure found.
@@ -7,8 +9,12 @@ keep exploring new examples and its database replays any failure found.
 
 import os
 
-import pytest
-from hypothesis import settings
+# Before anything imports numpy: one OpenBLAS thread, as the application runs
+# (companion/__init__.py says why); the simulated flights' subprocesses inherit it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):

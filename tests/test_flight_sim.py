@@ -1,4 +1,6 @@
-"""The whole stack flown in the simulator over real MAVLink (issue 6's acceptance).
+"""The whole stack flown in the simulator over real MAVLink (issue 6's acceptance): the whole
+missions, and the behaviours at a door and after a turn (the failsafes:
+test_flight_failsafes.py).
 
 Every flight runs the product: the mock PX4 on loopback UDP, the rendered camera, the VINS on
 its images and the IMU from HIGHRES_IMU, the synthetic network on the rendered depth, the
@@ -8,7 +10,7 @@ come from the simulator's side.
 
 Flights are deterministic in lockstep (the event-loop stall, which needs real time, is in
 ``test_flight_realtime``). The first pair of each world is flown by the command itself, each in
-its own process from the start of the module, beside the failsafe flights.
+its own process from the start of the module, beside the other flights.
 """
 
 from __future__ import annotations
@@ -17,89 +19,15 @@ import json
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
 from companion import cli
-from companion.launch import simulated
 from companion.config import Config, load_config
-from drivers.sim.faults import Fault
+from companion.launch import simulated
 from drivers.sim.world import build_world
+from flights import SUMMARY_KEYS, assert_safe_landing
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-
-SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
-                "min_clearance_m", "failsafes", "depth_rate_hz", "loop_lag_ms_p99", "backoffs",
-                "navigation_end", "position_error_m"}
-
-
-_LOCKSTEP_FLIGHTS: dict[simulated.SimMission, dict] = {}
-
-
-def fly(world: str, *, faults=(), goal=None) -> dict:
-    """The lockstep flight's summary; a lockstep flight is deterministic, so one flown already
-    is not flown again (several tests read the same fault's flight)."""
-    mission = simulated.SimMission(world=world, faults=tuple(faults), goal=goal)
-    if mission not in _LOCKSTEP_FLIGHTS:
-        _LOCKSTEP_FLIGHTS[mission] = simulated.run(Config(), mission)
-    return _LOCKSTEP_FLIGHTS[mission]
-
-
-def assert_safe_landing(summary: dict) -> None:
-    """Whatever happened: no collision, landed and disarmed, no crash of the application."""
-    assert summary["collisions"] == 0, summary["collision"]
-    assert summary["final_state"] == "landed", summary["transitions"]
-
-
-# ---------------------------------------------------------------- failsafes
-
-@pytest.mark.parametrize("fault, reason", [
-    ("camera_freeze@1", "camera silent"),
-    ("imu_gap@1+2", "IMU silent"),
-    ("network_nan@1", "no metric depth"),
-    ("camera_blackout@1+1.5", "VINS lost"),
-])
-def test_a_failure_in_cruise_ends_in_stop_hold_and_landing(fault, reason):
-    summary = fly("dome", faults=[Fault.parse(fault)])
-    assert_safe_landing(summary)
-    assert summary["failsafes"] and reason in summary["failsafes"][0], summary["failsafes"]
-    states = [t["to"] for t in summary["transitions"]]
-    assert states[-4:] == ["failsafe_stop", "holding", "landing", "landed"], states
-    assert not summary["reached_goal"]
-
-
-def test_a_network_outputting_nan_is_named_in_the_summary():
-    summary = fly("dome", faults=[Fault.parse("network_nan@1")])
-    assert "non_finite" in summary["failsafes"][0] or "NaN" in summary["failsafes"][0], \
-        summary["failsafes"]
-    assert summary["depth_failures"]
-
-
-def test_a_vins_reset_after_a_blackout_is_counted():
-    summary = fly("dome", faults=[Fault.parse("camera_blackout@1+1.5")])
-    assert summary["vins_resets"] >= 1
-
-
-def test_link_cut_lets_px4_hold_and_the_companion_lands_once_it_is_back():
-    summary = fly("dome", faults=[Fault.parse("link_cut@1+3")])
-    assert_safe_landing(summary)
-    # the IMU stream stops first (VINS lost), the heartbeats' timeout follows
-    assert "MAVLink link lost" in summary["failsafes"], summary["failsafes"]
-    states = [t["to"] for t in summary["transitions"]]
-    assert "link_lost" in states and states[-3:] == ["holding", "landing", "landed"], states
-
-
-def test_a_dead_end_is_a_no_safe_primitive_failsafe():
-    world = build_world("mine", 0)
-    start = world.routes[0].start
-    # the route starts at the blind end of a tunnel: ask for a goal through its end wall
-    corners = world.find_path(start[:2], world.routes[0].goal[:2], 1.0)
-    back = start[:2] - (corners[1] - start[:2]) / np.linalg.norm(corners[1] - start[:2]) * 10.0
-    summary = fly("mine", goal=(float(back[0]), float(back[1]), 1.5))
-    assert_safe_landing(summary)
-    assert summary["failsafes"] == ["no safe primitive"]
-    assert summary["path_length_m"] < 5.0  # it never went anywhere
-
 
 def test_blocked_beside_a_door_it_backs_off_along_its_trail_and_goes_through():
     """The sewer's pair 2 on true depth: the arcs cut the route's shallow corner at the

@@ -1,0 +1,145 @@
+"""What several command groups share: argument types, flags, parent parsers, exit codes, the
+effective configuration and the printing of results."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from pathlib import Path
+from typing import Callable
+
+from autonomy.navigation.mission import parse_point
+from autonomy.options import OptionError
+from companion.config import Config, ConfigError, load_config
+
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+EXIT_OK = 0
+EXIT_FAILED = 1  # the command ran and could not do its job
+EXIT_USAGE = 2  # argparse's status for bad arguments; a bad config is a bad argument too
+
+
+def overrides_parser() -> argparse.ArgumentParser:
+    """The parent parser of every command that reads a config: ``--set``."""
+    overrides = argparse.ArgumentParser(add_help=False)
+    overrides.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override one config value, e.g. --set rescale.kappa=1e5 or "
+             "--set rescale.method=poly1 (a TOML value; a bare word is a string); repeatable, "
+             "the last one wins")
+    return overrides
+
+
+def configured_parser() -> argparse.ArgumentParser:
+    """The parent parser of the commands that take the config file as an option: ``--set``
+    and ``--config``."""
+    configured = argparse.ArgumentParser(add_help=False, parents=[overrides_parser()])
+    configured.add_argument("--config", dest="config_path", metavar="FILE",
+                            help="TOML config file (default: none, all defaults)")
+    return configured
+
+
+def add_command_group(parser: argparse.ArgumentParser) -> argparse._SubParsersAction:
+    """Subcommands of ``parser``; given none, the command prints ``parser``'s help."""
+    parser.set_defaults(command=None, help_of=parser)
+    return parser.add_subparsers(title="commands", metavar="COMMAND")
+
+
+def load_effective_config(args: argparse.Namespace) -> Config | None:
+    """The effective configuration of ``args``: the file, then the ``--set`` overrides. None,
+    after one line on stderr, when it is bad, so every command reports a bad config the same
+    way: exit status 2, never a traceback."""
+    try:
+        return load_config(args.config_path, args.overrides)
+    except ConfigError as error:
+        print(error, file=sys.stderr)
+        return None
+
+
+def start_logging(args: argparse.Namespace, config: Config) -> None:
+    """Log to stderr from ``--log-level``, else the config's [log] level."""
+    logging.basicConfig(level=args.log_level or config.log.level, stream=sys.stderr,
+                        format=LOG_FORMAT)
+
+
+def report(command: str, args: argparse.Namespace, result: dict, text: str,
+           *files: tuple[Path | None, Callable[[Path], object]]) -> int:
+    """Print an evaluation's ``result`` (``--json``) or Markdown report ``text``, then write
+    ``--markdown`` and each of ``files`` (path or None, writer): exit 1 with one line when
+    one cannot be written (the result is printed already)."""
+    print(json.dumps(result) if args.json else text)
+    try:
+        if args.markdown is not None:
+            args.markdown.parent.mkdir(parents=True, exist_ok=True)
+            args.markdown.write_text(text + "\n")
+        for path, write in files:
+            if path is not None:
+                write(path)
+    except OSError as error:
+        print(f"{command}: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+def print_progress(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def point(text: str) -> tuple[float, float, float]:
+    """``x,y,z`` metres -> a finite 3-tuple (:func:`autonomy.navigation.mission.parse_point`)."""
+    try:
+        return parse_point(text)
+    except OptionError:
+        raise argparse.ArgumentTypeError(
+            f"expected X,Y,Z in metres, e.g. 10,-4,1.5; got {text!r}") from None
+
+
+def add_json_flag(parser: argparse.ArgumentParser, instead_of: str) -> None:
+    parser.add_argument("--json", action="store_true",
+                        help=f"print the result as one JSON object instead of {instead_of}")
+
+
+def png_path(text: str) -> Path:
+    """A path ending in .png (checked before a long run, not after it)."""
+    if not text.lower().endswith(".png"):
+        raise argparse.ArgumentTypeError(f"expected a .png file name, got {text!r}")
+    return Path(text)
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def integer_at_least(minimum: int, wording: str):
+    """An argparse type: an integer >= ``minimum``, else a usage error in ``wording``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected a {wording} integer, got {text!r}")
+        return value
+    return parse
+
+
+positive_int = integer_at_least(1, "positive")
+non_negative_int = integer_at_least(0, "non-negative")
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """``480x640`` -> ``(480, 640)``: height first, as in a numpy shape."""
+    parts = text.lower().split("x")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"expected HEIGHTxWIDTH, e.g. 480x640; got {text!r}")
+    height, width = (positive_int(part) for part in parts)
+    return height, width

@@ -1,0 +1,228 @@
+"""``companion eval``: the accuracy of the algorithms against ground truth (``vio``, ``depth``,
+``rescale``, ``nav``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from companion.cli import common
+from companion.config import Config
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    configured = common.configured_parser()
+    group = commands.add_parser("eval", help="measure the accuracy of the algorithms",
+                                description="Measure the accuracy of the algorithms against "
+                                            "a dataset's ground truth.")
+    actions = common.add_command_group(group)
+    dataset = argparse.ArgumentParser(add_help=False, parents=[configured])
+    dataset.add_argument("dataset", type=Path, metavar="DATASET",
+                         help="dataset folder, the one holding mav0/")
+    common.add_json_flag(dataset, instead_of="a report")
+    dataset.add_argument("--max-frames", type=common.positive_int, metavar="N",
+                         help="stop after N camera frames (default: all)")
+    vio = actions.add_parser(
+        "vio", parents=[dataset], help="score the VINS on a EuRoC dataset",
+        description="Run the VINS, with the [vins], [vins_frontend] and [vins_init] options of "
+                    "the config, over a EuRoC/ASL dataset (real, or recorded by 'companion sim "
+                    "record') and compare it with the ground truth: trajectory error after "
+                    "SE(3) alignment, scale error, landmark depth error against depth0 when the "
+                    "dataset has it, the static initialisation, and the time per stage.")
+    vio.set_defaults(command=_eval_vio)
+
+    depth = actions.add_parser(
+        "depth", parents=[dataset], help="score the metric depth stage on a dataset",
+        description="Run the depth path as in flight over a EuRoC/ASL dataset with depth0 "
+                    "(recorded by 'companion sim record'): the VINS, the depth network "
+                    "([depth_network] model, or without one the synthetic stand-in of "
+                    "[synthetic_depth] on the ground-truth depth) and the metric depth stage "
+                    "([depth], [rescale]); score every frame's metric depth against depth0 with "
+                    "AbsRel, delta1, RMSE and the over-estimate rate, and time the stage.")
+    depth.set_defaults(command=_eval_depth)
+    _add_eval_rescale(actions, configured)
+    _add_eval_nav(actions, configured)
+
+
+def _add_eval_rescale(actions: argparse._SubParsersAction,
+                      configured: argparse.ArgumentParser) -> None:
+    from drivers.sim.options import WORLD_NAMES
+
+    rescale = actions.add_parser(
+        "rescale", parents=[configured], help="compare every rescaling method (paper Table I)",
+        description="Record (or reuse from the cache) a simulated flight in each world, as "
+                    "many frames as the paper (mine 850, sewer 700, dome 1000), run the VINS "
+                    "and the depth network once over it, and fit every rescaling method with "
+                    "sparse depth from the ground truth at the VINS feature pixels (GT) and "
+                    "from the VINS map (VINS), with the config's [rescale] options whatever "
+                    "rescale.method says; report AbsRel, delta1 and the over-estimate rate per "
+                    "world and their frame-weighted average as a Markdown table shaped like "
+                    "the paper's Table I.")
+    common.add_json_flag(rescale, instead_of="the Markdown report")
+    rescale.add_argument("--quick", action="store_true",
+                         help="80 frames per world instead of the paper's counts (for CI)")
+    rescale.add_argument("--seed", type=common.non_negative_int, metavar="N",
+                         help="seed of the worlds, flights and the synthetic network "
+                              "(default: [sim] seed)")
+    rescale.add_argument("--worlds", nargs="+", choices=WORLD_NAMES, default=list(WORLD_NAMES),
+                         metavar="WORLD", help="worlds to evaluate, of "
+                                               f"{', '.join(WORLD_NAMES)} (default: all)")
+    rescale.add_argument("--cache", type=Path, metavar="DIR",
+                         help="where recorded datasets are kept and reused (default: "
+                              "$XDG_CACHE_HOME/companion/eval, else ~/.cache/companion/eval)")
+    rescale.add_argument("--plot", type=common.png_path, metavar="PNG",
+                         help="draw the weighted AbsRel per method, GT against VINS, here")
+    rescale.add_argument("--markdown", type=Path, metavar="FILE",
+                         help="also write the Markdown report to FILE")
+    rescale.set_defaults(command=_eval_rescale)
+
+
+def _add_eval_nav(actions: argparse._SubParsersAction,
+                  configured: argparse.ArgumentParser) -> None:
+    from drivers.sim.options import WORLD_NAMES
+
+    # defaults (None here) are companion.tools.eval.nav's, resolved by _eval_nav: the parser
+    # does not import the simulator
+    command = actions.add_parser(
+        "nav", parents=[configured], help="count navigation successes (paper's navigation "
+                                          "figure)",
+        description="Fly every start/goal pair of each world, --trials times (trial k on seed "
+                    "SEED+k), once planning on the renderer's true depth (gt) and once on the "
+                    "estimate (estimated), each trial a lockstep 'companion sim fly' in a "
+                    "worker process; count successes (goal reached, no collision), collisions "
+                    "and timeouts (neither within --timeout seconds of navigation, or ended "
+                    "early by a failsafe), with the successes' mean flight time. Progress on "
+                    "stderr; the result on stdout as a Markdown table, or JSON "
+                    '{"gt"|"estimated": {WORLD: {"trials", "success", "collision", "timeout", '
+                    '"mean_time_s"}}}.')
+    common.add_json_flag(command, instead_of="the Markdown report")
+    command.add_argument("--trials", type=common.positive_int, metavar="N",
+                         help="trials per start/goal pair and depth source (default: 5)")
+    command.add_argument("--seed", type=common.non_negative_int, metavar="N",
+                         help="base seed: trial k flies seed N+k, its world, noise and network "
+                              "errors (default: [sim] seed)")
+    command.add_argument("--worlds", nargs="+", choices=WORLD_NAMES, metavar="WORLD",
+                         help=f"worlds to fly, of {', '.join(WORLD_NAMES)} (default: all)")
+    command.add_argument("--pairs", nargs="+", type=common.non_negative_int, metavar="P",
+                         help="start/goal pairs to fly in every world (default: all)")
+    command.add_argument("--timeout", type=common.positive_float, metavar="SECONDS",
+                         help="simulated seconds of navigation to reach the goal, the "
+                              "application's [flight] mission_timeout_s in the trials "
+                              "(default: 120)")
+    command.add_argument("--workers", type=common.positive_int, metavar="N",
+                         help="trials flown at once, each in its own process (default: the "
+                              "number of CPUs)")
+    command.add_argument("--quick", action="store_true",
+                         help="one trial of pair 0 in one world (the first of --worlds, else "
+                              "dome), for CI; overrides --trials and --pairs")
+    command.add_argument("--plot", type=common.png_path, metavar="PNG",
+                         help="draw the outcomes per world and depth source here")
+    command.add_argument("--markdown", type=Path, metavar="FILE",
+                         help="also write the Markdown report to FILE")
+    command.add_argument("--runs", type=Path, metavar="FILE",
+                         help="write every trial's record (seed, outcome, times, path length, "
+                              "failsafes) to FILE as JSON lines")
+    command.add_argument("--merge", nargs="+", type=Path, metavar="RUNS",
+                         help="fly nothing: report the records of these --runs files (an "
+                              "evaluation flown in parts, e.g. one --seed each) as one run; "
+                              "takes none of the flight options")
+    command.set_defaults(command=_eval_nav)
+
+
+def _eval_vio(args: argparse.Namespace, config: Config) -> int:
+    # Imported here: the evaluation pulls in the dataset readers and the estimator.
+    from companion.tools.eval import vio as evaluation
+
+    try:
+        result = evaluation.evaluate_vio(args.dataset, config.vins, frontend=config.vins_frontend,
+                                         static=config.vins_init, max_frames=args.max_frames)
+    except evaluation.EvaluationError as error:
+        print(f"eval vio: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    print(json.dumps(result) if args.json else evaluation.format_vio_report(result))
+    return common.EXIT_OK
+
+
+def _eval_depth(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.depth.network import NetworkError
+    from companion.tools.eval import depth
+    from companion.tools.eval.vio import EvaluationError
+
+    try:
+        network = depth.open_relative_depth_source(config.depth_network,
+                                                   config.synthetic_depth, seed=config.sim.seed)
+        options = depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
+                                         config.vins_frontend, config.vins_init)
+        result = depth.evaluate_depth(args.dataset, options, network,
+                                      max_frames=args.max_frames)
+    except (NetworkError, EvaluationError) as error:
+        print(f"eval depth: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    print(json.dumps(result) if args.json else depth.format_depth_report(result))
+    return common.EXIT_OK
+
+
+def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.depth.network import NetworkError
+    from companion.tools.eval import depth, rescale
+    from companion.tools.eval.vio import EvaluationError
+
+    seed = config.sim.seed if args.seed is None else args.seed
+    try:
+        result = rescale.evaluate_rescaling(
+            rescale.frames_per_world(args.worlds, quick=args.quick), seed=seed,
+            cache=args.cache or rescale.default_cache_dir(),
+            recording=rescale.Recording(config.camera, config.vehicle, config.imu),
+            options=depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
+                                           config.vins_frontend, config.vins_init),
+            open_network=lambda: depth.open_relative_depth_source(
+                config.depth_network, config.synthetic_depth, seed=seed))
+    except (NetworkError, EvaluationError) as error:
+        print(f"eval rescale: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    return common.report("eval rescale", args, result,
+                         rescale.format_markdown(result, seed=seed),
+                         (args.plot, lambda path: rescale.plot_absrel(result, path)))
+
+
+def _eval_nav(args: argparse.Namespace, config: Config) -> int:
+    from companion.tools.eval import nav
+    from companion.tools.eval.vio import EvaluationError
+
+    if args.merge:
+        flight_options = [f"--{name}" for name in _NAV_FLIGHT_OPTIONS
+                          if getattr(args, name) not in (None, False)]
+        if flight_options:
+            print(f"eval nav: --merge flies nothing; drop {', '.join(flight_options)}",
+                  file=sys.stderr)
+            return common.EXIT_USAGE
+    try:
+        records = nav.read_runs(args.merge) if args.merge else _fly_nav(args, config)
+    except EvaluationError as error:
+        print(f"eval nav: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    result = nav.summarise(records)
+    return common.report("eval nav", args, result, nav.format_markdown(result, records),
+                         (args.runs, lambda path: nav.write_runs(records, path)),
+                         (args.plot, lambda path: nav.plot_navigation(result, path)))
+
+
+#: The options of ``eval nav`` that choose what to fly, which ``--merge`` does not take.
+_NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers", "quick")
+
+
+def _fly_nav(args: argparse.Namespace, config: Config) -> list[dict]:
+    from companion.tools.eval import nav
+    from drivers.sim.options import WORLD_NAMES
+
+    seed = config.sim.seed if args.seed is None else args.seed
+    timeout = nav.TIMEOUT_S if args.timeout is None else args.timeout
+    worlds, pairs, trials = args.worlds or list(WORLD_NAMES), args.pairs, args.trials or nav.TRIALS
+    if args.quick:
+        worlds, pairs, trials = (args.worlds or [nav.QUICK_WORLD])[:1], [0], 1
+    _, records = nav.evaluate_navigation(
+        config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
+        workers=args.workers, progress=sys.stderr)
+    return records

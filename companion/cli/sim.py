@@ -1,0 +1,164 @@
+"""``companion sim``: the simulated vehicle (``serve`` it, ``record`` a dataset, ``fly`` the
+whole stack in it)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from companion.cli import common
+from companion.config import Config
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
+
+    configured = common.configured_parser()
+    group = commands.add_parser("sim", help="run the simulated vehicle",
+                                description="The simulated vehicle: a mock PX4 over real "
+                                            "MAVLink, a rendered camera and a synthetic IMU.")
+    actions = common.add_command_group(group)
+    world = argparse.ArgumentParser(add_help=False)
+    world.add_argument("--world", choices=WORLD_NAMES,
+                       help="the world (default: [sim] world of the config)")
+    world.add_argument("--seed", type=common.non_negative_int,
+                       help="seed of the world, the noise and the path (default: [sim] seed)")
+
+    serve = actions.add_parser(
+        "serve", parents=[configured, world], help="serve the vehicle to any MAVLink client",
+        description="Run the simulated PX4 quadrotor alone for any MAVLink client (MAVSDK, "
+                    "QGroundControl, mavproxy) until interrupted. With --mavlink pty the "
+                    "pseudo-terminal's path is printed; open it like a serial port.")
+    serve.add_argument("--mavlink", default="udpin://127.0.0.1:14540", metavar="URL",
+                       help="udpin://HOST:PORT, udpout://HOST:PORT, tcp://HOST:PORT or pty "
+                            "(default: %(default)s)")
+    serve.add_argument("--clock", choices=CLOCK_MODES,
+                       help="realtime for outside clients, lockstep for as fast as the CPU "
+                            "allows (default: [sim] clock)")
+    serve.add_argument("--duration", type=common.positive_float, metavar="SECONDS",
+                       help="stop after this much simulated time (default: run until "
+                            "interrupted)")
+    serve.set_defaults(command=_sim_serve)
+
+    record = actions.add_parser(
+        "record", parents=[configured, world], help="record a flight as a EuRoC dataset",
+        description="Fly a smooth collision-free path through the world and write camera "
+                    "images, ground-truth depth, IMU and ground truth in the EuRoC/ASL "
+                    "layout (mav0/cam0, depth0, imu0, state_groundtruth_estimate0).")
+    record.add_argument("--duration", type=common.positive_float, default=40.0,
+                        metavar="SECONDS",
+                        help="simulated seconds to record (default: %(default)s)")
+    record.add_argument("--out", required=True, type=Path, metavar="DIR",
+                        help="dataset folder to create (must be new or empty)")
+    record.set_defaults(command=_sim_record)
+
+    fly = actions.add_parser(
+        "fly", parents=[configured, world], help="fly the whole stack in the simulator",
+        description="Start the simulator (mock PX4 over loopback UDP MAVLink, rendered camera, "
+                    "synthetic IMU) and fly the whole application against it: VINS, depth "
+                    "network (the synthetic stand-in unless [depth_network] model is set), "
+                    "rescaler and planner, from a start/goal pair of the world. Prints progress "
+                    "and a summary, and draws the flown path over the world map.")
+    fly.add_argument("--pair", type=common.non_negative_int, default=0,
+                     help="start/goal pair of the world (default: %(default)s)")
+    fly.add_argument("--goal", type=common.point, metavar="X,Y,Z",
+                     help="fly to this point (metres, world frame, z up) instead of the pair's "
+                          "goal, from the pair's start")
+    fly.add_argument("--start-yaw", type=float, metavar="DEG",
+                     help="heading the vehicle stands at before take-off, degrees "
+                          "counter-clockwise from east (default: facing the first leg)")
+    fly.add_argument("--clock", choices=CLOCK_MODES, default="lockstep",
+                     help="lockstep: deterministic, as fast as the CPU allows; realtime: the "
+                          "simulator in its own thread on the wall clock (default: %(default)s)")
+    fly.add_argument("--depth", choices=("estimated", "truth"), default="estimated",
+                     help="the planner's depth: estimated (network and rescaler on the VINS "
+                          "map) or the renderer's truth (default: %(default)s)")
+    fly.add_argument("--fault", dest="faults", action="append", default=[],
+                     metavar="KIND[@AFTER[+DURATION]]",
+                     help="inject a fault AFTER seconds into cruise for DURATION seconds "
+                          "(default: 1 s, for good): camera_freeze, camera_blackout, imu_gap, "
+                          "link_cut, network_nan, loop_stall; repeatable")
+    fly.add_argument("--plot", type=Path, default=Path("sim-fly.png"), metavar="PNG",
+                     help="where to draw the top view of the flight (default: %(default)s)")
+    fly.add_argument("--no-plot", action="store_true", help="draw no plot")
+    common.add_json_flag(fly, instead_of="the summary table")
+    fly.set_defaults(command=_sim_fly)
+
+
+def _sim_options(args: argparse.Namespace, config: Config):
+    """The [sim] section with the command line's --world, --seed and --clock on top."""
+    changes = {key: getattr(args, key) for key in ("world", "seed", "clock")
+               if getattr(args, key, None) is not None}
+    return dataclasses.replace(config.sim, **changes)
+
+
+def _sim_serve(args: argparse.Namespace, config: Config) -> int:
+    import asyncio
+
+    from drivers.sim import serve as sim_serve
+    from drivers.sim.world import build_world
+
+    sim = _sim_options(args, config)
+    world = build_world(sim.world, sim.seed)
+
+    def ready(vehicle) -> None:
+        where = vehicle.px4.link.pty_path or args.mavlink
+        print(f"serving a simulated PX4 quadrotor in {sim.world} (seed {sim.seed}, "
+              f"{sim.clock} clock) on {where}", flush=True)
+
+    try:
+        summary = asyncio.run(sim_serve.serve(
+            args.mavlink, world, seed=sim.seed, clock_mode=sim.clock,
+            vehicle_options=config.vehicle, imu_options=config.imu, px4_options=config.px4,
+            duration=args.duration, on_ready=ready))
+    except KeyboardInterrupt:
+        return common.EXIT_OK
+    except (ValueError, OSError) as error:
+        print(f"sim serve: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    print(f"served {summary.sim_time:.1f} s of simulated flight"
+          + (f"; collision at t={summary.collision.time:.2f} s" if summary.collision else ""))
+    return common.EXIT_OK
+
+
+def _sim_record(args: argparse.Namespace, config: Config) -> int:
+    from drivers.sim import record
+    from drivers.sim.render import RenderError
+
+    sim = _sim_options(args, config)
+    try:
+        summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
+                                        config.imu, duration=args.duration)
+    except (record.RecordError, RenderError, OSError) as error:
+        print(f"sim record: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    print(f"recorded {summary.duration:g} s of {summary.world} route {summary.route} "
+          f"({summary.frames} frames, {summary.imu_samples} IMU samples, path "
+          f"{summary.path_length:.1f} m) into {args.out}")
+    return common.EXIT_OK
+
+
+def _sim_fly(args: argparse.Namespace, config: Config) -> int:
+    from companion.launch import simulated
+    from drivers.sim.faults import Fault
+    from drivers.sim.render import RenderError
+
+    sim = _sim_options(args, config)
+    try:
+        mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
+                                       goal=args.goal, start_yaw_deg=args.start_yaw,
+                                       clock=args.clock, depth=args.depth,
+                                       faults=tuple(Fault.parse(f) for f in args.faults))
+        summary = simulated.run(config, mission, plot=None if args.no_plot else args.plot,
+                                progress=None if args.json else common.print_progress)
+    except (simulated.SimError, RenderError, ValueError, OSError) as error:
+        print(f"sim fly: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    print(json.dumps(summary) if args.json else simulated.format_summary(summary))
+    # a fault-free flight must reach its goal; any flight must end without a collision
+    safe = summary["collisions"] == 0 and summary["final_state"] == "landed"
+    return common.EXIT_OK if safe and (summary["reached_goal"] or mission.faults) \
+        else common.EXIT_FAILED

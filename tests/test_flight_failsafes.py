@@ -1,0 +1,66 @@
+"""The failsafes flown in the simulator over real MAVLink (issue 6's acceptance): a failure in
+cruise (a frozen camera, an IMU gap, a network outputting NaN, a blacked-out camera, a cut
+link, a dead end) ends in the stop, PX4 Hold and a landing, with the reason named.
+
+Every flight runs the product, as in test_flight_sim.py; flights are deterministic in lockstep,
+so one flown for several tests is flown once (:func:`flights.fly`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.sim.faults import Fault
+from drivers.sim.world import build_world
+from flights import assert_safe_landing, fly
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+
+@pytest.mark.parametrize("fault, reason", [
+    ("camera_freeze@1", "camera silent"),
+    ("imu_gap@1+2", "IMU silent"),
+    ("network_nan@1", "no metric depth"),
+    ("camera_blackout@1+1.5", "VINS lost"),
+])
+def test_a_failure_in_cruise_ends_in_stop_hold_and_landing(fault, reason):
+    summary = fly("dome", faults=[Fault.parse(fault)])
+    assert_safe_landing(summary)
+    assert summary["failsafes"] and reason in summary["failsafes"][0], summary["failsafes"]
+    states = [t["to"] for t in summary["transitions"]]
+    assert states[-4:] == ["failsafe_stop", "holding", "landing", "landed"], states
+    assert not summary["reached_goal"]
+
+
+def test_a_network_outputting_nan_is_named_in_the_summary():
+    summary = fly("dome", faults=[Fault.parse("network_nan@1")])
+    assert "non_finite" in summary["failsafes"][0] or "NaN" in summary["failsafes"][0], \
+        summary["failsafes"]
+    assert summary["depth_failures"]
+
+
+def test_a_vins_reset_after_a_blackout_is_counted():
+    summary = fly("dome", faults=[Fault.parse("camera_blackout@1+1.5")])
+    assert summary["vins_resets"] >= 1
+
+
+def test_link_cut_lets_px4_hold_and_the_companion_lands_once_it_is_back():
+    summary = fly("dome", faults=[Fault.parse("link_cut@1+3")])
+    assert_safe_landing(summary)
+    # the IMU stream stops first (VINS lost), the heartbeats' timeout follows
+    assert "MAVLink link lost" in summary["failsafes"], summary["failsafes"]
+    states = [t["to"] for t in summary["transitions"]]
+    assert "link_lost" in states and states[-3:] == ["holding", "landing", "landed"], states
+
+
+def test_a_dead_end_is_a_no_safe_primitive_failsafe():
+    world = build_world("mine", 0)
+    start = world.routes[0].start
+    # the route starts at the blind end of a tunnel: ask for a goal through its end wall
+    corners = world.find_path(start[:2], world.routes[0].goal[:2], 1.0)
+    back = start[:2] - (corners[1] - start[:2]) / np.linalg.norm(corners[1] - start[:2]) * 10.0
+    summary = fly("mine", goal=(float(back[0]), float(back[1]), 1.5))
+    assert_safe_landing(summary)
+    assert summary["failsafes"] == ["no safe primitive"]
+    assert summary["path_length_m"] < 5.0  # it never went anywhere
