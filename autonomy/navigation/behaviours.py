@@ -95,9 +95,6 @@ class GlideSequence:
     def active(self) -> bool:
         return bool(self.targets)
 
-    def clear(self) -> None:
-        self.targets.clear()
-
 
 class ParallaxGlide(GlideSequence):
     """Back to the trail point :data:`~autonomy.navigation.trail.GLIDE_STEP_M` behind the

@@ -4,7 +4,8 @@ The paper's navigation experiment (Yang, Tian, Goel, Tabib, Section IV) flies ev
 pair of each world several times, planning once on ground-truth depth ("GT") and once on the
 rescaled estimate, and counts successes, collisions and timeouts. Here each trial is one
 ``companion sim fly`` (:func:`companion.launch.simulated.run`, lockstep, deterministic): the
-whole stack over MAVLink against the simulator, ``--depth truth`` for ``gt`` and ``--depth estimated``.
+whole stack over MAVLink against the simulator, ``--depth truth`` for ``gt`` and
+``--depth estimated``.
 
 Trials and seeds. Trial k (k = 0, 1, ...) of every pair flies seed ``s_k = S + k``
 (:func:`trial_seed`), S the base ``--seed``. The seed draws the world (the layout of its trunks,
