@@ -37,10 +37,7 @@ from autonomy.vins.static_init import StaticInitOptions
 from drivers.camera.options import CameraOptions
 from drivers.camera.v4l2 import V4l2Options
 from drivers.mavlink.autopilot import MavlinkOptions
-from drivers.sim.imu import ImuOptions
-from drivers.sim.options import SimOptions
-from drivers.sim.mock_px4 import Px4Options
-from drivers.sim.quadrotor import VehicleOptions
+from drivers.sim.options import CONFIG_SECTIONS as SIMULATOR_SECTIONS
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
@@ -56,8 +53,9 @@ class LogOptions:
 
 
 @dataclass(frozen=True)
-class Config:
-    """The whole configuration: one field per TOML table, each an options dataclass."""
+class FlightConfig:
+    """The flight application's own tables: one field per TOML table, each an options
+    dataclass."""
 
     log: LogOptions = field(default_factory=LogOptions)
     rescale: RescaleOptions = field(default_factory=RescaleOptions)
@@ -66,10 +64,6 @@ class Config:
     synthetic_depth: SyntheticDepthOptions = field(default_factory=SyntheticDepthOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
     v4l2: V4l2Options = field(default_factory=V4l2Options)
-    sim: SimOptions = field(default_factory=SimOptions)
-    vehicle: VehicleOptions = field(default_factory=VehicleOptions)
-    imu: ImuOptions = field(default_factory=ImuOptions)
-    px4: Px4Options = field(default_factory=Px4Options)
     vins: VinsOptions = field(default_factory=VinsOptions)
     vins_frontend: FrontendOptions = field(default_factory=FrontendOptions)
     vins_init: StaticInitOptions = field(default_factory=StaticInitOptions)
@@ -80,6 +74,16 @@ class Config:
 
     def __post_init__(self) -> None:
         validate(self)
+
+
+#: The whole configuration: the flight's tables (:class:`FlightConfig`) and, after them, the
+#: tables the simulator declares for itself (:data:`drivers.sim.options.CONFIG_SECTIONS`:
+#: ``[sim]``, ``[vehicle]``, ``[imu]``, ``[px4]``), each at its class's defaults.
+Config = dataclasses.make_dataclass(
+    "Config", [(name, kind, field(default_factory=kind))
+               for name, kind in SIMULATOR_SECTIONS.items()],
+    bases=(FlightConfig,), frozen=True)
+Config.__module__ = __name__  # where pickle (eval's worker processes) finds it
 
 
 class ConfigError(Exception):

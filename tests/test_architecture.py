@@ -2,7 +2,8 @@
 
 - autonomy/ imports neither drivers nor companion, nor any I/O;
 - drivers/ never imports companion;
-- the flight process (companion/flight/) never imports the simulator, nor the tools around it.
+- the flight process (companion/flight/) never imports the simulator, nor the tools around it;
+- the config adds the simulator's tables from the simulator's own list of them.
 """
 
 import ast
@@ -80,3 +81,9 @@ def test_the_flight_process_never_imports_the_simulator_or_the_tools():
                                 "companion.cli"}))
     assert not found, ("companion/flight/ flies real and simulated vehicles alike "
                        "(docs/architecture.md):\n" + "\n".join(found))
+
+
+def test_the_config_takes_the_simulators_tables_from_the_simulators_own_list():
+    source = (ROOT / "companion" / "config.py").read_text(encoding="utf-8")
+    found = [module for _, module in forbidden_imports(source, frozenset({"drivers.sim"}))]
+    assert found == ["drivers.sim.options"], found

@@ -1,10 +1,14 @@
-"""What the simulator runs: which world, from which seed, on which clock."""
+"""What the simulator runs: which world, from which seed, on which clock; and the config
+tables the simulator reads (:data:`CONFIG_SECTIONS`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 from autonomy.options import option, validate
+from drivers.sim.imu import ImuOptions
+from drivers.sim.mock_px4 import Px4Options
+from drivers.sim.quadrotor import VehicleOptions
 
 WORLD_NAMES = ("mine", "sewer", "dome")
 CLOCK_MODES = ("lockstep", "realtime")
@@ -25,3 +29,10 @@ class SimOptions:
 
     def __post_init__(self) -> None:
         validate(self)
+
+
+#: The simulator's own tables of the application's config, by name: ``companion.config`` adds
+#: them after the flight's. The flight process reads none of them (the estimator's IMU noise
+#: model is ``[vins_imu]``, not the simulated IMU's ``[imu]``).
+CONFIG_SECTIONS = {"sim": SimOptions, "vehicle": VehicleOptions, "imu": ImuOptions,
+                   "px4": Px4Options}
