@@ -18,6 +18,7 @@ def test_readers_get_the_newest_value_and_taps_every_one_in_order():
         channel.publish(k)
     assert channel.value == 2 and seen == [0, 1, 2] and channel.published == 3
     unsubscribe()
+    unsubscribe()  # twice is harmless
     channel.publish(3)
     assert seen == [0, 1, 2] and channel.value == 3
 
@@ -27,8 +28,9 @@ def test_a_failing_tap_is_logged_and_dropped_and_the_others_go_on(caplog):
     seen = []
 
     def broken(_):
+        unsubscribe_broken()  # the tap gives up, then fails
         raise RuntimeError("disk full")
-    channel.subscribe(broken)
+    unsubscribe_broken = channel.subscribe(broken)
     channel.subscribe(seen.append)
     with caplog.at_level(logging.ERROR):
         channel.publish("a")

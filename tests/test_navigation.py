@@ -12,7 +12,8 @@ import pytest
 from autonomy.geometry import PinholeCamera, make_pose, rot_z
 from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, PARALLAX_WAIT_S,
                                             Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
-                                            approach_targets, must_turn)
+                                            approach_targets, facing, must_turn, still_turning,
+                                            turn_rate)
 from autonomy.navigation.failsafes import Vitals, failsafe_reason, vins_problem
 from autonomy.navigation.mission import FlightOptions, FlightState, Mission
 from autonomy.navigation.route import Route, heading_error, stop_waypoints
@@ -133,6 +134,13 @@ def test_a_passed_corner_or_a_waypoint_far_off_the_heading_makes_the_vehicle_tur
                              np.array([1.0, 0.0, 1.5]), "approach")
     assert not must_turn(False, math.radians(170.0), approach, OPTIONS)
     assert must_turn(True, math.radians(170.0), approach, OPTIONS)
+
+
+def test_a_turn_in_place_turns_toward_the_waypoint_until_within_align_done():
+    assert turn_rate(0.5, OPTIONS) == pytest.approx(math.radians(30.0))  # align_yaw_rate_deg
+    assert turn_rate(-2.0, OPTIONS) == pytest.approx(-math.radians(30.0))
+    assert still_turning(math.radians(15.1), OPTIONS) and not facing(math.radians(15.1), OPTIONS)
+    assert facing(math.radians(-14.9), OPTIONS) and not still_turning(math.radians(14.9), OPTIONS)
 
 
 # ---------------------------------------------------------------- the parallax glide

@@ -26,13 +26,13 @@ import math
 import numpy as np
 
 from autonomy.navigation.trail import Trail
+from autonomy.planning.planner import APPROACH_REASON
 
 #: After a turn: how long without a fresh fit before the parallax glide starts, seconds.
 PARALLAX_WAIT_S = 0.3
 #: The reasons the glides' plans carry (what the failsafe checks and the logs read).
 PARALLAX_REASON = "gliding for parallax"
 BACKOFF_REASON = "backing off along the trail"
-APPROACH_REASON = "approach"
 
 
 def on_glide(plan, reason: str, now: float) -> bool:
@@ -50,8 +50,18 @@ def must_turn(corner_pending: bool, heading_error: float, plan, options) -> bool
 
 
 def still_turning(heading_error: float, options) -> bool:
-    """Is the heading error beyond ``align_done_deg`` (keep turning in place)?"""
+    """Is the heading error beyond ``align_done_deg`` (a turn in place is due)?"""
     return abs(heading_error) > math.radians(options.align_done_deg)
+
+
+def facing(heading_error: float, options) -> bool:
+    """Is the heading error within ``align_done_deg`` (a turn in place is done)?"""
+    return abs(heading_error) < math.radians(options.align_done_deg)
+
+
+def turn_rate(heading_error: float, options) -> float:
+    """Yaw rate of a turn in place toward a heading ``heading_error`` away, rad/s."""
+    return math.copysign(math.radians(options.align_yaw_rate_deg), heading_error)
 
 
 def approach_targets(goal_W: np.ndarray, position_W: np.ndarray, speed: float, *,

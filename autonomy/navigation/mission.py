@@ -185,10 +185,10 @@ class Mission:
             return
         transition = Transition(t, self.state, target, reason)
         self.transitions.append(transition)
-        if self._on_transition is not None:
-            self._on_transition(transition)
         log.info("t=%.2f %s -> %s: %s", t, self.state.value, target.value, reason)
         self.state, self.since = target, t
+        if self._on_transition is not None:
+            self._on_transition(transition)
 
     def failsafe(self, t: float, reason: str) -> bool:
         """A failsafe for ``reason``: stop if navigating. Returns True when it changed the

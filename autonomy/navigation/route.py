@@ -91,7 +91,7 @@ class Route:
     def advance(self, position_W: np.ndarray, T_L_W: np.ndarray, options) -> Progress:
         """Pass every waypoint within ``waypoint_tolerance`` (a stop waypoint:
         ``corner_tolerance``), or reach the goal within ``goal_tolerance`` and
-        ``height_tolerance`` (``options``: :class:`~autonomy.navigation.options.FlightOptions`):
+        ``height_tolerance`` (``options``: :class:`~autonomy.navigation.mission.FlightOptions`):
         horizontal distances and, for the goal, the height (as PX4's acceptance radius and
         altitude acceptance). A waypoint guides the route; the planner may pass it higher,
         over what lies below."""

@@ -51,6 +51,10 @@ from autonomy.planning.primitives import (
 )
 
 
+#: The reason an approach glide's plan carries (:meth:`Planner.approach`).
+APPROACH_REASON = "approach"
+
+
 @dataclass(frozen=True)
 class PlannerOptions(PrimitiveOptions):
     """Every planner setting, flat (one ``[planner]`` table): the library's shape (the fields of
@@ -229,7 +233,7 @@ class Planner:
         and braking); None when unsafe. For stopping at a corner or the goal precisely, where
         a narrow passage leaves no room to be off its axis, and the arcs cannot stop on a
         point."""
-        plan = self.glide(t, T_W_B, goal_W, "approach")
+        plan = self.glide(t, T_W_B, goal_W, APPROACH_REASON)
         if plan is None:
             return None
         start = plan.T_W_S[:3, 3]

@@ -32,9 +32,14 @@ class _Taps(Generic[T]):
         self.published = 0
 
     def subscribe(self, tap: Callable[[T], None]) -> Callable[[], None]:
-        """Call ``tap(message)`` on every publish from now on; returns the unsubscriber."""
+        """Call ``tap(message)`` on every publish from now on; returns the unsubscriber (safe
+        to call again, or after a failing tap was dropped)."""
         self._taps.append(tap)
-        return lambda: self._taps.remove(tap)
+        return lambda: self._drop(tap)
+
+    def _drop(self, tap: Callable[[T], None]) -> None:
+        if tap in self._taps:
+            self._taps.remove(tap)
 
     def _notify(self, message: T) -> None:
         self.published += 1
@@ -43,7 +48,7 @@ class _Taps(Generic[T]):
                 tap(message)
             except Exception:  # noqa: BLE001 - a tap's fault never reaches the stage
                 log.exception("tap on channel %r failed; unsubscribed", self.name)
-                self._taps.remove(tap)
+                self._drop(tap)
 
 
 class Latest(_Taps[T]):

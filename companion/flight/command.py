@@ -17,11 +17,12 @@ import numpy as np
 
 from autonomy.geometry import rot_to_quat
 from autonomy.messages import Odometry
+from autonomy.navigation.behaviours import turn_rate
 from autonomy.navigation.mission import OFFBOARD_STATES, FlightState
 from autonomy.planning.planner import Setpoint
 from autonomy.vins.health import HealthState
 from companion.flight.context import FlightContext
-from companion.flight.navigation import Navigation, turn_rate
+from companion.flight.navigation import Navigation
 from companion.flight.perception import Perception
 from companion.flight.watchdog import SetpointWatchdog
 

@@ -13,7 +13,6 @@ off. Decisions are autonomy's; this stage runs them and the planner (on its work
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 
@@ -138,14 +137,13 @@ class Navigation:
             self.stop("goal reached")
             c.go(FlightState.STOPPING, "goal reached")
 
-    def _fly(self, plan: Plan | None, *, checked: bool = True) -> None:
-        """Fly ``plan``; ``checked``: it is also the watchdog's fallback (a glide or an
-        approach, which end at rest)."""
-        if plan is None:
+    def _follow(self, glide: Plan | None) -> None:
+        """Fly ``glide`` (none: nothing changes); a glide ends at rest, so it is also the
+        watchdog's fallback."""
+        if glide is None:
             return
-        self.context.channels.plan.publish(plan)
-        if checked:
-            self.context.channels.checked_stop.publish(plan)
+        self.context.channels.plan.publish(glide)
+        self.context.channels.checked_stop.publish(glide)
 
     def _back_off_step(self, odometry: Odometry, now: float) -> bool:
         """Fly the glides of a backing-off, one trail point after the other. True while
@@ -153,7 +151,7 @@ class Navigation:
         step = self.backoff.step(self.plan, now)
         if isinstance(step, Step):
             return step == Step.KEEP
-        self._fly(self.planner.glide(odometry.t, odometry.T_W_B, step, BACKOFF_REASON))
+        self._follow(self.planner.glide(odometry.t, odometry.T_W_B, step, BACKOFF_REASON))
         return True
 
     def _parallax_step(self, odometry: Odometry, now: float) -> bool:
@@ -162,7 +160,7 @@ class Navigation:
         step = self.parallax.step(self.plan, now, age(self.perception.last_fit_t, now))
         if isinstance(step, Step):
             return step == Step.KEEP
-        self._fly(self.planner.glide(odometry.t, odometry.T_W_B, step, PARALLAX_REASON))
+        self._follow(self.planner.glide(odometry.t, odometry.T_W_B, step, PARALLAX_REASON))
         log.info("no depth after turning; gliding %s along the flown trail",
                  "back" if self.parallax.active else "to the turning point")
         return True
@@ -173,8 +171,10 @@ class Navigation:
         c = self.context
         self.no_path.since = None
         if not self.stopped():
-            c.channels.plan.publish(await c.workers["planner"].run(
-                self.stop_plan, "stopping to turn to the next waypoint"))
+            stop = await c.workers["planner"].run(self.stop_plan,
+                                                  "stopping to turn to the next waypoint")
+            if c.state == FlightState.NAVIGATING:  # else a failsafe's stop is in charge
+                c.channels.plan.publish(stop)
             return
         self.corner_pending = False
         self.parallax.start(self.trail, c.channels.odometry.value.T_W_B[:3, 3])
@@ -192,8 +192,10 @@ class Navigation:
         for target in targets:
             plan = await c.workers["planner"].run(self.planner.approach, odometry.t,
                                                   odometry.T_W_B, target)
+            if c.state != FlightState.NAVIGATING:
+                return True  # a failsafe took over while planning: its stop is in charge
             if plan is not None:
-                self._fly(plan)
+                self._follow(plan)
                 c.stats.planning_rounds += 1
                 self.no_path.reset()
                 return True
@@ -248,7 +250,3 @@ class Navigation:
             return None
         return [round(float(v), 3) for v in (c.T_L_W @ odometry.T_W_B)[:3, 3]]
 
-
-def turn_rate(heading_error: float, options) -> float:
-    """Yaw rate of a turn in place toward a heading ``heading_error`` away, rad/s."""
-    return math.copysign(math.radians(options.align_yaw_rate_deg), heading_error)

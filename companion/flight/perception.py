@@ -45,18 +45,16 @@ class NetworkDepth:
     """The depth network's relative disparity, made metric by the rescaler on the frame's
     sparse map (Yang et al., Section III-B; :class:`~autonomy.depth.stage.MetricDepthStage`).
     ``network(frame) -> disparity`` is the ONNX model or, in simulation, its stand-in; one
-    that fails on a frame (ValueError, RuntimeError) costs that frame, counted in
-    ``errors``."""
+    that fails on a frame (ValueError, RuntimeError) costs that frame (logged; the summary
+    counts it among the depth failures)."""
 
     def __init__(self, network: Callable[[Frame], np.ndarray], stage: MetricDepthStage):
         self.network, self.stage = network, stage
-        self.errors = 0
 
     def infer(self, frame: Frame) -> RelativeDepth | None:
         try:
             return RelativeDepth(frame.t, self.network(frame))
         except (ValueError, RuntimeError) as error:
-            self.errors += 1
             log.warning("depth network failed on frame t=%.3f: %s", frame.t, error)
             return None
 
@@ -66,7 +64,8 @@ class NetworkDepth:
 
 
 class Perception:
-    """The stage (module docstring). ``vins`` is touched on its worker only, in order."""
+    """The stage (module docstring). ``vins`` is changed on its worker only, in order (the
+    other stages read its counters)."""
 
     def __init__(self, context: FlightContext, camera, vins: Vins, depth: DepthSource,
                  planner: Planner, T_B_C: np.ndarray):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 
-from autonomy.navigation.behaviours import still_turning
+from autonomy.navigation.behaviours import facing
 from autonomy.navigation.mission import FlightState
 from companion.flight.context import FlightContext
 from companion.flight.navigation import Navigation
@@ -23,8 +23,10 @@ POLL_S = 0.01
 OFFBOARD_STREAM_S = 1.2
 #: How far under the take-off height counts as there, metres.
 TAKEOFF_HEIGHT_MARGIN = 0.25
-NAVIGATING_STATES = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
-                               FlightState.STOPPING, FlightState.FAILSAFE_STOP})
+#: The navigation phase: from Offboard until the vehicle is at rest and PX4 takes over
+#: (landing at the goal, or holding after a failsafe).
+NAVIGATION_PHASE = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
+                              FlightState.STOPPING, FlightState.FAILSAFE_STOP})
 
 
 class MissionSteps:
@@ -113,7 +115,7 @@ class MissionSteps:
     async def _navigate(self) -> None:
         c = self.context
         deadline = c.clock.now() + c.options.mission_timeout_s
-        while c.state in NAVIGATING_STATES:
+        while c.state in NAVIGATION_PHASE:
             if c.clock.now() > deadline:
                 c.mission.failsafe(c.clock.now(), "mission timeout")
             await self._navigation_step()
@@ -129,8 +131,8 @@ class MissionSteps:
         if state in (FlightState.STOPPING, FlightState.FAILSAFE_STOP):
             if self.navigation.stopped() or c.mission.elapsed(now) > c.options.stop_timeout_s:
                 await self._after_stop(state)
-        elif state == FlightState.ALIGNING and not still_turning(
-                self.navigation.heading_error(), c.options):
+        elif state == FlightState.ALIGNING and facing(self.navigation.heading_error(),
+                                                      c.options):
             c.go(FlightState.NAVIGATING, "facing the next waypoint")
 
     async def _after_stop(self, state: FlightState) -> None:
