@@ -229,3 +229,43 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout(
     assert [b == 0.0 for b in bright] == black
     assert min(b for b, dark in zip(bright, black) if not dark) > 20.0
     assert all(f.truth_depth.shape == (48, 64) for f in frames)
+
+
+# ---------------------------------------------------------------- the real vehicle's wiring
+
+def test_the_real_vehicles_app_runs_the_users_network_and_rescales_with_the_frames_map(
+        tmp_path):
+    """`companion fly`'s application (launch/real.py): a real ONNX session on each frame's
+    RGB image, a real MAVLink link; the stage has no fit without the frame's sparse map."""
+    from dataclasses import replace
+
+    from autonomy.depth.network import DepthNetwork, NetworkOptions
+    from autonomy.messages import Frame
+    from companion.config import Config
+    from companion.launch.real import build_app
+    from companion.tools.testmodel import build_test_model
+    from drivers.clock import MonotonicClock
+    from drivers.mavlink.autopilot import Autopilot
+
+    model = tmp_path / "model.onnx"
+    model.write_bytes(build_test_model())
+    config = Config()
+    size = (config.camera.height, config.camera.width)
+    network = DepthNetwork.open(NetworkOptions(model=str(model)), size)
+    clock = MonotonicClock()
+    autopilot = Autopilot.open(
+        replace(config.mavlink, url=f"udpout://127.0.0.1:{free_udp_port()}"), clock)
+    app = build_app(config, [(5.0, 0.0, 1.5)], autopilot=autopilot, camera=None,
+                    network=network, clock=clock)
+    try:
+        depth = app.perception.depth
+        dark, bright = (depth.infer(Frame(0.0, np.full(size + (3,), v, np.uint8)))
+                        for v in (60, 180))
+        assert dark.disparity.shape == size and np.isfinite(dark.disparity).all()
+        assert bright.disparity.mean() > dark.disparity.mean()  # the test model's monotony
+        metric = depth.metric(dark, None)
+        assert not metric.ok and "no VINS sparse map" in metric.diagnostics.reason
+    finally:
+        for worker in app.context.workers.values():
+            worker.close()
+        autopilot.close()

@@ -33,7 +33,6 @@ import math
 
 import numpy as np
 
-from autonomy.depth.stage import MetricDepthStage
 from autonomy.navigation.mission import FlightState
 from autonomy.navigation.route import Route
 from autonomy.planning.planner import Planner
@@ -42,7 +41,7 @@ from companion.flight.command import Command
 from companion.flight.context import FlightContext
 from companion.flight.health import Health
 from companion.flight.navigation import Navigation
-from companion.flight.perception import DepthSource, NetworkDepth, Perception
+from companion.flight.perception import DepthSource, Perception
 from companion.flight.steps import MissionSteps
 from companion.flight.workers import make_workers
 from companion.report import show
@@ -63,19 +62,14 @@ class FlightApp:
     """
 
     @classmethod
-    def from_config(cls, config, *, autopilot, camera, network, T_B_C, waypoints_L, clock,
-                    lockstep: bool, notifier=None, depth: DepthSource | None = None
-                    ) -> "FlightApp":
+    def from_config(cls, config, *, autopilot, camera, depth: DepthSource, T_B_C, waypoints_L,
+                    clock, lockstep: bool, notifier=None) -> "FlightApp":
         """The application with its VINS, planner and workers built from ``config``: an
-        undistorted ``[camera]`` mounted at ``T_B_C``, the ``[vins_imu]`` noise model; the
-        depth network ``network(frame) -> relative disparity`` rescaled as ``[rescale]`` and
-        ``[depth]`` say, unless ``depth`` replaces it; workers inline in lockstep, threads
-        otherwise (closed when :meth:`run` ends)."""
+        undistorted ``[camera]`` mounted at ``T_B_C``, the ``[vins_imu]`` noise model; workers
+        inline in lockstep, threads otherwise (closed when :meth:`run` ends)."""
         pinhole = config.camera.pinhole()
         vins = Vins(pinhole, (0.0,) * 4, T_B_C, config.vins_imu, config.vins,
                     frontend=config.vins_frontend, static=config.vins_init)
-        if depth is None:
-            depth = NetworkDepth(network, MetricDepthStage(config.rescale, config.depth))
         return cls(config, autopilot=autopilot, camera=camera, depth=depth, vins=vins,
                    T_B_C=T_B_C, planner=Planner(pinhole, config.planner),
                    waypoints_L=waypoints_L, clock=clock, notifier=notifier,

@@ -17,7 +17,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from autonomy.depth.stage import MetricDepthStage
+from autonomy.depth.options import RescaleOptions
+from autonomy.depth.stage import DepthStageOptions, MetricDepthStage
 from autonomy.geometry import yaw_alignment
 from autonomy.messages import Frame, MetricDepth, Odometry, RelativeDepth, SparseMap
 from autonomy.planning.planner import Planner
@@ -46,10 +47,12 @@ class NetworkDepth:
     sparse map (Yang et al., Section III-B; :class:`~autonomy.depth.stage.MetricDepthStage`).
     ``network(frame) -> disparity`` is the ONNX model or, in simulation, its stand-in; one
     that fails on a frame (ValueError, RuntimeError) costs that frame (logged; the summary
-    counts it among the depth failures)."""
+    counts it among the depth failures). ``rescale`` and ``options`` are the ``[rescale]`` and
+    ``[depth]`` tables."""
 
-    def __init__(self, network: Callable[[Frame], np.ndarray], stage: MetricDepthStage):
-        self.network, self.stage = network, stage
+    def __init__(self, network: Callable[[Frame], np.ndarray], rescale: RescaleOptions,
+                 options: DepthStageOptions):
+        self.network, self.stage = network, MetricDepthStage(rescale, options)
 
     def infer(self, frame: Frame) -> RelativeDepth | None:
         try:

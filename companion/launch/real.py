@@ -20,6 +20,7 @@ import signal
 
 from autonomy.depth.network import DepthNetwork
 from companion.flight.app import FlightApp
+from companion.flight.perception import NetworkDepth
 from companion.launch.systemd import SystemdNotifier
 from drivers.camera.v4l2 import V4l2Camera
 from drivers.clock import MonotonicClock
@@ -52,16 +53,24 @@ async def _fly(config, waypoints) -> dict:
     async with V4l2Camera(config.camera, config.v4l2, clock) as camera:
         autopilot = Autopilot.open(config.mavlink, clock)
         try:
-            app = FlightApp.from_config(
-                config, autopilot=autopilot, camera=camera,
-                depth_source=lambda frame: network(frame.image, channels="rgb"),
-                T_B_C=config.camera.T_B_C(), waypoints_L=waypoints, clock=clock, lockstep=False,
-                notifier=notifier)
+            app = build_app(config, waypoints, autopilot=autopilot, camera=camera,
+                            network=network, clock=clock, notifier=notifier)
             _stop_on_signals(app)
             return await app.run()
         finally:
             notifier.stopping("mission ended")
             autopilot.close()
+
+
+def build_app(config, waypoints, *, autopilot, camera, network: DepthNetwork, clock,
+              notifier=None) -> FlightApp:
+    """The application on the real vehicle: the ONNX ``network`` on each frame's RGB image,
+    rescaled as ``[rescale]`` and ``[depth]`` say; worker threads."""
+    depth = NetworkDepth(lambda frame: network(frame.image, channels="rgb"), config.rescale,
+                         config.depth)
+    return FlightApp.from_config(config, autopilot=autopilot, camera=camera, depth=depth,
+                                 T_B_C=config.camera.T_B_C(), waypoints_L=waypoints,
+                                 clock=clock, lockstep=False, notifier=notifier)
 
 
 def _stop_on_signals(app: FlightApp) -> None:

@@ -2,10 +2,10 @@
 
 The simulator host (:mod:`drivers.sim.host`) serves the mock PX4 on loopback UDP; the
 application (:class:`companion.flight.app.FlightApp`) connects to it as it would to a real
-flight controller, sees
-the world through the simulated camera, estimates its state with the VINS and its depth with
-the network (the synthetic stand-in of ``[synthetic_depth]`` unless ``[depth_network] model``
-names an ONNX file) and the rescaler, and flies the planner's arcs to the goal.
+flight controller, sees the world through the simulated camera, estimates its state with the
+VINS and its depth with the network (the synthetic stand-in of ``[synthetic_depth]`` unless
+``[depth_network] model`` names an ONNX file) and the rescaler, and flies the planner's arcs
+to the goal.
 
 The mission: a world's start/goal pair (``pair``), flown through the corners of the route's
 collision-free path as waypoints (what an operator would give as a mission), or one ``goal``.
@@ -31,6 +31,7 @@ from typing import Callable
 import numpy as np
 
 from companion.flight.app import FlightApp, format_flight
+from companion.flight.perception import NetworkDepth
 from companion.report import show
 from drivers.mavlink.autopilot import Autopilot
 from drivers.sim.faults import FaultSchedule
@@ -55,7 +56,7 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
         raise SimError(f"clock must be lockstep or realtime, got {mission.clock!r}")
     if mission.depth not in DEPTH_SOURCES:
         raise SimError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
-                          f"got {mission.depth!r}")
+                       f"got {mission.depth!r}")
     return asyncio.run(fly(config, mission, plot=plot, progress=progress))
 
 
@@ -68,20 +69,18 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     faults = FaultSchedule(mission.faults)
     if faults.has("loop_stall") and mission.clock != "realtime":
         raise SimError("a loop_stall fault needs --clock realtime: in lockstep the simulator "
-                          "shares the stalled loop, so simulated time stalls with it")
+                       "shares the stalled loop, so simulated time stalls with it")
     port = free_udp_port()
     side = (LockstepSimulator if mission.clock == "lockstep" else ThreadedSimulator)(
         config, world, mission, port, (start, start_yaw), faults, waypoints[-1], progress)
     sim, camera, clock = await side.start()
     stall = asyncio.create_task(stall_when_due(faults, sim))
     try:
-        if mission.depth == "truth":
-            network, depth = None, TruthDepth(config.planner.max_range)
-        else:
-            network, depth = simulated_network(config, mission.seed, faults,
-                                               lambda: sim.time), None
-        app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera, network,
-                        waypoints, lockstep=mission.clock == "lockstep", depth=depth)
+        depth = TruthDepth(config.planner.max_range) if mission.depth == "truth" else \
+            NetworkDepth(simulated_network(config, mission.seed, faults, lambda: sim.time),
+                         config.rescale, config.depth)
+        app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera, depth, waypoints,
+                        lockstep=mission.clock == "lockstep")
         try:
             summary = await app.run()
         finally:
@@ -96,14 +95,13 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     return summary
 
 
-def build_app(config, clock, url: str, camera, network, waypoints, *,
-              lockstep: bool, depth=None) -> FlightApp:
-    """The application wired to a camera, a depth network (or a whole ``depth`` source) and
-    the autopilot at ``url``."""
+def build_app(config, clock, url: str, camera, depth, waypoints, *,
+              lockstep: bool) -> FlightApp:
+    """The application wired to a camera, a depth source and the autopilot at ``url``."""
     autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
-    return FlightApp.from_config(config, autopilot=autopilot, camera=camera, network=network,
+    return FlightApp.from_config(config, autopilot=autopilot, camera=camera, depth=depth,
                                  T_B_C=config.camera.T_B_C(), waypoints_L=waypoints,
-                                 clock=clock, lockstep=lockstep, depth=depth)
+                                 clock=clock, lockstep=lockstep)
 
 
 def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
@@ -136,7 +134,6 @@ def _plot(world, track, start, waypoints, sim, out: Path, summary: dict) -> None
              collisions=() if collision is None else (collision.position,), out=out,
              title=f"{world.name} pair {summary['pair']}: "
                    f"{'reached' if summary['reached_goal'] else 'not reached'}")
-
 
 
 def format_summary(summary: dict) -> str:

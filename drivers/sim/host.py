@@ -81,7 +81,7 @@ def mission_waypoints(world: World, mission: SimMission, height: float
     the heading it stands at (the first leg's unless the mission gives one)."""
     if not 0 <= mission.pair < len(world.routes):
         raise SimError(f"{world.name} has start/goal pairs 0..{len(world.routes) - 1}, "
-                          f"not {mission.pair}")
+                       f"not {mission.pair}")
     route = world.routes[mission.pair]
     start = np.asarray(route.start, dtype=float)
     if mission.goal is not None:
@@ -93,7 +93,7 @@ def mission_waypoints(world: World, mission: SimMission, height: float
         corners = world.find_path(start[:2], route.goal[:2], ROBOT_RADIUS)
         if corners is None:
             raise SimError(f"{world.name}: route {route.name} has no path with "
-                              f"{ROBOT_RADIUS} m clearance")
+                           f"{ROBOT_RADIUS} m clearance")
         waypoints = np.column_stack([corners[1:], np.full(len(corners) - 1, height)])
         waypoints[-1] = route.goal
     first = waypoints[0, :2] - start[:2]
@@ -101,7 +101,7 @@ def mission_waypoints(world: World, mission: SimMission, height: float
         return start, waypoints, math.atan2(first[1], first[0])
     if not math.isfinite(mission.start_yaw_deg):
         raise SimError(f"start yaw must be a finite number of degrees, "
-                          f"got {mission.start_yaw_deg}")
+                       f"got {mission.start_yaw_deg}")
     return start, waypoints, math.radians(mission.start_yaw_deg)
 
 
