@@ -49,14 +49,20 @@ def field_types(cls: type) -> dict[str, Any]:
     return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
-def _is_str_tuple(kind: Any) -> bool:
-    """Whether ``kind`` is ``tuple[str, ...]``, the one container type an option may have."""
-    return typing.get_origin(kind) is tuple and typing.get_args(kind) == (str, Ellipsis)
+def _tuple_item(kind: Any) -> Any:
+    """``str`` or ``float`` for ``tuple[str, ...]`` or ``tuple[float, ...]``, the container
+    types an option may have; None for any other type."""
+    if typing.get_origin(kind) is tuple:
+        args = typing.get_args(kind)
+        if len(args) == 2 and args[1] is Ellipsis and args[0] in (str, float):
+            return args[0]
+    return None
 
 
 def _type_name(kind: Any) -> str:
-    if _is_str_tuple(kind):
-        return "a list of strings"
+    item = _tuple_item(kind)
+    if item is not None:
+        return f"a list of {'strings' if item is str else 'numbers'}"
     return {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}.get(
         kind, str(kind)
     )
@@ -68,8 +74,11 @@ def _check_type(name: str, value: Any, kind: Any) -> None:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
     elif kind is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
-    elif _is_str_tuple(kind):
+    elif _tuple_item(kind) is str:
         ok = isinstance(value, tuple) and all(isinstance(item, str) for item in value)
+    elif _tuple_item(kind) is float:
+        ok = isinstance(value, tuple) and all(
+            isinstance(item, (int, float)) and not isinstance(item, bool) for item in value)
     else:
         ok = isinstance(value, kind)
     if not ok:
@@ -82,16 +91,18 @@ _BOUNDS = (("ge", ">=", operator.ge), ("gt", ">", operator.gt),
 
 def _check_range(name: str, value: Any, f: dataclasses.Field) -> None:
     meta = f.metadata
-    if isinstance(value, float) and not math.isfinite(value):
-        raise OptionError(name, f"must be a finite number, got {value!r}")
+    # For a tuple option the bounds and choices apply to each element.
+    items = value if isinstance(value, tuple) else (value,)
+    if any(isinstance(item, float) and not math.isfinite(item) for item in items):
+        what = "finite numbers" if isinstance(value, tuple) else "a finite number"
+        raise OptionError(name, f"must be {what}, got {value!r}")
     for key, symbol, holds in _BOUNDS:
         limit = meta.get(key)
-        if limit is not None and not holds(value, limit):
+        if limit is not None and not all(holds(item, limit) for item in items):
             raise OptionError(name, f"must be {symbol} {limit:g}, got {value!r}")
     choices = meta.get("choices")
     if choices is not None:
-        # For a tuple[str, ...] option the choices apply to each element.
-        for item in value if isinstance(value, tuple) else (value,):
+        for item in items:
             if item not in choices:
                 raise OptionError(name, f"must be one of {', '.join(choices)}; got {item!r}")
 

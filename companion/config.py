@@ -34,6 +34,7 @@ from autonomy.vins.frontend import FrontendOptions
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import StaticInitOptions
+from companion.flight.go import GoOptions
 from drivers.camera.options import CameraOptions
 from drivers.camera.v4l2 import V4l2Options
 from drivers.mavlink.autopilot import MavlinkOptions
@@ -70,6 +71,7 @@ class FlightConfig:
     vins_imu: ImuNoise = field(default_factory=ImuNoise.icm42688p)
     planner: PlannerOptions = field(default_factory=PlannerOptions)
     flight: FlightOptions = field(default_factory=FlightOptions)
+    go: GoOptions = field(default_factory=GoOptions)
     mavlink: MavlinkOptions = field(default_factory=MavlinkOptions)
 
     def __post_init__(self) -> None:
@@ -218,11 +220,12 @@ def _build_section(section: dataclasses.Field, values: dict[str, tuple[Any, str]
 
 def _coerce(value: Any, kind: Any) -> Any:
     """TOML's ``3`` where a float is expected becomes ``3.0``; a bool is never a number; a
-    TOML list where a ``tuple[str, ...]`` is expected becomes a tuple."""
+    TOML list where a ``tuple[...]`` is expected becomes a tuple of its items, coerced alike."""
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if typing.get_origin(kind) is tuple and isinstance(value, list):
-        return tuple(value)
+        item_kind = typing.get_args(kind)[0]
+        return tuple(_coerce(item, item_kind) for item in value)
     return value
 
 

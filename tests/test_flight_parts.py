@@ -236,7 +236,8 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout(
 def test_the_real_vehicles_app_runs_the_users_network_and_rescales_with_the_frames_map(
         tmp_path):
     """`companion fly`'s application (launch/real.py): a real ONNX session on each frame's
-    RGB image, a real MAVLink link; the stage has no fit without the frame's sparse map."""
+    RGB image, a real MAVLink link; the stage has no fit without the frame's sparse map; the
+    VINS and the planner work on the camera's rectified pinhole, mounted where calibrated."""
     from dataclasses import replace
 
     from autonomy.depth.network import DepthNetwork, NetworkOptions
@@ -244,20 +245,28 @@ def test_the_real_vehicles_app_runs_the_users_network_and_rescales_with_the_fram
     from companion.config import Config
     from companion.launch.real import build_app
     from companion.tools.testmodel import build_test_model
+    from drivers.camera.calibration import CalibratedCamera, resolve
     from drivers.clock import MonotonicClock
     from drivers.mavlink.autopilot import Autopilot
 
     model = tmp_path / "model.onnx"
     model.write_bytes(build_test_model())
     config = Config()
+    config = replace(config, camera=replace(config.camera, distortion_model="radtan",
+                                            distortion=(-0.28, 0.07, 0.0, 0.0), fx=300.0,
+                                            rectified_hfov_deg=100.0, mount_pitch_deg=10.0))
+    calibration = resolve(config.camera)
     size = (config.camera.height, config.camera.width)
     network = DepthNetwork.open(NetworkOptions(model=str(model)), size)
     clock = MonotonicClock()
     autopilot = Autopilot.open(
         replace(config.mavlink, url=f"udpout://127.0.0.1:{free_udp_port()}"), clock)
-    app = build_app(config, [(5.0, 0.0, 1.5)], autopilot=autopilot, camera=None,
-                    network=network, clock=clock)
+    app = build_app(config, [(5.0, 0.0, 1.5)], autopilot=autopilot,
+                    camera=CalibratedCamera(None, calibration), network=network, clock=clock)
     try:
+        assert app.perception.vins.camera == calibration.rectified != config.camera.pinhole()
+        assert np.allclose(app.perception.T_B_C, config.camera.T_B_C())
+        assert app.navigation.planner.camera == calibration.rectified
         depth = app.perception.depth
         dark, bright = (depth.infer(Frame(0.0, np.full(size + (3,), v, np.uint8)))
                         for v in (60, 180))

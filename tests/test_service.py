@@ -92,3 +92,37 @@ def test_watchdog_off_when_unset_or_meant_for_another_process():
 def test_watchdog_garbage_is_a_clear_error(env):
     with pytest.raises(ValueError, match="WATCHDOG_"):
         watchdog_interval_s(env, pid=1)
+
+
+def test_start_up_asks_systemd_for_more_time_while_the_network_opens(listener):
+    """A first TensorRT engine build outlasts TimeoutStartSec: while the open runs, the
+    application keeps asking for more time, each request covering three of its steps."""
+    import asyncio
+    import time
+
+    from companion.launch.real import extending_start_timeout
+
+    env, receive = listener
+    result = asyncio.run(extending_start_timeout(
+        SystemdNotifier(env), lambda: time.sleep(0.35) or "engine", step_s=0.1))
+    assert result == "engine"
+    requests = []
+    try:
+        while True:
+            requests.append(receive())
+    except TimeoutError:
+        pass
+    assert len(requests) >= 3
+    assert set(requests) == {b"EXTEND_TIMEOUT_USEC=300000"}
+
+
+def test_a_failing_open_is_raised_not_swallowed():
+    import asyncio
+
+    from companion.launch.real import extending_start_timeout
+
+    def broken():
+        raise RuntimeError("engine build failed")
+
+    with pytest.raises(RuntimeError, match="engine build failed"):
+        asyncio.run(extending_start_timeout(SystemdNotifier({}), broken, step_s=0.05))

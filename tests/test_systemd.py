@@ -73,6 +73,24 @@ def test_started_watched_and_restarted_by_systemd(unit):
     assert one(unit, "Install", "WantedBy") == "multi-user.target"
 
 
+def test_stop_timeout_covers_stop_hold_and_landing_after_sigterm(unit):
+    """SIGTERM in the air: the application stops, holds and lands; systemd must not kill it
+    before the longest such sequence the flight options allow by default."""
+    from autonomy.navigation.mission import FlightOptions
+
+    o = FlightOptions()
+    longest_s = o.stop_timeout_s + o.hold_before_land_s + o.land_timeout_s
+    assert seconds(one(unit, "Service", "TimeoutStopSec")) >= longest_s + 10.0
+
+
+def test_the_go_socket_directory_is_made_for_the_service_only(unit):
+    from companion.flight.go import GoOptions
+
+    assert one(unit, "Service", "RuntimeDirectory") == "companion"
+    assert one(unit, "Service", "RuntimeDirectoryMode") == "0750"
+    assert GoOptions().socket.startswith("/run/companion/")
+
+
 def test_runs_the_flight_command_with_the_installed_config(unit):
     command = one(unit, "Service", "ExecStart").split()
     assert command[0].startswith("/") and command[0].endswith("/bin/companion")

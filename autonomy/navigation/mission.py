@@ -138,6 +138,7 @@ def parse_point(text: str, key: str = "point") -> tuple[float, float, float]:
 class FlightState(enum.Enum):
     PREFLIGHT = "preflight"
     INITIALISING = "initialising"
+    AWAITING_GO = "awaiting_go"
     TAKING_OFF = "taking_off"
     ENTERING_OFFBOARD = "entering_offboard"
     ALIGNING = "aligning"
@@ -151,6 +152,9 @@ class FlightState(enum.Enum):
     ABORTED = "aborted"
 
 
+#: States before arming: an operator's stop ends the mission here.
+GROUND_STATES = frozenset({FlightState.PREFLIGHT, FlightState.INITIALISING,
+                           FlightState.AWAITING_GO})
 #: States in which the application commands the vehicle with offboard setpoints.
 OFFBOARD_STATES = frozenset({FlightState.ENTERING_OFFBOARD, FlightState.ALIGNING,
                              FlightState.NAVIGATING, FlightState.STOPPING,

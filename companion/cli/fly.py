@@ -14,10 +14,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     fly = commands.add_parser(
         "fly", parents=[common.configured_parser()],
         help="fly the real vehicle (the systemd service's command)",
-        description="Connect to the flight controller ([mavlink] url), the camera ([v4l2]) and "
-                    "the depth network ([depth_network] model), then fly the mission: "
-                    "[flight] waypoints, or --goal. Stops, holds and lands on any failure and "
-                    "on SIGTERM. See docs/operations.md.")
+        description="Connect to the flight controller ([mavlink] url), the camera ([camera] "
+                    "driver) and the depth network ([depth_network] model), wait disarmed for "
+                    "the operator's go ([go]), then fly the mission: [flight] waypoints, or "
+                    "--goal. Stops, holds and lands on any failure and on SIGTERM. See "
+                    "docs/operations.md.")
     fly.add_argument("--goal", dest="goals", type=common.point, action="append", default=[],
                      metavar="X,Y,Z",
                      help="waypoint in metres in PX4's local frame (x east, y north, z up); "
@@ -25,19 +26,46 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     common.add_json_flag(fly, instead_of="the summary table")
     fly.set_defaults(command=_fly)
 
+    go = commands.add_parser(
+        "go", parents=[common.configured_parser()],
+        help="give the running `companion fly` the operator's go (arm and fly)",
+        description="Tell the application on this vehicle, waiting disarmed in awaiting_go, "
+                    "to arm and fly: a datagram on [go] socket. Ground stations give the same "
+                    "go with MAV_CMD_MISSION_START, an RC switch with [go] rc_channel.")
+    go.set_defaults(command=_go)
+
 
 def _fly(args: argparse.Namespace, config: Config) -> int:
     from autonomy.depth.network import NetworkError
     from companion.launch import real
     from companion.flight.app import format_flight
-    from drivers.camera.v4l2 import CameraError
+    from companion.flight.go import GoError
+    from drivers.camera.base import CameraError
 
     waypoints = args.goals or config.flight.waypoint_points()
     try:
         summary = real.run(config, waypoints)
-    except (real.FlyError, NetworkError, CameraError, ValueError, OSError) as error:
+    except (real.FlyError, NetworkError, CameraError, GoError, ValueError, OSError) as error:
         print(f"fly: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     print(json.dumps(summary) if args.json else format_flight(summary))
     return common.EXIT_OK if summary["final_state"] == "landed" and summary["reached_goal"] \
         else common.EXIT_FAILED
+
+
+def _go(args: argparse.Namespace, config: Config) -> int:
+    from companion.flight.go import send_go
+
+    path = config.go.socket
+    if not path:
+        print("go: [go] socket is empty: this vehicle takes the go by MAVLink or RC only",
+              file=sys.stderr)
+        return common.EXIT_FAILED
+    try:
+        send_go(path)
+    except OSError as error:
+        print(f"go: nobody listens on {path} ({error.strerror or error}): is `companion fly` "
+              "running and waiting for the go? (systemctl status companion)", file=sys.stderr)
+        return common.EXIT_FAILED
+    print(f"go sent to {path}")
+    return common.EXIT_OK

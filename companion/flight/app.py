@@ -33,12 +33,14 @@ import math
 
 import numpy as np
 
-from autonomy.navigation.mission import FlightState
+from autonomy.geometry import PinholeCamera
+from autonomy.navigation.mission import GROUND_STATES, FlightState
 from autonomy.navigation.route import Route
 from autonomy.planning.planner import Planner
 from autonomy.vins.estimator import Vins
 from companion.flight.command import Command
 from companion.flight.context import FlightContext
+from companion.flight.go import OperatorGate
 from companion.flight.health import Health
 from companion.flight.navigation import Navigation
 from companion.flight.perception import DepthSource, Perception
@@ -62,22 +64,25 @@ class FlightApp:
     """
 
     @classmethod
-    def from_config(cls, config, *, autopilot, camera, depth: DepthSource, T_B_C, waypoints_L,
-                    clock, lockstep: bool, notifier=None) -> "FlightApp":
-        """The application with its VINS, planner and workers built from ``config``: an
-        undistorted ``[camera]`` mounted at ``T_B_C``, the ``[vins_imu]`` noise model; workers
-        inline in lockstep, threads otherwise (closed when :meth:`run` ends)."""
-        pinhole = config.camera.pinhole()
+    def from_config(cls, config, *, autopilot, camera, pinhole: PinholeCamera, T_B_C,
+                    depth: DepthSource, waypoints_L, clock, lockstep: bool,
+                    go_given_by: str = "", notifier=None) -> "FlightApp":
+        """The application with its VINS, planner and workers built from ``config``: the
+        camera's frames follow the ideal ``pinhole`` (rectified, drivers.camera.calibration)
+        from a camera mounted at ``T_B_C``; the ``[vins_imu]`` noise model; workers inline in
+        lockstep, threads otherwise (closed when :meth:`run` ends). ``go_given_by`` non-empty:
+        the operator's go is already given (``sim fly``), else ``[go]`` says how it comes."""
         vins = Vins(pinhole, (0.0,) * 4, T_B_C, config.vins_imu, config.vins,
                     frontend=config.vins_frontend, static=config.vins_init)
         return cls(config, autopilot=autopilot, camera=camera, depth=depth, vins=vins,
                    T_B_C=T_B_C, planner=Planner(pinhole, config.planner),
                    waypoints_L=waypoints_L, clock=clock, notifier=notifier,
-                   workers=make_workers(lockstep, WORKERS))
+                   workers=make_workers(lockstep, WORKERS),
+                   gate=OperatorGate(config.go, autopilot, go_given_by))
 
     def __init__(self, config, *, autopilot, camera, depth: DepthSource, vins: Vins,
                  T_B_C: np.ndarray, planner: Planner, waypoints_L, clock, workers: dict,
-                 notifier=None):
+                 gate: OperatorGate, notifier=None):
         options = config.flight
         self.context = FlightContext(options, clock, autopilot, workers)
         self.perception = Perception(self.context, camera, vins, depth, planner, T_B_C)
@@ -86,7 +91,9 @@ class FlightApp:
         self.command = Command(self.context, self.perception, self.navigation)
         self.health = Health(self.context, self.perception, self.navigation,
                              self.command.watchdog, notifier)
-        self.steps = MissionSteps(self.context, self.perception, self.navigation, notifier)
+        self.gate = gate
+        self.steps = MissionSteps(self.context, self.perception, self.navigation, gate,
+                                  notifier)
 
     @property
     def channels(self):
@@ -104,6 +111,7 @@ class FlightApp:
     async def run(self) -> dict:
         """Fly the mission to its end (landed or aborted) and return the summary."""
         c = self.context
+        self.gate.open()
         watchdog = self.command.watchdog
         watchdog.start()
         tasks = [asyncio.create_task(self._guard(name, coroutine), name=name)
@@ -117,6 +125,7 @@ class FlightApp:
             await self.steps.fly()
         finally:
             watchdog.close()
+            self.gate.close()
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -137,15 +146,14 @@ class FlightApp:
             c.mission.failsafe(c.clock.now(), f"{name} failed: {error}")
             if c.state == FlightState.FAILSAFE_STOP:
                 c.channels.plan.publish(c.channels.checked_stop.value)  # immutable: safe
-            elif not c.mission.done and c.state in (FlightState.PREFLIGHT,
-                                                    FlightState.INITIALISING):
+            elif not c.mission.done and c.state in GROUND_STATES:
                 c.abort(f"{name} failed: {error}")
 
     def stop_requested(self, reason: str) -> None:
         """An operator's stop (SIGTERM from systemd): on the ground the mission ends; in the
         air it is a failsafe (stop, hold, land) at the next check."""
         self.health.stop_reason = reason
-        if self.context.state in (FlightState.PREFLIGHT, FlightState.INITIALISING):
+        if self.context.state in GROUND_STATES:
             self.context.abort(reason)
 
     def summary(self) -> dict:

@@ -7,7 +7,8 @@ from __future__ import annotations
 import logging
 
 from autonomy.navigation.failsafes import Vitals, age, failsafe_reason, vins_problem
-from autonomy.navigation.mission import GUARDED_STATES, OFFBOARD_STATES, FlightState
+from autonomy.navigation.mission import (GROUND_STATES, GUARDED_STATES, OFFBOARD_STATES,
+                                         FlightState)
 from companion.flight.context import FlightContext
 from companion.flight.navigation import Navigation
 from companion.flight.perception import Perception
@@ -23,7 +24,7 @@ def companion_status(state: FlightState, failsafes) -> CompanionStatus:
         return CompanionStatus.CRITICAL
     if state == FlightState.ABORTED:
         return CompanionStatus.EMERGENCY
-    if state in (FlightState.PREFLIGHT, FlightState.INITIALISING, FlightState.LANDED):
+    if state in GROUND_STATES | {FlightState.LANDED}:
         return CompanionStatus.STANDBY
     return CompanionStatus.ACTIVE
 

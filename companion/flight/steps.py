@@ -1,5 +1,5 @@
 """The mission's steps, in order (DESIGN.md, "Flight behaviour"): preflight, the VINS's static
-initialisation, arming and take-off, entering Offboard, navigating until the goal is reached
+initialisation, the operator's go (:mod:`companion.flight.go`), arming and take-off, entering Offboard, navigating until the goal is reached
 or a failsafe stops the vehicle, and coming down. Each step waits on the other stages'
 channels and moves the mission's state machine (:class:`autonomy.navigation.mission.Mission`);
 a step that fails on the ground aborts, one that fails in the air lands."""
@@ -11,6 +11,7 @@ import logging
 from autonomy.navigation.behaviours import facing
 from autonomy.navigation.mission import FlightState
 from companion.flight.context import FlightContext
+from companion.flight.go import OperatorGate
 from companion.flight.navigation import Navigation
 from companion.flight.perception import Perception
 from drivers.mavlink import px4_protocol
@@ -30,16 +31,17 @@ NAVIGATION_PHASE = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
 
 
 class MissionSteps:
-    """The steps (module docstring); ``notifier`` is systemd's (READY=1 after preflight)."""
+    """The steps (module docstring); ``gate`` gives the operator's go; ``notifier`` is
+    systemd's (READY=1 after preflight)."""
 
     def __init__(self, context: FlightContext, perception: Perception,
-                 navigation: Navigation, notifier=None):
+                 navigation: Navigation, gate: OperatorGate, notifier=None):
         self.context, self.perception, self.navigation = context, perception, navigation
-        self.notifier = notifier
+        self.gate, self.notifier = gate, notifier
 
     async def fly(self) -> None:
-        steps = (self._preflight, self._initialise, self._take_off, self._enter_offboard,
-                 self._navigate, self._come_down)
+        steps = (self._preflight, self._initialise, self._await_go, self._take_off,
+                 self._enter_offboard, self._navigate, self._come_down)
         for step in steps:
             if self.context.mission.done:
                 return
@@ -76,7 +78,29 @@ class MissionSteps:
             update = c.channels.vins.value
             c.abort(f"VINS did not initialise: {update.health.reason if update else 'no frames'}")
             return
-        c.go(FlightState.TAKING_OFF, "VINS initialised; frames aligned")
+
+    async def _await_go(self) -> None:
+        """Wait, disarmed, for the operator's go (no time limit: a vehicle on the ground may
+        wait); a preflight problem that arises meanwhile aborts."""
+        c, gate = self.context, self.gate
+        if not gate.options.required or gate.given_by:
+            given = f"; go from {gate.given_by}" if gate.given_by else ""
+            c.go(FlightState.TAKING_OFF, f"VINS initialised; frames aligned{given}")
+            return
+        gate.start_waiting()
+        c.go(FlightState.AWAITING_GO, "VINS initialised; frames aligned; waiting for the "
+                                      f"{gate.describe()}")
+        if self.notifier is not None:
+            self.notifier.status(f"disarmed, waiting for the {gate.describe()}")
+        await self._wait(lambda: gate.poll() or self.preflight_problem(), float("inf"))
+        if c.mission.done:  # an operator's stop while waiting
+            return
+        if self.preflight_problem():
+            c.abort(f"while waiting for the go: {self.preflight_problem()}")
+            return
+        if self.notifier is not None:
+            self.notifier.status(f"go from {gate.given_by}; flying")
+        c.go(FlightState.TAKING_OFF, f"go from {gate.given_by}")
 
     async def _take_off(self) -> None:
         c = self.context

@@ -1,13 +1,15 @@
 """``companion fly``: the application on the real vehicle.
 
 The same :class:`~companion.flight.app.FlightApp` the simulator flies, wired to real devices: the
-flight controller over ``[mavlink] url`` (serial on the Orin's UART, or UDP), the V4L2 camera of
-``[v4l2]``, the user's ONNX depth network of ``[depth_network]`` (required here: the synthetic
-stand-in needs a simulator's ground truth), the wall clock and worker threads. The mission is
-``[flight] waypoints`` (or ``--goal`` on the command line).
+flight controller over ``[mavlink] url`` (serial on the Orin's UART, or UDP), the camera
+``[camera] driver`` names (V4L2, RealSense or OAK; its frames rectified with the calibration
+``[camera] calibration`` names), the user's ONNX depth network of ``[depth_network]``
+(required here: the synthetic stand-in needs a simulator's ground truth), the wall clock and
+worker threads. The mission is ``[flight] waypoints`` (or ``--goal`` on the command line); it
+starts only on the operator's go (``[go]``, :mod:`companion.flight.go`).
 
-Run by systemd (``systemd/companion.launch.systemd``, Type=notify): ``READY=1`` once preflight has
-passed, ``WATCHDOG=1`` from the event loop's monitor (a stalled loop stops the pings and systemd
+Run by systemd (``systemd/companion.service``, Type=notify): more start-up time asked for while
+the network opens (a first TensorRT engine build), ``READY=1`` once preflight has passed, ``WATCHDOG=1`` from the event loop's monitor (a stalled loop stops the pings and systemd
 restarts the service), ``STOPPING=1`` at the end; SIGTERM or SIGINT ask the mission to stop,
 which in the air means stop, hold and land.
 """
@@ -22,7 +24,8 @@ from autonomy.depth.network import DepthNetwork
 from companion.flight.app import FlightApp
 from companion.flight.perception import NetworkDepth
 from companion.launch.systemd import SystemdNotifier
-from drivers.camera.v4l2 import V4l2Camera
+from drivers.camera.calibration import CalibratedCamera, resolve
+from drivers.camera.drivers import open_camera
 from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot
 
@@ -47,10 +50,12 @@ def run(config, waypoints) -> dict:
 async def _fly(config, waypoints) -> dict:
     clock = MonotonicClock()
     notifier = SystemdNotifier()
-    network = DepthNetwork.open(config.depth_network, (config.camera.height,
-                                                        config.camera.width))
+    network = await extending_start_timeout(notifier, lambda: DepthNetwork.open(
+        config.depth_network, (config.camera.height, config.camera.width)))
     log.info("depth network on %s", network.provider)
-    async with V4l2Camera(config.camera, config.v4l2, clock) as camera:
+    async with open_camera(config, clock) as driver:
+        camera = CalibratedCamera(driver, resolve(config.camera,
+                                                  getattr(driver, "camera_model", None)))
         autopilot = Autopilot.open(config.mavlink, clock)
         try:
             app = build_app(config, waypoints, autopilot=autopilot, camera=camera,
@@ -62,15 +67,31 @@ async def _fly(config, waypoints) -> dict:
             autopilot.close()
 
 
-def build_app(config, waypoints, *, autopilot, camera, network: DepthNetwork, clock,
-              notifier=None) -> FlightApp:
-    """The application on the real vehicle: the ONNX ``network`` on each frame's RGB image,
-    rescaled as ``[rescale]`` and ``[depth]`` say; worker threads."""
+async def extending_start_timeout(notifier: SystemdNotifier, work, *, step_s: float = 10.0):
+    """``work()`` run in a thread while asking systemd, every ``step_s``, for more start-up
+    time: opening the network may build a TensorRT engine for minutes the first time, far
+    beyond the unit's TimeoutStartSec. Each request covers three steps, so one late request
+    does not get the service killed."""
+    task = asyncio.ensure_future(asyncio.to_thread(work))
+    while True:
+        notifier.extend_timeout(3.0 * step_s)
+        done, _ = await asyncio.wait({task}, timeout=step_s)
+        if done:
+            return task.result()
+
+
+def build_app(config, waypoints, *, autopilot, camera: CalibratedCamera, network: DepthNetwork,
+              clock, notifier=None) -> FlightApp:
+    """The application on the real vehicle: the ONNX ``network`` on each rectified frame's RGB
+    image, rescaled as ``[rescale]`` and ``[depth]`` say; worker threads; ``[go]`` waits for
+    the operator."""
     depth = NetworkDepth(lambda frame: network(frame.image, channels="rgb"), config.rescale,
                          config.depth)
-    return FlightApp.from_config(config, autopilot=autopilot, camera=camera, depth=depth,
-                                 T_B_C=config.camera.T_B_C(), waypoints_L=waypoints,
-                                 clock=clock, lockstep=False, notifier=notifier)
+    calibration = camera.calibration
+    return FlightApp.from_config(config, autopilot=autopilot, camera=camera,
+                                 pinhole=calibration.rectified, T_B_C=calibration.T_B_C,
+                                 depth=depth, waypoints_L=waypoints, clock=clock,
+                                 lockstep=False, notifier=notifier)
 
 
 def _stop_on_signals(app: FlightApp) -> None:

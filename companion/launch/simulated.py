@@ -61,8 +61,10 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
 
 
 async def fly(config, mission: SimMission, *, plot: Path | None = None,
-              progress: Callable[[str], None] | None = None) -> dict:
-    """Fly ``mission`` on the running loop and return the summary (module docstring)."""
+              progress: Callable[[str], None] | None = None,
+              go_given_by: str = "sim fly") -> dict:
+    """Fly ``mission`` on the running loop and return the summary (module docstring). The
+    command line is the operator's go (``go_given_by``); "" waits for one as ``[go]`` says."""
     world = build_world(mission.world, mission.seed)
     start, waypoints, start_yaw = mission_waypoints(world, mission,
                                                     config.flight.takeoff_altitude)
@@ -80,7 +82,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
             NetworkDepth(simulated_network(config, mission.seed, faults, lambda: sim.time),
                          config.rescale, config.depth)
         app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera, depth, waypoints,
-                        lockstep=mission.clock == "lockstep")
+                        lockstep=mission.clock == "lockstep", go_given_by=go_given_by)
         try:
             summary = await app.run()
         finally:
@@ -96,12 +98,13 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
 
 
 def build_app(config, clock, url: str, camera, depth, waypoints, *,
-              lockstep: bool) -> FlightApp:
+              lockstep: bool, go_given_by: str = "sim fly") -> FlightApp:
     """The application wired to a camera, a depth source and the autopilot at ``url``."""
     autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
-    return FlightApp.from_config(config, autopilot=autopilot, camera=camera, depth=depth,
-                                 T_B_C=config.camera.T_B_C(), waypoints_L=waypoints,
-                                 clock=clock, lockstep=lockstep)
+    return FlightApp.from_config(config, autopilot=autopilot, camera=camera,
+                                 pinhole=config.camera.pinhole(), T_B_C=config.camera.T_B_C(),
+                                 depth=depth, waypoints_L=waypoints, clock=clock,
+                                 lockstep=lockstep, go_given_by=go_given_by)
 
 
 def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,

@@ -1,0 +1,110 @@
+"""The operator's go: a vehicle never arms until a person says to fly (companion/flight/go.py).
+
+A whole simulated flight waits, disarmed, until `companion go` writes to the real go socket;
+the gate's sources (socket, RC switch edge) and its refusals on their own."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import threading
+import time
+
+import pytest
+
+from companion.cli import main
+from companion.config import Config
+from companion.flight.go import GoError, GoOptions, OperatorGate, send_go
+from companion.launch import simulated
+
+WAIT_WALL_S = 4.0
+
+
+def test_a_simulated_vehicle_waits_disarmed_for_companion_go_then_flies(tmp_path):
+    config = Config()
+    socket_path = tmp_path / "go.sock"
+    config = dataclasses.replace(config, go=GoOptions(socket=str(socket_path)))
+    mission = simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5))
+    sent = []
+
+    def operator():  # another process's view: the CLI, once the socket exists, after a while
+        deadline = time.monotonic() + 60.0
+        while not socket_path.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(WAIT_WALL_S)
+        sent.append(main(["go", "--set", f"go.socket={socket_path}"]))
+
+    thread = threading.Thread(target=operator, daemon=True)
+    thread.start()
+    summary = asyncio.run(simulated.fly(config, mission, go_given_by=""))
+    thread.join(5.0)
+    assert sent == [0]
+    states = [(t["to"], t["t"]) for t in summary["transitions"]]
+    names = [name for name, _ in states]
+    assert names[:3] == ["initialising", "awaiting_go", "taking_off"], names
+    waited_s = states[2][1] - states[1][1]
+    assert waited_s > 1.0  # simulated seconds on the ground, disarmed, before the go
+    assert "operator's go" in summary["transitions"][1]["reason"]
+    assert summary["final_state"] == "landed" and summary["collisions"] == 0
+    assert not socket_path.exists()  # the application removes its socket
+
+
+class Autopilot:
+    rc_channels_us = None
+
+
+def _gate(tmp_path, **options) -> OperatorGate:
+    gate = OperatorGate(GoOptions(socket=str(tmp_path / "go.sock"), **options), Autopilot())
+    gate.open()
+    return gate
+
+
+def test_a_go_sent_before_the_vehicle_was_ready_is_discarded(tmp_path):
+    gate = _gate(tmp_path)
+    try:
+        send_go(str(tmp_path / "go.sock"))
+        gate.start_waiting()
+        assert gate.poll() == ""
+        send_go(str(tmp_path / "go.sock"))
+        assert gate.poll() == "companion go"
+    finally:
+        gate.close()
+
+
+def test_the_rc_switch_gives_the_go_only_on_a_low_to_high_edge_while_waiting(tmp_path):
+    gate = _gate(tmp_path, rc_channel=7)
+    try:
+        Autopilot.rc_channels_us = [1500] * 6 + [2000]  # left high since power-up
+        gate.start_waiting()
+        assert gate.poll() == ""
+        Autopilot.rc_channels_us = [1500] * 6 + [1000]
+        assert gate.poll() == ""
+        Autopilot.rc_channels_us = [1500] * 6 + [1900]
+        assert gate.poll() == "RC channel 7"
+        assert "RC channel 7 switched above 1800 us" in gate.describe()
+    finally:
+        gate.close()
+        Autopilot.rc_channels_us = None
+
+
+def test_a_mavlink_go_counts_only_while_waiting(tmp_path):
+    gate = _gate(tmp_path)
+    try:
+        assert not gate.command("MAVLink from 255/190")
+        gate.start_waiting()
+        assert gate.command("MAVLink from 255/190")
+        assert gate.poll() == "MAVLink from 255/190"
+        assert not gate.command("MAVLink from 255/190")  # given once
+    finally:
+        gate.close()
+
+
+def test_an_unusable_socket_path_is_a_clear_error(tmp_path):
+    gate = OperatorGate(GoOptions(socket=str(tmp_path / "missing" / "go.sock")), Autopilot())
+    with pytest.raises(GoError, match="RuntimeDirectory=companion"):
+        gate.open()
+
+
+def test_companion_go_says_when_nobody_listens(tmp_path, capsys):
+    assert main(["go", "--set", f"go.socket={tmp_path / 'go.sock'}"]) == 1
+    assert "is `companion fly` running" in capsys.readouterr().err
