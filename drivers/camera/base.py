@@ -167,6 +167,8 @@ class ThreadedCamera:
         try:
             while not self._stop.is_set():
                 raw = self._read(handle)
+                if raw is None and self._stop.is_set():
+                    return  # closed during the read: not a failure of the device
                 if raw is None:
                     failures += 1
                     if failures >= self.max_failed_reads:
@@ -185,6 +187,15 @@ class ThreadedCamera:
                 self._release(handle)
             except Exception as error:  # noqa: BLE001 - a device gone cannot be released
                 log.warning("%s: release failed: %s", self.name, error)
+
+    def _wait_until_taken(self, poll_s: float) -> None:
+        """Hold the reader until the consumer took the last frame (or the camera closes): a
+        recording's reader hands over every frame, at the consumer's pace."""
+        while not self._stop.is_set():
+            with self._lock:
+                if self._returned >= self._sequence:
+                    return
+            self._stop.wait(poll_s)
 
     def _deliver(self, raw: RawFrame) -> None:
         """Check the frame against the configured mode and put it in the slot."""
@@ -233,3 +244,11 @@ class DeviceInfo:
     address: str
     description: str
     modes: tuple[str, ...] = ()
+
+
+class MissingExtra(CameraError):
+    """A vendor SDK that is not installed; the message names the extra that installs it."""
+
+    def __init__(self, sdk: str, extra: str):
+        super().__init__(f"{sdk} is not installed: pip install 'companion[{extra}]'")
+        self.sdk, self.extra = sdk, extra

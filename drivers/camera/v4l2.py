@@ -19,14 +19,18 @@ raise :class:`CameraError` naming the device.
 
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
+import struct
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from autonomy.options import option, validate
-from drivers.camera.base import CameraError, RawFrame, ThreadedCamera
+from drivers.camera.base import CameraError, DeviceInfo, RawFrame, ThreadedCamera
 from drivers.camera.options import CameraOptions
 from drivers.clock import Clock, MonotonicClock
 
@@ -131,3 +135,79 @@ class V4l2Camera(ThreadedCamera):
                         "time %.3f s; stamping frames on arrival", self.name, stamp, arrival)
             self._warned_stamp = True
         return arrival
+
+
+# ---- discovery (`companion devices`) ---------------------------------------------------------
+
+#: VIDIOC_ENUM_FMT, VIDIOC_ENUM_FRAMESIZES and VIDIOC_QUERYCAP from linux/videodev2.h (64-bit
+#: layouts: struct v4l2_fmtdesc is 64 bytes, v4l2_frmsizeenum 44, v4l2_capability 104).
+_VIDIOC_QUERYCAP = 0x80685600
+_VIDIOC_ENUM_FMT = 0xC0405602
+_VIDIOC_ENUM_FRAMESIZES = 0xC02C564A
+_V4L2_BUF_TYPE_VIDEO_CAPTURE = 1
+_V4L2_CAP_VIDEO_CAPTURE = 0x1
+_V4L2_CAP_DEVICE_CAPS = 0x80000000
+_V4L2_FRMSIZE_TYPE_DISCRETE = 1
+
+
+def list_devices(dev: str = "/dev") -> list[DeviceInfo]:
+    """The V4L2 capture nodes under ``dev`` with their card name and their discrete modes
+    (pixel format and size), read with the kernel's own ioctls; a node that cannot be opened
+    (permissions, busy) is listed with the reason instead of its modes."""
+    found = []
+    for node in sorted(Path(dev).glob("video*"), key=lambda p: (len(p.name), p.name)):
+        try:
+            fd = os.open(node, os.O_RDWR | os.O_NONBLOCK)
+        except OSError as error:
+            found.append(DeviceInfo("v4l2", str(node), f"cannot open: {error.strerror}"))
+            continue
+        try:
+            card, capture = _query_capability(fd)
+            if capture:  # metadata nodes of the same camera are not cameras
+                found.append(DeviceInfo("v4l2", str(node), card, tuple(_modes(fd))))
+        except OSError as error:
+            found.append(DeviceInfo("v4l2", str(node), f"not a V4L2 device: {error.strerror}"))
+        finally:
+            os.close(fd)
+    return found
+
+
+def _query_capability(fd: int) -> tuple[str, bool]:
+    buffer = bytearray(104)
+    fcntl.ioctl(fd, _VIDIOC_QUERYCAP, buffer)
+    card = bytes(buffer[16:48]).split(b"\0", 1)[0].decode(errors="replace")
+    capabilities, device_caps = struct.unpack_from("II", buffer, 84)
+    if capabilities & _V4L2_CAP_DEVICE_CAPS:  # the node's own, not the whole device's
+        capabilities = device_caps
+    return card, bool(capabilities & _V4L2_CAP_VIDEO_CAPTURE)
+
+
+def _modes(fd: int) -> list[str]:
+    modes = []
+    for index in range(64):
+        fmtdesc = bytearray(64)
+        struct.pack_into("II", fmtdesc, 0, index, _V4L2_BUF_TYPE_VIDEO_CAPTURE)
+        try:
+            fcntl.ioctl(fd, _VIDIOC_ENUM_FMT, fmtdesc)
+        except OSError:
+            break
+        fourcc = struct.unpack_from("I", fmtdesc, 44)[0]
+        name = fourcc.to_bytes(4, "little").decode(errors="replace")
+        modes += [f"{w}x{h} {name}" for w, h in _sizes(fd, fourcc)]
+    return modes
+
+
+def _sizes(fd: int, fourcc: int) -> list[tuple[int, int]]:
+    sizes = []
+    for index in range(64):
+        frmsize = bytearray(44)
+        struct.pack_into("II", frmsize, 0, index, fourcc)
+        try:
+            fcntl.ioctl(fd, _VIDIOC_ENUM_FRAMESIZES, frmsize)
+        except OSError:
+            break
+        kind, width, height = struct.unpack_from("III", frmsize, 8)
+        if kind != _V4L2_FRMSIZE_TYPE_DISCRETE:
+            break  # a stepwise range: the config may ask for any size in it
+        sizes.append((width, height))
+    return sizes
