@@ -108,3 +108,44 @@ def test_an_unusable_socket_path_is_a_clear_error(tmp_path):
 def test_companion_go_says_when_nobody_listens(tmp_path, capsys):
     assert main(["go", "--set", f"go.socket={tmp_path / 'go.sock'}"]) == 1
     assert "is `companion fly` running" in capsys.readouterr().err
+
+
+def test_a_ground_stations_mission_start_is_the_go_and_is_acknowledged(tmp_path):
+    """Real MAVLink bytes: a ground station (system 255) sends MAV_CMD_MISSION_START to the
+    companion's component; the autopilot driver hands it to the gate and acknowledges it to
+    the sender: TEMPORARILY_REJECTED before the vehicle waits, ACCEPTED while it waits."""
+    from drivers.clock import MonotonicClock
+    from drivers.mavlink.autopilot import Autopilot as RealAutopilot
+    from drivers.mavlink.autopilot import MavlinkOptions
+    from drivers.mavlink.link import mavlink, open_link
+    from drivers.sim.host import free_udp_port
+
+    port = free_udp_port()
+    gcs = open_link(f"udpin://127.0.0.1:{port}", source_system=255, source_component=190)
+    autopilot = RealAutopilot.open(MavlinkOptions(url=f"udpout://127.0.0.1:{port}"),
+                                   MonotonicClock())
+    gate = OperatorGate(GoOptions(socket=""), autopilot)
+
+    def ask() -> int:
+        gcs.mav.command_long_send(1, 191, mavlink.MAV_CMD_MISSION_START, 0, 0, 0, 0, 0, 0, 0, 0)
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            autopilot._poll(autopilot.clock.now())
+            for message in gcs.receive_pending():
+                if message.get_type() == "COMMAND_ACK":
+                    assert (message.target_system, message.target_component) == (255, 190)
+                    return message.result
+            time.sleep(0.01)
+        raise AssertionError("no COMMAND_ACK")
+
+    try:
+        autopilot._poll(autopilot.clock.now())  # our first HEARTBEAT tells the GCS where we are
+        time.sleep(0.05)
+        gcs.receive_pending()
+        assert ask() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        gate.start_waiting()
+        assert ask() == mavlink.MAV_RESULT_ACCEPTED
+        assert gate.poll() == "MAV_CMD_MISSION_START from 255/190"
+    finally:
+        autopilot.close()
+        gcs.close()

@@ -74,6 +74,8 @@ def test_sim_fly_standing_facing_away_turns_glides_for_parallax_and_flies_on(cap
     (["--fault", "gremlins"], "unknown fault"),
     (["--fault", "loop_stall"], "needs --clock realtime"),
     (["--start-yaw", "nan"], "start yaw must be a finite number of degrees, got nan"),
+    (["--set", "camera.distortion_model=radtan", "--set", "camera.distortion=[0.1,0,0,0]"],
+     "the simulator renders an ideal pinhole camera"),
 ])
 def test_sim_fly_refuses_a_bad_mission_clearly(capsys, argv, words):
     assert cli.main(["sim", "fly", "--no-plot", *argv]) == 1

@@ -55,13 +55,15 @@ class GoOptions:
 class OperatorGate:
     """Collects the go from the sources of the module docstring.
 
-    ``autopilot`` provides ``rc_channels_us`` (the latest RC_CHANNELS, None before one came).
+    ``autopilot`` provides ``rc_channels_us`` (the latest RC_CHANNELS, None before one came)
+    and hands ground stations' go commands to its ``on_go``, which the gate takes over.
     ``given_by`` non-empty makes a gate that is already open (``sim fly``: the command line is
     the operator's go).
     """
 
     def __init__(self, options: GoOptions, autopilot, given_by: str = ""):
         self.options, self.autopilot = options, autopilot
+        autopilot.on_go = self.command
         self.given_by = given_by
         self.waiting = False
         self._socket: socket.socket | None = None

@@ -57,6 +57,11 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     if mission.depth not in DEPTH_SOURCES:
         raise SimError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
                        f"got {mission.depth!r}")
+    camera = config.camera
+    if camera.calibration != "config" or camera.distortion_model != "none":
+        raise SimError("the simulator renders an ideal pinhole camera: [camera] calibration "
+                       "must be config and distortion_model none (got "
+                       f"{camera.calibration}, {camera.distortion_model})")
     return asyncio.run(fly(config, mission, plot=plot, progress=progress))
 
 

@@ -203,6 +203,11 @@ class Autopilot:
         self.home_position_L: np.ndarray | None = None
         self.imu_rate_hz = 0.0
         self.last_imu_t: float | None = None
+        #: The latest RC_CHANNELS pulse widths (channel 1 first, microseconds), None before one.
+        self.rc_channels_us: tuple[int, ...] | None = None
+        #: ``on_go(source) -> bool``: a ground station's MAV_CMD_MISSION_START to us; True
+        #: when taken (acknowledged ACCEPTED), False when not now (TEMPORARILY_REJECTED).
+        self.on_go = None
         self._status = CompanionStatus.STANDBY
         self.last_command_error: AutopilotError | None = None
         self._send_lock = threading.Lock()
@@ -230,6 +235,7 @@ class Autopilot:
             "EXTENDED_SYS_STATE": self._on_extended_sys_state, "ODOMETRY": self._on_odometry,
             "LOCAL_POSITION_NED": self._on_local_position, "STATUSTEXT": self._on_statustext,
             "ATTITUDE_QUATERNION": self._on_attitude, "HOME_POSITION": self._on_home_position,
+            "RC_CHANNELS": self._on_rc_channels,
         }
 
     @classmethod
@@ -327,6 +333,9 @@ class Autopilot:
 
     def _dispatch(self, message, now: float) -> None:
         source = (message.get_srcSystem(), message.get_srcComponent())
+        if message.get_type() in ("COMMAND_LONG", "COMMAND_INT") and self._for_us(message):
+            self._on_command_to_us(message, source)
+            return
         if source != (self.options.target_system, self.options.target_component):
             self.counts["foreign"] += 1
             return
@@ -515,6 +524,30 @@ class Autopilot:
             self.counts["state_invalid"] += 1
             return
         self.state = state
+
+    def _on_rc_channels(self, message, now: float) -> None:
+        count = min(int(message.chancount), 18)
+        self.rc_channels_us = tuple(int(getattr(message, f"chan{i}_raw"))
+                                    for i in range(1, count + 1))
+
+    def _for_us(self, message) -> bool:
+        return (message.target_system == self.options.system_id
+                and message.target_component == self.options.component_id)
+
+    def _on_command_to_us(self, message, source: tuple[int, int]) -> None:
+        """A command a ground station addressed to the companion (PX4 forwards it): the
+        operator's go (MAV_CMD_MISSION_START) is handed to :attr:`on_go`; anything else is
+        UNSUPPORTED. Every one is acknowledged to its sender."""
+        if message.command != mavlink.MAV_CMD_MISSION_START:
+            result = mavlink.MAV_RESULT_UNSUPPORTED
+        elif self.on_go is not None and self.on_go(f"MAV_CMD_MISSION_START from "
+                                                   f"{source[0]}/{source[1]}"):
+            result = mavlink.MAV_RESULT_ACCEPTED
+        else:
+            result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        self.counts["commands_to_us"] += 1
+        self._send(self.link.mav.command_ack_encode(message.command, result, 0, 0,
+                                                    source[0], source[1]))
 
     def _on_statustext(self, message, now: float) -> None:
         text = self._assemble(message)
