@@ -55,8 +55,10 @@ class CameraModel:
 
     @property
     def is_pinhole(self) -> bool:
-        """No distortion: frames need no resampling."""
-        return not any(self.coefficients)
+        """No distortion: frames need no resampling. An ``equidistant`` lens never is one:
+        with all coefficients 0 it is the ideal fisheye ``r = f theta``, not ``f tan(theta)``."""
+        return self.distortion == "none" or (self.distortion == "radtan"
+                                             and not any(self.coefficients))
 
     def distort(self, normalised: np.ndarray) -> np.ndarray:
         """Distorted normalised coordinates ``(N, 2)`` of ideal ones ``(N, 2)`` (``X/Z, Y/Z``)."""

@@ -64,9 +64,12 @@ def read_camchain(path: str | Path, camera: str = "cam0", imu_frame: str = "flu"
 
 def _entry(path: str | Path, camera: str) -> dict:
     try:
-        document = yaml.safe_load(Path(path).read_text())
+        document = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
     except OSError as error:
         raise KalibrError(f"{path}: cannot read it: {error.strerror or error}") from None
+    except UnicodeDecodeError as error:  # e.g. Kalibr's report-imucam.pdf given by mistake
+        raise KalibrError(f"{path}: not YAML: not UTF-8 text ({error.reason} at byte "
+                          f"{error.start})") from None
     except yaml.YAMLError as error:
         raise KalibrError(f"{path}: not YAML: {error}") from None
     if not isinstance(document, dict) or not document:
@@ -84,9 +87,12 @@ def _lens(entry: dict, where: str) -> CameraModel:
     width, height = (int(v) for v in _numbers(entry, "resolution", 2, where))
     distortion = entry.get("distortion_model", "none")
     coefficients = entry.get("distortion_coeffs", [])
+    if not isinstance(coefficients, list):
+        raise KalibrError(f"{where}: distortion_coeffs must be a list of numbers, got "
+                          f"{coefficients!r}")
+    numbers = tuple(_number(c, "distortion_coeffs", where) for c in coefficients)
     try:
-        return CameraModel(PinholeCamera(width, height, fu, fv, pu, pv), distortion,
-                           tuple(_number(c, "distortion_coeffs", where) for c in coefficients))
+        return CameraModel(PinholeCamera(width, height, fu, fv, pu, pv), distortion, numbers)
     except (ValueError, TypeError) as error:
         raise KalibrError(f"{where}: {error}") from None
 

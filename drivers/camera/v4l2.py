@@ -184,13 +184,7 @@ def _query_capability(fd: int) -> tuple[str, bool]:
 
 def _modes(fd: int) -> list[str]:
     modes = []
-    for index in range(64):
-        fmtdesc = bytearray(64)
-        struct.pack_into("II", fmtdesc, 0, index, _V4L2_BUF_TYPE_VIDEO_CAPTURE)
-        try:
-            fcntl.ioctl(fd, _VIDIOC_ENUM_FMT, fmtdesc)
-        except OSError:
-            break
+    for fmtdesc in _enumerate(fd, _VIDIOC_ENUM_FMT, 64, _V4L2_BUF_TYPE_VIDEO_CAPTURE):
         fourcc = struct.unpack_from("I", fmtdesc, 44)[0]
         name = fourcc.to_bytes(4, "little").decode(errors="replace")
         modes += [f"{w}x{h} {name}" for w, h in _sizes(fd, fourcc)]
@@ -199,15 +193,22 @@ def _modes(fd: int) -> list[str]:
 
 def _sizes(fd: int, fourcc: int) -> list[tuple[int, int]]:
     sizes = []
-    for index in range(64):
-        frmsize = bytearray(44)
-        struct.pack_into("II", frmsize, 0, index, fourcc)
-        try:
-            fcntl.ioctl(fd, _VIDIOC_ENUM_FRAMESIZES, frmsize)
-        except OSError:
-            break
+    for frmsize in _enumerate(fd, _VIDIOC_ENUM_FRAMESIZES, 44, fourcc):
         kind, width, height = struct.unpack_from("III", frmsize, 8)
         if kind != _V4L2_FRMSIZE_TYPE_DISCRETE:
             break  # a stepwise range: the config may ask for any size in it
         sizes.append((width, height))
     return sizes
+
+
+def _enumerate(fd: int, request: int, size: int, selector: int):
+    """The structs an enumerating ioctl fills for index 0, 1, ... until the driver has no more
+    (EINVAL); each struct starts with ``u32 index, u32 selector``."""
+    for index in range(64):
+        buffer = bytearray(size)
+        struct.pack_into("II", buffer, 0, index, selector)
+        try:
+            fcntl.ioctl(fd, request, buffer)
+        except OSError:
+            return
+        yield buffer
