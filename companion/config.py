@@ -36,6 +36,7 @@ from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import StaticInitOptions
 from companion.flight.go import GoOptions
 from drivers.camera.options import CameraOptions
+from drivers.camera.oak import OakOptions
 from drivers.camera.realsense import RealSenseOptions
 from drivers.camera.v4l2 import V4l2Options
 from drivers.mavlink.autopilot import MavlinkOptions
@@ -67,6 +68,7 @@ class FlightConfig:
     camera: CameraOptions = field(default_factory=CameraOptions)
     v4l2: V4l2Options = field(default_factory=V4l2Options)
     realsense: RealSenseOptions = field(default_factory=RealSenseOptions)
+    oak: OakOptions = field(default_factory=OakOptions)
     vins: VinsOptions = field(default_factory=VinsOptions)
     vins_frontend: FrontendOptions = field(default_factory=FrontendOptions)
     vins_init: StaticInitOptions = field(default_factory=StaticInitOptions)

@@ -231,3 +231,20 @@ def test_the_estimators_imu_defaults_to_the_flight_controllers_whatever_is_set()
     assert load_config(None).vins_imu == ImuNoise.icm42688p() != ImuNoise()
     config = load_config(None, ["vins_imu.gyro_random_walk=1e-4"])
     assert config.vins_imu == dataclasses.replace(ImuNoise.icm42688p(), gyro_random_walk=1e-4)
+
+
+@pytest.mark.parametrize("preset", ["orin-d455.toml", "orin-oak.toml"])
+def test_vehicle_presets_pass_config_check_and_fly_their_camera_over_serial(preset, capsys):
+    """The presets an operator installs (docs/operations.md, section 8): valid, their camera's
+    driver with the device's own calibration, PX4 over a UART, the operator's go required."""
+    from companion.cli import main
+
+    path = SIM_TOML.parent / preset
+    assert main(["config", "check", str(path)]) == 0
+    assert capsys.readouterr().out.strip() == f"{path}: ok"
+    config = load_config(path)
+    assert config.camera.driver == preset.removeprefix("orin-").removesuffix(".toml").replace(
+        "d455", "realsense")
+    assert config.camera.calibration == "device"
+    assert config.mavlink.url.startswith("serial:///dev/ttyTHS")
+    assert config.go.required
