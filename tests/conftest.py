@@ -13,6 +13,9 @@ import os
 # (companion/__init__.py says why); the simulated flights' subprocesses inherit it.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import asyncio  # noqa: E402
+import threading  # noqa: E402
+
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
@@ -60,3 +63,32 @@ def record_flight(tmp_path_factory):
         return recorded[key]
 
     return record
+
+
+@pytest.fixture
+def served_vehicle():
+    """The simulator serving udpin://127.0.0.1:PORT in real time, as `companion sim serve`
+    would, in a background thread; yields ``(port, outcome)``, where ``outcome["sim"]`` is the
+    running simulation once it is ready. Fails the test if serving raised or did not stop."""
+    from drivers.sim.host import free_udp_port
+    from drivers.sim.serve import serve
+
+    port = free_udp_port()
+    stop = threading.Event()
+    outcome = {}
+
+    def run():
+        try:
+            outcome["summary"] = asyncio.run(serve(
+                f"udpin://127.0.0.1:{port}", None, clock_mode="realtime", stop=stop,
+                duration=120.0, on_ready=lambda sim: outcome.setdefault("sim", sim)))
+        except BaseException as error:  # reported by the test, not lost in the thread
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run, name="sim-serve", daemon=True)
+    thread.start()
+    yield port, outcome
+    stop.set()
+    thread.join(timeout=10)
+    assert not thread.is_alive(), "the served simulator did not stop"
+    assert "error" not in outcome, outcome.get("error")

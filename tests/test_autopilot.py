@@ -1,4 +1,5 @@
-"""The companion's PX4 driver against the mock PX4 over real loopback UDP.
+"""The companion's PX4 driver against the mock PX4 over real loopback UDP (or a serial port: the
+mock on a pseudo-terminal).
 
 The simulator is served in the test's own event loop, in lockstep on a SimClock that the
 Autopilot sleeps on too, so simulated time is exact and runs faster than real time; the link
@@ -7,10 +8,14 @@ has a wall-clock timeout, so a regression fails instead of hanging.
 """
 
 import asyncio
+import logging
 import math
+import os
+import re
 import socket
 import threading
 import time
+import tty
 from dataclasses import replace
 
 import numpy as np
@@ -53,10 +58,14 @@ async def until(clock, predicate, timeout: float, step: float = 0.01) -> bool:
 
 class Flight:
     """A served simulator and an Autopilot on one clock; ``truth`` records the IMU samples
-    the mock PX4 was given: (time at the end of the step, gyro FLU, accel FLU)."""
+    the mock PX4 was given: (time at the end of the step, gyro FLU, accel FLU).
 
-    def __init__(self, clock, options: MavlinkOptions, **serve_kwargs):
+    ``serial_name``: the link is a serial port, the mock serving a pseudo-terminal that this
+    path (a symbolic link, as udev's /dev/serial/by-id names) points to."""
+
+    def __init__(self, clock, options: MavlinkOptions, serial_name=None, **serve_kwargs):
         self.clock, self.options, self.serve_kwargs = clock, options, serve_kwargs
+        self.serial_name = serial_name
         self.port = free_udp_port()
         self.sim = None
         self.truth = []
@@ -77,14 +86,19 @@ class Flight:
         if isinstance(self.clock, SimClock):
             kwargs.update(clock_mode="lockstep", sim_clock=self.clock)
         self.stop = asyncio.Event()
-        self.server = asyncio.create_task(serve(
-            f"udpin://127.0.0.1:{self.port}", None, stop=self.stop, duration=600.0,
-            on_ready=self._ready, **kwargs))
+        url = "pty" if self.serial_name else f"udpin://127.0.0.1:{self.port}"
+        self.server = asyncio.create_task(serve(url, None, stop=self.stop, duration=600.0,
+                                                on_ready=self._ready, **kwargs))
         await asyncio.sleep(0)  # the link is open once serve first yields
+        if self.serial_name:  # "plugged in"
+            self.serial_name.unlink(missing_ok=True)
+            self.serial_name.symlink_to(self.sim.px4.link.pty_path)
 
     async def fly(self, body) -> None:
         await self.start_server()
-        options = replace(self.options, url=f"udpout://127.0.0.1:{self.port}")
+        url = (f"serial://{self.serial_name}:921600" if self.serial_name
+               else f"udpout://127.0.0.1:{self.port}")
+        options = replace(self.options, url=url)
         self.autopilot = Autopilot.open(options, self.clock)
         runner = asyncio.create_task(self.autopilot.run())
         try:
@@ -100,9 +114,10 @@ class Flight:
         return await until(self.clock, lambda: self.autopilot.connected, timeout)
 
 
-def fly(body, options=None, clock=None, **serve_kwargs):
+def fly(body, options=None, clock=None, serial_name=None, **serve_kwargs):
     """Run ``await body(flight)`` against a served simulator (lockstep unless a clock)."""
-    flight = Flight(clock or SimClock(), options or MavlinkOptions(), **serve_kwargs)
+    flight = Flight(clock or SimClock(), options or MavlinkOptions(), serial_name,
+                    **serve_kwargs)
     asyncio.run(asyncio.wait_for(flight.fly(body), WALL_TIMEOUT))
     return flight
 
@@ -375,6 +390,108 @@ def test_link_loss_is_detected_and_the_imu_rate_requested_again_after_it():
     fly(body, clock=clock)
 
 
+def test_a_serial_adapter_unplugged_is_a_lost_link_at_once_and_reopened_when_back(tmp_path):
+    """USB unplugged: the vehicle's end of the serial line goes away (our reads find the
+    end: EIO on a USB adapter). That is a lost link at once, not after the link timeout, and
+    never an exception out of run(); the port is closed and tried again every second, and when
+    the adapter is back under its name (udev's by-id link) the link comes back up."""
+    clock = MonotonicClock()
+
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert await flight.connected()
+        flight.stop.set()  # unplugged
+        await flight.server
+        unplugged = clock.now()
+        assert await until(clock, lambda: not autopilot.connected, 0.5)
+        assert clock.now() - unplugged < 0.5 < autopilot.options.link_timeout_s
+        assert autopilot.link_losses == 1 and autopilot.stats()["device_lost"] == 1
+        assert autopilot.link_problem == (
+            f"serial port {flight.serial_name} at 921600 baud lost: end of file (its other "
+            "side closed); reopening it every 1 s")
+        await flight.start_server()  # plugged back in: a new device under the same name
+        assert await flight.connected(3.0)
+        assert autopilot.link_losses == 1 and autopilot.link_problem == ""
+        autopilot.take_imu()
+        assert await until(clock, lambda: len(autopilot.take_imu()) > 0, 2.0)
+    fly(body, clock=clock, serial_name=tmp_path / "usb-Pixracer-if00")
+
+
+def at_wrong_baud(data: bytes, sent_baud: int, read_baud: int) -> bytes:
+    """What a UART reading at ``read_baud`` makes of ``data`` sent at ``sent_baud`` (8N1, the
+    line idle high): from each start bit it finds (a low level) it samples eight data bits in
+    the middle of its own bit times, then looks for the next one after the stop bit."""
+    bits = [1]
+    for byte in data:
+        bits += [0] + [(byte >> i) & 1 for i in range(8)] + [1]
+    bits += [1] * 10
+    level = lambda t: bits[min(int(t * sent_baud / read_baud), len(bits) - 1)]  # noqa: E731
+    received, t, end = [], 0.0, len(bits) * read_baud / sent_baud
+    while t < end:
+        if level(t):
+            t += 0.25  # the receiver looks for a start bit four times a bit
+            continue
+        received.append(sum(level(t + 1.5 + i) << i for i in range(8)))
+        t += 9.5
+    return bytes(received)
+
+
+def test_a_silent_serial_link_says_whether_bytes_came_and_what_to_check(caplog):
+    """A serial link to PX4 never up: the log says once, after the link timeout, what came
+    instead of MAVLink and what to check, and :attr:`link_problem` (which the preflight quotes)
+    says it as it is now: no bytes at all (the wrong port or cable), bytes that do not parse
+    (PX4's heartbeats sent at 57600 baud read at 921600), MAVLink from another system."""
+    clock = MonotonicClock()
+    master, slave = os.openpty()  # PX4's end of the line, raw
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    px4 = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    heartbeats = b"".join(px4.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR,
+                                               mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0).pack(px4)
+                          for _ in range(5))
+
+    async def main():
+        options = MavlinkOptions(url=f"serial://{path}:921600", link_timeout_s=0.2)
+        autopilot = Autopilot.open(options, clock)
+        runner = asyncio.create_task(autopilot.run())
+        try:
+            await clock.sleep(0.4)
+            silent = autopilot.link_problem
+            os.write(master, at_wrong_baud(heartbeats, 57600, 921600))
+            await clock.sleep(0.05)
+            garbled = autopilot.link_problem
+            other = mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
+            os.write(master, other.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR,
+                                                    mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0
+                                                    ).pack(other))
+            await clock.sleep(0.05)
+            return silent, garbled, autopilot.link_problem, autopilot.stats()
+        finally:
+            runner.cancel()
+            await asyncio.gather(runner, return_exceptions=True)
+            autopilot.close()
+
+    with caplog.at_level(logging.WARNING, logger="drivers.mavlink.autopilot"):
+        try:
+            silent, garbled, foreign, stats = asyncio.run(asyncio.wait_for(main(), WALL_TIMEOUT))
+        finally:
+            os.close(master)
+            os.close(slave)
+    seconds = r"in \d+\.\d s: "
+    assert re.match(f"no MAVLink from {path} at 921600 baud {seconds}no bytes at all: check "
+                    r"the TELEM port and its wiring .* and the baud rate \(PX4 SER_TELn_BAUD\)$",
+                    silent), silent
+    assert re.match(f"no MAVLink from {path} at 921600 baud {seconds}"
+                    r"\d+ bytes arrived but none parse as MAVLink: check the baud rate \(PX4 "
+                    r"SER_TELn_BAUD must be 921600\) and the TELEM port \(MAV_n_CONFIG",
+                    garbled), garbled
+    assert stats["bad_data"] > 0
+    assert re.match(f"MAVLink arrives from {path} at 921600 baud but no HEARTBEAT from system 1 "
+                    f"component 1 {seconds}check \\[mavlink\\] target_system", foreign), foreign
+    logged = [r.getMessage() for r in caplog.records if "no MAVLink from" in r.getMessage()]
+    assert len(logged) == 1 and "no bytes at all" in logged[0]
+
+
 class Px4StandIn(threading.Thread):
     """A flight controller in its own thread, as on the vehicle: HEARTBEAT at 1 Hz and a
     flood of small messages (100 every 10 ms), so that while nobody reads our socket its
@@ -504,7 +621,7 @@ def test_garbage_and_other_systems_are_ignored():
     async def body(flight):
         autopilot = flight.autopilot
         assert await flight.connected()
-        address = autopilot.link._connection.port.getsockname()
+        address = ("127.0.0.1", autopilot.link._connection.port.getsockname()[1])
         stranger = open_link(f"udpout://{address[0]}:{address[1]}", source_system=42,
                              source_component=1)
         impostor = open_link(f"udpout://{address[0]}:{address[1]}", source_system=1,

@@ -23,3 +23,23 @@ def test_sim_commands_reject_unknown_worlds_and_negative_seeds(capsys):
     assert "invalid choice: 'moon'" in capsys.readouterr().err
     assert main(["sim", "serve", "--seed", "-3"]) == 2
     assert "non-negative integer" in capsys.readouterr().err
+
+
+def test_serve_names_a_serial_port_or_tcp_server_it_cannot_reach_in_one_line(capsys):
+    import socket
+
+    with socket.socket() as probe:  # a TCP port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    assert main(["sim", "serve", "--mavlink", "serial:///dev/ttyNOPE0:921600"]) == 1
+    assert capsys.readouterr().err == (
+        "sim serve: serial port /dev/ttyNOPE0 at 921600 baud: no such port; list them with "
+        "`ls /dev/ttyTHS* /dev/ttyACM* /dev/ttyUSB*` or `companion devices`\n")
+    assert main(["sim", "serve", "--mavlink", f"tcpout://127.0.0.1:{port}"]) == 1
+    assert capsys.readouterr().err.startswith(
+        f"sim serve: tcpout://127.0.0.1:{port}: cannot connect (Connection refused)")
+
+
+def test_sim_fly_offers_the_udp_and_serial_links_only(capsys):
+    assert main(["sim", "fly", "--link", "can"]) == 2
+    assert "invalid choice: 'can' (choose from 'udp', 'serial')" in capsys.readouterr().err

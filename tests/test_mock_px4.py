@@ -25,14 +25,15 @@ def free_udp_port() -> int:
 class Bench:
     """Vehicle + mock PX4 on one end of a link, a ground-station client on the other."""
 
-    def __init__(self, options=None, *, url=None, obstacle_clearance=None):
+    def __init__(self, options=None, *, url=None, obstacle_clearance=None, parameters=None):
         port = free_udp_port()
         self.server = open_link(url or f"udpin://127.0.0.1:{port}")
         client_url = (f"serial://{self.server.pty_path}:57600" if self.server.pty_path
                       else f"udpout://127.0.0.1:{port}")
         self.client = open_link(client_url, source_system=255, source_component=190)
         self.vehicle = Quadrotor(obstacle_clearance=obstacle_clearance)
-        self.px4 = MockPx4(self.server, self.vehicle, options or Px4Options())
+        self.px4 = MockPx4(self.server, self.vehicle, options or Px4Options(),
+                           parameters=parameters)
         self.received = []
         self.client.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
                                        0, 0, 0)
@@ -85,8 +86,17 @@ class Bench:
                         and self.send_velocity(v_ned, **kwargs))
 
     def last(self, kind):
-        found = [m for m in self.received if m.get_type() == kind]
+        found = self.all(kind)
         return found[-1] if found else None
+
+    def all(self, kind, messages=None):
+        return [m for m in (self.received if messages is None else messages)
+                if m.get_type() == kind]
+
+    def prearm_ok(self, seconds=0.25):
+        """Whether the SYS_STATUS of the next ``seconds`` says arming is possible."""
+        status = self.all("SYS_STATUS", self.run(seconds))[-1]
+        return bool(status.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK)
 
     def texts(self, messages=None):
         return [m.text for m in (messages or self.received) if m.get_type() == "STATUSTEXT"]
@@ -111,7 +121,8 @@ def test_heartbeat_shows_a_px4_quadrotor_in_hold(bench):
     assert heartbeat.custom_mode == (4 << 16) | (3 << 24)
     assert heartbeat.get_srcSystem() == 1 and heartbeat.get_srcComponent() == 1
     for kind in ("SYS_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION", "LOCAL_POSITION_NED",
-                 "ATTITUDE_QUATERNION", "ODOMETRY", "HIGHRES_IMU", "TIMESYNC"):
+                 "ATTITUDE", "ATTITUDE_QUATERNION", "ODOMETRY", "HIGHRES_IMU", "TIMESYNC",
+                 "RC_CHANNELS"):
         assert bench.last(kind) is not None, kind
     assert bench.last("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
 
@@ -180,14 +191,79 @@ def test_request_message_sends_autopilot_version_with_capabilities(bench):
     assert bench.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 9999) == mavlink.MAV_RESULT_DENIED
 
 
-def test_offboard_is_refused_without_a_setpoint_stream(bench):
+def test_offboard_needs_one_setpoint_younger_than_com_of_loss_t(bench):
+    """offboardCheck.cpp: offboard is available while the last setpoint is less than
+    COM_OF_LOSS_T old; one setpoint is enough (MAVSDK's example starts right after one)."""
     bench.arm()
     assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    bench.stream_velocity((0, 0, 0), 0.6)  # streaming, but not yet for a second
-    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    bench.stream_velocity((0, 0, 0), 0.6, rate_hz=1)  # for long enough, but below 2 Hz
-    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    bench.send_velocity((0, 0, 0))
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_ACCEPTED
+    bench.run(1.0)  # no more setpoints: lost after COM_OF_LOSS_T, the failsafe holds
     assert bench.px4.mode == px4_protocol.AUTO_LOITER
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+
+
+def test_offboard_signal_time_is_the_com_of_loss_t_parameter():
+    bench = Bench(parameters={"COM_OF_LOSS_T": 0.0})  # PX4: offboard can never be entered
+    try:
+        bench.send_velocity((0, 0, 0))
+        assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    finally:
+        bench.close()
+
+
+def test_disarmed_in_offboard_without_setpoints_the_mode_stays_and_arming_is_refused(bench):
+    """No failsafe acts while disarmed (failsafe/framework.cpp); the offboard mode's
+    requirement then fails the arming check, and SYS_STATUS's prearm bit says so."""
+    assert bench.prearm_ok()
+    bench.send_velocity((0, 0, 0))
+    assert bench.set_mode(px4_protocol.OFFBOARD) == mavlink.MAV_RESULT_ACCEPTED
+    assert bench.prearm_ok()
+    bench.run(1.0)
+    assert bench.px4.mode == px4_protocol.OFFBOARD
+    assert not bench.prearm_ok()
+    assert bench.arm() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert "Arming denied: no offboard signal" in bench.texts()
+
+
+def test_sys_status_reports_health_as_px4_does(bench):
+    """SYS_STATUS.hpp: health set for every component without a failure, present and enabled
+    for those the vehicle has; the prearm bit in health only."""
+    status = bench.all("SYS_STATUS", bench.run(0.25))[-1]
+    has = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+           | mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER | mavlink.MAV_SYS_STATUS_AHRS
+           | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY)
+    assert status.onboard_control_sensors_present == has
+    assert status.onboard_control_sensors_enabled == has
+    health = status.onboard_control_sensors_health
+    assert health & has == has and health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    assert health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    assert not status.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    assert status.onboard_control_sensors_health_extended == mavlink.MAV_SYS_STATUS_RECOVERY_SYSTEM
+
+
+def test_attitude_streams_at_the_onboard_rate_as_euler_angles_in_ned(bench):
+    messages = bench.all("ATTITUDE", bench.run(1.0))
+    assert len(messages) == pytest.approx(100, abs=2)  # PX4's Onboard mode: 100 Hz
+    attitude = messages[-1]
+    # the vehicle starts facing east (ENU yaw 0): heading +90 degrees from north in NED
+    assert attitude.yaw == pytest.approx(math.pi / 2, abs=0.02)
+    assert abs(attitude.roll) < 0.02 and abs(attitude.pitch) < 0.02
+    assert attitude.time_boot_ms == pytest.approx(bench.time * 1e3, abs=DT * 1e3)
+
+
+def test_rc_channels_stream_the_receiver_as_px4_forwards_it(bench):
+    messages = bench.all("RC_CHANNELS", bench.run(1.0))
+    assert len(messages) == pytest.approx(20, abs=1)  # PX4's Onboard mode: 20 Hz
+    rc = messages[-1]
+    assert (rc.chancount, rc.rssi) == (16, 100)
+    assert [getattr(rc, f"chan{i}_raw") for i in range(1, 19)] == [1500] * 16 + [65535] * 2
+    bench.px4.set_rc_channel(7, 2000)
+    rc = bench.all("RC_CHANNELS", bench.run(0.1))[-1]
+    assert rc.chan7_raw == 2000 and rc.chan6_raw == 1500
+    for channel, pulse in ((0, 1500), (17, 1500), (1, 2600), (1, 1500.0), (True, 1500)):
+        with pytest.raises(ValueError, match="RC"):
+            bench.px4.set_rc_channel(channel, pulse)
 
 
 def test_offboard_after_streaming_flies_the_velocity_in_ned(bench):

@@ -23,6 +23,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                      metavar="X,Y,Z",
                      help="waypoint in metres in PX4's local frame (x east, y north, z up); "
                           "repeatable, the last is the goal; replaces [flight] waypoints")
+    fly.add_argument("--check", action="store_true",
+                     help="open the network, the camera and the link, run every preflight check "
+                          "(camera rate and exposure, IMU rate, TIMESYNC, PX4 parameters), print "
+                          "a pass/fail table and exit without arming")
     common.add_json_flag(fly, instead_of="the summary table")
     fly.set_defaults(command=_fly)
 
@@ -36,6 +40,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
 
 def _fly(args: argparse.Namespace, config: Config) -> int:
+    if args.check:
+        return _check(args, config)
     from autonomy.depth.network import NetworkError
     from companion.launch import real
     from companion.flight.app import format_flight
@@ -69,3 +75,17 @@ def _go(args: argparse.Namespace, config: Config) -> int:
         return common.EXIT_FAILED
     print(f"go sent to {path}")
     return common.EXIT_OK
+
+
+def _check(args: argparse.Namespace, config: Config) -> int:
+    import asyncio
+    import dataclasses
+
+    from companion.launch.check import format_checks, run_checks
+
+    results = asyncio.run(run_checks(config))
+    if args.json:
+        print(json.dumps([dataclasses.asdict(r) for r in results]))
+    else:
+        print(format_checks(results))
+    return common.EXIT_OK if all(r.ok for r in results) else common.EXIT_FAILED

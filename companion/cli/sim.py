@@ -15,6 +15,7 @@ from companion.config import Config
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
     from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
+    from drivers.sim.serve import LINKS
 
     configured = common.configured_parser()
     group = commands.add_parser("sim", help="run the simulated vehicle",
@@ -33,8 +34,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "QGroundControl, mavproxy) until interrupted. With --mavlink pty the "
                     "pseudo-terminal's path is printed; open it like a serial port.")
     serve.add_argument("--mavlink", default="udpin://127.0.0.1:14540", metavar="URL",
-                       help="udpin://HOST:PORT, udpout://HOST:PORT, tcp://HOST:PORT or pty "
-                            "(default: %(default)s)")
+                       help="MAVSDK's connection strings: udpin://HOST:PORT (listen; a client "
+                            "sends first), udpout://HOST:PORT (send to a listening client), "
+                            "tcpin://HOST:PORT (listen for a TCP client), tcpout://HOST:PORT "
+                            "(connect to a TCP server), serial:///dev/ttyX:BAUD (a serial "
+                            "port), pty (a new pseudo-terminal); tcp:// is deprecated, as in "
+                            "MAVSDK (default: %(default)s)")
     serve.add_argument("--clock", choices=CLOCK_MODES,
                        help="realtime for outside clients, lockstep for as fast as the CPU "
                             "allows (default: [sim] clock)")
@@ -57,7 +62,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
     fly = actions.add_parser(
         "fly", parents=[configured, world], help="fly the whole stack in the simulator",
-        description="Start the simulator (mock PX4 over loopback UDP MAVLink, rendered camera, "
+        description="Start the simulator (mock PX4 over real MAVLink, rendered camera, "
                     "synthetic IMU) and fly the whole application against it: VINS, depth "
                     "network (the synthetic stand-in unless [depth_network] model is set), "
                     "rescaler and planner, from a start/goal pair of the world. Prints progress "
@@ -73,6 +78,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     fly.add_argument("--clock", choices=CLOCK_MODES, default="lockstep",
                      help="lockstep: deterministic, as fast as the CPU allows; realtime: the "
                           "simulator in its own thread on the wall clock (default: %(default)s)")
+    fly.add_argument("--link", choices=LINKS, default="udp",
+                     help="how the application reaches the mock PX4: udp (loopback) or serial "
+                          "(the mock on a pseudo-terminal, opened by the application as "
+                          "serial:///dev/pts/N:921600, the code a flight controller on a UART "
+                          "goes through) (default: %(default)s)")
     fly.add_argument("--depth", choices=("estimated", "truth"), default="estimated",
                      help="the planner's depth: estimated (network and rescaler on the VINS "
                           "map) or the renderer's truth (default: %(default)s)")
@@ -150,7 +160,7 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
     try:
         mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
                                        goal=args.goal, start_yaw_deg=args.start_yaw,
-                                       clock=args.clock, depth=args.depth,
+                                       clock=args.clock, depth=args.depth, link=args.link,
                                        faults=tuple(Fault.parse(f) for f in args.faults))
         summary = simulated.run(config, mission, plot=None if args.no_plot else args.plot,
                                 progress=None if args.json else common.print_progress)

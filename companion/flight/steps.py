@@ -63,7 +63,7 @@ class MissionSteps:
     def preflight_problem(self) -> str:
         autopilot = self.context.autopilot
         if not autopilot.connected:
-            return "no heartbeat from the flight controller"
+            return f"no heartbeat from the flight controller: {autopilot.link_problem}"
         if not autopilot.time_synced:
             return "no TIMESYNC answer from the flight controller"
         if autopilot.last_imu_t is None:

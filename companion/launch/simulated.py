@@ -1,8 +1,10 @@
 """``companion sim fly``: the whole stack against the simulated vehicle, over real MAVLink.
 
-The simulator host (:mod:`drivers.sim.host`) serves the mock PX4 on loopback UDP; the
-application (:class:`companion.flight.app.FlightApp`) connects to it as it would to a real
-flight controller, sees the world through the simulated camera, estimates its state with the
+The simulator host (:mod:`drivers.sim.host`) serves the mock PX4 on loopback UDP, or (``link``
+serial) on a pseudo-terminal the application opens as a serial port at 921600 baud, through the
+code a flight controller on a UART goes through; the application
+(:class:`companion.flight.app.FlightApp`) connects to it as it would to a real flight
+controller, sees the world through the simulated camera, estimates its state with the
 VINS and its depth with the network (the synthetic stand-in of ``[synthetic_depth]`` unless
 ``[depth_network] model`` names an ONNX file) and the rescaler, and flies the planner's arcs
 to the goal.
@@ -36,8 +38,9 @@ from companion.report import show
 from drivers.mavlink.autopilot import Autopilot
 from drivers.sim.faults import FaultSchedule
 from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMission,
-                              ThreadedSimulator, TruthDepth, TruthTrack, free_udp_port,
-                              mission_waypoints, simulated_network, stall_when_due)
+                              ThreadedSimulator, TruthDepth, TruthTrack, mission_waypoints,
+                              simulated_network, stall_when_due)
+from drivers.sim.serve import LINKS
 from drivers.sim.world import World, build_world
 
 log = logging.getLogger(__name__)
@@ -57,6 +60,8 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     if mission.depth not in DEPTH_SOURCES:
         raise SimError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
                        f"got {mission.depth!r}")
+    if mission.link not in LINKS:
+        raise SimError(f"link must be one of {', '.join(LINKS)}, got {mission.link!r}")
     camera = config.camera
     if camera.calibration != "config" or camera.distortion_model != "none":
         raise SimError("the simulator renders an ideal pinhole camera: [camera] calibration "
@@ -77,19 +82,19 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     if faults.has("loop_stall") and mission.clock != "realtime":
         raise SimError("a loop_stall fault needs --clock realtime: in lockstep the simulator "
                        "shares the stalled loop, so simulated time stalls with it")
-    port = free_udp_port()
     side = (LockstepSimulator if mission.clock == "lockstep" else ThreadedSimulator)(
-        config, world, mission, port, (start, start_yaw), faults, waypoints[-1], progress)
+        config, world, mission, (start, start_yaw), faults, waypoints[-1], progress)
     sim, camera, clock = await side.start()
     stall = asyncio.create_task(stall_when_due(faults, sim))
     try:
         depth = TruthDepth(config.planner.max_range) if mission.depth == "truth" else \
             NetworkDepth(simulated_network(config, mission.seed, faults, lambda: sim.time),
                          config.rescale, config.depth)
-        app = build_app(config, clock, f"udpout://127.0.0.1:{port}", camera, depth, waypoints,
+        app = build_app(config, clock, side.companion_url(), camera, depth, waypoints,
                         lockstep=mission.clock == "lockstep", go_given_by=go_given_by)
         try:
             summary = await app.run()
+            summary["mavlink"] = _link_load(app.autopilot.link, sim)
         finally:
             app.autopilot.close()
     finally:
@@ -110,6 +115,20 @@ def build_app(config, clock, url: str, camera, depth, waypoints, *,
                                  pinhole=config.camera.pinhole(), T_B_C=config.camera.T_B_C(),
                                  depth=depth, waypoints_L=waypoints, clock=clock,
                                  lockstep=lockstep, go_given_by=go_given_by)
+
+
+def _link_load(link, sim) -> dict:
+    """The MAVLink bytes each way per simulated second, beside what the link can carry at most
+    (a serial port: baud / 10, a byte being 10 bits on the wire with 8N1; else None), and the
+    bytes or frames that did not parse at each end (a link that drops bytes garbles frames)."""
+    seconds = max(sim.time, sim.dt)
+    capacity = link.address.baud / 10 if link.address.scheme == "serial" else None
+    return {"where": link.address.where,
+            "received_bytes_per_s": round(link.traffic.bytes / seconds),
+            "sent_bytes_per_s": round(sim.px4.link.traffic.bytes / seconds),
+            "capacity_bytes_per_s": capacity,
+            "bad_data": {"received": link.bad_data_count,
+                         "sent": sim.px4.link.bad_data_count}}
 
 
 def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthTrack,
@@ -144,6 +163,15 @@ def _plot(world, track, start, waypoints, sim, out: Path, summary: dict) -> None
                    f"{'reached' if summary['reached_goal'] else 'not reached'}")
 
 
+def _format_load(load: dict) -> str:
+    carried = (f"{load['received_bytes_per_s'] / 1e3:.1f} kB/s in, "
+               f"{load['sent_bytes_per_s'] / 1e3:.1f} kB/s out")
+    if load["capacity_bytes_per_s"] is not None:
+        carried += f" of {load['capacity_bytes_per_s'] / 1e3:.1f} kB/s each way"
+    bad = load["bad_data"]
+    return f"{load['where']}: {carried}; bad data {bad['received']} in, {bad['sent']} out"
+
+
 def format_summary(summary: dict) -> str:
     """A simulated flight's summary as a few lines for a person."""
     lines = [f"{summary['world']} pair {summary['pair']} (seed {summary['seed']}) -> goal "
@@ -153,7 +181,8 @@ def format_summary(summary: dict) -> str:
              f"  collisions        {summary['collisions']}",
              f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
              f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}",
-             f"  VINS error        {show(summary.get('position_error_m'), '.2f', ' m')}"]
+             f"  VINS error        {show(summary.get('position_error_m'), '.2f', ' m')}",
+             f"  MAVLink           {_format_load(summary['mavlink'])}"]
     lines += format_flight(summary).splitlines()
     if summary.get("plot"):
         lines.append(f"  plot              {summary['plot']}")

@@ -10,7 +10,10 @@ body frame is FLU, and times are on the companion clock.
 - State: :attr:`~Autopilot.connected`, :attr:`~Autopilot.armed`, :attr:`~Autopilot.mode`,
   :attr:`~Autopilot.landed`, :attr:`~Autopilot.in_air`, :attr:`~Autopilot.state`,
   :attr:`~Autopilot.imu_rate_hz` (measured), :attr:`~Autopilot.last_imu_t`,
-  :attr:`~Autopilot.link_losses`, :attr:`~Autopilot.statustexts`.
+  :attr:`~Autopilot.link_losses`, :attr:`~Autopilot.statustexts`, and while not connected
+  :attr:`~Autopilot.link_problem`: why, for a person.
+- A device that goes away (a USB adapter unplugged) is a lost link at once, reopened every
+  :data:`REOPEN_INTERVAL_S` until it comes back.
 - IMU: a bounded ring of :class:`~autonomy.messages.ImuSample` drained by
   :meth:`~Autopilot.take_imu` (stamping rules in :mod:`drivers.mavlink.imu_stream`).
 - Verbs (coroutines, COMMAND_ACK with timeout and retries): arm, disarm, set_mode, takeoff,
@@ -41,8 +44,10 @@ from drivers.mavlink import px4_protocol
 from drivers.mavlink.frames import (enu_to_ned, frd_to_flu, ned_to_enu,
                                     quat_ned_frd_to_enu_flu)
 from drivers.mavlink.imu_stream import ImuStamper
-from drivers.mavlink.link import MavlinkLink, mavlink, open_link, parse_url, signing_secret
+from drivers.mavlink.link import (LinkLost, MavlinkLink, mavlink, open_link, parse_url,
+                                  signing_secret)
 from drivers.mavlink.odometry import odometry_fields, pose_covariance_to_mavlink
+from drivers.mavlink.parameters import ParameterReader
 from drivers.mavlink.timesync import TimesyncFilter
 
 log = logging.getLogger(__name__)
@@ -63,6 +68,9 @@ TIMESYNC_PENDING = 16
 DEAF_POLL_GAP_S = 0.1
 #: STATUSTEXT chunk length: a shorter chunk ends a multi-chunk text (MAVLink 2).
 STATUSTEXT_CHUNK = 50
+#: Seconds between two tries to reopen a device that went away (a USB adapter unplugged: it
+#: comes back under its name when plugged in again).
+REOPEN_INTERVAL_S = 1.0
 
 
 class CompanionStatus(IntEnum):
@@ -81,9 +89,13 @@ class MavlinkOptions:
 
     url: str = option(
         "udpout://127.0.0.1:14540",
-        doc="connection string: udpout://HOST:PORT (default: the simulator's "
-            "`companion sim serve` on loopback), udpin://0.0.0.0:14540 for PX4 SITL's onboard "
-            "link, serial:///dev/ttyTHS1:921600 for a flight controller on a UART")
+        doc="connection string, MAVSDK's forms: udpout://HOST:PORT (default: the "
+            "simulator's `companion sim serve` on loopback), udpin://0.0.0.0:14540 for PX4 "
+            "SITL's onboard link, serial:///dev/ttyTHS1:921600 for a flight controller on a "
+            "UART (baud one of PX4's SER_TELn_BAUD rates), tcpin://HOST:PORT to listen for "
+            "a TCP client, tcpout://HOST:PORT to connect to a TCP server (tcp:// is "
+            "deprecated: 0.0.0.0 or no host listens, any other host connects), pty for a new "
+            "pseudo-terminal (docs/mavlink.md)")
     system_id: int = option(1, ge=1, le=255,
                             doc="our MAVLink system id (a companion shares its vehicle's)")
     component_id: int = option(191, ge=1, le=255,
@@ -96,7 +108,10 @@ class MavlinkOptions:
                                  doc="IMU samples kept until the application takes them")
     heartbeat_rate_hz: float = option(1.0, gt=0.0, le=50.0, doc="our HEARTBEAT rate, Hz")
     link_timeout_s: float = option(
-        1.5, gt=0.0, le=60.0, doc="seconds without PX4's HEARTBEAT before the link is lost")
+        1.5, gt=0.0, le=60.0,
+        doc="seconds without PX4's HEARTBEAT before the link is lost; never up since opening "
+            "for this long, the log says what came instead (no bytes, bytes that are not "
+            "MAVLink) and what to check")
     timesync_rate_hz: float = option(10.0, gt=0.0, le=100.0,
                                      doc="our TIMESYNC request rate, Hz")
     command_timeout_s: float = option(0.5, gt=0.0, le=30.0,
@@ -222,6 +237,8 @@ class Autopilot:
         self._last_odometry = -math.inf
         self._last_heartbeat = -math.inf
         self._last_poll: float | None = None
+        self._reopen_at: float | None = None  # the next try while the device is gone
+        self._listen(clock.now())
         self._deaf_s = 0.0  # time since the last HEARTBEAT we were not reading the link
         self._next_heartbeat = -math.inf
         self._next_timesync = -math.inf
@@ -237,6 +254,9 @@ class Autopilot:
             "ATTITUDE_QUATERNION": self._on_attitude, "HOME_POSITION": self._on_home_position,
             "RC_CHANNELS": self._on_rc_channels,
         }
+        self.parameters = ParameterReader(self._send, clock, self.options.target_system,
+                                          self.options.target_component)
+        self._handlers["PARAM_VALUE"] = self.parameters.on_param_value
 
     @classmethod
     def open(cls, options: MavlinkOptions, clock: Clock) -> "Autopilot":
@@ -284,6 +304,25 @@ class Autopilot:
             self._status = status
             self._next_heartbeat = -math.inf
 
+    @property
+    def link_problem(self) -> str:
+        """Why PX4 is not connected, for a person ("" while it is): the device gone, or what
+        arrived instead of PX4's HEARTBEAT since the link was opened (or lost, or reopened)
+        and what to check."""
+        if self.connected:
+            return ""
+        if self.link.lost is not None:
+            return _reopening(self.link.lost)
+        since, before = self._listening
+        seconds = self.clock.now() - since
+        heard = self.link.traffic.since(before)
+        if heard.messages:
+            return (f"MAVLink arrives from {self.link.address.where} but no HEARTBEAT from "
+                    f"system {self.options.target_system} component "
+                    f"{self.options.target_component} in {seconds:.1f} s: check [mavlink] "
+                    "target_system and target_component (PX4's MAV_SYS_ID)")
+        return self.link.describe_silence(seconds, heard)
+
     def take_imu(self) -> list[ImuSample]:
         """Every IMU sample since the last call, oldest first (the ring keeps the newest
         ``imu_queue_size``; overflow is counted in ``counts['imu_overflow']``)."""
@@ -317,8 +356,10 @@ class Autopilot:
 
     def _poll(self, now: float) -> None:
         self._count_deaf_time(now)
-        for message in self._receive():
-            self._dispatch(message, now)
+        if self.link.lost is None:
+            for message in self._receive():
+                self._dispatch(message, now)
+        self._watch_device(now)
         self._watch_link(now)
         self._send_due(now)
         self._check_imu_rate(now)
@@ -355,14 +396,64 @@ class Autopilot:
         self._last_poll = now
 
     def _watch_link(self, now: float) -> None:
-        """The link is lost after ``link_timeout_s`` of PX4's silence while we listened."""
-        silent_s = now - self._last_heartbeat - self._deaf_s
-        if not self.connected or silent_s <= self.options.link_timeout_s:
+        """The link is lost after ``link_timeout_s`` of PX4's silence while we listened; one
+        that is down says why (:attr:`link_problem`) once it has been silent as long."""
+        if not self.connected:
+            self._log_silence(now)
             return
+        silent_s = now - self._last_heartbeat - self._deaf_s
+        if silent_s > self.options.link_timeout_s:
+            self._lose_link(now, f"no HEARTBEAT for {now - self._last_heartbeat:.1f} s "
+                                 f"({self._deaf_s:.1f} s of it not listening)")
+
+    def _log_silence(self, now: float) -> None:
+        since, _ = self._listening
+        if (self._silence_logged or self.link.lost is not None
+                or now - since <= self.options.link_timeout_s):
+            return
+        self._silence_logged = True
+        log.warning("%s", self.link_problem)
+
+    def _listen(self, now: float) -> None:
+        """From ``now`` on, :attr:`link_problem` tells what arrives instead of PX4."""
+        self._listening = (now, self.link.traffic)
+        self._silence_logged = False
+
+    def _watch_device(self, now: float) -> None:
+        """A device gone away (:attr:`MavlinkLink.lost`) is a lost link at once, and is
+        reopened every :data:`REOPEN_INTERVAL_S` until it comes back."""
+        lost = self.link.lost
+        if lost is None:
+            return
+        if self._reopen_at is None:
+            self.counts["device_lost"] += 1
+            self._reopen_at = now + REOPEN_INTERVAL_S
+            if self.connected:
+                self._lose_link(now, _reopening(lost))
+            else:
+                log.warning("%s", _reopening(lost))
+        elif now >= self._reopen_at:
+            self._reopen(now)
+
+    def _reopen(self, now: float) -> None:
+        self._reopen_at = now + REOPEN_INTERVAL_S
+        try:
+            self.link.reopen()
+        except OSError as error:
+            self.counts["reopen_failures"] += 1
+            log.debug("not back: %s", error)
+            return
+        log.info("%s is back", self.link.address.where)
+        self._reopen_at = None
+        self._listen(now)
+
+    def _lose_link(self, now: float, reason: str) -> None:
+        """Connected no more: counted, and the IMU chain and the TIMESYNC estimate dropped
+        (PX4 may come back rebooted, its boot time restarted)."""
         self.connected = False
         self.link_losses += 1
-        log.warning("PX4 link lost: no HEARTBEAT for %.1f s (%.1f s of it not listening)",
-                    now - self._last_heartbeat, self._deaf_s)
+        log.warning("PX4 link lost: %s", reason)
+        self._listen(now)
         self._imu.restart()
         self.timesync.reset()
         self._timesync_sent.clear()
@@ -699,6 +790,11 @@ class Autopilot:
         """Hold position (AUTO.LOITER, "Hold" in QGroundControl)."""
         return await self.set_mode(px4_protocol.AUTO_LOITER)
 
+    async def read_parameters(self, names, timeout_s: float) -> dict[str, int | float]:
+        """PX4's values of the named parameters, decoded (drivers/mavlink/parameters.py); a
+        name PX4 does not answer within ``timeout_s`` is absent."""
+        return await self.parameters.read(names, timeout_s)
+
     # ---------------------------------------------------------------- thread-safe sends
 
     def _send(self, message) -> None:
@@ -759,6 +855,10 @@ class Autopilot:
             mavlink.MAV_ESTIMATOR_TYPE_VIO, quality))
         self.counts["odometry_sent"] += 1
         return True
+
+
+def _reopening(lost: LinkLost) -> str:
+    return f"{lost}; reopening it every {REOPEN_INTERVAL_S:g} s"
 
 
 def _ns(t: float) -> int:

@@ -1,7 +1,8 @@
 """The simulator host: the simulated vehicle served for one flight, beside the application.
 
 What ``companion sim fly`` and ``companion eval nav`` fly against (docs/simulator.md): the
-mock PX4 on loopback UDP (:func:`drivers.sim.serve.serve`), the rendered camera, the network
+mock PX4 on loopback UDP or, for a serial link, on a pseudo-terminal
+(:func:`drivers.sim.serve.serve`), the rendered camera, the network
 the application runs (the user's ONNX model on the image, or the synthetic stand-in on the
 rendered depth) or the true depth, injected faults, and the true path for scoring.
 
@@ -34,7 +35,7 @@ from drivers.clock import MonotonicClock, SimClock
 from drivers.sim.camera import SimCamera
 from drivers.sim.faults import Fault, FaultSchedule
 from drivers.sim.render import Renderer
-from drivers.sim.serve import serve
+from drivers.sim.serve import SERIAL_BAUD, serve
 from drivers.sim.world import ROBOT_RADIUS, World
 
 log = logging.getLogger(__name__)
@@ -62,7 +63,8 @@ DEPTH_SOURCES = ("estimated", "truth")
 class SimMission:
     """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z);
     ``depth`` one of :data:`DEPTH_SOURCES`; ``start_yaw_deg`` the heading the vehicle stands at
-    on the ground (degrees counter-clockwise from east; default: facing the first leg)."""
+    on the ground (degrees counter-clockwise from east; default: facing the first leg);
+    ``link`` one of :data:`drivers.sim.serve.LINKS`."""
 
     world: str = "dome"
     seed: int = 0
@@ -72,6 +74,7 @@ class SimMission:
     clock: str = "lockstep"
     depth: str = "estimated"
     start_yaw_deg: float | None = None
+    link: str = "udp"
 
 
 def mission_waypoints(world: World, mission: SimMission, height: float
@@ -222,16 +225,24 @@ async def stall_when_due(faults: FaultSchedule, sim) -> None:
 class Simulator:
     """The simulator side of a flight: what it serves, and the true path it tracks."""
 
-    def __init__(self, config, world, mission, port, start_pose, faults, goal, progress):
+    def __init__(self, config, world, mission, start_pose, faults, goal, progress):
         # start_pose: (position, yaw) the vehicle stands at on the ground, the mission's
-        self.config, self.world, self.mission, self.port = config, world, mission, port
+        self.config, self.world, self.mission = config, world, mission
         self.start_pose, self.faults, self.goal = start_pose, faults, goal
         self.progress = progress
         self.track = TruthTrack()
+        self.port = free_udp_port() if mission.link == "udp" else None
+
+    def companion_url(self) -> str:
+        """Where the application reaches the mock PX4, once :meth:`start` has returned."""
+        if self.port is None:
+            return f"serial://{self.sim.px4.link.pty_path}:{SERIAL_BAUD}"
+        return f"udpout://127.0.0.1:{self.port}"
 
     def _serve(self, clock_mode: str, stop, on_ready, sim_clock=None):
         c = self.config
-        return serve(f"udpin://127.0.0.1:{self.port}", self.world, seed=self.mission.seed,
+        url = "pty" if self.port is None else f"udpin://127.0.0.1:{self.port}"
+        return serve(url, self.world, seed=self.mission.seed,
                      clock_mode=clock_mode, vehicle_options=c.vehicle, imu_options=c.imu,
                      px4_options=c.px4, stop=stop, sim_clock=sim_clock, on_ready=on_ready,
                      start=self.start_pose[0], start_yaw=self.start_pose[1], faults=self.faults)

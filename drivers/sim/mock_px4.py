@@ -2,9 +2,11 @@
 
 The flight-controller side of the link, close enough to PX4 (v1.14+) that MAVSDK, QGroundControl
 or our own companion driver cannot tell the difference for what they use: heartbeat and
-status streams, commands with COMMAND_ACK, message intervals, HIGHRES_IMU at up to the physics
-rate, a stand-in state estimate, TIMESYNC, offboard control with PX4's entry and loss rules,
-take-off, land and hold, optional MAVLink 2 signing.
+status streams (PX4's Onboard stream set, ATTITUDE and RC_CHANNELS included), the health and
+armability bits of SYS_STATUS, commands with COMMAND_ACK, message intervals, HIGHRES_IMU at up
+to the physics rate, a stand-in state estimate, TIMESYNC, offboard control with PX4's entry and
+loss rules, take-off, land and hold, the parameter protocol over a table of the parameters the
+mock honours, optional MAVLink 2 signing. Each rule names the PX4 source file it follows.
 
 It never blocks: :meth:`MockPx4.update` is called once per physics tick with the IMU sample
 of the step that just ended; it reads every pending byte, applies commands to the vehicle
@@ -23,7 +25,10 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
+import zlib
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 
@@ -33,34 +38,40 @@ from drivers.mavlink import px4_protocol
 from drivers.mavlink.frames import (enu_to_ned, flu_to_frd, ned_to_enu,
                                     quat_enu_flu_to_ned_frd)
 from drivers.mavlink.link import MavlinkLink, mavlink, signing_secret
+from drivers.mavlink.parameters import decode_value, encode_value
 from drivers.sim.quadrotor import ControlTarget, Quadrotor
 
 log = logging.getLogger(__name__)
 
-OFFBOARD_LOSS_ACTIONS = ("hold", "land")
-
 #: PX4 SITL's default home (the PX4 "Zurich" origin), degrees and metres AMSL.
 HOME_LATITUDE_DEG, HOME_LONGITUDE_DEG, HOME_ALTITUDE_M = 47.397742, 8.545594, 488.0
 
-#: Default stream rates in Hz (PX4's "onboard" MAVLink mode, mavlink_main.cpp), before any
-#: MAV_CMD_SET_MESSAGE_INTERVAL.
+#: Default stream rates in Hz before any MAV_CMD_SET_MESSAGE_INTERVAL: those of PX4's
+#: Onboard MAVLink mode (MAV_X_MODE = Onboard, what a companion's link runs), for the messages
+#: the mock has (mavlink_main.cpp, Mavlink::configure_streams_to_default,
+#: MAVLINK_MODE_ONBOARD). HEARTBEAT is sent at 1 Hz whatever the mode.
 DEFAULT_STREAM_RATES_HZ = {
     mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
-    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
-    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
+    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 5.0,
+    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 50.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: 100.0,
     mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 50.0,
     mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
     mavlink.MAVLINK_MSG_ID_ODOMETRY: 30.0,
-    mavlink.MAVLINK_MSG_ID_TIMESYNC: 1.0,
+    mavlink.MAVLINK_MSG_ID_RC_CHANNELS: 20.0,
+    mavlink.MAVLINK_MSG_ID_TIMESYNC: 10.0,
 }
 
 #: HIGHRES_IMU.fields_updated: xacc..zgyro (bits 0-5) and temperature (bit 12).
 HIGHRES_IMU_FIELDS = 0b111111 | (1 << 12)
 
+#: PX4's AUTOPILOT_VERSION.capabilities (mavlink_main.cpp, send_autopilot_capabilities) less
+#: what the mock does not serve (FTP, flight termination, fence and rally missions).
 CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
                 | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
@@ -71,13 +82,71 @@ CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
 #: PX4 v1.15.0 as AUTOPILOT_VERSION.flight_sw_version packs it (major, minor, patch, type=255).
 FLIGHT_SW_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255
 
-#: A gap between setpoints longer than this breaks the stream offboard needs (2 Hz, PX4 docs:
-#: "the vehicle must be already be receiving a stream of target setpoints (>2Hz)").
-OFFBOARD_MAX_SETPOINT_GAP = 0.5
-#: How long that stream must have lasted before offboard is accepted.
-OFFBOARD_MIN_STREAM_TIME = 1.0
 #: External-vision ODOMETRY older than this no longer feeds the estimate.
 EXTERNAL_VISION_TIMEOUT = 0.5
+
+#: The RC receiver the mock simulates: 16 channels (S.Bus, CRSF), centred until a test moves
+#: them, full signal (RC_INPUT_RSSI_MAX, drivers/drv_rc_input.h). PX4 accepts pulses of
+#: RC_INPUT_LOWEST_MIN_US..RC_INPUT_HIGHEST_MAX_US and sends unused channels as UINT16_MAX.
+RC_CHANNEL_COUNT, RC_CHANNEL_CENTRE_US, RC_RSSI = 16, 1500, 100
+RC_PULSE_RANGE_US = (500, 2500)
+RC_CHANNELS_MAX = 18
+RC_CHANNEL_UNUSED = 65535
+
+#: The mock's health components (PX4's health_component_t) as SYS_STATUS bits, with whether
+#: the mock has each: what MavlinkStreamSysStatus::send fills with fillOutComponent
+#: (src/modules/mavlink/streams/SYS_STATUS.hpp, v1.14-v1.15).
+SYS_STATUS_COMPONENTS = {
+    mavlink.MAV_SYS_STATUS_SENSOR_BATTERY: True,
+    mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS: False,
+    mavlink.MAV_SYS_STATUS_OBSTACLE_AVOIDANCE: False,
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL: True,
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO: True,
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG: False,
+    mavlink.MAV_SYS_STATUS_SENSOR_GPS: False,
+    mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER: True,
+    mavlink.MAV_SYS_STATUS_AHRS: True,  # local_position_estimate
+    mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE: False,
+    mavlink.MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE: False,
+}
+#: ... and those of the *_extended fields (MAV_SYS_STATUS_SENSOR_EXTENDED): the parachute.
+SYS_STATUS_EXTENDED_COMPONENTS = {mavlink.MAV_SYS_STATUS_RECOVERY_SYSTEM: False}
+
+#: COM_OBL_RC_ACT values the mock flies (commander_params.c: 4 Land mode, 5 Hold mode).
+OFFBOARD_LOSS_MODES = {4: px4_protocol.AUTO_LAND, 5: px4_protocol.AUTO_LOITER}
+#: Px4Options.offboard_loss_action as COM_OBL_RC_ACT.
+OFFBOARD_LOSS_ACTION_VALUES = {"hold": 5, "land": 4}
+OFFBOARD_LOSS_ACTIONS = tuple(OFFBOARD_LOSS_ACTION_VALUES)
+
+#: The parameters the mock serves, all INT32 or REAL32 as in PX4. Those the mock honours:
+#: COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_LAND, MIS_TAKEOFF_ALT, MPC_TKO_SPEED,
+#: MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1: horizontal and vertical vision position); the
+#: others are what docs/operations.md asks an operator to set, held at a correctly configured
+#: vehicle's values, for `companion fly --check` to read. MAV_SYS_ID and MAV_COMP_ID are read
+#: once at boot, as PX4 reads them (mavlink_main.cpp, the Mavlink constructor).
+PARAMETER_TYPES = {
+    "COM_DISARM_LAND": mavlink.MAV_PARAM_TYPE_REAL32,
+    "COM_OBL_RC_ACT": mavlink.MAV_PARAM_TYPE_INT32,
+    "COM_OF_LOSS_T": mavlink.MAV_PARAM_TYPE_REAL32,
+    "EKF2_EV_CTRL": mavlink.MAV_PARAM_TYPE_INT32,
+    "EKF2_EV_DELAY": mavlink.MAV_PARAM_TYPE_REAL32,
+    "EKF2_GPS_CTRL": mavlink.MAV_PARAM_TYPE_INT32,
+    "EKF2_HGT_REF": mavlink.MAV_PARAM_TYPE_INT32,
+    "MAV_1_CONFIG": mavlink.MAV_PARAM_TYPE_INT32,
+    "MAV_1_FORWARD": mavlink.MAV_PARAM_TYPE_INT32,
+    "MAV_1_MODE": mavlink.MAV_PARAM_TYPE_INT32,
+    "MAV_COMP_ID": mavlink.MAV_PARAM_TYPE_INT32,
+    "MAV_SYS_ID": mavlink.MAV_PARAM_TYPE_INT32,
+    "MIS_TAKEOFF_ALT": mavlink.MAV_PARAM_TYPE_REAL32,
+    "MPC_LAND_SPEED": mavlink.MAV_PARAM_TYPE_REAL32,
+    "MPC_TKO_SPEED": mavlink.MAV_PARAM_TYPE_REAL32,
+    "SER_TEL2_BAUD": mavlink.MAV_PARAM_TYPE_INT32,
+}
+#: PX4 sends its parameters by index in name order (the generated parameter table is sorted).
+PARAMETER_NAMES = tuple(sorted(PARAMETER_TYPES))
+#: PARAM_VALUE's name for the hash PX4 sends first on PARAM_REQUEST_LIST, and its index:
+#: PX4 sets param_index = -1, which the uint16 field carries as 65535.
+HASH_PARAM, HASH_PARAM_INDEX = "_HASH_CHECK", 65535
 
 
 @dataclass(frozen=True)
@@ -88,7 +157,8 @@ class Px4Options:
     component_id: int = option(1, ge=1, le=255, doc="MAVLink component id [MAV_COMP_ID]")
     offboard_loss_timeout: float = option(
         1.0, gt=0.0, le=60.0,
-        doc="seconds without a setpoint before the offboard-loss failsafe [COM_OF_LOSS_T]")
+        doc="seconds a setpoint keeps offboard available: entry needs one this recent, and "
+            "the offboard-loss failsafe follows when none is [COM_OF_LOSS_T]")
     offboard_loss_action: str = option(
         "hold", choices=OFFBOARD_LOSS_ACTIONS,
         doc="mode the offboard-loss failsafe switches to: hold (AUTO.LOITER) or land "
@@ -101,7 +171,8 @@ class Px4Options:
                                doc="descent rate of Land, m/s [MPC_LAND_SPEED]")
     disarm_after_land: float = option(
         2.0, ge=0.0, le=60.0,
-        doc="seconds on the ground after landing before auto-disarm [COM_DISARM_LAND]")
+        doc="seconds on the ground after landing before auto-disarm; 0: never "
+            "[COM_DISARM_LAND]")
     imu_rate_hz: float = option(
         50.0, gt=0.0, le=1000.0,
         doc="HIGHRES_IMU rate before any SET_MESSAGE_INTERVAL, Hz (capped by the physics rate)")
@@ -127,6 +198,52 @@ class Px4Options:
         return signing_secret(self.signing_key)
 
 
+def default_parameters(options: Px4Options) -> dict[str, int | float]:
+    """The parameter table of a vehicle configured as docs/operations.md asks (PX4 v1.14
+    names and values), the options standing in for the parameters they name."""
+    return {
+        "COM_DISARM_LAND": options.disarm_after_land,
+        "COM_OBL_RC_ACT": OFFBOARD_LOSS_ACTION_VALUES[options.offboard_loss_action],
+        "COM_OF_LOSS_T": options.offboard_loss_timeout,
+        "EKF2_EV_CTRL": 15,     # fuse vision horizontal and vertical position, velocity, yaw
+        "EKF2_EV_DELAY": 0.0,   # ms: the mock's vision fusion has no delay
+        "EKF2_GPS_CTRL": 0,     # no GNSS: the mock has none
+        "EKF2_HGT_REF": 3,      # Vision
+        "MAV_1_CONFIG": 102,    # TELEM 2
+        "MAV_1_FORWARD": 1,
+        "MAV_1_MODE": 2,        # Onboard
+        "MAV_COMP_ID": options.component_id,
+        "MAV_SYS_ID": options.system_id,
+        "MIS_TAKEOFF_ALT": options.takeoff_altitude,
+        "MPC_LAND_SPEED": options.land_speed,
+        "MPC_TKO_SPEED": options.takeoff_speed,
+        "SER_TEL2_BAUD": 921600,
+    }
+
+
+def check_parameter(name: str, value) -> int | float:
+    """``value`` as parameter ``name`` holds it (int for INT32, float32 for REAL32); ValueError
+    for an unknown name, a non-integer INT32, a non-finite REAL32, or a COM_OBL_RC_ACT the
+    mock cannot fly."""
+    if name not in PARAMETER_TYPES:
+        raise ValueError(f"unknown parameter {name!r}; the mock has {', '.join(PARAMETER_NAMES)}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    if PARAMETER_TYPES[name] == mavlink.MAV_PARAM_TYPE_REAL32:
+        return decode_value(encode_value(number, mavlink.MAV_PARAM_TYPE_REAL32),
+                            mavlink.MAV_PARAM_TYPE_REAL32)  # a float32, as PX4 holds it
+    if not number.is_integer() or isinstance(value, bool):
+        raise ValueError(f"{name} is an integer parameter, got {value!r}")
+    if name == "COM_OBL_RC_ACT" and int(number) not in OFFBOARD_LOSS_MODES:
+        raise ValueError(f"COM_OBL_RC_ACT {int(number)}: the mock flies only 4 (Land) and "
+                         "5 (Hold)")
+    return int(number)
+
+
 @dataclass(frozen=True)
 class OffboardSetpoint:
     """An accepted SET_POSITION_TARGET_LOCAL_NED in the world frame (ENU), NaN = ignored."""
@@ -150,13 +267,20 @@ class Estimate:
 
 
 class MockPx4:
-    """The flight controller: MAVLink in and out, modes and failsafes, targets to the vehicle."""
+    """The flight controller: MAVLink in and out, modes and failsafes, targets to the vehicle.
+
+    ``parameters`` overrides entries of :func:`default_parameters` (a misconfigured vehicle
+    for a test); ValueError for one :func:`check_parameter` refuses, or for MAV_SYS_ID and
+    MAV_COMP_ID, which come from ``options`` as the link's ids do.
+    """
 
     def __init__(self, link: MavlinkLink, vehicle: Quadrotor, options: Px4Options | None = None,
-                 *, rng: np.random.Generator | None = None, physics_rate_hz: float = 200.0):
+                 *, rng: np.random.Generator | None = None, physics_rate_hz: float = 200.0,
+                 parameters: Mapping[str, float] | None = None):
         self.link = link
         self.vehicle = vehicle
         self.options = options or Px4Options()
+        self.parameters = self._parameter_table(parameters or {})
         self._rng = rng if rng is not None else np.random.default_rng(0)
         self._min_interval = 1.0 / physics_rate_hz
         if self.options.signing_secret is not None:
@@ -170,10 +294,10 @@ class MockPx4:
             self._set_rate(message_id, rate)
         self._set_rate(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, self.options.imu_rate_hz)
         self._setpoint: OffboardSetpoint | None = None
-        self._stream_start: float | None = None
+        self._rc_pulses_us = [RC_CHANNEL_CENTRE_US] * RC_CHANNEL_COUNT
         self._hold_position: np.ndarray | None = None
         self._hold_yaw = 0.0
-        self._takeoff_height = self.options.takeoff_altitude
+        self._takeoff_height = self.parameters["MIS_TAKEOFF_ALT"]
         self._landed_since: float | None = None
         self._collision_reported = False
         self._statustext_id = 0
@@ -188,6 +312,27 @@ class MockPx4:
         self._imu = (np.zeros(3), np.array([0.0, 0.0, GRAVITY]))
         self.estimate = self._estimate()
         self._enter_hold()
+
+    def _parameter_table(self, overrides: Mapping[str, float]) -> dict[str, int | float]:
+        fixed = {"MAV_SYS_ID", "MAV_COMP_ID"} & set(overrides)
+        if fixed:
+            raise ValueError(f"{', '.join(sorted(fixed))}: set Px4Options.system_id / "
+                             "component_id, which the link speaks as")
+        table = default_parameters(self.options)
+        table.update(overrides)
+        return {name: check_parameter(name, value) for name, value in table.items()}
+
+    def set_rc_channel(self, channel: int, pulse_us: int) -> None:
+        """Move RC ``channel`` (1-based) of the simulated receiver to ``pulse_us``; RC_CHANNELS
+        carries it from the next message on. ValueError for a channel the receiver does not
+        have or a pulse PX4's RC input would reject."""
+        if not _integer_in(channel, 1, RC_CHANNEL_COUNT):
+            raise ValueError(f"RC channel must be an integer 1..{RC_CHANNEL_COUNT}, "
+                             f"got {channel!r}")
+        if not _integer_in(pulse_us, *RC_PULSE_RANGE_US):
+            raise ValueError("RC pulse must be an integer {}..{} us, got {!r}".format(
+                *RC_PULSE_RANGE_US, pulse_us))
+        self._rc_pulses_us[channel - 1] = pulse_us
 
     # ---------------------------------------------------------------- the tick
 
@@ -224,14 +369,19 @@ class MockPx4:
         return position - self._ev_offset
 
     def _handle_odometry(self, message) -> None:
+        """External vision: the position axes EKF2_EV_CTRL fuses (bit 0 horizontal, bit 1
+        vertical) follow it; with neither, it is ignored as EKF2 ignores it."""
         if message.frame_id not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD):
             self._statustext(mavlink.MAV_SEVERITY_WARNING,
                              f"ODOMETRY frame {message.frame_id} unsupported")
             return
         position = ned_to_enu((message.x, message.y, message.z))
-        if not np.all(np.isfinite(position)):
+        ev_ctrl = self.parameters["EKF2_EV_CTRL"]
+        fused = np.array([ev_ctrl & 1, ev_ctrl & 1, ev_ctrl & 2], dtype=bool)
+        if not np.all(np.isfinite(position)) or not fused.any():
             return
-        self._ev_offset = position - np.asarray(self.vehicle.state.position)
+        offset = position - np.asarray(self.vehicle.state.position)
+        self._ev_offset = np.where(fused, offset, self._ev_offset)
         self._ev_time = self.time
 
     @property
@@ -248,6 +398,9 @@ class MockPx4:
             "SET_POSITION_TARGET_LOCAL_NED": self._handle_setpoint,
             "TIMESYNC": self._handle_timesync,
             "ODOMETRY": self._handle_odometry,
+            "PARAM_REQUEST_READ": self._handle_param_request_read,
+            "PARAM_REQUEST_LIST": self._handle_param_request_list,
+            "PARAM_SET": self._handle_param_set,
         }.get(kind)
         if handler is None:
             return
@@ -257,8 +410,11 @@ class MockPx4:
             # A well-framed message with nonsense in it (NaN where an integer belongs, ...)
             log.warning("ignored %s: %s", kind, error)
 
-    def _for_me(self, message) -> bool:
-        return (message.target_system in (0, self.options.system_id)
+    def _for_me(self, message, *, any_system: bool = True) -> bool:
+        """Addressed to us, or to every component; to every system too unless ``any_system``
+        is False (the parameter protocol wants our system id: mavlink_parameters.cpp)."""
+        systems = (0, self.options.system_id) if any_system else (self.options.system_id,)
+        return (message.target_system in systems
                 and message.target_component in (0, self.options.component_id))
 
     def _handle_command_long(self, message) -> None:
@@ -318,15 +474,22 @@ class MockPx4:
                          f"Unsupported ARM_DISARM param: {params[0]:.3f}")
         return mavlink.MAV_RESULT_UNSUPPORTED
 
+    def arming_denial(self) -> str | None:
+        """Why arming would be refused now (the failing check, as PX4 words it), None when the
+        checks pass: what SYS_STATUS's MAV_SYS_STATUS_PREARM_CHECK bit reports."""
+        if self.vehicle.collision is not None:
+            return "vehicle crashed"
+        if self.mode == px4_protocol.OFFBOARD and not self._offboard_signal_ok():
+            return "no offboard signal"
+        return None
+
     def _arm(self) -> int:
         # Commands from MAVLink always run the preflight checks, forced or not (Commander.cpp).
         if self.vehicle.armed:
             return mavlink.MAV_RESULT_ACCEPTED
-        if self.vehicle.collision is not None:
-            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: vehicle crashed")
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if self.mode == px4_protocol.OFFBOARD and not self._offboard_stream_ok():
-            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no offboard signal")
+        denial = self.arming_denial()
+        if denial is not None:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, f"Arming denied: {denial}")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         self.vehicle.arm()
         self._home = np.array(self.estimate.position)
@@ -362,7 +525,7 @@ class MockPx4:
         if math.isfinite(altitude_amsl):
             self._takeoff_height = max(0.5, altitude_amsl - HOME_ALTITUDE_M)
         else:
-            self._takeoff_height = self.options.takeoff_altitude
+            self._takeoff_height = self.parameters["MIS_TAKEOFF_ALT"]
         return self._change_mode(px4_protocol.AUTO_TAKEOFF)
 
     SUPPORTED_MODES = (px4_protocol.OFFBOARD, px4_protocol.AUTO_LOITER, px4_protocol.AUTO_LAND,
@@ -374,7 +537,7 @@ class MockPx4:
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
                              f"Switching to {mode.name} is not supported here")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if mode == px4_protocol.OFFBOARD and not self._offboard_stream_ok():
+        if mode == px4_protocol.OFFBOARD and not self._offboard_signal_ok():
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
                              "Switching to Offboard is currently not available")
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -429,12 +592,8 @@ class MockPx4:
         if not self._for_me(message):
             return
         setpoint = self._decode_setpoint(message)
-        if setpoint is None:
-            return
-        previous = self._setpoint
-        if previous is None or setpoint.time - previous.time > OFFBOARD_MAX_SETPOINT_GAP:
-            self._stream_start = setpoint.time
-        self._setpoint = setpoint
+        if setpoint is not None:
+            self._setpoint = setpoint
 
     def _decode_setpoint(self, message) -> OffboardSetpoint | None:
         mask = message.type_mask
@@ -471,13 +630,16 @@ class MockPx4:
             yaw_rate=-yaw_rate_ned,       # about down -> about up
         )
 
-    def _offboard_stream_ok(self) -> bool:
-        """Setpoints have streamed at >= 2 Hz for more than a second, the last one fresh."""
-        if self._setpoint is None or self._stream_start is None:
-            return False
-        fresh = self.time - self._setpoint.time <= min(OFFBOARD_MAX_SETPOINT_GAP,
-                                                       self.options.offboard_loss_timeout)
-        return fresh and self._setpoint.time - self._stream_start > OFFBOARD_MIN_STREAM_TIME
+    def _offboard_signal_ok(self) -> bool:
+        """PX4's one condition for offboard, to enter it and to stay in it: an accepted
+        setpoint arrived less than COM_OF_LOSS_T ago. No stream of any length or rate is asked
+        for: a single setpoint makes offboard available
+        (src/modules/commander/HealthAndArmingChecks/checks/offboardCheck.cpp,
+        OffboardChecks::checkAndReport: ``now < offboard_control_mode.timestamp +
+        COM_OF_LOSS_T``; mavlink_receiver.cpp stamps offboard_control_mode on every accepted
+        SET_POSITION_TARGET_LOCAL_NED). COM_OF_LOSS_T = 0 makes offboard unavailable."""
+        return (self._setpoint is not None
+                and self.time < self._setpoint.time + self.parameters["COM_OF_LOSS_T"])
 
     def _handle_timesync(self, message) -> None:
         """Answer requests (tc1 == 0) with our boot time; use answers to our own requests."""
@@ -487,6 +649,72 @@ class MockPx4:
         elif message.ts1 == self._timesync_sent_ns:
             # offset = remote - local, with the remote stamp taken halfway through the round trip
             self.timesync_offset_ns = (2 * message.tc1 - message.ts1 - now_ns) // 2
+
+    # ---------------------------------------------------------------- parameters
+    # MavlinkParametersManager::handle_message and send_param, mavlink_parameters.cpp.
+
+    def _handle_param_request_read(self, message) -> None:
+        """One parameter by index (``param_index`` >= 0; an unknown index is answered with a
+        STATUSTEXT) or by name (an unknown name is not answered at all, as in PX4)."""
+        if not self._for_me(message, any_system=False):
+            return
+        index = message.param_index
+        if index >= len(PARAMETER_NAMES):
+            self._statustext(mavlink.MAV_SEVERITY_INFO, f"[pm] unknown param ID: {index}")
+        elif index >= 0:
+            self._send_parameter(PARAMETER_NAMES[index])
+        elif message.param_id == HASH_PARAM:
+            self._send_parameter_hash()
+        elif message.param_id in self.parameters:
+            self._send_parameter(message.param_id)
+
+    def _handle_param_request_list(self, message) -> None:
+        """The hash of the table first, then every parameter in index order (PX4 spreads them
+        over its next sends; the mock sends them at once)."""
+        if not self._for_me(message, any_system=False):
+            return
+        self._send_parameter_hash()
+        for name in PARAMETER_NAMES:
+            self._send_parameter(name)
+
+    def _handle_param_set(self, message) -> None:
+        """Set and answer with the parameter's PARAM_VALUE. As PX4's param_set, the four bytes
+        are taken as the parameter's own type whatever ``param_type`` says. A value the mock
+        cannot honour is refused with a STATUSTEXT and answered with the value kept."""
+        name = message.param_id
+        if not self._for_me(message, any_system=False) or name == HASH_PARAM:
+            return
+        if name not in self.parameters:
+            self._statustext(mavlink.MAV_SEVERITY_INFO, f"[pm] unknown param: {name}")
+            return
+        try:
+            self.set_parameter(name, decode_value(message.param_value, PARAMETER_TYPES[name]))
+        except ValueError as error:
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, f"[pm] {error}")
+        self._send_parameter(name)
+
+    def set_parameter(self, name: str, value: float) -> None:
+        """Set parameter ``name`` as PARAM_SET does (ValueError as :func:`check_parameter`);
+        the behaviour follows from the next tick."""
+        self.parameters[name] = check_parameter(name, value)
+
+    def _send_parameter(self, name: str) -> None:
+        param_type = PARAMETER_TYPES[name]
+        self.link.send(self.link.mav.param_value_encode(
+            name.encode(), encode_value(self.parameters[name], param_type), param_type,
+            len(PARAMETER_NAMES), PARAMETER_NAMES.index(name)))
+
+    def _send_parameter_hash(self) -> None:
+        """``_HASH_CHECK``: a CRC-32 over every name and value, in the manner of PX4's
+        param_hash_check (lib/parameters/parameters.cpp), not bit for bit: a ground station
+        only compares it with the hash of its cached copy."""
+        crc = 0
+        for name in PARAMETER_NAMES:
+            value = encode_value(self.parameters[name], PARAMETER_TYPES[name])
+            crc = zlib.crc32(struct.pack("<f", value), zlib.crc32(name.encode(), crc))
+        self.link.send(self.link.mav.param_value_encode(
+            HASH_PARAM.encode(), encode_value(crc, mavlink.MAV_PARAM_TYPE_UINT32),
+            mavlink.MAV_PARAM_TYPE_UINT32, len(PARAMETER_NAMES), HASH_PARAM_INDEX))
 
     # ---------------------------------------------------------------- flying
 
@@ -513,16 +741,21 @@ class MockPx4:
         self._auto_disarm()
 
     def _fly_offboard(self) -> None:
-        setpoint = self._setpoint
-        if setpoint is None or self.time - setpoint.time > self.options.offboard_loss_timeout:
-            action = self.options.offboard_loss_action
-            mode = px4_protocol.AUTO_LAND if action == "land" else px4_protocol.AUTO_LOITER
-            self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
-                             f"Failsafe activated: offboard lost, switching to {mode.name}")
-            self._set_mode(mode)
-            self._fly()
+        """Follow the setpoint while the offboard signal holds (:meth:`_offboard_signal_ok`);
+        when it is lost, armed, the failsafe switches to COM_OBL_RC_ACT's mode. Disarmed, PX4
+        takes no failsafe action (failsafe/framework.cpp, FailsafeBase::getSelectedAction:
+        ``if (!state.armed) action = None``): the mode stays and arming is refused."""
+        if self._offboard_signal_ok():
+            self.vehicle.set_target(self._offboard_target(self._setpoint))
             return
-        self.vehicle.set_target(self._offboard_target(setpoint))
+        if not self.vehicle.armed:
+            self._fly_hold()
+            return
+        mode = OFFBOARD_LOSS_MODES[self.parameters["COM_OBL_RC_ACT"]]
+        self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                         f"Failsafe activated: offboard lost, switching to {mode.name}")
+        self._set_mode(mode)
+        self._fly()
 
     def _offboard_target(self, setpoint: OffboardSetpoint) -> ControlTarget:
         """PX4's per-axis rule (PositionControl): a position axis is tracked with the velocity as
@@ -554,8 +787,7 @@ class MockPx4:
         if self.vehicle.landed:
             # PX4's land detector keeps a landed vehicle at idle in Hold: never lift off because
             # the estimate's noise put the hold point a few centimetres above the ground.
-            self.vehicle.set_target(ControlTarget(
-                velocity=np.array([0.0, 0.0, -self.options.land_speed]), yaw=self._hold_yaw))
+            self._fly_land()
             return
         self.vehicle.set_target(ControlTarget(
             position=self._to_vehicle_frame(self._hold_position),
@@ -571,21 +803,27 @@ class MockPx4:
             self._hold_position = goal
             self._fly_hold()
             return
-        self.vehicle.set_target(ControlTarget(
-            velocity=np.array([0.0, 0.0, self.options.takeoff_speed]), yaw=self._hold_yaw))
+        self._climb(self.parameters["MPC_TKO_SPEED"])
 
     def _fly_land(self) -> None:
-        self.vehicle.set_target(ControlTarget(
-            velocity=np.array([0.0, 0.0, -self.options.land_speed]), yaw=self._hold_yaw))
+        self._climb(-self.parameters["MPC_LAND_SPEED"])
+
+    def _climb(self, rate: float) -> None:
+        """Straight up (down for a negative rate) at ``rate`` m/s, holding the heading."""
+        self.vehicle.set_target(ControlTarget(velocity=np.array([0.0, 0.0, rate]),
+                                              yaw=self._hold_yaw))
 
     def _auto_disarm(self) -> None:
-        """Disarm COM_DISARM_LAND seconds after touching down (Land, or armed and left idle)."""
-        if not self.vehicle.armed or not self.vehicle.landed or self.mode != px4_protocol.AUTO_LAND:
+        """Disarm COM_DISARM_LAND seconds after touching down in Land; a value not above 0
+        turns it off (Commander.cpp, handleAutoDisarm: ``_param_com_disarm_land.get() > 0``)."""
+        delay = self.parameters["COM_DISARM_LAND"]
+        if (not self.vehicle.armed or not self.vehicle.landed or delay <= 0.0
+                or self.mode != px4_protocol.AUTO_LAND):
             self._landed_since = None
             return
         if self._landed_since is None:
             self._landed_since = self.time
-        if self.time - self._landed_since >= self.options.disarm_after_land:
+        if self.time - self._landed_since >= delay:
             self._disarm(forced=True, reason="landing")
             self._set_mode(px4_protocol.AUTO_LOITER)
 
@@ -628,7 +866,9 @@ class MockPx4:
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
             mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
             mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: self._highres_imu,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
             mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: self._attitude_quaternion,
+            mavlink.MAVLINK_MSG_ID_RC_CHANNELS: self._rc_channels,
             mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
             mavlink.MAVLINK_MSG_ID_ODOMETRY: self._odometry,
         }
@@ -676,14 +916,20 @@ class MockPx4:
             self.mode.custom_mode, status)
 
     def _sys_status(self):
-        sensors = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-                   | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
-                   | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
-                   | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
-                   | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+        """SYS_STATUS as PX4 v1.14-v1.15 fills it from its health report
+        (src/modules/mavlink/streams/SYS_STATUS.hpp, MavlinkStreamSysStatus::send): the
+        components of :data:`SYS_STATUS_COMPONENTS` (none failing on the mock), and
+        MAV_SYS_STATUS_PREARM_CHECK in the health field only, set while arming is possible
+        in the current mode (``health_report.can_arm_mode_flags & (1 << nav_state)``). That
+        bit is all MAVSDK reads for ``Telemetry.health().is_armable``
+        (telemetry_impl.cpp, TelemetryImpl::process_sys_status)."""
+        present, enabled, health = _component_bits(SYS_STATUS_COMPONENTS)
+        extended = _component_bits(SYS_STATUS_EXTENDED_COMPONENTS)
+        if self.arming_denial() is None:
+            health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
         bad_data = min(self.link.bad_data_count, 65535)
-        return self.link.mav.sys_status_encode(sensors, sensors, sensors, 250, 16200, 500, 90,
-                                               0, bad_data, 0, 0, 0, 0)
+        return self.link.mav.sys_status_encode(present, enabled, health, 250, 16200, 500, 90,
+                                               0, bad_data, 0, 0, 0, 0, *extended)
 
     def _landed_state(self) -> int:
         if self.vehicle.landed:
@@ -716,6 +962,22 @@ class MockPx4:
             self._boot_ns() // 1000, *accel, *gyro, 0.0, 0.0, 0.0, 1013.25, 0.0, 0.0, 25.0,
             HIGHRES_IMU_FIELDS)
 
+    def _attitude(self):
+        """ATTITUDE: the estimate's roll, pitch and yaw (NED/FRD) as PX4's matrix::Eulerf of
+        the attitude quaternion, body rates FRD (src/modules/mavlink/streams/ATTITUDE.hpp)."""
+        roll, pitch, yaw = _euler_zyx(quat_to_rot(quat_enu_flu_to_ned_frd(self.estimate.q_W_B)))
+        rates = flu_to_frd(self.estimate.angular_velocity_B)
+        return self.link.mav.attitude_encode(self._boot_ms(), roll, pitch, yaw, *rates)
+
+    def _rc_channels(self):
+        """RC_CHANNELS as PX4 sends its RC input (src/modules/mavlink/streams/RC_CHANNELS.hpp):
+        ``chancount`` the receiver's channel count, channels past it UINT16_MAX, ``rssi``
+        the input's RSSI (PX4's 0-100 scale, passed through)."""
+        pulses = self._rc_pulses_us
+        unused = [RC_CHANNEL_UNUSED] * (RC_CHANNELS_MAX - len(pulses))
+        return self.link.mav.rc_channels_encode(self._boot_ms(), len(pulses), *pulses, *unused,
+                                                RC_RSSI)
+
     def _attitude_quaternion(self):
         q = quat_enu_flu_to_ned_frd(self.estimate.q_W_B)
         rates = flu_to_frd(self.estimate.angular_velocity_B)
@@ -734,6 +996,28 @@ class MockPx4:
             self._boot_ns() // 1000, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
             *enu_to_ned(self.estimate.position), q, *enu_to_ned(self.estimate.velocity),
             *rates, nan_covariance, nan_covariance, 0, mavlink.MAV_ESTIMATOR_TYPE_NAIVE, 100)
+
+
+def _integer_in(value, low: int, high: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+
+
+def _component_bits(components: Mapping[int, bool]) -> tuple[int, int, int]:
+    """(present, enabled, health) as SYS_STATUS.hpp's fillOutComponent sets them for
+    components none of which reports an error or warning: health set for every one, present
+    for those the vehicle has, enabled for those present (or unhealthy)."""
+    present = sum(bit for bit, has in components.items() if has)
+    return present, present, sum(components)
+
+
+def _euler_zyx(R: np.ndarray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (Z-Y-X) of a rotation matrix as PX4's matrix::Euler(Dcm) computes them
+    (src/lib/matrix/matrix/Euler.hpp): at +-90 degrees pitch, roll 0 and yaw the rest."""
+    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    if abs(abs(pitch) - math.pi / 2) < 1e-3:
+        sign = math.copysign(1.0, pitch)
+        return 0.0, pitch, math.atan2(sign * R[1, 2], sign * R[0, 2])
+    return math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])
 
 
 def _round(value: float) -> int:

@@ -30,6 +30,14 @@ from drivers.sim.quadrotor import Collision, Quadrotor, VehicleOptions
 
 log = logging.getLogger(__name__)
 
+#: How the simulator's own flights (``companion sim fly``, :mod:`drivers.sim.host`) link the
+#: application to the mock PX4: loopback UDP, or a serial port (the mock serving a
+#: pseudo-terminal, the application opening its other side as ``serial://`` at
+#: :data:`SERIAL_BAUD`: the code a flight controller on a UART goes through).
+LINKS = ("udp", "serial")
+#: The serial link's rate: a Pixracer's TELEM port as the paper's vehicle sets it.
+SERIAL_BAUD = 921600
+
 
 class StopSignal(Protocol):
     """Anything with ``is_set()``: ``asyncio.Event`` or ``threading.Event``."""
