@@ -108,6 +108,19 @@ class DepthDiagnostics:
     reason: str = ""
 
 
+@dataclass(frozen=True, eq=False)
+class FitSamples:
+    """The fit behind a :class:`MetricDepth`, for the flight recorder: the anchors it was made
+    from (``anchor_relative``, relative disparity; ``anchor_depth``, the VINS depth in metres;
+    empty for a held fit, whose anchors belong to an earlier frame) and the curve sampled over
+    the anchors' range (``curve_relative`` to ``curve_metric_disparity``, 1/m)."""
+
+    anchor_relative: np.ndarray
+    anchor_depth: np.ndarray
+    curve_relative: np.ndarray
+    curve_metric_disparity: np.ndarray
+
+
 @dataclass(frozen=True)
 class MetricDepth:
     """Metric depth for the camera frame taken at ``t``.
@@ -116,6 +129,8 @@ class MetricDepth:
     in [0, 1] per pixel, how densely anchors support that disparity. Both are None when there is
     no depth (no fit within the hold time, or the network output was rejected): the planner
     treats that as stop. ``held`` is True when the fit applied was made on an earlier frame.
+    ``relative``: the network's relative disparity it was made from and ``fit`` the curve
+    applied (None without one), kept for the flight recorder.
     """
 
     t: float
@@ -123,6 +138,8 @@ class MetricDepth:
     confidence: np.ndarray | None
     held: bool
     diagnostics: DepthDiagnostics
+    relative: np.ndarray | None = None
+    fit: FitSamples | None = None
 
     @property
     def ok(self) -> bool:

@@ -2,7 +2,7 @@
 
     python benchmarks/flight_cpu.py [--repeats 3] [--world dome] [--threads 2]
 
-Flies ``companion sim fly --world W --json --no-plot`` (lockstep, the world's first pair,
+Flies ``companion sim fly --world W --json --no-plot --no-record`` (lockstep, the world's first pair,
 estimated depth) in a child process, ``--repeats`` times with OpenBLAS at one thread (the
 application's default, companion/__init__.py) and as many times with ``--threads`` threads
 (OpenBLAS's default is one per core), interleaved. Reports the medians of wall seconds and of
@@ -26,7 +26,7 @@ def fly(world: str, threads: int) -> tuple[float, float, dict]:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     run = subprocess.run([sys.executable, "-m", "companion", "sim", "fly", "--world", world,
-                          "--json", "--no-plot"], env=env, capture_output=True, text=True,
+                          "--json", "--no-plot", "--no-record"], env=env, capture_output=True, text=True,
                          check=True)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)

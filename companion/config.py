@@ -35,6 +35,7 @@ from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import StaticInitOptions
 from companion.flight.go import GoOptions
+from companion.recording.options import RecorderOptions
 from drivers.camera.options import CameraOptions
 from drivers.camera.oak import OakOptions
 from drivers.camera.realsense import RealSenseOptions
@@ -76,6 +77,7 @@ class FlightConfig:
     planner: PlannerOptions = field(default_factory=PlannerOptions)
     flight: FlightOptions = field(default_factory=FlightOptions)
     go: GoOptions = field(default_factory=GoOptions)
+    recorder: RecorderOptions = field(default_factory=RecorderOptions)
     mavlink: MavlinkOptions = field(default_factory=MavlinkOptions)
 
     def __post_init__(self) -> None:
@@ -149,9 +151,24 @@ def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Confi
     Later sources win: the file over the defaults, each override over the file and the
     overrides before it. Raises :class:`ConfigError` for anything wrong.
     """
+    document = None if path is None else (_read_toml(Path(path)), str(path))
+    return _load(document, overrides)
+
+
+def config_from_toml(text: str, source: str, overrides: Sequence[str] = ()) -> Config:
+    """As :func:`load_config`, from TOML ``text`` (a recording's config) named ``source`` in
+    errors."""
+    try:
+        document = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(source, f"invalid TOML: {error}") from None
+    return _load((document, source), overrides)
+
+
+def _load(document: tuple[dict[str, Any], str] | None, overrides: Sequence[str]) -> Config:
     settings: _Settings = {}
-    if path is not None:
-        _add_document(settings, _read_toml(Path(path)), str(path))
+    if document is not None:
+        _add_document(settings, *document)
     for text in overrides:
         override = parse_override(text)
         _set(settings, override.source, override.section, override.key, override.value)

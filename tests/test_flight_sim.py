@@ -55,8 +55,8 @@ def test_sim_fly_standing_facing_away_turns_glides_for_parallax_and_flies_on(cap
     the no-metric-depth failsafe stopped it)."""
     start = build_world("sewer", 0).routes[4].start  # not the world's first start
     plot = tmp_path / "flight.png"
-    status = cli.main(["sim", "fly", "--world", "sewer", "--pair", "4", "--json", "--plot",
-                       str(plot), "--goal", f"{start[0]},{start[1] + 8.0},1.5",
+    status = cli.main(["sim", "fly", "--world", "sewer", "--pair", "4", "--json", "--no-record",
+                       "--plot", str(plot), "--goal", f"{start[0]},{start[1] + 8.0},1.5",
                        "--start-yaw", "-90"])  # the goal is north, the vehicle faces south
     summary = json.loads(capsys.readouterr().out)
     assert SUMMARY_KEYS <= set(summary)
@@ -76,6 +76,10 @@ def test_sim_fly_standing_facing_away_turns_glides_for_parallax_and_flies_on(cap
     (["--start-yaw", "nan"], "start yaw must be a finite number of degrees, got nan"),
     (["--set", "camera.distortion_model=radtan", "--set", "camera.distortion=[0.1,0,0,0]"],
      "the simulator renders an ideal pinhole camera"),
+    # a recording that cannot be made stops the flight before arming, saying where
+    (["--set", "recorder.directory=/dev/null/recordings"],
+     "cannot create the recordings directory /dev/null/recordings"),
+    (["--no-record", "--live"], "--live serves what the recorder writes"),
 ])
 def test_sim_fly_refuses_a_bad_mission_clearly(capsys, argv, words):
     assert cli.main(["sim", "fly", "--no-plot", *argv]) == 1
@@ -96,17 +100,39 @@ WORLDS = ("dome", "sewer", "mine")
 FLIGHT_WALL_TIMEOUT_S = 1500
 
 
+#: The world whose first-pair flight is recorded (the others fly with --no-record).
+RECORDED_WORLD = "dome"
+
+
+class FirstPairFlights:
+    """The flights, started together; :meth:`summary` waits for one and parses it once."""
+
+    def __init__(self, recordings):
+        self.processes = {world: subprocess.Popen(
+            [sys.executable, "-m", "companion", "sim", "fly", "--world", world, "--json",
+             "--no-plot", *(["--set", f"recorder.directory={recordings}"]
+                            if world == RECORDED_WORLD else ["--no-record"])],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True) for world in WORLDS}
+        self._summaries = {}
+
+    def summary(self, world: str) -> dict:
+        if world not in self._summaries:
+            out, _ = self.processes[world].communicate(timeout=FLIGHT_WALL_TIMEOUT_S)
+            self._summaries[world] = json.loads(out)
+        return self._summaries[world]
+
+    def returncode(self, world: str) -> int:
+        return self.processes[world].returncode
+
+
 @pytest.fixture(scope="module", autouse=True)
-def first_pair_flights():
+def first_pair_flights(tmp_path_factory):
     """The first pair of every world, each flown by ``companion sim fly --json`` in its own
     process from the start of this module: the flights are minutes long and single-threaded,
     so they run beside each other and beside the failsafe flights below."""
-    flights = {world: subprocess.Popen(
-        [sys.executable, "-m", "companion", "sim", "fly", "--world", world, "--json",
-         "--no-plot"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        for world in WORLDS}
+    flights = FirstPairFlights(tmp_path_factory.mktemp("recordings"))
     yield flights
-    for process in flights.values():
+    for process in flights.processes.values():
         process.kill()
         process.wait()
 
@@ -115,12 +141,43 @@ def first_pair_flights():
 def test_first_pair_of_each_world_reaches_its_goal_without_collision(world, first_pair_flights):
     """Estimated depth all the way: the dome's open field, the sewer's 3 m hallway and the
     mine's 3 m tunnels with their 90 degree corners."""
-    out, _ = first_pair_flights[world].communicate(timeout=FLIGHT_WALL_TIMEOUT_S)
-    summary = json.loads(out)
+    summary = first_pair_flights.summary(world)
     assert SUMMARY_KEYS <= set(summary)
     assert_safe_landing(summary)
     assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
     assert summary["closest_to_goal_m"] <= Config().flight.goal_tolerance + 1.0
     assert summary["min_clearance_m"] > Config().vehicle.collision_radius
     assert summary["depth_rate_hz"] > 10.0  # metric depth for most frames of a 20 Hz camera
-    assert first_pair_flights[world].returncode == 0
+    assert first_pair_flights.returncode(world) == 0
+
+
+def test_the_recorded_flight_holds_every_channel_decodable_and_as_counted(first_pair_flights):
+    """The dome flight's MCAP (issue 22): every topic present, every message decodes with its
+    channel's schema (protobuf through the schema's own descriptors, JSON as JSON), and the
+    counts agree with the flight's summary."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from companion.recording import topics
+
+    summary = first_pair_flights.summary(RECORDED_WORLD)
+    recording = summary["recording"]
+    assert recording["error"] is None
+    counts, decode_protobuf = {}, DecoderFactory()
+    with open(recording["path"], "rb") as file:
+        reader = make_reader(file)
+        for schema, channel, message in reader.iter_messages():
+            if channel.message_encoding == "json":
+                json.loads(message.data)
+            else:
+                decode_protobuf.decoder_for(channel.message_encoding, schema)(message.data)
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert set(counts) == {topic.name for topic in topics.TOPICS}
+    assert sum(counts.values()) == recording["messages"]
+    dropped_frames = sum(recording["dropped"].get(topics.CAMERA_IMAGE.name, {}).values())
+    assert counts[topics.CAMERA_IMAGE.name] + dropped_frames == summary["frames"]
+    assert counts[topics.EVENTS.name] == len(summary["transitions"])
+    assert counts[topics.CAMERA_CALIBRATION.name] == 1
+    assert "[camera]" in metadata["companion"]["config"]
+    assert json.loads(metadata["companion"]["mission"])["world"] == RECORDED_WORLD

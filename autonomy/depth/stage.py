@@ -30,7 +30,8 @@ import numpy as np
 
 from autonomy.depth.anchors import sample_nearest_surface
 from autonomy.depth.rescale import RescaleModel, RescaleOptions, TemporalBlend, fit
-from autonomy.messages import DepthDiagnostics, MetricDepth, RelativeDepth, SparseMap
+from autonomy.messages import (DepthDiagnostics, FitSamples, MetricDepth, RelativeDepth,
+                               SparseMap)
 from autonomy.options import option, validate
 
 
@@ -121,7 +122,7 @@ class MetricDepthStage:
             reason, detail = problem
             self.rejected[reason.value] += 1
             self._blend = TemporalBlend(self.rescale.temporal_blend)  # no curve across a gap
-            return _no_depth(t, f"network output rejected ({reason.value}): {detail}")
+            return _no_depth(t, f"network output rejected ({reason.value}): {detail}", None)
         disparity = np.asarray(relative.disparity, dtype=np.float32)
         if sparse_map is not None and abs(sparse_map.t - t) > self.options.max_map_offset_s:
             sparse_map = None  # another frame's map: its landmarks are not at these pixels
@@ -135,15 +136,17 @@ class MetricDepthStage:
             return self._hold(t, disparity, len(x),
                               f"no fit ({result.reason.value}): {result.detail}")
         self._last_good = _GoodFit(t, result)
-        return _apply(t, disparity, result, len(x), fit_age_s=0.0, reason="")
+        return _apply(t, disparity, result, (x, z), fit_age_s=0.0, reason="")
 
     def _hold(self, t: float, disparity: np.ndarray, anchors: int, reason: str) -> MetricDepth:
         """The last good fit applied to this frame while it is at most ``hold_s`` old, else
         no depth."""
         held = self._last_good
         if held is None or not 0.0 <= t - held.t <= self.options.hold_s:
-            return _no_depth(t, reason, anchors)
-        return _apply(t, disparity, held.model, anchors, fit_age_s=t - held.t, reason=reason)
+            return _no_depth(t, reason, disparity, anchors)
+        empty = np.empty(0)
+        return _apply(t, disparity, held.model, (empty, empty), fit_age_s=t - held.t,
+                      reason=reason, sampled=anchors)
 
     def anchors(self, sparse_map: SparseMap,
                 disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -158,15 +161,28 @@ class MetricDepthStage:
         return x[on_image], depth[on_image]
 
 
-def _apply(t: float, disparity: np.ndarray, model: RescaleModel, anchors: int, *,
-           fit_age_s: float, reason: str) -> MetricDepth:
-    """``model`` applied to the frame; a non-empty ``reason`` marks a held fit."""
+#: Points the curve is sampled at for :class:`~autonomy.messages.FitSamples`.
+CURVE_SAMPLES = 32
+
+
+def _apply(t: float, disparity: np.ndarray, model: RescaleModel,
+           anchors: tuple[np.ndarray, np.ndarray], *, fit_age_s: float, reason: str,
+           sampled: int | None = None) -> MetricDepth:
+    """``model`` applied to the frame; a non-empty ``reason`` marks a held fit. ``anchors``:
+    the (relative, depth) pairs of this frame's fit; ``sampled``: how many anchors the frame
+    had, when not those (a held fit)."""
     depth, confidence = model.depth_and_confidence(disparity)
-    diagnostics = DepthDiagnostics(anchors, model.anchors.used, model.residual_rms,
+    count = len(anchors[0]) if sampled is None else sampled
+    diagnostics = DepthDiagnostics(count, model.anchors.used, model.residual_rms,
                                    model.method, fit_age_s, reason)
-    return MetricDepth(t, depth, confidence, held=bool(reason), diagnostics=diagnostics)
+    curve_x = np.linspace(*model.anchor_range, CURVE_SAMPLES)
+    fit = FitSamples(anchors[0], anchors[1], curve_x, model.metric_disparity(curve_x))
+    return MetricDepth(t, depth, confidence, held=bool(reason), diagnostics=diagnostics,
+                       relative=disparity, fit=fit)
 
 
-def _no_depth(t: float, reason: str, anchors: int = 0) -> MetricDepth:
+def _no_depth(t: float, reason: str, disparity: np.ndarray | None,
+              anchors: int = 0) -> MetricDepth:
     return MetricDepth(t, None, None, held=False,
-                       diagnostics=DepthDiagnostics(anchors, 0, math.nan, "", math.nan, reason))
+                       diagnostics=DepthDiagnostics(anchors, 0, math.nan, "", math.nan, reason),
+                       relative=disparity)

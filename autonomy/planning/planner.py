@@ -36,9 +36,10 @@ new braking begins where the vehicle is.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, fields, replace
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -108,6 +109,28 @@ class Setpoint(NamedTuple):
 
 
 @dataclass(frozen=True, eq=False)
+class PlanRequest:
+    """What :meth:`Planner.plan` was asked: the body's pose and velocity, the goal, and
+    whether to stop there. Kept on the plan so a replay can ask again."""
+
+    T_W_B: np.ndarray
+    velocity_W: np.ndarray
+    goal_W: np.ndarray
+    stop_at_goal: bool
+
+
+@dataclass(frozen=True, eq=False)
+class Candidates:
+    """One round's choice: the tier's ``primitives`` (in ``Plan.T_W_S``'s start frame), which
+    were ``safe``, and the index of the one ``chosen``."""
+
+    speed: float
+    primitives: Sequence[Primitive]
+    safe: np.ndarray
+    chosen: int
+
+
+@dataclass(frozen=True, eq=False)
 class Plan:
     """What to fly from time ``t``: ``primitive`` in the start frame whose pose is ``T_W_S``.
 
@@ -116,7 +139,9 @@ class Plan:
     from the velocity at ``t``). ``reason``: "" for an arc, else why it stops. ``safe_count``:
     primitives found safe this round. ``clearance``: metres between the robot's sphere and the
     observed surfaces along the primitive (inf where none was measured, NaN for an unchecked
-    stop). ``stop_duration_s``: the braking time.
+    stop). ``stop_duration_s``: the braking time. ``candidates``: what an arc was chosen from
+    (None for a stop), ``request``: what the round asked (None for a plan not of
+    :meth:`Planner.plan`), both for the flight recorder and replay.
     """
 
     t: float
@@ -127,6 +152,8 @@ class Plan:
     safe_count: int
     clearance: float
     stop_duration_s: float
+    candidates: "Candidates | None" = None
+    request: PlanRequest | None = None
 
     def setpoint(self, t: float) -> "Setpoint":
         """What to command at time ``t``: the primitive's motion ``tau = t - self.t`` after its
@@ -185,6 +212,12 @@ class Planner:
         ``velocity_W`` (m/s), heading for ``goal_W`` (module docstring). ``stop_at_goal``: the
         vehicle is to stop there (the last waypoint, a sharp corner), so only tiers whose
         arc and braking end no farther than the goal are flown, the slowest always."""
+        plan = self._plan(t, T_W_B, velocity_W, goal_W, stop_at_goal)
+        return dataclasses.replace(plan, request=PlanRequest(
+            np.array(T_W_B, dtype=float), np.array(velocity_W, dtype=float),
+            np.array(goal_W, dtype=float), stop_at_goal))
+
+    def _plan(self, t: float, T_W_B, velocity_W, goal_W, stop_at_goal: bool) -> Plan:
         t = _finite_time(t)
         T_W_S = _start_pose(T_W_B)
         velocity = _vector(velocity_W, "velocity_W")
@@ -207,7 +240,7 @@ class Planner:
         i = int(np.argmin(cost))
         chosen = float(clearance[i])
         plan = Plan(t, T_W_S, tier.library[i], "arc", "", count, chosen,
-                    self.options.stop_duration_s)
+                    self.options.stop_duration_s, Candidates(tier.speed, tier.library, safe, i))
         self._previous = plan
         self._checked_stop = Plan(t, T_W_S, tier.branches[i], "stop", "", count, chosen,
                                   self.options.stop_duration_s)

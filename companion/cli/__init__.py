@@ -8,7 +8,8 @@ import sys
 from typing import Sequence
 
 from companion import __version__
-from companion.cli import bench, common, config_commands, depth, devices, fly, sim
+from companion.cli import (bench, common, config_commands, depth, devices, fly, log, replay,
+                           sim)
 from companion.cli import eval as eval_commands
 from companion.config import LOG_LEVELS
 
@@ -39,6 +40,7 @@ def _build_parser() -> argparse.ArgumentParser:
                         help="lowest severity logged to stderr (default: [log] level of the "
                              "config, INFO unless set)")
     commands = common.add_command_group(parser)
-    for group in (config_commands, bench, sim, eval_commands, depth, devices, fly):
+    for group in (config_commands, bench, sim, eval_commands, depth, devices, fly, log,
+                  replay):
         group.add_commands(commands)
     return parser

@@ -102,6 +102,22 @@ def add_json_flag(parser: argparse.ArgumentParser, instead_of: str) -> None:
                         help=f"print the result as one JSON object instead of {instead_of}")
 
 
+def add_record_flags(parser: argparse.ArgumentParser) -> None:
+    """``--no-record`` and ``--live [HOST:PORT]`` (docs/recording.md)."""
+    parser.add_argument("--no-record", dest="record", action="store_false",
+                        help="write no flight recording (default: record as [recorder] says, "
+                             "docs/recording.md)")
+    parser.add_argument("--live", nargs="?", const="127.0.0.1:8765", default=None,
+                        metavar="HOST:PORT",
+                        help="serve the recorder's topics to Foxglove over WebSocket while "
+                             "flying (default address: %(const)s)")
+
+
+def recording_wanted(args: argparse.Namespace, config) -> bool:
+    """Record unless ``--no-record`` or ``[recorder] enabled = false``."""
+    return args.record and config.recorder.enabled
+
+
 def png_path(text: str) -> Path:
     """A path ending in .png (checked before a long run, not after it)."""
     if not text.lower().endswith(".png"):

@@ -27,6 +27,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                      help="open the network, the camera and the link, run every preflight check "
                           "(camera rate and exposure, IMU rate, TIMESYNC, PX4 parameters), print "
                           "a pass/fail table and exit without arming")
+    common.add_record_flags(fly)
     common.add_json_flag(fly, instead_of="the summary table")
     fly.set_defaults(command=_fly)
 
@@ -46,12 +47,16 @@ def _fly(args: argparse.Namespace, config: Config) -> int:
     from companion.launch import real
     from companion.flight.app import format_flight
     from companion.flight.go import GoError
+    from companion.recording.live import LiveViewError
+    from companion.recording.storage import RecordingError
     from drivers.camera.base import CameraError
 
     waypoints = args.goals or config.flight.waypoint_points()
     try:
-        summary = real.run(config, waypoints)
-    except (real.FlyError, NetworkError, CameraError, GoError, ValueError, OSError) as error:
+        summary = real.run(config, waypoints, record=common.recording_wanted(args, config),
+                           live=args.live)
+    except (real.FlyError, NetworkError, CameraError, GoError, RecordingError, LiveViewError,
+            ValueError, OSError) as error:
         print(f"fly: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     print(json.dumps(summary) if args.json else format_flight(summary))

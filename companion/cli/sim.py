@@ -94,6 +94,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     fly.add_argument("--plot", type=Path, default=Path("sim-fly.png"), metavar="PNG",
                      help="where to draw the top view of the flight (default: %(default)s)")
     fly.add_argument("--no-plot", action="store_true", help="draw no plot")
+    common.add_record_flags(fly)
     common.add_json_flag(fly, instead_of="the summary table")
     fly.set_defaults(command=_sim_fly)
 
@@ -153,6 +154,8 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
 
 def _sim_fly(args: argparse.Namespace, config: Config) -> int:
     from companion.launch import simulated
+    from companion.recording.live import LiveViewError
+    from companion.recording.storage import RecordingError
     from drivers.sim.faults import Fault
     from drivers.sim.render import RenderError
 
@@ -163,8 +166,10 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
                                        clock=args.clock, depth=args.depth, link=args.link,
                                        faults=tuple(Fault.parse(f) for f in args.faults))
         summary = simulated.run(config, mission, plot=None if args.no_plot else args.plot,
-                                progress=None if args.json else common.print_progress)
-    except (simulated.SimError, RenderError, ValueError, OSError) as error:
+                                progress=None if args.json else common.print_progress,
+                                record=common.recording_wanted(args, config), live=args.live)
+    except (simulated.SimError, RenderError, RecordingError, LiveViewError, ValueError,
+            OSError) as error:
         print(f"sim fly: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     print(json.dumps(summary) if args.json else simulated.format_summary(summary))

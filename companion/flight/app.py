@@ -101,6 +101,16 @@ class FlightApp:
         return self.context.channels
 
     @property
+    def pinhole(self) -> PinholeCamera:
+        """The rectified camera every stage sees."""
+        return self.perception.planner.camera
+
+    @property
+    def T_B_C(self) -> np.ndarray:
+        """The camera's mounting on the body."""
+        return self.perception.T_B_C
+
+    @property
     def mission(self):
         return self.context.mission
 
@@ -189,7 +199,20 @@ class FlightApp:
 
 def format_flight(summary: dict) -> str:
     """The application's own summary (real or simulated flight) as a few lines."""
-    return "\n".join([
+    return "\n".join([*_flight_lines(summary), *_recording_lines(summary.get("recording"))])
+
+
+def _recording_lines(recording: dict | None) -> list[str]:
+    if recording is None:
+        return []
+    dropped = sum(sum(reasons.values()) for reasons in recording["dropped"].values())
+    problem = f"; stopped: {recording['error']}" if recording["error"] else ""
+    return [f"  recording         {recording['path']} ({recording['messages']} messages, "
+            f"{recording['bytes'] / 1e6:.0f} MB, {dropped} dropped{problem})"]
+
+
+def _flight_lines(summary: dict) -> list[str]:
+    return [
         f"  final state       {summary['final_state']}",
         f"  failsafes         {', '.join(summary['failsafes']) or 'none'}",
         f"  flight time       {show(summary.get('flight_time_s'), '.1f', ' s')}",
@@ -198,4 +221,4 @@ def format_flight(summary: dict) -> str:
         f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops, "
         f"{summary['backoffs']} backings-off)",
         f"  VINS resets       {summary['vins_resets']}",
-    ])
+    ]

@@ -24,6 +24,7 @@ from autonomy.depth.network import DepthNetwork
 from companion.flight.app import FlightApp
 from companion.flight.perception import NetworkDepth
 from companion.launch.systemd import SystemdNotifier
+from companion.recording.session import open_recording, recorded, recording_metadata
 from drivers.camera.calibration import CalibratedCamera, resolve
 from drivers.camera.drivers import open_camera
 from drivers.clock import MonotonicClock
@@ -36,20 +37,33 @@ class FlyError(RuntimeError):
     """The real flight cannot start; the message says what to fix."""
 
 
-def run(config, waypoints) -> dict:
-    """Fly ``waypoints`` ((x, y, z) tuples in PX4's local frame, ENU) and return the summary."""
+def run(config, waypoints, *, record: bool = True, live: str | None = None) -> dict:
+    """Fly ``waypoints`` ((x, y, z) tuples in PX4's local frame, ENU) and return the summary;
+    ``record``: into an MCAP file as ``[recorder]`` says, ``live``: served to Foxglove on
+    ``HOST:PORT`` (docs/recording.md)."""
     if not waypoints:
         raise FlyError("no mission: set [flight] waypoints in the config or give --goal X,Y,Z")
     if not config.depth_network.model:
         raise FlyError("[depth_network] model is empty: companion fly needs the ONNX depth "
                        "network (docs/depth_network.md); the synthetic stand-in only works in "
                        "the simulator")
-    return asyncio.run(_fly(config, waypoints))
+    return asyncio.run(_fly(config, waypoints, record, live))
 
 
-async def _fly(config, waypoints) -> dict:
+async def _fly(config, waypoints, record: bool, live: str | None) -> dict:
     clock = MonotonicClock()
     notifier = SystemdNotifier()
+    # before the network and the camera open: a recording that cannot be made stops here
+    recording = open_recording(config.recorder, clock=clock, to_file=record, live=live,
+                               metadata=recording_metadata(config))
+    try:
+        return await _fly_recorded(config, waypoints, clock, notifier, recording)
+    finally:
+        if recording is not None:
+            recording.close()  # a no-op after a flight; else the file of a start that failed
+
+
+async def _fly_recorded(config, waypoints, clock, notifier, recording) -> dict:
     network = await extending_start_timeout(notifier, lambda: DepthNetwork.open(
         config.depth_network, (config.camera.height, config.camera.width)))
     log.info("depth network on %s", network.provider)
@@ -61,7 +75,7 @@ async def _fly(config, waypoints) -> dict:
             app = build_app(config, waypoints, autopilot=autopilot, camera=camera,
                             network=network, clock=clock, notifier=notifier)
             _stop_on_signals(app)
-            return await app.run()
+            return await recorded(app, recording)
         finally:
             notifier.stopping("mission ended")
             autopilot.close()

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
 import logging
 from pathlib import Path
 from typing import Callable
@@ -34,6 +35,7 @@ import numpy as np
 
 from companion.flight.app import FlightApp, format_flight
 from companion.flight.perception import NetworkDepth
+from companion.recording.session import open_recording, recorded, recording_metadata
 from companion.report import show
 from drivers.mavlink.autopilot import Autopilot
 from drivers.sim.faults import FaultSchedule
@@ -53,8 +55,11 @@ __all__ = ["DEPTH_SOURCES", "SimError", "SimMission", "run", "fly", "format_summ
 
 
 def run(config, mission: SimMission, *, plot: Path | None = None,
-        progress: Callable[[str], None] | None = None) -> dict:
-    """Fly ``mission`` to its end and return the summary (module docstring)."""
+        progress: Callable[[str], None] | None = None, record: bool = False,
+        live: str | None = None) -> dict:
+    """Fly ``mission`` to its end and return the summary (module docstring); ``record``: into
+    an MCAP file as ``[recorder]`` says, ``live``: served to Foxglove on ``HOST:PORT``
+    (docs/recording.md)."""
     if mission.clock not in ("lockstep", "realtime"):
         raise SimError(f"clock must be lockstep or realtime, got {mission.clock!r}")
     if mission.depth not in DEPTH_SOURCES:
@@ -67,14 +72,17 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
         raise SimError("the simulator renders an ideal pinhole camera: [camera] calibration "
                        "must be config and distortion_model none (got "
                        f"{camera.calibration}, {camera.distortion_model})")
-    return asyncio.run(fly(config, mission, plot=plot, progress=progress))
+    return asyncio.run(fly(config, mission, plot=plot, progress=progress, record=record,
+                           live=live))
 
 
 async def fly(config, mission: SimMission, *, plot: Path | None = None,
               progress: Callable[[str], None] | None = None,
-              go_given_by: str = "sim fly") -> dict:
+              go_given_by: str = "sim fly", record: bool = False,
+              live: str | None = None) -> dict:
     """Fly ``mission`` on the running loop and return the summary (module docstring). The
-    command line is the operator's go (``go_given_by``); "" waits for one as ``[go]`` says."""
+    command line is the operator's go (``go_given_by``); "" waits for one as ``[go]`` says.
+    ``record`` and ``live``: as :func:`run`."""
     world = build_world(mission.world, mission.seed)
     start, waypoints, start_yaw = mission_waypoints(world, mission,
                                                     config.flight.takeoff_altitude)
@@ -93,7 +101,11 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         app = build_app(config, clock, side.companion_url(), camera, depth, waypoints,
                         lockstep=mission.clock == "lockstep", go_given_by=go_given_by)
         try:
-            summary = await app.run()
+            metadata = recording_metadata(config,
+                                          mission=json.dumps(dataclasses.asdict(mission)))
+            recording = open_recording(config.recorder, clock=clock, to_file=record, live=live,
+                                       metadata=metadata)
+            summary = await recorded(app, recording)
             summary["mavlink"] = _link_load(app.autopilot.link, sim)
         finally:
             app.autopilot.close()

@@ -33,6 +33,7 @@ import threading
 from collections import Counter, deque
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Callable
 
 import numpy as np
 
@@ -207,6 +208,9 @@ class Autopilot:
             link.setup_signing(self.options.signing_secret,
                                accept_unsigned=px4_protocol.accept_unsigned)
         self.timesync = TimesyncFilter()
+        #: Called as ``on_timesync(now, used)`` after each TIMESYNC round trip (the flight
+        #: recorder's tap); ``used``: whether it updated ``timesync.offset``.
+        self.on_timesync: Callable[[float, bool], None] | None = None
         self.counts: Counter = Counter()
         self.statustexts: deque[StatusText] = deque(maxlen=STATUSTEXT_HISTORY)
         self.connected = False
@@ -543,7 +547,9 @@ class Autopilot:
         if sent is None:
             self.counts["timesync_unmatched"] += 1
             return
-        self.timesync.add(sent, message.tc1 * 1e-9, now)
+        used = self.timesync.add(sent, message.tc1 * 1e-9, now)
+        if self.on_timesync is not None:
+            self.on_timesync(now, used)
 
     def _on_highres_imu(self, message, now: float) -> None:
         start, count = self._rate_window

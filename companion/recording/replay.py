@@ -1,0 +1,394 @@
+"""``companion replay``: a recorded flight's camera and IMU through the VINS, the depth stage and
+the planner again, under any config: the field engineer's tuning loop (docs/recording.md).
+
+The recording is read in log-time order: the order in which the flight's stages handled its
+messages (the recorder logs each when it is handled and publishes it at its own time). Each
+IMU sample goes to the VINS when the flight fed it; each camera frame (decoded from the file,
+so as the recorder stored it) goes through the VINS front-end and back-end, the depth source
+(the ``[depth_network]`` model, or for a simulated flight the synthetic stand-in on the
+recorded true depth, same seed) and the rescaler where the flight's VINS finished it
+(``/vins/health``); its metric depth joins the planner's history where the flight's did
+(``/depth/fit``); each planner round of the recording (``/planner/plan`` with its request) is
+asked again of the replayed planner, with the round's recorded pose, velocity and goal.
+Nothing waits on a clock: it runs as fast as the CPU allows.
+
+What "reproduces" means: the replay meets the messages in the order the flight's stages did,
+so a lockstep simulated flight recorded with a lossless camera (``[recorder] camera_format =
+"png"``) replays to its own VINS, depth and planner decisions. A JPEG camera image is not the
+frame the flight saw: the VINS tracks slightly different corners, and the depth and the
+decisions drift from the flight's, closely but not exactly. In real time, threads order some
+messages differently from one run to the next, which a replay cannot know. So
+:class:`ReplayReport` gives the agreement, and a change of config is read against the replay
+of the recording's own config, not against the flight.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from autonomy.depth import metrics
+from autonomy.depth.stage import MetricDepthStage
+from autonomy.depth.synthetic import SyntheticNetwork
+from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot
+from autonomy.messages import Frame, ImuSample, RelativeDepth
+from autonomy.planning.planner import Planner
+from autonomy.vins.estimator import Vins
+from autonomy.vins.health import HealthState
+from companion.config import config_from_toml
+from companion.recording import topics
+from companion.recording.writer import COMPANION_METADATA
+
+#: The camera's frames and what replay needs besides, by topic.
+_READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
+         topics.VINS_HEALTH.name, topics.DEPTH_FIT.name, topics.DEPTH_METRIC.name,
+         topics.PLAN.name, topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name)
+
+
+class ReplayError(RuntimeError):
+    """The recording cannot be replayed; the message says why."""
+
+
+class _NoTruth(Exception):
+    """A simulated frame whose true depth the recorder dropped: the synthetic stand-in has
+    nothing to distort, so the frame gets no depth (counted)."""
+
+
+@dataclass
+class ReplayReport:
+    """What the replay found, against the recording. Depth accuracy (AbsRel, the mean of
+    |z - z*| / z*) on the frames with true depth, at the recorded metric depth's resolution
+    for both; planner agreement over the recorded rounds (same kind, and for arcs the same
+    primitive); ``vins_same_frames``: frames whose VINS state, tracked features and landmarks
+    are the flight's; stage timings per frame, medians in milliseconds. ``frames_without_truth``:
+    simulated frames whose true depth the recorder dropped, so no depth was made for them."""
+
+    frames: int = 0
+    vins_same_frames: int = 0
+    frames_without_truth: int = 0
+    frames_with_depth: dict = field(default_factory=lambda: {"recorded": 0, "replayed": 0})
+    abs_rel: dict = field(default_factory=lambda: {"recorded": math.nan, "replayed": math.nan})
+    rounds: int = 0
+    same_decision: int = 0
+    changed_rounds: list = field(default_factory=list)
+    vins_lost_frames: int = 0
+    depth_failures: dict = field(default_factory=dict)
+    timings_ms: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        agreement = self.same_decision / self.rounds if self.rounds else None
+        return {"frames": self.frames, "vins_same_frames": self.vins_same_frames,
+                "frames_without_truth": self.frames_without_truth,
+                "frames_with_depth": self.frames_with_depth,
+                "abs_rel": {k: _rounded(v) for k, v in self.abs_rel.items()},
+                "planner_rounds": self.rounds, "planner_agreement": agreement,
+                "changed_rounds": self.changed_rounds[:20],
+                "vins_lost_frames": self.vins_lost_frames,
+                "depth_failures": self.depth_failures, "timings_ms": self.timings_ms}
+
+
+def _rounded(value: float):
+    return None if not math.isfinite(value) else round(value, 4)
+
+
+def recorded_config(path: Path, overrides=(), config_path: Path | None = None):
+    """The config to replay with: the recording's own (its ``companion`` metadata), or the
+    file ``config_path``, with ``overrides`` on top; and the simulated mission, if any."""
+    from companion.config import load_config
+
+    metadata = _metadata(path)
+    if config_path is not None:
+        config = load_config(config_path, overrides)
+    elif "config" in metadata:
+        config = config_from_toml(metadata["config"], f"{path} (recorded config)", overrides)
+    else:
+        raise ReplayError(f"{path} holds no config; give one with --config")
+    mission = json.loads(metadata["mission"]) if "mission" in metadata else None
+    return config, mission
+
+
+def _metadata(path: Path) -> dict[str, str]:
+    try:
+        with open(path, "rb") as file:
+            for record in make_reader(file).iter_metadata():
+                if record.name == COMPANION_METADATA:
+                    return dict(record.metadata)
+    except FileNotFoundError:
+        raise ReplayError(f"{path}: no such file") from None
+    except (McapError, ValueError, EOFError) as error:
+        raise ReplayError(f"{path} is not a readable MCAP recording ({error}); a truncated "
+                          "one can be recovered with `companion log recover`") from None
+    return {}
+
+
+class _Replayer:
+    """The stages of one replay and what they are compared with."""
+
+    def __init__(self, config, mission: dict | None):
+        self.config, self.mission = config, mission
+        self.report = ReplayReport()
+        self.pinhole: PinholeCamera | None = None
+        self.T_B_C: np.ndarray | None = None
+        self.vins: Vins | None = None
+        self.stage = MetricDepthStage(config.rescale, config.depth)
+        self.network = self._network()
+        # by the frame's published time in nanoseconds (on_message):
+        self.frames: dict[int, np.ndarray] = {}  # decoded images, until the VINS takes them
+        self.depths: dict[int, tuple] = {}  # (metric depth, T_W_C), until the planner takes it
+        self.truth: dict[int, np.ndarray] = {}  # full resolution, until its frame is done
+        self.truth_small: dict[int, np.ndarray] = {}  # at the recorded depth's resolution
+        self.errors = {"recorded": _AbsRel(), "replayed": _AbsRel()}
+        self.timings: dict[str, list[float]] = defaultdict(list)
+        self.planner: Planner | None = None
+
+    def _network(self):
+        config = self.config
+        if config.depth_network.model:
+            from autonomy.depth.network import DepthNetwork
+
+            model = DepthNetwork.open(config.depth_network,
+                                      (config.camera.height, config.camera.width))
+            return lambda frame: model(frame.image, channels="rgb")
+        if self.mission is None:
+            raise ReplayError("the recording is not of a simulated flight and [depth_network] "
+                              "model is empty: name the ONNX model the flight used")
+        stand_in = SyntheticNetwork(config.synthetic_depth, seed=self.mission["seed"])
+
+        def synthetic(frame: Frame):
+            if frame.truth_depth is None:
+                raise _NoTruth(frame.t)
+            return stand_in(frame.truth_depth)
+        return synthetic
+
+    def _start(self) -> None:
+        """The VINS and planner, once the recording's camera model and mounting are read."""
+        if self.pinhole is None or self.T_B_C is None:
+            raise ReplayError("the recording has no /camera/calibration or body->camera /tf "
+                              "before its first frame")
+        config = self.config
+        self.vins = Vins(self.pinhole, (0.0,) * 4, self.T_B_C, config.vins_imu, config.vins,
+                         frontend=config.vins_frontend, static=config.vins_init)
+        self.planner = Planner(self.pinhole, config.planner)
+
+    def on_message(self, topic: str, t: int, message) -> None:
+        """One message, ``t`` its published time in nanoseconds (a frame's exposure, a
+        sample's): the key that ties a frame's messages together. The times the stages are
+        given are the records' own float seconds, where they have one, so that the replay's
+        comparisons of times (an IMU sample at a frame's instant) fall as the flight's did."""
+        handler = getattr(self, "_on_" + topic.strip("/").replace("/", "_"))
+        handler(t, message)
+
+    def finish(self) -> ReplayReport:
+        for name, errors in self.errors.items():
+            self.report.frames_with_depth[name] = errors.frames
+            self.report.abs_rel[name] = errors.value
+        self.report.timings_ms = {stage: round(float(np.median(values)) * 1e3, 2)
+                                  for stage, values in self.timings.items()}
+        self.report.depth_failures = dict(self.stage.no_fit)
+        return self.report
+
+    # what the recording holds
+
+    def _on_camera_calibration(self, t, message) -> None:
+        K = message.K
+        self.pinhole = PinholeCamera(message.width, message.height, K[0], K[4], K[2], K[5])
+
+    def _on_tf(self, t, message) -> None:
+        if (message.parent_frame_id, message.child_frame_id) == (topics.BODY, topics.CAMERA):
+            self.T_B_C = _transform(message)
+
+    def _on_imu(self, t, record) -> None:
+        if self.vins is None:
+            self._start()
+        try:
+            self.vins.add_imu(ImuSample(record["t"], np.array(record["gyro"]),
+                                        np.array(record["accel"])))
+        except ValueError:
+            pass  # refused in flight too (out of order, a gap): the VINS says why in debug
+
+    def _on_camera_image(self, t, message) -> None:
+        bgr = cv2.imdecode(np.frombuffer(message.data, np.uint8), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ReplayError(f"the camera image at t={t * 1e-9:.3f} does not decode")
+        self.frames[t] = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def _on_truth_depth(self, t, message) -> None:
+        self.truth[t] = _millimetres(message)
+
+    def _on_vins_health(self, t, record) -> None:
+        """The flight's VINS finished the frame at ``t`` here: so does the replay's."""
+        image = self.frames.pop(t, None)
+        if image is None:  # the recorder dropped the image
+            return
+        health = self._process(t, Frame(record["t"], image, self.truth.get(t)))
+        if (health.tracked, health.landmarks, health.state.value) == \
+                (record["tracked"], record["landmarks"], record["state"]):
+            self.report.vins_same_frames += 1
+
+    def _on_depth_fit(self, t, record) -> None:
+        """The flight's depth of the frame at ``t`` reached its planner here."""
+        depth = self.depths.pop(t, None)
+        if depth is not None:
+            self.planner.add_depth(*depth)
+
+    def _on_depth_metric(self, t, message) -> None:
+        """The flight's depth of the frame at ``t``, scored on its truth; truth older than it
+        is of frames the flight had no depth for."""
+        truth = self.truth_small.pop(t, None)
+        if truth is not None:
+            self.errors["recorded"].add(_millimetres(message), truth)
+        for older in [key for key in self.truth_small if key < t]:
+            del self.truth_small[older]
+
+    def _on_planner_plan(self, t, record) -> None:
+        request = record.get("request")
+        if request is None or self.planner is None:
+            return
+        started = time.perf_counter()
+        plan = self.planner.plan(record["t"], np.array(request["T_W_B"]).reshape(4, 4),
+                                 np.array(request["velocity"]), np.array(request["goal"]),
+                                 stop_at_goal=request["stop_at_goal"])
+        self.timings["planner"].append(time.perf_counter() - started)
+        chosen = plan.candidates.chosen if plan.candidates is not None else None
+        report = self.report
+        report.rounds += 1
+        if plan.kind == record["kind"] and chosen == record.get("chosen"):
+            report.same_decision += 1
+        else:
+            report.changed_rounds.append({"t": round(record["t"], 3), "recorded": record["kind"],
+                                          "replayed": plan.kind, "reason": plan.reason})
+
+    # the stages
+
+    def _process(self, key: int, frame: Frame):
+        """The frame through the stages; the VINS health it got."""
+        if self.vins is None:
+            self._start()
+        self.report.frames += 1
+        started = time.perf_counter()
+        update = self.vins.add_frame(frame.t, self.vins.track(frame.image))
+        self.timings["vins"].append(time.perf_counter() - started)
+        if update.health.state == HealthState.LOST:
+            self.report.vins_lost_frames += 1
+        started = time.perf_counter()
+        try:
+            relative = RelativeDepth(frame.t, self.network(frame))
+        except _NoTruth:
+            self.report.frames_without_truth += 1
+            return update.health
+        self.timings["network"].append(time.perf_counter() - started)
+        started = time.perf_counter()
+        metric = self.stage.process(relative, update.sparse_map)
+        self.timings["rescale"].append(time.perf_counter() - started)
+        if metric.ok and update.T_W_B is not None:
+            self.depths[key] = (metric, update.T_W_B @ self.T_B_C)
+        truth = self.truth.pop(key, None)  # the full image is needed no longer
+        if truth is not None:
+            # scored at the recorded depth's resolution, as the flight's depth is
+            small = truth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE]
+            self.truth_small[key] = small
+            if metric.ok and update.T_W_B is not None:
+                self.errors["replayed"].add(
+                    metric.depth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE], small)
+        return update.health
+
+
+class _AbsRel:
+    """AbsRel (mean of |z - z*| / z* over valid pixels) over frames, kept as sums."""
+
+    def __init__(self):
+        self.frames, self.pixels, self.total = 0, 0, 0.0
+
+    def add(self, depth: np.ndarray, truth: np.ndarray) -> None:
+        predicted, true = metrics.valid_pairs(depth, truth)
+        self.frames += 1
+        self.pixels += len(true)
+        self.total += float(np.sum(np.abs(predicted - true) / true))
+
+    @property
+    def value(self) -> float:
+        return self.total / self.pixels if self.pixels else math.nan
+
+
+def _millimetres(message) -> np.ndarray:
+    """A ``16UC1`` millimetre image as metres, NaN where 0 (unknown)."""
+    image = np.frombuffer(message.data, np.uint16).reshape(message.height, message.width)
+    return np.where(image > 0, image.astype(np.float32) * 1e-3, np.float32(np.nan))
+
+
+class _JsonDecoders:
+    """mcap's decoder-factory protocol for the recorder's JSON channels."""
+
+    def decoder_for(self, message_encoding: str, schema):
+        return json.loads if message_encoding == "json" else None
+
+
+def replay(path: Path, config, mission: dict | None) -> ReplayReport:
+    """Replay the recording at ``path`` under ``config`` (module docstring)."""
+    replayer = _Replayer(config, mission)
+    try:
+        with open(path, "rb") as file:
+            reader = make_reader(file, decoder_factories=[DecoderFactory(), _JsonDecoders()])
+            for _, channel, message, decoded in reader.iter_decoded_messages(
+                    topics=list(_READ), log_time_order=True):
+                replayer.on_message(channel.topic, message.publish_time, decoded)
+    except (McapError, EOFError) as error:
+        raise ReplayError(f"{path}: {error}; a truncated recording can be recovered with "
+                          "`companion log recover`") from None
+    return replayer.finish()
+
+
+def plot(path: Path, mission: dict | None, config, out: Path) -> None:
+    """The recorded flight's estimated path (the VINS odometry, in PX4's local frame) over
+    its simulated world, as ``companion sim fly`` draws it (:func:`companion.tools.plot.
+    top_view`); only a simulated flight has a world to draw it on."""
+    from companion.tools.plot import top_view
+    from drivers.sim.faults import Fault
+    from drivers.sim.host import SimMission, mission_waypoints
+    from drivers.sim.world import build_world
+
+    if mission is None:
+        raise ReplayError("the top view needs a simulated flight's world; this recording is of "
+                          "a real one")
+    T_L_W, positions_W = _estimated_path(path)
+    if T_L_W is None or not positions_W:
+        raise ReplayError(f"{path} has no VINS path tied to PX4's local frame to draw")
+    sim_mission = SimMission(**{**mission, "faults": tuple(
+        Fault(**fault) for fault in mission["faults"])})
+    world = build_world(sim_mission.world, sim_mission.seed)
+    start, waypoints, _ = mission_waypoints(world, sim_mission, config.flight.takeoff_altitude)
+    positions_L = np.asarray(positions_W) @ T_L_W[:3, :3].T + T_L_W[:3, 3]
+    top_view(world, positions_L, start=start, goal=waypoints[-1], waypoints=waypoints[:-1],
+             out=out, title=f"{world.name} pair {sim_mission.pair}: recorded VINS path")
+
+
+def _estimated_path(path: Path) -> tuple[np.ndarray | None, list]:
+    """PX4's local frame to the VINS world (``local``->``world`` on ``/tf``) and the VINS
+    positions of ``/vins/odometry`` in time order."""
+    T_L_W, positions = None, []
+    with open(path, "rb") as file:
+        reader = make_reader(file, decoder_factories=[DecoderFactory(), _JsonDecoders()])
+        for _, channel, _, decoded in reader.iter_decoded_messages(
+                topics=[topics.TRANSFORMS.name, topics.ODOMETRY.name], log_time_order=True):
+            if channel.topic == topics.ODOMETRY.name:
+                positions.append(decoded["position"])
+            elif (decoded.parent_frame_id, decoded.child_frame_id) == (topics.LOCAL,
+                                                                        topics.WORLD):
+                T_L_W = _transform(decoded)
+    return T_L_W, positions
+
+
+def _transform(message) -> np.ndarray:
+    """A ``foxglove.FrameTransform`` as the 4x4 pose of its child in its parent."""
+    q, p = message.rotation, message.translation
+    return make_pose(quat_to_rot(np.array([q.w, q.x, q.y, q.z])), np.array([p.x, p.y, p.z]))
