@@ -23,10 +23,12 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    """The recording of 12 s of the dome's first pair, lockstep, PNG camera."""
+    """The recording of 12 s of the dome's first pair, lockstep, PNG camera. Lockstep runs
+    faster than real time, so the writer may fall behind on a busy machine: a queue as long
+    as the flight keeps every image (docs/recording.md, "Drops")."""
     directory = tmp_path_factory.mktemp("recordings")
     config = load_config(None, [f"recorder.directory={directory}", "flight.mission_timeout_s=12",
-                                "recorder.camera_format=png"])
+                                "recorder.camera_format=png", "recorder.camera_queue=1000"])
     summary = simulated.run(config, simulated.SimMission(world="dome"), record=True)
     assert summary["recording"]["error"] is None and not summary["recording"]["dropped"]
     return summary
@@ -57,6 +59,21 @@ def test_a_worse_rescaling_method_replays_to_worse_depth(recording, capsys):
     assert exponential["vins_same_frames"] == exponential["frames"]  # only the depth changed
     assert exponential["abs_rel"]["replayed"] > own["abs_rel"]["replayed"] + 0.02
     assert exponential["abs_rel"]["recorded"] == own["abs_rel"]["recorded"]
+
+
+def test_a_config_that_starves_the_planner_of_depth_replays_to_its_failsafe(recording,
+                                                                             capsys):
+    """The flight's own failsafe was its 12 s mission timeout; with fits that need more
+    anchors than a frame ever has, the replay has no metric depth, and the depth rule fires
+    once the flight is guarded."""
+    own = replay(capsys, recording["recording"]["path"])
+    starved = replay(capsys, recording["recording"]["path"], "--set", "rescale.min_anchors=5000")
+    recorded = [f["reason"] for f in own["failsafes"]["recorded"]]
+    assert recording["failsafes"] == ["mission timeout"]
+    assert recorded == ["failsafe: mission timeout"]  # the transition into failsafe_stop
+    assert own["failsafes"]["replayed_first"] is None
+    assert starved["frames_with_depth"]["replayed"] == 0
+    assert starved["failsafes"]["replayed_first"]["reason"].startswith("no metric depth")
 
 
 def test_replay_refuses_what_it_cannot_read(tmp_path, capsys):

@@ -51,7 +51,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
 
 
 def format_report(report: dict) -> str:
-    agreement = report["planner_agreement"]
+    agreement, failsafes = report["planner_agreement"], report["failsafes"]
     return "\n".join([
         f"  frames              {report['frames']} ({report['vins_same_frames']} with the "
         "flight's own VINS state)",
@@ -61,6 +61,12 @@ def format_report(report: dict) -> str:
         f"  planner agreement   {'-' if agreement is None else f'{agreement:.1%}'} of "
         f"{report['planner_rounds']} rounds",
         f"  VINS lost frames    {report['vins_lost_frames']}",
+        f"  failsafes           recorded {_failsafes(failsafes['recorded'])}; replayed, first "
+        f"{_failsafes([failsafes['replayed_first']] if failsafes['replayed_first'] else [])}",
         f"  frames without fit  {report['depth_failures'] or 'none'}",
         f"  stage medians (ms)  {report['timings_ms']}",
     ])
+
+
+def _failsafes(failsafes: list[dict]) -> str:
+    return ", ".join(f"{f['reason']} at {f['t']:.1f} s" for f in failsafes) or "none"

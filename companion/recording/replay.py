@@ -42,6 +42,9 @@ from autonomy.depth.stage import MetricDepthStage
 from autonomy.depth.synthetic import SyntheticNetwork
 from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot
 from autonomy.messages import Frame, ImuSample, RelativeDepth
+from autonomy.navigation.behaviours import BACKOFF_REASON, PARALLAX_REASON
+from autonomy.navigation.failsafes import Vitals, age, failsafe_reason
+from autonomy.navigation.mission import GUARDED_STATES, FlightState
 from autonomy.planning.planner import Planner
 from autonomy.vins.estimator import Vins
 from autonomy.vins.health import HealthState
@@ -52,7 +55,14 @@ from companion.recording.writer import COMPANION_METADATA
 #: The camera's frames and what replay needs besides, by topic.
 _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
          topics.VINS_HEALTH.name, topics.DEPTH_FIT.name, topics.DEPTH_METRIC.name,
-         topics.PLAN.name, topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name)
+         topics.PLAN.name, topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name,
+         topics.EVENTS.name)
+#: Recorded states in which the failsafe rules apply, and those on flown ground (a turn in
+#: place), where depth may lapse (autonomy.navigation.mission.GUARDED_STATES).
+_GUARDED = {state.value for state in GUARDED_STATES}
+_ALIGNING = FlightState.ALIGNING.value
+#: Recorded failsafes: the transitions into these states.
+_FAILSAFE_STATES = {FlightState.FAILSAFE_STOP.value, FlightState.LINK_LOST.value}
 
 
 class ReplayError(RuntimeError):
@@ -70,7 +80,11 @@ class ReplayReport:
     |z - z*| / z*) on the frames with true depth, at the recorded metric depth's resolution
     for both; planner agreement over the recorded rounds (same kind, and for arcs the same
     primitive); ``vins_same_frames``: frames whose VINS state, tracked features and landmarks
-    are the flight's; stage timings per frame, medians in milliseconds. ``frames_without_truth``:
+    are the flight's; ``recorded_failsafes`` (time, reason) and ``replayed_failsafe``: the
+    first failsafe the rules (:func:`~autonomy.navigation.failsafes.failsafe_reason`) would
+    have raised on the replayed VINS, depth and planner at a recorded round while the flight
+    was guarded (see :meth:`_Replayer._failsafe_check` for what it can and cannot know);
+    stage timings per frame, medians in milliseconds. ``frames_without_truth``:
     simulated frames whose true depth the recorder dropped, so no depth was made for them."""
 
     frames: int = 0
@@ -83,6 +97,8 @@ class ReplayReport:
     changed_rounds: list = field(default_factory=list)
     vins_lost_frames: int = 0
     depth_failures: dict = field(default_factory=dict)
+    recorded_failsafes: list = field(default_factory=list)
+    replayed_failsafe: dict | None = None
     timings_ms: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -94,6 +110,8 @@ class ReplayReport:
                 "planner_rounds": self.rounds, "planner_agreement": agreement,
                 "changed_rounds": self.changed_rounds[:20],
                 "vins_lost_frames": self.vins_lost_frames,
+                "failsafes": {"recorded": self.recorded_failsafes,
+                              "replayed_first": self.replayed_failsafe},
                 "depth_failures": self.depth_failures, "timings_ms": self.timings_ms}
 
 
@@ -150,6 +168,10 @@ class _Replayer:
         self.errors = {"recorded": _AbsRel(), "replayed": _AbsRel()}
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.planner: Planner | None = None
+        self.state = ""  # the recorded flight's state
+        self.vins_health = None  # the replayed VINS's newest health
+        self.last_depth_t: float | None = None  # newest replayed depth in the planner
+        self.no_path_since: float | None = None  # replayed rounds with nothing safe since
 
     def _network(self):
         config = self.config
@@ -240,6 +262,12 @@ class _Replayer:
         depth = self.depths.pop(t, None)
         if depth is not None:
             self.planner.add_depth(*depth)
+            self.last_depth_t = record["t"]
+
+    def _on_flight_events(self, t, message) -> None:
+        source, self.state, reason = topics.parse_transition(message.message)
+        if self.state in _FAILSAFE_STATES:
+            self.report.recorded_failsafes.append({"t": round(t * 1e-9, 3), "reason": reason})
 
     def _on_depth_metric(self, t, message) -> None:
         """The flight's depth of the frame at ``t``, scored on its truth; truth older than it
@@ -260,6 +288,7 @@ class _Replayer:
                                  stop_at_goal=request["stop_at_goal"])
         self.timings["planner"].append(time.perf_counter() - started)
         chosen = plan.candidates.chosen if plan.candidates is not None else None
+        self._failsafe_check(record, plan)
         report = self.report
         report.rounds += 1
         if plan.kind == record["kind"] and chosen == record.get("chosen"):
@@ -267,6 +296,34 @@ class _Replayer:
         else:
             report.changed_rounds.append({"t": round(record["t"], 3), "recorded": record["kind"],
                                           "replayed": plan.kind, "reason": plan.reason})
+
+    def _failsafe_check(self, record: dict, plan) -> None:
+        """The failsafe rules at this round, on what the replay changes: the VINS's health,
+        the age of the newest metric depth, how long nothing has been safe. What the
+        recording fixes is taken from it: the state (guarded or not), flown ground (aligning,
+        or a recorded glide). What a replay cannot know reads as healthy: loop lag, the
+        setpoint watchdog, camera and IMU silence (the recording's own failsafes list them),
+        and the turn in place the flight allows once when blocked. Only the first failsafe
+        is reported: after it, the flight it would have been is not the recorded one."""
+        now = record["t"]
+        self.no_path_since = (None if plan.reason != "no safe primitive"
+                              else now if self.no_path_since is None else self.no_path_since)
+        if self.report.replayed_failsafe is not None or self.state not in _GUARDED:
+            return
+        health = self.vins_health
+        vitals = Vitals(
+            stop_requested="", loop_lag_s=0.0, watchdog_in_charge=False, camera_age_s=0.0,
+            imu_age_s=0.0,
+            vins_problem=(f"VINS lost ({health.reason})"
+                          if health is not None and health.state == HealthState.LOST else ""),
+            depth_age_s=age(self.last_depth_t, now), depth_reason="",
+            on_flown_ground=self.state == _ALIGNING or record["reason"] in (PARALLAX_REASON,
+                                                                             BACKOFF_REASON),
+            no_path_expired=self.no_path_since is not None
+            and now - self.no_path_since > self.config.flight.no_path_timeout_s)
+        reason = failsafe_reason(vitals, self.config.flight)
+        if reason:
+            self.report.replayed_failsafe = {"t": round(now, 3), "reason": reason}
 
     # the stages
 
@@ -278,6 +335,7 @@ class _Replayer:
         started = time.perf_counter()
         update = self.vins.add_frame(frame.t, self.vins.track(frame.image))
         self.timings["vins"].append(time.perf_counter() - started)
+        self.vins_health = update.health
         if update.health.state == HealthState.LOST:
             self.report.vins_lost_frames += 1
         started = time.perf_counter()

@@ -334,8 +334,21 @@ def encode_setpoint(setpoint: Setpoint) -> bytes:
 def encode_transition(transition: Transition) -> bytes:
     """A state transition; one into :data:`WARNING_STATES` at warning level."""
     return encode_log(transition.t, 30 if transition.target in WARNING_STATES else 20, "mission",
-                      f"{transition.source.value} -> {transition.target.value}: "
-                      f"{transition.reason}")
+                      f"{transition.source.value}{_ARROW}{transition.target.value}"
+                      f"{_BECAUSE}{transition.reason}")
+
+
+_ARROW, _BECAUSE = " -> ", ": "
+
+
+def parse_transition(text: str) -> tuple[str, str, str]:
+    """``(source, target, reason)`` of an ``/flight/events`` message; ValueError if it is not
+    one :func:`encode_transition` wrote."""
+    source, arrow, rest = text.partition(_ARROW)
+    target, because, reason = rest.partition(_BECAUSE)
+    if not (arrow and because):
+        raise ValueError(f"not a state transition: {text!r}")
+    return source, target, reason
 
 
 def encode_log(t: float, level: int, name: str, message: str) -> bytes:
