@@ -48,7 +48,7 @@ from autonomy.navigation.mission import GUARDED_STATES, FlightState
 from autonomy.planning.planner import Planner
 from autonomy.vins.estimator import Vins
 from autonomy.vins.health import HealthState
-from companion.config import config_from_toml
+from companion.config import config_from_toml, load_config
 from companion.recording import topics
 from companion.recording.writer import COMPANION_METADATA
 
@@ -122,8 +122,6 @@ def _rounded(value: float):
 def recorded_config(path: Path, overrides=(), config_path: Path | None = None):
     """The config to replay with: the recording's own (its ``companion`` metadata), or the
     file ``config_path``, with ``overrides`` on top; and the simulated mission, if any."""
-    from companion.config import load_config
-
     metadata = _metadata(path)
     if config_path is not None:
         config = load_config(config_path, overrides)

@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from companion import __version__
+from companion.config import dump_toml
 from companion.recording.live import LiveView, parse_address
 from companion.recording.options import RecorderOptions
 from companion.recording.recorder import FlightRecorder
@@ -85,7 +87,4 @@ async def recorded(app, recording: Recording | None) -> dict:
 def recording_metadata(config, **extra: str) -> dict[str, str]:
     """What a recording keeps beside the flight: the effective config as TOML (what replay
     starts from), the software version, and ``extra`` (the simulated mission, say)."""
-    from companion import __version__
-    from companion.config import dump_toml
-
     return {"config": dump_toml(config), "version": __version__, **extra}

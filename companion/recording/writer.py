@@ -13,8 +13,8 @@ chunk, once complete, is flushed and fsync'd, and a chunk is closed at least eve
 :data:`SYNC_S` seconds, so a SIGKILL or a power cut loses at most the chunk in progress and
 the messages still queued; the rest is read back by ``companion log info`` and made a complete
 file again by ``companion log recover``. zstd rather than lz4: neither compresses the JPEG
-images, but on float depth images zstd saved about 15 % where lz4 saved nothing (noisy
-synthetic depth), at about 1 ms per MB on an x86 core, which the writer's thread pays easily.
+images, but zstd compresses the depth images and the JSON, which lz4 barely does; its cost is
+the writer thread's, which keeps up at 20 Hz (docs/benchmarks.md, "Flight recorder").
 """
 
 from __future__ import annotations
