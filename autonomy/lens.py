@@ -115,11 +115,19 @@ class Rectifier:
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """The rectified image of a source frame of ``model``'s size."""
+        return self._remap(image, cv2.INTER_LINEAR, 0)
+
+    def depth(self, depth: np.ndarray) -> np.ndarray:
+        """A depth image of the source frame's pixels moved onto the target's (nearest pixel:
+        depths are not blended across edges); NaN outside the source."""
+        return self._remap(depth, cv2.INTER_NEAREST, float("nan"))
+
+    def _remap(self, image: np.ndarray, interpolation: int, border: float) -> np.ndarray:
         p = self.model.pinhole
         if image.shape[:2] != (p.height, p.width):
             raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}, the camera model "
                              f"is {p.width}x{p.height}")
-        out = cv2.remap(image, self._map_u, self._map_v, cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        out = cv2.remap(image, self._map_u, self._map_v, interpolation,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=border)
         out.setflags(write=False)
         return out

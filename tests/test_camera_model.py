@@ -479,6 +479,28 @@ def test_config_radtan_lens_frames_come_rectified(lens_images):
         camera.no_such_attribute
 
 
+def test_a_simulated_cameras_true_depth_is_rectified_with_its_image():
+    """The simulator's true depth is aligned with the distorted image; rectified, it must stay
+    aligned with the rectified image (nearest pixel: depths are never blended), NaN where the
+    rectified view looks outside the lens's."""
+    p = EUROC.pinhole
+    depth = np.where(np.arange(p.width) < p.cx, 2.0, 5.0).astype(np.float32)
+    depth = np.broadcast_to(depth, (p.height, p.width)).copy()
+    calibration = resolve(CameraOptions(width=p.width, height=p.height, fx=p.fx, fy=p.fy,
+                                        cx=p.cx, cy=p.cy, distortion_model="radtan",
+                                        distortion=EUROC.coefficients))
+    camera = CalibratedCamera(FakeCamera([Frame(0.0, np.zeros((p.height, p.width, 3), np.uint8),
+                                                 depth)]),
+                              calibration)
+    truth = asyncio.run(camera.next_frame()).truth_depth
+    assert set(np.unique(truth[np.isfinite(truth)])) == {2.0, 5.0}
+    # a rectified pixel's depth is the one at the distorted pixel its ray passes through
+    rays = p.rays()[..., :2].reshape(-1, 2)
+    u = (p.fx * EUROC.distort(rays)[:, 0] + p.cx).reshape(p.height, p.width)
+    inside = (u > 0.5) & (u < p.width - 1.5) & (np.abs(u - p.cx) > 0.6)
+    assert np.array_equal(truth[inside], np.where(u[inside] < p.cx, 2.0, 5.0))
+
+
 def test_narrower_rectified_view_of_an_undistorted_camera_zooms_in():
     """No lens distortion but ``rectified_hfov_deg`` set: the frames are resampled onto the
     narrower pinhole the stack is told about, not passed through under the wrong intrinsics."""

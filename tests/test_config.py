@@ -18,7 +18,7 @@ from autonomy.geometry import R_BODY_CAMERA
 from autonomy.options import OptionError, field_types
 from companion.config import Config, ConfigError, dump_toml, load_config, parse_override
 from drivers.camera.options import CameraOptions
-from drivers.sim.record import T_BODY_CAMERA
+from drivers.sim.camera import T_BODY_CAMERA
 
 if sys.version_info >= (3, 11):
     import tomllib

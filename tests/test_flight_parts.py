@@ -190,7 +190,7 @@ class _Vehicle:
 
 
 def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout():
-    from drivers.sim.camera import SimCamera
+    from drivers.sim.camera import CameraHead, SimCamera
     from drivers.sim.render import Renderer
     from drivers.sim.world import build_world
     from drivers.camera.options import CameraOptions
@@ -203,7 +203,8 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout(
     async def main():
         frames = []
         with Renderer(world, options.pinhole()) as renderer:
-            camera = SimCamera(sim, renderer, options.rate_hz, clock)
+            camera = SimCamera(sim, renderer, clock, CameraHead(options.pinhole(),
+                                                                options.rate_hz))
             sim.faults.update(0.0, (2.0, 0.0, 0.0))  # cruise from t = 0: faults on schedule
 
             async def advance():

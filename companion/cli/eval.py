@@ -174,7 +174,9 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
         result = rescale.evaluate_rescaling(
             rescale.frames_per_world(args.worlds, quick=args.quick), seed=seed,
             cache=args.cache or rescale.default_cache_dir(),
-            recording=rescale.Recording(config.camera, config.vehicle, config.imu),
+            recording=rescale.Recording(
+                config.camera, config.vehicle, config.imu,
+                config.sim_camera if config.sim.profile == "realistic" else None),
             options=depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
                                            config.vins_frontend, config.vins_init),
             open_network=lambda: depth.open_relative_depth_source(

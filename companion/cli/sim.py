@@ -142,7 +142,8 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
     sim = _sim_options(args, config)
     try:
         summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
-                                        config.imu, duration=args.duration)
+                                        config.imu, duration=args.duration,
+                                        sim_camera=config.sim_camera)
     except (record.RecordError, RenderError, OSError) as error:
         print(f"sim record: {error}", file=sys.stderr)
         return common.EXIT_FAILED

@@ -37,6 +37,7 @@ from companion.flight.app import FlightApp, format_flight
 from companion.flight.perception import NetworkDepth
 from companion.recording.session import open_recording, recorded, recording_metadata
 from companion.report import show
+from drivers.camera.calibration import CalibratedCamera
 from drivers.mavlink.autopilot import Autopilot
 from drivers.sim.faults import FaultSchedule
 from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMission,
@@ -93,6 +94,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     side = (LockstepSimulator if mission.clock == "lockstep" else ThreadedSimulator)(
         config, world, mission, (start, start_yaw), faults, waypoints[-1], progress)
     sim, camera, clock = await side.start()
+    camera = CalibratedCamera(camera, side.calibration())
     stall = asyncio.create_task(stall_when_due(faults, sim))
     try:
         depth = TruthDepth(config.planner.max_range) if mission.depth == "truth" else \

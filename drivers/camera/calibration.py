@@ -68,8 +68,8 @@ def resolve(camera: CameraOptions, device_model: CameraModel | None = None) -> C
 
 
 class CalibratedCamera:
-    """A camera driver whose frames come rectified onto ``calibration.rectified`` and shifted
-    by ``calibration.time_offset_s``. Everything else (``name``, ``dropped``, ``close``...)
+    """A camera driver whose frames (and a simulated camera's true depth) come rectified onto
+    ``calibration.rectified`` and shifted by ``calibration.time_offset_s``. Everything else (``name``, ``dropped``, ``close``...)
     is the wrapped driver's."""
 
     def __init__(self, camera, calibration: CameraCalibration):
@@ -87,5 +87,9 @@ class CalibratedCamera:
 
     async def next_frame(self) -> Frame:
         frame = await self._camera.next_frame()
-        image = frame.image if self._rectify is None else self._rectify(frame.image)
-        return replace(frame, t=frame.t + self.calibration.time_offset_s, image=image)
+        shifted = replace(frame, t=frame.t + self.calibration.time_offset_s)
+        if self._rectify is None:
+            return shifted
+        truth = frame.truth_depth  # a simulated camera's, aligned with its image
+        return replace(shifted, image=self._rectify(frame.image),
+                       truth_depth=None if truth is None else self._rectify.depth(truth))

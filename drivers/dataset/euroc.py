@@ -114,18 +114,21 @@ def read_depth_png(path: Path) -> np.ndarray:
 class EurocWriter:
     """Writes a dataset sample by sample; use as a context manager so the CSVs are closed.
 
-    The camera and depth streams share timestamps; the writer creates the folder tree and the
+    The camera and depth streams share timestamps (the depth is aligned with the image, through
+    the same radial-tangential ``distortion``); the writer creates the folder tree and the
     ``sensor.yaml`` files up front from the sensors' descriptions.
     """
 
     def __init__(self, root: Path, camera: PinholeCamera, T_B_C: np.ndarray, camera_rate_hz: float,
-                 imu_yaml: dict[str, float], png_compression: int = 1):
+                 imu_yaml: dict[str, float], png_compression: int = 1,
+                 distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)):
         self.mav0 = Path(root) / "mav0"
         self._png = [cv2.IMWRITE_PNG_COMPRESSION, png_compression]
         for name in ("cam0", "depth0"):
             (self.mav0 / name / "data").mkdir(parents=True, exist_ok=True)
             comment = "rendered colour image" if name == "cam0" else "ground-truth z-depth, uint16 mm, 0 = invalid"
-            _write_camera_yaml(self.mav0 / name / "sensor.yaml", camera, T_B_C, camera_rate_hz, comment)
+            _write_camera_yaml(self.mav0 / name / "sensor.yaml", camera, T_B_C, camera_rate_hz,
+                               comment, distortion)
         (self.mav0 / "imu0").mkdir(parents=True, exist_ok=True)
         (self.mav0 / "state_groundtruth_estimate0").mkdir(parents=True, exist_ok=True)
         _write_imu_yaml(self.mav0 / "imu0" / "sensor.yaml", imu_yaml)
@@ -181,7 +184,7 @@ def _yaml_matrix(T: np.ndarray) -> str:
 
 
 def _write_camera_yaml(path: Path, camera: PinholeCamera, T_B_C: np.ndarray, rate_hz: float,
-                       comment: str) -> None:
+                       comment: str, distortion: tuple[float, ...]) -> None:
     path.write_text(
         "%YAML:1.0\n"
         "sensor_type: camera\n"
@@ -193,7 +196,7 @@ def _write_camera_yaml(path: Path, camera: PinholeCamera, T_B_C: np.ndarray, rat
         "camera_model: pinhole\n"
         f"intrinsics: [{camera.fx:.12g}, {camera.fy:.12g}, {camera.cx:.12g}, {camera.cy:.12g}] #fu, fv, cu, cv\n"
         "distortion_model: radial-tangential\n"
-        "distortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n",
+        f"distortion_coefficients: [{', '.join(f'{c:.12g}' for c in distortion)}]\n",
         encoding="ascii",
     )
 

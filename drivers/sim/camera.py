@@ -1,16 +1,20 @@
 """The simulated camera: frames rendered from the simulated vehicle's true pose, on the clock.
 
-A driver like any other camera driver: :meth:`SimCamera.next_frame` waits for the next frame
-time of a ``rate_hz`` camera and returns a :class:`~autonomy.messages.Frame` stamped on the
-companion's clock. It renders the world at the vehicle's true pose at that instant, through the
-camera mounting ``T_B_C`` (``[camera]`` mount_*), and fills ``truth_depth`` (the
-renderer's depth, for the synthetic network and for scoring).
+:class:`CameraHead` is the camera on the airframe: where it truly sits, what the renderer must
+draw, and, in the ``realistic`` profile, the sensor between the light and the frame
+(:mod:`drivers.sim.sensor`: motion blur, lens, vignetting, exposure and noise, a late and
+jittery stamp, lost frames). ``sim record`` shoots through it at its own ticks;
+:class:`SimCamera` is the driver ``sim fly`` reads.
 
-Frames come on a fixed grid ``k / rate_hz``; a consumer slower than the camera gets the newest
-frame and the ones it missed are counted in ``dropped`` (as a real driver with a one-frame
-buffer). In lockstep the render happens while simulated time stands still, so the frame shows
-exactly the pose at its stamp. Faults (:mod:`drivers.sim.faults`): ``camera_freeze`` delivers
-nothing, ``camera_blackout`` delivers black images.
+:meth:`SimCamera.next_frame` waits for the next exposure of a ``rate_hz`` camera (mid-exposure
+on the grid ``k / rate_hz``), renders the world at the vehicle's true pose at that instant and
+hands the frame over at its stamp, on the companion's clock, with ``truth_depth`` (the
+renderer's depth, aligned with the image, for the synthetic network and for scoring). A
+consumer slower than the camera gets the newest frame and the ones it missed are counted in
+``dropped`` (as a real driver with a one-frame buffer); frames the camera itself lost are
+counted in ``lost``. In lockstep the render happens while simulated time stands still, so the
+frame shows exactly the pose at its exposure. Faults (:mod:`drivers.sim.faults`):
+``camera_freeze`` delivers nothing, ``camera_blackout`` delivers black images.
 """
 
 from __future__ import annotations
@@ -19,27 +23,74 @@ import math
 
 import numpy as np
 
-from autonomy.geometry import make_pose, quat_to_rot
+from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot
+from autonomy.lens import CameraModel
 from autonomy.messages import Frame
-from drivers.sim.record import T_BODY_CAMERA
+from drivers.camera.options import CameraOptions
+from drivers.sim.sensor import Capture, CameraSensor, Exposure, SensorOptions, camera_twist
+
+#: The default camera mounting (``[camera]`` mount_*): optical frame looking along body x,
+#: 10 cm ahead of the body origin and 5 cm above it.
+T_BODY_CAMERA = CameraOptions().T_B_C()
+
+#: The exposure reported for an ideal camera's frames: an instant, no gain.
+INSTANT = Exposure(0.0, 1.0)
+
+
+class CameraHead:
+    """The camera of ``pinhole`` intrinsics at ``rate_hz``, configured at mounting ``T_B_C``;
+    ``sensor`` (the realistic profile's ``[sim_camera]``) or None for an ideal camera: exact
+    pose, instant exposure, exact stamps. A sensor needs the ``world`` it flies in (its light)
+    and ``rng``, which draws its noise, lost frames and mounting error."""
+
+    def __init__(self, pinhole: PinholeCamera, rate_hz: float, T_B_C=T_BODY_CAMERA,
+                 sensor: SensorOptions | None = None, world: str = "",
+                 rng: np.random.Generator | None = None):
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"camera rate must be a positive number of Hz, got {rate_hz}")
+        self.pinhole, self.period = pinhole, 1.0 / rate_hz
+        self.T_B_C_configured = np.asarray(T_B_C, dtype=float)
+        self.sensor = None if sensor is None else CameraSensor(
+            sensor, pinhole, world, self.period,
+            rng if rng is not None else np.random.default_rng())
+        #: Where the camera truly is: the configured mounting, off by a calibration error.
+        self.T_B_C = self.T_B_C_configured if self.sensor is None else \
+            self.T_B_C_configured @ self.sensor.mount_error()
+
+    @property
+    def render_camera(self) -> PinholeCamera:
+        """The pinhole the renderer must draw (wider than the image behind a lens)."""
+        return self.pinhole if self.sensor is None else self.sensor.render_camera
+
+    @property
+    def model(self) -> CameraModel:
+        """The lens of the delivered frames, as a factory calibration states it."""
+        return CameraModel(self.pinhole) if self.sensor is None else self.sensor.lens.model
+
+    def shoot(self, renderer, t_mid: float, state) -> Capture:
+        """The frame exposed around ``t_mid`` by a vehicle in ``state`` (a ``VehicleState`` at
+        ``t_mid``), drawn by ``renderer`` (of :attr:`render_camera`)."""
+        T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ self.T_B_C
+        rgb, depth = renderer.render(T_W_C)
+        if self.sensor is None:
+            return Capture(t_mid, rgb, depth, INSTANT)
+        return self.sensor.capture(t_mid, rgb, depth, *camera_twist(state, self.T_B_C))
 
 
 class SimCamera:
-    """Frames of ``renderer`` from the pose of ``sim`` (a :class:`~drivers.sim.serve.
-    SimulatedVehicle`) at ``rate_hz``, on ``clock``, the camera mounted at ``T_B_C``."""
+    """Frames of ``head`` drawn by ``renderer`` from the pose of ``sim`` (a
+    :class:`~drivers.sim.serve.SimulatedVehicle`), on ``clock``."""
 
-    def __init__(self, sim, renderer, rate_hz: float, clock, T_B_C=T_BODY_CAMERA):
-        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
-            raise ValueError(f"camera rate must be a positive number of Hz, got {rate_hz}")
-        self.sim, self.renderer, self.clock = sim, renderer, clock
-        self.T_B_C = np.asarray(T_B_C, dtype=float)
-        self.period = 1.0 / rate_hz
+    def __init__(self, sim, renderer, clock, head: CameraHead):
+        self.sim, self.renderer, self.clock, self.head = sim, renderer, clock, head
+        self.period = head.period
         self._next_index = math.ceil(clock.now() / self.period)
         self.delivered = 0
         self.dropped = 0
+        self.lost = 0
 
     async def next_frame(self) -> Frame:
-        """The next frame at or after now (waiting for its time)."""
+        """The next frame whose exposure is at or after now (waiting for its stamp)."""
         while True:
             due = self._next_index * self.period
             await self.clock.sleep(due - self.clock.now())
@@ -49,13 +100,13 @@ class SimCamera:
             self._next_index += missed + 1
             if self.sim.faults.active("camera_freeze", self.sim.time):
                 continue
+            capture = self.head.shoot(self.renderer, now, self.sim.vehicle.state)
+            if capture.stamp is None:
+                self.lost += 1
+                continue
+            await self.clock.sleep(capture.stamp - self.clock.now())
             self.delivered += 1
-            return self._render(now)
-
-    def _render(self, t: float) -> Frame:
-        state = self.sim.vehicle.state
-        T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ self.T_B_C
-        rgb, depth = self.renderer.render(T_W_C)
-        if self.sim.faults.active("camera_blackout", self.sim.time):
-            rgb = np.zeros_like(rgb)
-        return Frame(t, rgb, depth)
+            image = capture.image
+            if self.sim.faults.active("camera_blackout", self.sim.time):
+                image = np.zeros_like(image)
+            return Frame(capture.stamp, image, capture.depth)

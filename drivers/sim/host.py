@@ -31,8 +31,9 @@ import numpy as np
 from autonomy.depth.network import DepthNetwork
 from autonomy.depth.synthetic import SyntheticNetwork
 from autonomy.messages import DepthDiagnostics, Frame, MetricDepth
+from drivers.camera.calibration import CameraCalibration
 from drivers.clock import MonotonicClock, SimClock
-from drivers.sim.camera import SimCamera
+from drivers.sim.camera import CameraHead, SimCamera
 from drivers.sim.faults import Fault, FaultSchedule
 from drivers.sim.render import Renderer
 from drivers.sim.serve import SERIAL_BAUD, serve
@@ -210,6 +211,15 @@ class TruthTrack:
         }
 
 
+def camera_head(config, world: str, seed: int) -> CameraHead:
+    """The simulated camera ``config`` describes in ``world``: ideal, or in the realistic
+    profile behind ``[sim_camera]``'s sensor, its errors drawn from ``seed``."""
+    camera = config.camera
+    sensor = config.sim_camera if config.sim.profile == "realistic" else None
+    return CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), sensor, world,
+                      np.random.default_rng([seed, 3]))
+
+
 async def stall_when_due(faults: FaultSchedule, sim) -> None:
     """The ``loop_stall`` fault: block this event loop (a runaway computation) for the
     fault's duration, at most :data:`MAX_STALL_S`."""
@@ -232,6 +242,15 @@ class Simulator:
         self.progress = progress
         self.track = TruthTrack()
         self.port = free_udp_port() if mission.link == "udp" else None
+        self.head = camera_head(config, world.name, mission.seed)
+
+    def calibration(self) -> CameraCalibration:
+        """The camera as the application knows it: the lens the simulated camera reports (its
+        factory calibration), at the configured mounting and time offset; the true mounting
+        and stamps may differ (the realistic profile)."""
+        camera = self.config.camera
+        return CameraCalibration(self.head.model, camera.pinhole(), camera.T_B_C(),
+                                 camera.time_offset_s, "simulated camera")
 
     def companion_url(self) -> str:
         """Where the application reaches the mock PX4, once :meth:`start` has returned."""
@@ -263,11 +282,8 @@ class LockstepSimulator(Simulator):
         self.sim = await ready
         self._tracker = asyncio.create_task(self.track.run(self.sim, self.clock, self.goal,
                                                            self.progress))
-        camera = self.config.camera
-        self._renderer = Renderer(self.world, camera.pinhole())
-        camera = SimCamera(self.sim, self._renderer, camera.rate_hz, self.clock,
-                           camera.T_B_C())
-        return self.sim, camera, self.clock
+        self._renderer = Renderer(self.world, self.head.render_camera)
+        return self.sim, SimCamera(self.sim, self._renderer, self.clock, self.head), self.clock
 
     async def stop(self) -> None:
         self._stop.set()
@@ -309,12 +325,12 @@ class ThreadedSimulator(Simulator):
             self._ready.set()
 
     async def _run(self) -> None:
-        clock, camera = MonotonicClock(), self.config.camera
+        clock = MonotonicClock()
         started: asyncio.Future = asyncio.get_running_loop().create_future()
         server = asyncio.create_task(self._serve("realtime", self._stop, started.set_result))
         self.sim = await started
-        with Renderer(self.world, camera.pinhole()) as renderer:
-            camera = SimCamera(self.sim, renderer, camera.rate_hz, clock, camera.T_B_C())
+        with Renderer(self.world, self.head.render_camera) as renderer:
+            camera = SimCamera(self.sim, renderer, clock, self.head)
             tasks = [asyncio.create_task(self._pump(camera)), asyncio.create_task(
                 self.track.run(self.sim, clock, self.goal, self.progress))]
             self._ready.set()

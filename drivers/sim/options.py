@@ -9,9 +9,14 @@ from autonomy.options import option, validate
 from drivers.sim.imu import ImuOptions
 from drivers.sim.mock_px4 import Px4Options
 from drivers.sim.quadrotor import VehicleOptions
+from drivers.sim.sensor import SensorOptions
 
 WORLD_NAMES = ("mine", "sewer", "dome")
 CLOCK_MODES = ("lockstep", "realtime")
+#: How faithful the simulated sensors are: ``ideal`` (exact images, timestamps and mounting,
+#: an IMU with white noise and bias walk only: for debugging the stack) or ``realistic`` (every
+#: error source of docs/simulator.md at its cited value).
+PROFILES = ("ideal", "realistic")
 
 
 @dataclass(frozen=True)
@@ -27,6 +32,13 @@ class SimOptions:
         "realtime: paced by the wall clock, for outside MAVLink clients",
     )
 
+    profile: str = option(
+        "ideal",
+        choices=PROFILES,
+        doc="ideal: exact sensors, for debugging; realistic: the camera, IMU and calibration "
+        "errors of a real vehicle at their cited values (docs/simulator.md)",
+    )
+
     def __post_init__(self) -> None:
         validate(self)
 
@@ -35,4 +47,4 @@ class SimOptions:
 #: them after the flight's. The flight process reads none of them (the estimator's IMU noise
 #: model is ``[vins_imu]``, not the simulated IMU's ``[imu]``).
 CONFIG_SECTIONS = {"sim": SimOptions, "vehicle": VehicleOptions, "imu": ImuOptions,
-                   "px4": Px4Options}
+                   "sim_camera": SensorOptions, "px4": Px4Options}

@@ -17,18 +17,15 @@ from typing import Protocol
 
 import numpy as np
 
-from autonomy.geometry import make_pose, quat_to_rot
 from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import EurocWriter
+from drivers.sim.camera import CameraHead
 from drivers.sim.imu import ImuModel, ImuOptions
 from drivers.sim.options import SimOptions
 from drivers.sim.render import Renderer
+from drivers.sim.sensor import SensorOptions
 from drivers.sim.quadrotor import ControlTarget, Quadrotor, VehicleOptions
 from drivers.sim.world import ROBOT_RADIUS, Route, World, build_world
-
-#: The default camera mounting (``[camera]`` mount_*): optical frame looking along body x,
-#: 10 cm ahead of the body origin and 5 cm above it.
-T_BODY_CAMERA = CameraOptions().T_B_C()
 
 SPEED = 1.0
 """Cruise speed along the path, m/s: gentle enough that consecutive 20 Hz frames overlap."""
@@ -140,11 +137,13 @@ def route_path(world: World, route: Route) -> np.ndarray:
 
 def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
-        renderer: Renderer | None = None) -> RecordSummary:
+        sensor: SensorOptions | None = None, renderer: Renderer | None = None) -> RecordSummary:
     """Fly ``route`` for ``duration`` simulated seconds, sending every sample to ``sink``.
 
-    Physics and IMU tick at ``imu.rate_hz``; a frame is rendered at the first tick at or after
-    each multiple of the camera period, and stamped with that tick's time.
+    Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
+    after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
+    with that tick's time, else as the realistic ``sensor`` stamps it (late, with jitter;
+    lost frames are not written). ``renderer`` must draw the camera head's render camera.
     """
     dt = 1.0 / imu.rate_hz
     path = route_path(world, route)
@@ -152,10 +151,11 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     quad = Quadrotor(vehicle, world.obstacle_clearance,
                      position=np.array([route.start[0], route.start[1], 0.0]),
                      yaw=_heading(path))
-    sensor = ImuModel(imu, np.random.default_rng([seed, 1]))
+    imu_model = ImuModel(imu, np.random.default_rng([seed, 1]))
+    head = CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), sensor, world.name,
+                      np.random.default_rng([seed, 3]))
     owned = renderer is None
-    renderer = renderer or Renderer(world, camera.pinhole())
-    T_B_C = camera.T_B_C()
+    renderer = renderer or Renderer(world, head.render_camera)
     climb_seconds = route.cruise_height * CLIMB_SECONDS_PER_METRE + SETTLE_SECONDS
     ticks = int(round(duration * imu.rate_hz))
     next_frame, frames = 0.0, 0
@@ -165,16 +165,18 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
             t_ns = int(round(t * 1e9))
             state = quad.state
             if t >= next_frame - 1e-9:
-                T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ T_B_C
-                sink.add_frame(t_ns, *renderer.render(T_W_C))
-                frames += 1
+                capture = head.shoot(renderer, t, state)
+                if capture.stamp is not None:
+                    sink.add_frame(int(round(capture.stamp * 1e9)), capture.image,
+                                   capture.depth)
+                    frames += 1
                 next_frame += 1.0 / camera.rate_hz
             _command(quad, follower, t, route, climb_seconds)
             truth = quad.step(dt)
-            gyro, accel = sensor.measure(truth, dt)
+            gyro, accel = imu_model.measure(truth, dt)
             # The sample describes [t, t + dt); ground truth is the state at t.
             sink.add_groundtruth(t_ns, state.position, state.q_W_B, state.velocity,
-                                 sensor.gyro_bias, sensor.accel_bias)
+                                 imu_model.gyro_bias, imu_model.accel_bias)
             sink.add_imu(t_ns, gyro, accel)
             if quad.collision is not None:
                 c = quad.collision
@@ -206,10 +208,14 @@ def _heading(path: np.ndarray) -> float:
 
 
 def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: VehicleOptions,
-                   imu: ImuOptions, *, duration: float) -> RecordSummary:
-    """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``.
+                   imu: ImuOptions, *, duration: float,
+                   sim_camera: SensorOptions | None = None) -> RecordSummary:
+    """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``,
+    in ``sim.profile``: realistic, through the camera sensor ``sim_camera`` (default
+    ``[sim_camera]``'s defaults; its lens is written into ``sensor.yaml``, and the mounting
+    written is the configured one, not the camera's true one), or ideal.
 
-    The seed also picks the route and seeds the IMU noise, so one seed gives one dataset.
+    The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset.
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
@@ -218,10 +224,12 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")
     world = build_world(sim.world, sim.seed)
     route = world.routes[sim.seed % len(world.routes)]
+    sensor = (sim_camera or SensorOptions()) if sim.profile == "realistic" else None
+    distortion = tuple(sensor.distortion) if sensor and sensor.distortion else (0.0,) * 4
     with EurocWriter(out, camera.pinhole(), camera.T_B_C(), camera.rate_hz,
-                     _euroc_noise(imu)) as writer:
+                     _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.seed,
-                   camera=camera, vehicle=vehicle, imu=imu)
+                   camera=camera, vehicle=vehicle, imu=imu, sensor=sensor)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:

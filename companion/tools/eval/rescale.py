@@ -51,6 +51,7 @@ from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions, WORLD_NAMES
 from drivers.sim.record import RecordError, record_dataset
+from drivers.sim.sensor import SensorOptions
 from drivers.sim.render import RenderError
 from drivers.sim.quadrotor import VehicleOptions
 
@@ -79,11 +80,13 @@ NetworkFactory = Callable[[], RelativeDepthSource]
 
 @dataclass(frozen=True)
 class Recording:
-    """How the simulator datasets are made: the config's ``[camera]``, ``[vehicle]``, ``[imu]``."""
+    """How the simulator datasets are made: the config's ``[camera]``, ``[vehicle]``, ``[imu]``
+    and, in the realistic profile, the camera sensor ``[sim_camera]`` (None: ideal)."""
 
     camera: CameraOptions
     vehicle: VehicleOptions
     imu: ImuOptions
+    sensor: SensorOptions | None = None
 
 
 def frames_per_world(worlds, *, quick: bool) -> dict[str, int]:
@@ -191,8 +194,10 @@ def _record(out: Path, world: str, seed: int, frames: int, recording: Recording)
     log.info("%s: recording %d frames (%.2f s, seed %d) into %s", world, frames, duration, seed,
              out)
     try:
-        return record_dataset(out, SimOptions(world=world, seed=seed), recording.camera,
-                              recording.vehicle, recording.imu, duration=duration)
+        profile = "ideal" if recording.sensor is None else "realistic"
+        return record_dataset(out, SimOptions(world=world, seed=seed, profile=profile),
+                              recording.camera, recording.vehicle, recording.imu,
+                              duration=duration, sim_camera=recording.sensor)
     except (RecordError, RenderError) as error:
         raise EvaluationError(f"recording {world} (seed {seed}): {error}") from None
 
