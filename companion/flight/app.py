@@ -66,18 +66,20 @@ class FlightApp:
     @classmethod
     def from_config(cls, config, *, autopilot, camera, pinhole: PinholeCamera, T_B_C,
                     depth: DepthSource, waypoints_L, clock, lockstep: bool,
-                    go_given_by: str = "", notifier=None) -> "FlightApp":
+                    go_given_by: str = "", notifier=None,
+                    latency: dict[str, float] | None = None) -> "FlightApp":
         """The application with its VINS, planner and workers built from ``config``: the
         camera's frames follow the ideal ``pinhole`` (rectified, drivers.camera.calibration)
         from a camera mounted at ``T_B_C``; the ``[vins_imu]`` noise model; workers inline in
-        lockstep, threads otherwise (closed when :meth:`run` ends). ``go_given_by`` non-empty:
+        lockstep (charging ``latency``, seconds per worker, to the simulated clock), threads
+        otherwise (closed when :meth:`run` ends). ``go_given_by`` non-empty:
         the operator's go is already given (``sim fly``), else ``[go]`` says how it comes."""
         vins = Vins(pinhole, (0.0,) * 4, T_B_C, config.vins_imu, config.vins,
                     frontend=config.vins_frontend, static=config.vins_init)
         return cls(config, autopilot=autopilot, camera=camera, depth=depth, vins=vins,
                    T_B_C=T_B_C, planner=Planner(pinhole, config.planner),
                    waypoints_L=waypoints_L, clock=clock, notifier=notifier,
-                   workers=make_workers(lockstep, WORKERS),
+                   workers=make_workers(lockstep, WORKERS, clock, latency),
                    gate=OperatorGate(config.go, autopilot, go_given_by))
 
     def __init__(self, config, *, autopilot, camera, depth: DepthSource, vins: Vins,

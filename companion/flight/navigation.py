@@ -203,7 +203,7 @@ class Navigation:
 
     async def _plan_arcs(self, odometry: Odometry, now: float) -> None:
         c = self.context
-        plan, checked_stop = await c.workers["planner"].run(
+        plan, checked_stop = await c.workers["planner"].compute(
             self._plan_with_stop, odometry, self.route.next_W(c.T_L_W))
         if c.state != FlightState.NAVIGATING:
             return  # a failsafe took over while planning

@@ -91,9 +91,9 @@ class Perception:
             channels.frames.publish(frame)
             c.stats.frames += 1
             await self._wait_for_imu(frame.t)
-            update, inferred = await asyncio.gather(workers["vins"].run(self._track, frame),
-                                                    workers["network"].run(self.depth.infer,
-                                                                           frame))
+            update, inferred = await asyncio.gather(workers["vins"].compute(self._track, frame),
+                                                    workers["network"].compute(self.depth.infer,
+                                                                               frame))
             self._after_vins(update)
             metric = await workers["network"].run(self.depth.metric, inferred,
                                                   update.sparse_map)

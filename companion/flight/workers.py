@@ -18,10 +18,25 @@ T = TypeVar("T")
 
 
 class InlineWorker:
-    """Runs each call at once, on the loop (lockstep)."""
+    """Runs each call at once, on the loop (lockstep); :meth:`compute` then holds the worker
+    for ``latency`` seconds of ``clock`` before handing the result back."""
+
+    def __init__(self, clock=None, latency: float = 0.0):
+        if latency and clock is None:
+            raise ValueError("a worker with a latency needs the clock it passes on")
+        self._clock, self._latency = clock, latency
+        self._busy = asyncio.Lock()
 
     async def run(self, function: Callable[..., T], *args) -> T:
-        return function(*args)
+        async with self._busy:
+            return function(*args)
+
+    async def compute(self, function: Callable[..., T], *args) -> T:
+        async with self._busy:
+            result = function(*args)
+            if self._latency:
+                await self._clock.sleep(self._latency)
+            return result
 
     def close(self) -> None:
         pass
@@ -36,10 +51,20 @@ class ThreadWorker:
     async def run(self, function: Callable[..., T], *args) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *args)
 
+    compute = run  # real time: the computation takes what it takes
+
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def make_workers(lockstep: bool, names: tuple[str, ...]) -> dict:
-    """One worker per stage name: inline ones in lockstep, threads otherwise."""
-    return {name: InlineWorker() if lockstep else ThreadWorker(name) for name in names}
+def make_workers(lockstep: bool, names: tuple[str, ...], clock=None,
+                 latency: dict[str, float] | None = None) -> dict:
+    """One worker per stage name: inline ones in lockstep, each charging its stage's
+    ``latency`` (seconds by name; none: instant) to ``clock``; threads otherwise."""
+    latency = latency or {}
+    unknown = set(latency) - set(names)
+    if unknown:
+        raise ValueError(f"latency for unknown stages {sorted(unknown)}; stages: {names}")
+    if not lockstep:
+        return {name: ThreadWorker(name) for name in names}
+    return {name: InlineWorker(clock, latency.get(name, 0.0)) for name in names}

@@ -123,12 +123,16 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
 
 def build_app(config, clock, url: str, camera, depth, waypoints, *,
               lockstep: bool, go_given_by: str = "sim fly") -> FlightApp:
-    """The application wired to a camera, a depth source and the autopilot at ``url``."""
+    """The application wired to a camera, a depth source and the autopilot at ``url``; in
+    lockstep with the realistic profile, each stage's compute takes ``[sim_latency]``'s time
+    in simulated time."""
     autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
+    realistic = lockstep and config.sim.profile == "realistic"
     return FlightApp.from_config(config, autopilot=autopilot, camera=camera,
                                  pinhole=config.camera.pinhole(), T_B_C=config.camera.T_B_C(),
                                  depth=depth, waypoints_L=waypoints, clock=clock,
-                                 lockstep=lockstep, go_given_by=go_given_by)
+                                 lockstep=lockstep, go_given_by=go_given_by,
+                                 latency=config.sim_latency.per_stage() if realistic else None)
 
 
 def _link_load(link, sim) -> dict:

@@ -43,8 +43,33 @@ class SimOptions:
         validate(self)
 
 
+@dataclass(frozen=True)
+class LatencyOptions:
+    """How long the target computer takes for each stage's main computation, charged to
+    simulated time in lockstep by the realistic profile (companion.flight.workers). Defaults:
+    the paper's vehicle (a Jetson Orin; Yang et al.: depth at 15 Hz with the network under
+    TensorRT, planning at 12 Hz) and, for the VINS, which the paper does not time, this
+    project's own front-end and back-end medians (docs/benchmarks.md)."""
+
+    network_s: float = option(1.0 / 15.0, ge=0.0, le=1.0,
+                              doc="one depth inference, seconds (the paper: 15 Hz)")
+    planner_s: float = option(1.0 / 12.0, ge=0.0, le=1.0,
+                              doc="one planning round, seconds (the paper: 12 Hz)")
+    vins_s: float = option(0.017, ge=0.0, le=1.0,
+                           doc="one VINS frame, front-end and keyframe back-end, seconds "
+                               "(docs/benchmarks.md: 8 + 9 ms medians on the 2-core host)")
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    def per_stage(self) -> dict[str, float]:
+        """Seconds by worker name (companion.flight.app.WORKERS)."""
+        return {"vins": self.vins_s, "network": self.network_s, "planner": self.planner_s}
+
+
 #: The simulator's own tables of the application's config, by name: ``companion.config`` adds
 #: them after the flight's. The flight process reads none of them (the estimator's IMU noise
 #: model is ``[vins_imu]``, not the simulated IMU's ``[imu]``).
 CONFIG_SECTIONS = {"sim": SimOptions, "vehicle": VehicleOptions, "imu": ImuOptions,
-                   "sim_camera": SensorOptions, "px4": Px4Options}
+                   "sim_camera": SensorOptions, "sim_latency": LatencyOptions,
+                   "px4": Px4Options}
