@@ -195,3 +195,68 @@ if __name__ == "__main__":
     for world_name in WORLD_NAMES:
         v = calibration_abs_rel(render_route(world_name))
         print(f"{world_name:7} {np.median(v):.3f}   {v.min():.3f}  {v.max():.3f}")
+
+
+# ---- the realistic profile's failure modes -------------------------------------------------
+
+def _quiet(**changes) -> SyntheticDepthOptions:
+    """No drift, error field, blur or shift: only the failure mode under test acts."""
+    base = dict(gamma_spread=0.0, field_sigma=0.0, edge_blur=0.0, scale_spread=0.0,
+                max_shift=0.0, thin_width_px=0.0, texture_copy=0.0)
+    base.update(changes)
+    return SyntheticDepthOptions(**base)
+
+
+def _wall_with_poles(widths):
+    """A wall 8 m away with poles 3 m away, ``widths`` pixels wide, 40 px apart."""
+    depth = np.full((120, 320), 8.0, np.float32)
+    for k, width in enumerate(widths):
+        depth[:, 40 + 40 * k: 40 + 40 * k + width] = 3.0
+    return depth
+
+
+def test_poles_narrower_than_the_thin_width_are_lost_and_wider_ones_kept():
+    # 640 px reference width: thin_width_px 8 is 4 px on this 320 px image
+    depth = _wall_with_poles([2, 3, 6, 9])
+    ideal = SyntheticNetwork(_quiet())(depth)
+    out = SyntheticNetwork(_quiet(thin_width_px=8.0))(depth)
+    wall = float(ideal[60, 10])
+    for k, width in enumerate([2, 3, 6, 9]):
+        pole = out[60, 40 + 40 * k: 40 + 40 * k + width]
+        if width < 4:
+            assert pole == pytest.approx(wall, rel=1e-5)  # the wall behind it
+        else:
+            assert pole == pytest.approx(ideal[60, 40 + 40 * k], rel=1e-5)
+    # far side: nothing nearer than its surroundings changes
+    assert np.allclose(out[:, :38], ideal[:, :38])
+
+
+def test_texture_on_a_flat_wall_reads_as_relief_in_proportion_to_texture_copy():
+    depth = np.full((120, 160), 5.0, np.float32)
+    rng = np.random.default_rng(0)
+    image = np.repeat(rng.integers(40, 220, (120, 160, 1), dtype=np.uint8), 3, axis=2)
+    flat = SyntheticNetwork(_quiet())(depth, image)
+    assert np.ptp(flat) == pytest.approx(0.0, abs=1e-6)
+    spreads = [np.log(SyntheticNetwork(_quiet(texture_copy=c))(depth, image)).std()
+               for c in (0.05, 0.1)]
+    assert spreads[0] > 0.005
+    assert spreads[1] == pytest.approx(2 * spreads[0], rel=0.01)
+
+
+def test_texture_copy_needs_the_image():
+    with pytest.raises(ValueError, match="texture_copy needs the frame's image"):
+        SyntheticNetwork(_quiet(texture_copy=0.1))(np.ones((20, 30), np.float32))
+    with pytest.raises(ValueError, match="RGB uint8 of shape"):
+        SyntheticNetwork(_quiet(texture_copy=0.1))(np.ones((20, 30), np.float32),
+                                                   np.zeros((20, 30), np.uint8))
+
+
+def test_the_ideal_profile_is_the_stand_in_without_failure_modes():
+    options = SyntheticDepthOptions()
+    assert options.thin_width_px > 0 and options.texture_copy > 0
+    ideal = options.for_profile("ideal")
+    assert (ideal.thin_width_px, ideal.texture_copy) == (0.0, 0.0)
+    assert options.for_profile("realistic") is options
+    assert SyntheticNetwork().options == ideal
+    with pytest.raises(ValueError, match="ideal or realistic"):
+        options.for_profile("perfect")

@@ -7,6 +7,7 @@ far_depth``), ``D`` the frame's 99th-percentile known disparity and ``t`` the fr
 
     x      = (d / D) ** gamma_t                 known pixels: monotone power-law distortion
     x      = sky_level                          unknown, sky and far pixels: near zero
+    x      = open_w(log x), then * T^c          thin structures lost, texture copied
     y      = G_sigma * (x * exp(e_t(u, v)))     smooth error field, then blurred depth edges
     output = s_t * (y + b_t)                    affine drift of the scale and shift
 
@@ -18,6 +19,14 @@ process ``u_t = rho u_(t-1) + sqrt(1 - rho^2) w_t`` with ``rho = exp(-1 / frames
 time constant in frames, started from its stationary distribution so the first frame is as wrong
 as any later one. The output is finite and non-negative everywhere.
 
+Two failure modes of relative-depth networks on such scenes come with the realistic profile
+(:meth:`SyntheticDepthOptions.for_profile`): ``open_w`` is a grey-scale opening of the log
+disparity with a disk, so a pole or a tripod leg at most ``thin_width_px`` wide takes the
+disparity of the wall behind it (lost; a wider structure keeps its shape), and
+``T^c`` multiplies disparity by the image's fine luminance detail to the power
+``texture_copy`` (``T`` = luminance over its Gaussian blur of :data:`TEXTURE_SCALE` pixels), so
+the texture of a flat wall reads as relief.
+
 :func:`affine_fit_abs_rel` is the calibration metric, the affine-invariant evaluation of MiDaS
 (Ranftl et al. 2020) and Depth Anything.
 """
@@ -25,7 +34,7 @@ as any later one. The output is finite and non-negative everywhere.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -36,6 +45,8 @@ from autonomy.options import option, validate
 REFERENCE_WIDTH = 640
 #: Stride of the pixel subsample the frame's disparity percentile is taken on.
 PERCENTILE_STRIDE = 4
+#: Gaussian sigma, pixels at 640 pixels of width, below which image detail counts as texture.
+TEXTURE_SCALE = 4.0
 
 
 @dataclass(frozen=True)
@@ -62,19 +73,35 @@ class SyntheticDepthOptions:
                               "pixels, as a share of the 99th-percentile disparity")
     far_depth: float = option(80.0, gt=0.0, doc="depth beyond which a pixel counts as far, "
                               "like sky, metres")
+    thin_width_px: float = option(4.0, ge=0.0, le=64.0, doc="near structures at most this "
+                                  "wide are lost into what lies behind them, pixels at 640 "
+                                  "pixels of width (realistic profile)")
+    texture_copy: float = option(0.1, ge=0.0, le=1.0, doc="log disparity added per unit of "
+                                 "the image's fine log-luminance detail: texture read as "
+                                 "relief (realistic profile)")
 
     def __post_init__(self) -> None:
         validate(self)
+
+    def for_profile(self, profile: str) -> "SyntheticDepthOptions":
+        """These options in the simulator's ``profile``: ``realistic`` as they are, ``ideal``
+        without the failure modes on thin structures and texture (the stand-in before them)."""
+        if profile == "realistic":
+            return self
+        if profile == "ideal":
+            return replace(self, thin_width_px=0.0, texture_copy=0.0)
+        raise ValueError(f"profile must be ideal or realistic, got {profile!r}")
 
 
 class SyntheticNetwork:
     """Relative disparity from ground-truth depth, one frame per call (see the module doc).
 
-    The same ``seed`` gives the same outputs for the same sequence of depth images.
+    Without ``options``, the defaults of the ideal profile. The same ``seed`` gives the same outputs for the same sequence of depth images.
     """
 
     def __init__(self, options: SyntheticDepthOptions | None = None, seed: int = 0):
-        self.options = options or SyntheticDepthOptions()
+        # no options: the defaults without the realistic profile's failure modes
+        self.options = options or SyntheticDepthOptions().for_profile("ideal")
         if not isinstance(self.options, SyntheticDepthOptions):
             raise TypeError(f"options must be SyntheticDepthOptions, got {self.options!r}")
         self._rng = np.random.default_rng(seed)
@@ -83,8 +110,10 @@ class SyntheticNetwork:
         self._field = self._rng.standard_normal(grid)
         self._upsampling: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
-    def __call__(self, depth: np.ndarray) -> np.ndarray:
-        """Relative disparity (float32, same shape) for the next frame's ground-truth depth."""
+    def __call__(self, depth: np.ndarray, image: np.ndarray | None = None) -> np.ndarray:
+        """Relative disparity (float32, same shape) for the next frame's ground-truth depth;
+        ``image`` (RGB uint8, the frame's) feeds the texture copy, which needs one when
+        ``texture_copy`` is on."""
         z = _checked_depth(depth)
         o = self.options
         known = (z > 0.0) & (z <= o.far_depth)  # False where z is NaN
@@ -93,6 +122,9 @@ class SyntheticNetwork:
         log_x -= _log_reference_depth(z, known)
         log_x *= -gamma
         log_x[~known] = math.log(o.sky_level) if o.sky_level > 0 else -np.inf
+        log_x = self._thin_structures_lost(log_x)
+        if o.texture_copy > 0:
+            log_x += o.texture_copy * _fine_log_luminance(_checked_image(image, z.shape))
         log_x += self._error_field(z.shape)
         y = np.exp(log_x)
         sigma = o.edge_blur * z.shape[1] / REFERENCE_WIDTH
@@ -102,6 +134,19 @@ class SyntheticNetwork:
         out = math.exp(o.scale_spread * self._scale) * (y + shift)  # >= 0: y, shift >= 0
         self._step()
         return out
+
+    def _thin_structures_lost(self, log_x: np.ndarray) -> np.ndarray:
+        """Grey-scale opening of the log disparity with a disk: anything nearer than its
+        surroundings and at most ``thin_width_px`` wide (rounded to even pixels) takes the
+        disparity of what lies behind it; wider structures keep their shape."""
+        width = self.options.thin_width_px * log_x.shape[1] / REFERENCE_WIDTH
+        if round(width / 2) < 1:
+            return log_x
+        size = 2 * round(width / 2) + 1  # an odd disk removes what is at most size - 1 wide
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+        finite = np.where(np.isfinite(log_x), log_x, np.float32(-1e6)).astype(np.float32)
+        opened = cv2.morphologyEx(finite, cv2.MORPH_OPEN, disk, borderType=cv2.BORDER_REFLECT)
+        return np.where(np.isfinite(log_x), opened, log_x)
 
     def _error_field(self, shape: tuple[int, int]) -> np.ndarray:
         """log of the multiplicative error: the grid times field_sigma, bicubic to ``shape``.
@@ -135,6 +180,27 @@ def _bicubic_matrix(n: int, size: int) -> np.ndarray:
     """(size, n) matrix taking n grid values to ``size`` samples, as cv2's bicubic resize does
     (column j is the resized unit vector e_j)."""
     return cv2.resize(np.eye(n, dtype=np.float32), (n, size), interpolation=cv2.INTER_CUBIC)
+
+
+def _checked_image(image, shape: tuple[int, int]) -> np.ndarray:
+    """``image`` as (H, W, 3) uint8 of the depth's ``shape``; ValueError for anything else."""
+    if image is None:
+        raise ValueError("texture_copy needs the frame's image: call the stand-in with "
+                         "(depth, image), or set [synthetic_depth] texture_copy = 0")
+    array = np.asarray(image)
+    if array.shape != (*shape, 3) or array.dtype != np.uint8:
+        raise ValueError(f"image must be RGB uint8 of shape {(*shape, 3)}, got "
+                         f"{array.shape} {array.dtype}")
+    return array
+
+
+def _fine_log_luminance(image: np.ndarray) -> np.ndarray:
+    """The image's fine detail: log luminance minus its Gaussian blur of
+    :data:`TEXTURE_SCALE` pixels per 640 of width (what a network may read as relief)."""
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    log_l = np.log(grey + 1.0)
+    sigma = TEXTURE_SCALE * image.shape[1] / REFERENCE_WIDTH
+    return log_l - cv2.GaussianBlur(log_l, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
 
 
 def _checked_depth(depth) -> np.ndarray:

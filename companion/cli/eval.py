@@ -151,8 +151,9 @@ def _eval_depth(args: argparse.Namespace, config: Config) -> int:
     from companion.tools.eval.vio import EvaluationError
 
     try:
-        network = depth.open_relative_depth_source(config.depth_network,
-                                                   config.synthetic_depth, seed=config.sim.seed)
+        network = depth.open_relative_depth_source(
+            config.depth_network, config.synthetic_depth.for_profile(config.sim.profile),
+            seed=config.sim.seed)
         options = depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
                                          config.vins_frontend, config.vins_init)
         result = depth.evaluate_depth(args.dataset, options, network,
@@ -180,7 +181,8 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
             options=depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
                                            config.vins_frontend, config.vins_init),
             open_network=lambda: depth.open_relative_depth_source(
-                config.depth_network, config.synthetic_depth, seed=seed))
+                config.depth_network, config.synthetic_depth.for_profile(config.sim.profile),
+                seed=seed))
     except (NetworkError, EvaluationError) as error:
         print(f"eval rescale: {error}", file=sys.stderr)
         return common.EXIT_FAILED

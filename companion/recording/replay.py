@@ -182,12 +182,13 @@ class _Replayer:
         if self.mission is None:
             raise ReplayError("the recording is not of a simulated flight and [depth_network] "
                               "model is empty: name the ONNX model the flight used")
-        stand_in = SyntheticNetwork(config.synthetic_depth, seed=self.mission["seed"])
+        stand_in = SyntheticNetwork(config.synthetic_depth.for_profile(config.sim.profile),
+                                    seed=self.mission["seed"])
 
         def synthetic(frame: Frame):
             if frame.truth_depth is None:
                 raise _NoTruth(frame.t)
-            return stand_in(frame.truth_depth)
+            return stand_in(frame.truth_depth, frame.image)
         return synthetic
 
     def _start(self) -> None:

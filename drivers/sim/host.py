@@ -129,8 +129,9 @@ def simulated_network(config, seed: int, faults: FaultSchedule, sim_time: Callab
                                   (config.camera.height, config.camera.width))
         infer = lambda frame: model(frame.image, channels="rgb")  # noqa: E731
     else:
-        stand_in = SyntheticNetwork(config.synthetic_depth, seed=seed)
-        infer = lambda frame: stand_in(frame.truth_depth)  # noqa: E731
+        stand_in = SyntheticNetwork(config.synthetic_depth.for_profile(config.sim.profile),
+                                    seed=seed)
+        infer = lambda frame: stand_in(frame.truth_depth, frame.image)  # noqa: E731
 
     def source(frame):
         disparity = infer(frame)

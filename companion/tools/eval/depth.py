@@ -92,7 +92,7 @@ def open_relative_depth_source(network: NetworkOptions, synthetic: SyntheticDept
             return model(frame.image, channels="rgb")  # the evaluation's frames are RGB
         return infer
     stand_in = SyntheticNetwork(synthetic, seed=seed)
-    return lambda frame, truth: stand_in(truth)
+    return lambda frame, truth: stand_in(truth, frame.image)
 
 
 def evaluate_depth(root: Path, options: DepthEvalOptions, network: RelativeDepthSource, *,
