@@ -55,7 +55,8 @@ class NoCamera:
 def time_flight(world, renderer, duration: float) -> float:
     start = time.perf_counter()
     record.fly(world, world.routes[0], Discard(), duration=duration, seed=0,
-               camera=CameraOptions(), vehicle=VehicleOptions(), imu=ImuOptions(),
+               camera=CameraOptions(), vehicle=VehicleOptions(),
+               imu=ImuOptions().for_profile("ideal"),
                renderer=renderer)
     return time.perf_counter() - start
 

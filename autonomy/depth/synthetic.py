@@ -96,7 +96,8 @@ class SyntheticDepthOptions:
 class SyntheticNetwork:
     """Relative disparity from ground-truth depth, one frame per call (see the module doc).
 
-    Without ``options``, the defaults of the ideal profile. The same ``seed`` gives the same outputs for the same sequence of depth images.
+    Without ``options``, the defaults of the ideal profile. The same ``seed`` gives the same
+    outputs for the same sequence of depth images.
     """
 
     def __init__(self, options: SyntheticDepthOptions | None = None, seed: int = 0):

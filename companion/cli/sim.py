@@ -113,7 +113,7 @@ def _sim_serve(args: argparse.Namespace, config: Config) -> int:
     from drivers.sim.world import build_world
 
     sim = _sim_options(args, config)
-    world = build_world(sim.world, sim.seed)
+    world = build_world(sim.world, sim.seed, sim.profile)
 
     def ready(vehicle) -> None:
         where = vehicle.px4.link.pty_path or args.mavlink
@@ -123,7 +123,8 @@ def _sim_serve(args: argparse.Namespace, config: Config) -> int:
     try:
         summary = asyncio.run(sim_serve.serve(
             args.mavlink, world, seed=sim.seed, clock_mode=sim.clock,
-            vehicle_options=config.vehicle, imu_options=config.imu, px4_options=config.px4,
+            vehicle_options=config.vehicle, imu_options=config.imu.for_profile(sim.profile),
+            px4_options=config.px4,
             duration=args.duration, on_ready=ready))
     except KeyboardInterrupt:
         return common.EXIT_OK

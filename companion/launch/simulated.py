@@ -84,9 +84,11 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     """Fly ``mission`` on the running loop and return the summary (module docstring). The
     command line is the operator's go (``go_given_by``); "" waits for one as ``[go]`` says.
     ``record`` and ``live``: as :func:`run`."""
-    world = build_world(mission.world, mission.seed)
-    start, waypoints, start_yaw = mission_waypoints(world, mission,
-                                                    config.flight.takeoff_altitude)
+    world = build_world(mission.world, mission.seed, config.sim.profile)
+    # the route's corners are planned in the ideal world, so that its thin obstacles (the
+    # realistic profile's) are the flight's to see and avoid, not the route's
+    start, waypoints, start_yaw = mission_waypoints(build_world(mission.world, mission.seed),
+                                                    mission, config.flight.takeoff_altitude)
     faults = FaultSchedule(mission.faults)
     if faults.has("loop_stall") and mission.clock != "realtime":
         raise SimError("a loop_stall fault needs --clock realtime: in lockstep the simulator "

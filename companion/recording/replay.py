@@ -422,8 +422,9 @@ def plot(path: Path, mission: dict | None, config, out: Path) -> None:
         raise ReplayError(f"{path} has no VINS path tied to PX4's local frame to draw")
     sim_mission = SimMission(**{**mission, "faults": tuple(
         Fault(**fault) for fault in mission["faults"])})
-    world = build_world(sim_mission.world, sim_mission.seed)
-    start, waypoints, _ = mission_waypoints(world, sim_mission, config.flight.takeoff_altitude)
+    world = build_world(sim_mission.world, sim_mission.seed, config.sim.profile)
+    start, waypoints, _ = mission_waypoints(build_world(sim_mission.world, sim_mission.seed),
+                                            sim_mission, config.flight.takeoff_altitude)
     positions_L = np.asarray(positions_W) @ T_L_W[:3, :3].T + T_L_W[:3, 3]
     top_view(world, positions_L, start=start, goal=waypoints[-1], waypoints=waypoints[:-1],
              out=out, title=f"{world.name} pair {sim_mission.pair}: recorded VINS path")

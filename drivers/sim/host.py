@@ -263,7 +263,8 @@ class Simulator:
         c = self.config
         url = "pty" if self.port is None else f"udpin://127.0.0.1:{self.port}"
         return serve(url, self.world, seed=self.mission.seed,
-                     clock_mode=clock_mode, vehicle_options=c.vehicle, imu_options=c.imu,
+                     clock_mode=clock_mode, vehicle_options=c.vehicle,
+                     imu_options=c.imu.for_profile(c.sim.profile),
                      px4_options=c.px4, stop=stop, sim_clock=sim_clock, on_ready=on_ready,
                      start=self.start_pose[0], start_yaw=self.start_pose[1], faults=self.faults)
 

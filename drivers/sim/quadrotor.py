@@ -397,6 +397,10 @@ class Quadrotor:
             on_ground=self._on_ground,
         )
 
+    #: The rotors' collective specific thrust over the last step, m/s^2 (0 with the motors
+    #: off): what the airframe's vibration scales with (drivers.sim.imu).
+    thrust: float = 0.0
+
     @property
     def landed(self) -> bool:
         """On the ground and not commanded upward (disarmed, or thrust below weight)."""
@@ -455,6 +459,7 @@ class Quadrotor:
         if self.collision is not None:
             return self._rest(dt)
         thrust, body_z_sp, yaw_rate_ff = self._control(dt)
+        self.thrust = thrust
         free = self._free_acceleration(thrust)
         self._thrust_lifts = free[2] > 0.0
         end_z = self._p[2] + self._v[2] * dt + 0.5 * free[2] * dt * dt

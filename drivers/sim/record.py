@@ -173,7 +173,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
                 next_frame += 1.0 / camera.rate_hz
             _command(quad, follower, t, route, climb_seconds)
             truth = quad.step(dt)
-            gyro, accel = imu_model.measure(truth, dt)
+            gyro, accel = imu_model.measure(truth, dt, thrust=quad.thrust)
             # The sample describes [t, t + dt); ground truth is the state at t.
             sink.add_groundtruth(t_ns, state.position, state.q_W_B, state.velocity,
                                  imu_model.gyro_bias, imu_model.accel_bias)
@@ -222,9 +222,10 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")
-    world = build_world(sim.world, sim.seed)
+    world = build_world(sim.world, sim.seed, sim.profile)
     route = world.routes[sim.seed % len(world.routes)]
     sensor = (sim_camera or SensorOptions()) if sim.profile == "realistic" else None
+    imu = imu.for_profile(sim.profile)
     distortion = tuple(sensor.distortion) if sensor and sensor.distortion else (0.0,) * 4
     with EurocWriter(out, camera.pinhole(), camera.T_B_C(), camera.rate_hz,
                      _euroc_noise(imu), distortion=distortion) as writer:

@@ -29,16 +29,17 @@ import numpy as np
 
 from autonomy.geometry import PinholeCamera, invert_pose
 from drivers.sim.textures import SIZE, TILE_METRES, make_texture
-from drivers.sim.world import Box, Cylinder, World
+from drivers.sim.world import Box, Cylinder, Rod, World
 
 SKY_RGB = (0.62, 0.75, 0.92)
 """Colour of the open sky in outdoor worlds."""
 
 CYLINDER_SEGMENTS = 16
-"""Facets of a trunk. Its corners lie at radius ``R_v = 2 R / (1 + cos(pi / n))``, so the
-facets (from ``R_v cos(pi / n)`` at their middles to ``R_v`` at their edges) stray at most
-``R (1 - cos(pi / n)) / (1 + cos(pi / n))`` = 0.97 % of R (3.4 mm on a 0.35 m trunk) from the
-true cylinder, inside and outside alike. Triangles are what llvmpipe pays for, so few."""
+"""Facets of a trunk, pole or rod. Its corners lie at radius ``R_v = 2 R / (1 + cos(pi / n))``,
+so the facets (from ``R_v cos(pi / n)`` at their middles to ``R_v`` at their edges) stray at most
+``R (1 - cos(pi / n)) / (1 + cos(pi / n))`` = 0.97 % of R (3.4 mm on a 0.35 m trunk, 0.5 mm on a
+5 cm pole) from the true cylinder, inside and outside alike. Triangles are what llvmpipe pays
+for, so few."""
 
 _VERTEX_SHADER = """
 #version 330
@@ -87,6 +88,20 @@ void main() {
     depth = position_c.z;
 }
 """
+
+
+# A hazy world's variant (World.visibility): the surface's colour is blended towards the haze
+# colour by the share of light a participating medium of that visibility scatters in over the
+# distance to the camera (Koschmieder's law). The depth output stays the surface's z.
+_HAZY_FRAGMENT_SHADER = _FRAGMENT_SHADER.replace(
+    "uniform float ambient;\n",
+    "uniform float ambient;\nuniform float visibility;\nuniform vec3 haze_rgb;\n",
+).replace(
+    "    colour = vec4(albedo * (ambient + (1.0 - ambient) * diffuse), 1.0);\n",
+    "    vec3 surface = albedo * (ambient + (1.0 - ambient) * diffuse);\n"
+    "    colour = vec4(mix(surface, haze_rgb, 1.0 - exp(-distance / visibility)), 1.0);\n",
+)
+assert _HAZY_FRAGMENT_SHADER.count("visibility") == 2
 
 
 class RenderError(RuntimeError):
@@ -159,16 +174,50 @@ def _cylinder_faces(cylinder: Cylinder, layer: int):
     yield cap_vertices, fan
 
 
+def _rod_faces(rod: Rod, layer: int):
+    """Side facets round the axis from ``a`` to ``b`` (as a trunk's, with the same corner
+    radius) and a fan on each flat end."""
+    n = CYLINDER_SEGMENTS
+    axis = rod.b - rod.a
+    length = float(np.linalg.norm(axis))
+    u = axis / length
+    helper = np.array([0.0, 0.0, 1.0]) if abs(u[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(helper, u)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)  # (e1, e2, u) right-handed
+    angles = np.linspace(0.0, 2 * math.pi, n + 1)
+    repeats = max(1, round(2 * math.pi * rod.radius / TILE_METRES))
+    corner_radius = 2 * rod.radius / (1 + math.cos(math.pi / n))
+    ring = rod.a + corner_radius * (np.cos(angles)[:, None] * e1 + np.sin(angles)[:, None] * e2)
+    v_top = length / TILE_METRES
+    for k in range(n):
+        middle = (angles[k] + angles[k + 1]) / 2
+        normal = math.cos(middle) * e1 + math.sin(middle) * e2
+        u0, u1 = repeats * k / n, repeats * (k + 1) / n
+        uvs = np.array([[u0, 0.0], [u1, 0.0], [u1, v_top], [u0, v_top]])
+        yield _quad(ring[k], ring[k + 1] - ring[k], axis, normal, uvs, layer)
+    for centre, normal, order in ((rod.b, u, 1), (rod.a, -u, -1)):
+        cap = np.vstack([centre, ring[:-1] + (centre - rod.a)])
+        local = (cap - centre) @ np.column_stack([e1, e2]) / TILE_METRES
+        vertices = np.column_stack([cap, np.tile(normal, (n + 1, 1)), local,
+                                    np.full(n + 1, layer)])
+        # counter-clockwise seen from outside: (e1, e2) turns round +u, so reverse at the a end
+        fan = np.array([[0, 1 + k, 1 + (k + 1) % n][::order] for k in range(n)]).ravel()
+        yield vertices, fan
+
+
 def world_mesh(world: World) -> tuple[np.ndarray, np.ndarray]:
     """``(vertices (V, 9) float32: position, normal, u, v, texture layer; indices (I,) int32)``
-    of every surface of ``world`` (floor, panels, boxes, trunks); layer k is the texture of
-    ``world.materials[k]``."""
+    of every surface of ``world`` (floor, panels, boxes, trunks and poles, rods); layer k is the
+    texture of ``world.materials[k]``."""
     layer = {name: k for k, name in enumerate(world.materials)}
     faces = [*_box_faces(world.floor, layer[world.floor.material])]
     for box in world.boxes:
         faces += _box_faces(box, layer[box.material])
     for cylinder in world.cylinders:
         faces += _cylinder_faces(cylinder, layer[cylinder.material])
+    for rod in world.rods:
+        faces += _rod_faces(rod, layer[rod.material])
     vertices, indices, offset = [], [], 0
     for v, i in faces:
         vertices.append(v)
@@ -234,8 +283,11 @@ class Renderer:
 
     ``near``/``far`` bound the rendered depth, metres. Lighting: outdoors the sun (from
     ``sun_W``, a direction towards the sun in the world frame) and sky; underground a head lamp
-    at the camera with range ``head_lamp_range`` metres. ``libegl``/``libgl`` name the system
-    libraries to load (default: found as the dynamic linker would).
+    at the camera with range ``head_lamp_range`` metres. A world with a ``visibility`` is hazy:
+    each colour is ``lerp(surface, world.haze_rgb, 1 - exp(-distance / visibility))`` with the
+    distance from the camera's centre (what no surface covers is the haze's colour); the depth
+    is unchanged. ``libegl``/``libgl`` name the system libraries to load (default: found as the
+    dynamic linker would).
     """
 
     def __init__(self, world: World, camera: PinholeCamera, *, near: float = 0.05,
@@ -248,8 +300,10 @@ class Renderer:
         self._ctx = create_context(libegl, libgl)
         ctx = self._ctx
         try:
-            self._program = ctx.program(vertex_shader=_VERTEX_SHADER,
-                                        fragment_shader=_FRAGMENT_SHADER)
+            hazy = world.visibility is not None
+            self._program = ctx.program(
+                vertex_shader=_VERTEX_SHADER,
+                fragment_shader=_HAZY_FRAGMENT_SHADER if hazy else _FRAGMENT_SHADER)
             vertices, indices = world_mesh(world)
             self._vao = ctx.vertex_array(
                 self._program,
@@ -270,6 +324,10 @@ class Renderer:
             self._program["head_lamp_range"] = 0.0 if world.outdoor else head_lamp_range
             self._sun_W = np.asarray(sun_W, dtype=float) / np.linalg.norm(sun_W)
             self._background = SKY_RGB if world.outdoor else (0.0, 0.0, 0.0)
+            if hazy:
+                self._program["visibility"] = float(world.visibility)
+                self._program["haze_rgb"] = tuple(float(c) for c in world.haze_rgb)
+                self._background = tuple(world.haze_rgb)
         except Exception:
             ctx.release()
             raise
@@ -278,7 +336,12 @@ class Renderer:
         """``(rgb (H, W, 3) uint8, depth (H, W) float32)`` seen from ``T_W_C``: depth is the
         z-coordinate in the optical frame, metres, NaN where no surface lies within ``far``.
         Row 0 is the top of the image."""
-        T_C_W = invert_pose(_checked_pose(T_W_C))
+        T_W_C = _checked_pose(T_W_C)
+        with self._ctx:  # this renderer's context current, whichever other one was made last
+            return self._render(T_W_C)
+
+    def _render(self, T_W_C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        T_C_W = invert_pose(T_W_C)
         self._program["camera_from_world"].write(T_C_W.T.astype("f4").tobytes())
         self._program["clip_from_world"].write((self._projection @ T_C_W).T.astype("f4")
                                                .tobytes())

@@ -73,7 +73,7 @@ class SimulatedVehicle:
                  vehicle_options: VehicleOptions | None = None,
                  imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
                  start=None, start_yaw: float = 0.0, faults: FaultSchedule | None = None):
-        self.imu_options = imu_options or ImuOptions()
+        self.imu_options = imu_options or ImuOptions().for_profile("ideal")
         self.dt = 1.0 / self.imu_options.rate_hz
         clearance = getattr(world, "obstacle_clearance", None) if world is not None else None
         imu_seed, estimator_seed = np.random.SeedSequence(seed).spawn(2)
@@ -95,7 +95,7 @@ class SimulatedVehicle:
     def tick(self) -> None:
         """One physics step of dt, its IMU sample, then the flight controller at the new time."""
         truth = self.vehicle.step(self.dt)
-        gyro, accel = self.imu.measure(truth, self.dt)
+        gyro, accel = self.imu.measure(truth, self.dt, thrust=self.vehicle.thrust)
         self.steps += 1
         self._apply_faults()
         self.px4.update(self.vehicle.state.time, gyro, accel)

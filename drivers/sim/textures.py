@@ -11,6 +11,8 @@ structure in every window), so each material layers
 - drawn detail with sharp edges (cracks, stones, bricks, blades of grass, painted numbers),
   drawn at all nine periodic offsets so it wraps across the tile's edges too.
 
+All but one: ``smooth_concrete``, the realistic profile's low-texture wall, is faint noise alone.
+
 The same material and seed always give the same image.
 """
 
@@ -198,6 +200,15 @@ def painted(rng) -> np.ndarray:
     return image
 
 
+def smooth_concrete(rng) -> np.ndarray:
+    """Smooth painted or sprayed concrete (shotcrete): the low-texture wall of the realistic
+    profile. Only a faint, broad mottling (2 % RMS of the albedo, ``k^-3`` so almost no fine
+    detail) and a fainter grain (0.4 %): no joints, aggregate, cracks or stains, so Shi-Tomasi
+    finds little there beside the textured surfaces."""
+    value = 0.6 + 0.012 * fractal_noise(rng, 3.0) + 0.0024 * fractal_noise(rng, 1.0)
+    return _tinted(value, (0.93, 0.92, 0.88))
+
+
 MATERIALS: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
     "rock": rock,
     "rock_dark": lambda rng: rock(rng, tint=(0.48, 0.45, 0.42)),
@@ -208,6 +219,7 @@ MATERIALS: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
     "bark": bark,
     "grass": grass,
     "painted": painted,
+    "smooth_concrete": smooth_concrete,
 }
 """Every material a world may name, and the function that paints it."""
 

@@ -19,6 +19,12 @@ renderer's trunks are 16-sided prisms within 1 % of the radius of these cylinder
 :meth:`World.find_path` plans on that clearance: A* on a 0.25 m grid of the cells whose clearance
 at flight height is at least the robot radius, then shortcutting the cell path wherever the
 straight segment keeps the clearance (checked on the exact function, not the grid).
+
+The ``realistic`` profile (:func:`build_world`) builds the same world and adds what makes real
+flight hard: thin poles and a tripod near the routes (the tripod's legs and head are
+:class:`Rod` primitives, cylinders of any direction, whose clearance is exact too),
+low-texture stretches of the mine's and sewer's walls, and dust in the mine
+(:attr:`World.visibility`, drawn by the renderer).
 """
 
 from __future__ import annotations
@@ -26,11 +32,11 @@ from __future__ import annotations
 import heapq
 import math
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drivers.sim.options import WORLD_NAMES
+from drivers.sim.options import PROFILES, WORLD_NAMES
 
 CELL = 0.5
 """Grid of the enclosed worlds' ceiling-height maps, metres."""
@@ -78,6 +84,17 @@ class Cylinder:
     material: str
 
 
+@dataclass(frozen=True, eq=False)
+class Rod:
+    """A solid cylinder of any direction from ``a`` to ``b`` with flat ends square to its axis
+    (a tripod's leg or head)."""
+
+    a: np.ndarray  # (3,)
+    b: np.ndarray  # (3,)
+    radius: float
+    material: str
+
+
 @dataclass(frozen=True)
 class Materials:
     """Which texture (drivers.sim.textures.MATERIALS) each kind of surface wears."""
@@ -93,8 +110,12 @@ class World:
 
     ``heights`` is the enclosed worlds' ceiling-height map (rows along y, columns along x, cell
     ``(j, i)`` covering ``origin + (i, j) * CELL`` to one cell further; 0 = solid), None for an
-    open world. ``boxes`` and ``cylinders`` are every obstacle surface except the floor, which is
-    ``floor`` (a panel at z = 0 big enough to fill the view).
+    open world. ``boxes``, ``cylinders`` and ``rods`` are every obstacle surface except the floor,
+    which is ``floor`` (a panel at z = 0 big enough to fill the view).
+
+    ``profile`` is the :data:`~drivers.sim.options.PROFILES` entry that built it. A world with
+    ``visibility`` (metres; None = clear air) is filled with a haze of colour ``haze_rgb`` (linear
+    RGB in [0, 1]): the camera sees ``lerp(surface, haze_rgb, 1 - exp(-distance / visibility))``.
     """
 
     name: str
@@ -108,25 +129,36 @@ class World:
     heights: np.ndarray | None = None
     origin: np.ndarray | None = None  # (2,) x, y of the height map's corner
     cruise_height: float = CRUISE_HEIGHT
+    rods: tuple[Rod, ...] = ()
+    profile: str = "ideal"
+    visibility: float | None = None
+    haze_rgb: tuple[float, float, float] | None = None
     _box_lo: np.ndarray = field(init=False, repr=False)
     _box_hi: np.ndarray = field(init=False, repr=False)
     _cylinders: np.ndarray = field(init=False, repr=False)
+    _rods: np.ndarray = field(init=False, repr=False)
     _plan_cache: dict = field(init=False, repr=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         lo = np.array([b.lo for b in self.boxes]).reshape(-1, 3)
         hi = np.array([b.hi for b in self.boxes]).reshape(-1, 3)
         cyl = np.array([[*c.centre, c.radius, c.height] for c in self.cylinders]).reshape(-1, 4)
-        for name, value in (("_box_lo", lo), ("_box_hi", hi), ("_cylinders", cyl)):
+        rods = np.array([[*r.a, *r.b, r.radius] for r in self.rods]).reshape(-1, 7)
+        for name, value in (("_box_lo", lo), ("_box_hi", hi), ("_cylinders", cyl),
+                            ("_rods", rods)):
             value.setflags(write=False)
             object.__setattr__(self, name, value)
+        if self.visibility is not None and not (math.isfinite(self.visibility)
+                                                and self.visibility > 0.0):
+            raise ValueError(f"visibility must be None or > 0 metres, got {self.visibility}")
 
     # ---- clearance ---------------------------------------------------------------------------
 
     def obstacle_clearance(self, points) -> np.ndarray:
         """``(N,)`` Euclidean distance, metres, from each of ``(N, 3)`` world points (one ``(3,)``
         point gives a ``(1,)`` array) to the nearest solid surface other than the floor plane:
-        walls, ceilings, pillars, trunks. 0 inside solid. About 50 us for one point."""
+        walls, ceilings, pillars, trunks, poles, tripods. 0 inside solid. About 50 us for one
+        point."""
         p = np.asarray(points, dtype=float)
         if p.shape == (3,):
             p = p[None]
@@ -139,6 +171,9 @@ class World:
             chunk = p[start:start + 2048]
             clearance[start:start + 2048] = np.minimum(self._box_distance(chunk),
                                                        self._cylinder_distance(chunk))
+            if len(self._rods):
+                clearance[start:start + 2048] = np.minimum(clearance[start:start + 2048],
+                                                           _rod_distance(chunk, self._rods))
         if self.heights is not None:
             clearance[self._inside_rock(p)] = 0.0
         return clearance
@@ -229,8 +264,27 @@ class World:
     def materials(self) -> tuple[str, ...]:
         """Every material the world's surfaces wear, in a fixed order (the texture layers)."""
         names = [self.floor.material] + [b.material for b in self.boxes] \
-            + [c.material for c in self.cylinders]
+            + [c.material for c in self.cylinders] + [r.material for r in self.rods]
         return tuple(dict.fromkeys(names))
+
+
+def _rod_distance(p: np.ndarray, rods: np.ndarray) -> np.ndarray:
+    """Distance from ``(N, 3)`` points to the nearest of ``(K, 7)`` rods ``(a, b, radius)``.
+
+    In a rod's own frame (axial coordinate ``t = (p - a) . u`` along the unit axis ``u``, length
+    ``L``, radial distance ``rho`` from the axis) the nearest point of a solid finite cylinder is
+    on its side, its flat end or its rim, and the distance is ``hypot(max(0, rho - R), max(0, -t,
+    t - L))``: exact, 0 inside."""
+    a, b, radius = rods[:, :3], rods[:, 3:6], rods[:, 6]
+    axis = b - a
+    length = np.linalg.norm(axis, axis=1)
+    u = axis / length[:, None]
+    rel = p[:, None, :] - a[None]  # (N, K, 3)
+    t = (rel * u[None]).sum(axis=2)
+    rho = np.linalg.norm(rel - t[..., None] * u[None], axis=2)
+    outward = np.maximum(rho - radius[None], 0.0)
+    beyond = np.maximum(np.maximum(-t, t - length[None]), 0.0)
+    return np.hypot(outward, beyond).min(axis=1)
 
 
 def _segment_in(free: np.ndarray, corner: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
@@ -508,13 +562,216 @@ def _dome(rng: np.random.Generator) -> dict:
 _BUILDERS = {"mine": _mine, "sewer": _sewer, "dome": _dome}
 
 
-def build_world(name: str, seed: int = 0) -> World:
+# ---- the realistic profile's world effects (docs/simulator.md, "Worlds") -------------------
+
+PIPE_DIAMETERS = (0.0422, 0.0483, 0.0603, 0.0730, 0.0889, 0.1016)
+"""Outside diameters of the poles, metres: steel pipe of nominal sizes 1 1/4 to 3 1/2 inches
+(ASME B36.10M), what sign posts, railing posts and service pipes are made of; radii 2.1-5.1 cm."""
+
+POLE_HEIGHT_OUTDOORS = (3.0, 6.0)
+"""Height range of the dome's poles (posts), metres; underground a pole is a pipe from the floor
+to the ceiling."""
+
+TRIPOD_HEIGHT = (1.3, 1.6)
+"""Height range of a tripod's head above the floor, metres: a camera or survey tripod at working
+height, its head about at the flight height."""
+
+TRIPOD_LEG_ANGLE = math.radians(22.0)
+"""Splay of each tripod leg from the vertical, radians: a tripod's standard leg angle."""
+
+TRIPOD_LEG_RADIUS = 0.015
+"""Radius of a tripod leg, metres (a 30 mm tube)."""
+
+TRIPOD_HEAD = (0.07, 0.06)
+"""Radius and thickness of a tripod's head plate, metres."""
+
+THIN_MATERIAL = "painted"
+"""What the poles and tripods wear."""
+
+MINE_VISIBILITY = 10.0
+"""Visibility in the realistic mine's dust, metres: the distance over which image contrast falls
+by ``1/e`` (a meteorological optical range, 5 % contrast, of about 30 m)."""
+
+MINE_HAZE_RGB = (0.33, 0.31, 0.28)
+"""Colour the mine's dust tends to with distance: grey-brown rock dust in the lamp's light."""
+
+LOW_TEXTURE_MATERIAL = "smooth_concrete"
+"""The low-texture wall surface of the realistic mine (shotcrete) and sewer (painted concrete)."""
+
+LOW_TEXTURE_SHARE = 0.3
+"""Share of the wall stretches of the realistic mine and sewer that wear
+:data:`LOW_TEXTURE_MATERIAL`."""
+
+LOW_TEXTURE_STRETCH = 4.0
+"""Length of a wall stretch, metres: walls are cut at multiples of it along their length."""
+
+_RING = 0.8
+"""Free ring kept around every thin obstacle's blocking disc, metres (see
+:func:`_thin_obstacles`)."""
+
+
+def _route_bands(base: World) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per route: candidate points ``(M, 2)`` along the base world's path, every 0.25 m, shifted
+    sideways by -1.5 to 1.5 m, and each one's sideways distance ``(M,)``."""
+    bands = []
+    offsets = np.arange(-6, 7) * 0.25
+    for route in base.routes:
+        path = base.find_path(route.start[:2], route.goal[:2], ROBOT_RADIUS)
+        if path is None:  # no route of the ideal worlds lacks one (tests/test_sim_world.py)
+            bands.append((np.zeros((0, 2)), np.zeros(0)))
+            continue
+        points, normals = [], []
+        for a, b in zip(path[:-1], path[1:]):
+            length = float(np.linalg.norm(b - a))
+            if length == 0.0:
+                continue
+            steps = max(1, int(math.ceil(length / 0.25)))
+            points.append(a + np.linspace(0.0, 1.0, steps, endpoint=False)[:, None] * (b - a))
+            normals.append(np.tile([-(b - a)[1] / length, (b - a)[0] / length], (steps, 1)))
+        points, normals = np.concatenate(points), np.concatenate(normals)
+        band = points[:, None, :] + offsets[None, :, None] * normals[:, None, :]
+        bands.append((band.reshape(-1, 2), np.tile(np.abs(offsets), len(points))))
+    return bands
+
+
+def _thin_obstacles(base: World, rng: np.random.Generator) -> tuple[list[Cylinder], list[Rod]]:
+    """A tripod near one route and a pole near each route of ``base``, on or beside the path
+    the route's planner flies there, leaving every route a path for the robot.
+
+    Why a route keeps its path: seen at flight height ``h``, an obstacle reaching ``e`` from its
+    axis at heights ``>= h - R`` blocks the robot's centre (radius ``R``) only inside the disc of
+    radius ``R + e`` round its axis. It is placed only where the clearance, to the world and to
+    the obstacles already placed, is at least ``2 R + e + ring``; clearance is 1-Lipschitz, so the
+    annulus of width ``ring`` round that disc keeps clearance ``>= R`` and any path through the
+    disc can go round it instead. ``ring`` is :data:`_RING`, wide enough for the planner's
+    0.25 m grid to find the way round too. Route ends keep ``R`` plus a margin from every
+    obstacle's whole footprint. :func:`build_world` still checks every route and drops
+    obstacles (last placed first) until each has its path."""
+    h, radius = base.cruise_height, ROBOT_RADIUS
+    bands = _route_bands(base)
+    points = np.concatenate([p for p, _ in bands])
+    sideways = np.concatenate([s for _, s in bands])
+    owner = np.concatenate([np.full(len(p), k) for k, (p, _) in enumerate(bands)])
+    clearance = base.obstacle_clearance(np.column_stack([points, np.full(len(points), h)]))
+    ends = np.array([end[:2] for r in base.routes for end in (r.start, r.goal)])
+    to_ends = np.linalg.norm(points[:, None] - ends[None], axis=2).min(axis=1)
+    xmin, ymin, xmax, ymax = base.bounds
+    placed: list[tuple[np.ndarray, float]] = []  # (axis xy, reach at flight height)
+
+    def pick(routes, reach_flight: float, reach_floor: float) -> np.ndarray | None:
+        free = clearance.copy()
+        for centre, reach in placed:
+            free = np.minimum(free, np.linalg.norm(points - centre, axis=1) - reach)
+        margin = reach_floor + 0.5
+        ok = (np.isin(owner, routes) & (free >= 2 * radius + reach_flight + _RING)
+              & (to_ends >= radius + margin)
+              & (points[:, 0] >= xmin + margin) & (points[:, 0] <= xmax - margin)
+              & (points[:, 1] >= ymin + margin) & (points[:, 1] <= ymax - margin))
+        on_path = ok & (sideways <= 0.5)  # in the robot's way if possible, else beside it
+        choices = np.flatnonzero(on_path if on_path.any() else ok)
+        if not len(choices):
+            return None
+        return points[choices[rng.integers(len(choices))]]
+
+    cylinders, rods = [], []
+    head_radius, head_thickness = TRIPOD_HEAD
+    height = float(rng.uniform(*TRIPOD_HEIGHT))
+    spread = height * math.tan(TRIPOD_LEG_ANGLE)  # feet's distance from the axis
+    low = max(0.0, h - radius)  # the lowest height that reaches the robot at flight height
+    reach_flight = max(head_radius, spread * (1 - low / height) + 2 * TRIPOD_LEG_RADIUS)
+    centre = pick(range(len(base.routes)), reach_flight, spread + 2 * TRIPOD_LEG_RADIUS)
+    if centre is not None:
+        placed.append((centre, reach_flight))
+        apex = np.array([*centre, height])
+        yaw = rng.uniform(0.0, 2 * math.pi)
+        for k in range(3):
+            angle = yaw + 2 * math.pi * k / 3
+            foot = np.array([*(centre + spread * np.array([math.cos(angle), math.sin(angle)])),
+                             0.0])
+            rods.append(Rod(foot, apex.copy(), TRIPOD_LEG_RADIUS, THIN_MATERIAL))
+        rods.append(Rod(apex - [0, 0, head_thickness / 3], apex + [0, 0, 2 * head_thickness / 3],
+                        head_radius, THIN_MATERIAL))
+    for k in range(len(base.routes)):
+        pole_radius = float(rng.choice(PIPE_DIAMETERS)) / 2
+        centre = pick([k], pole_radius, pole_radius)
+        if centre is None:
+            continue
+        placed.append((centre, pole_radius))
+        if base.heights is None:
+            pole_height = float(rng.uniform(*POLE_HEIGHT_OUTDOORS))
+        else:  # floor to ceiling: the lowest ceiling over the pole's footprint
+            lo = np.floor((centre - pole_radius - base.origin) / CELL).astype(int)
+            hi = np.floor((centre + pole_radius - base.origin) / CELL).astype(int)
+            pole_height = float(base.heights[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1].min())
+        cylinders.append(Cylinder(centre, pole_radius, pole_height, THIN_MATERIAL))
+    return cylinders, rods
+
+
+def _low_texture_walls(panels: list[Box], rng: np.random.Generator) -> list[Box]:
+    """``panels`` with each wall cut into stretches at multiples of :data:`LOW_TEXTURE_STRETCH`
+    along its length, a :data:`LOW_TEXTURE_SHARE` of them (drawn from ``rng``) wearing
+    :data:`LOW_TEXTURE_MATERIAL`, neighbours of one material merged again. Painted columns
+    keep their paint. The surfaces are the same; only their texture changes."""
+    out = []
+    for panel in panels:
+        if panel.lo[2] == panel.hi[2] or panel.material == "painted":
+            out.append(panel)  # a ceiling, or a painted column
+            continue
+        along = 1 if panel.lo[0] == panel.hi[0] else 0
+        start, stop = panel.lo[along], panel.hi[along]
+        cuts = np.arange(math.floor(start / LOW_TEXTURE_STRETCH) + 1,
+                         math.ceil(stop / LOW_TEXTURE_STRETCH)) * LOW_TEXTURE_STRETCH
+        edges = [start, *cuts.tolist(), stop]
+        smooth = rng.random(len(edges) - 1) < LOW_TEXTURE_SHARE
+        pieces = _runs([LOW_TEXTURE_MATERIAL if s else panel.material for s in smooth])
+        for first, last, material in pieces:
+            lo, hi = panel.lo.copy(), panel.hi.copy()
+            lo[along], hi[along] = edges[first], edges[last]
+            out.append(Box(lo, hi, material, panel.facing))
+    return out
+
+
+def build_world(name: str, seed: int = 0, profile: str = "ideal") -> World:
     """The world ``name`` (one of :data:`WORLD_NAMES`) generated from ``seed``; the same
-    (name, seed) always gives the same world."""
+    (name, seed, profile) always gives the same world.
+
+    ``profile`` (one of :data:`~drivers.sim.options.PROFILES`): ``ideal`` is the world alone;
+    ``realistic`` is the same world (the same draws, the same surfaces) with the effects of
+    docs/simulator.md drawn from further streams of the seed: thin poles and a tripod near the
+    routes (every route keeps its path for a :data:`ROBOT_RADIUS` robot), low-texture stretches
+    of the mine's and sewer's walls, and dust in the mine (:data:`MINE_VISIBILITY`)."""
     if name not in WORLD_NAMES:
         raise ValueError(f"unknown world {name!r}; choose one of: {', '.join(WORLD_NAMES)}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if profile not in PROFILES:
+        raise ValueError(f"unknown profile {profile!r}; choose one of: {', '.join(PROFILES)}")
+    world = _build_ideal(name, int(seed))
+    if profile == "ideal":
+        return world
+    streams = {effect: np.random.default_rng([int(seed), zlib.crc32(name.encode()),
+                                              zlib.crc32(effect.encode())])
+               for effect in ("thin", "walls")}
+    poles, rods = _thin_obstacles(world, streams["thin"])
+    boxes = list(world.boxes)
+    if world.heights is not None:
+        boxes = _low_texture_walls(boxes, streams["walls"])
+    hazy = name == "mine"
+    while True:
+        realistic = replace(world, boxes=tuple(boxes), cylinders=(*world.cylinders, *poles),
+                            rods=tuple(rods), profile=profile,
+                            visibility=MINE_VISIBILITY if hazy else None,
+                            haze_rgb=MINE_HAZE_RGB if hazy else None)
+        if all(realistic.find_path(r.start[:2], r.goal[:2], ROBOT_RADIUS) is not None
+               for r in realistic.routes) or not (poles or rods):
+            return realistic
+        if poles:  # should not happen (see _thin_obstacles); drop the last placed and retry
+            poles.pop()
+        else:
+            rods.clear()
+
+
+def _build_ideal(name: str, seed: int) -> World:
     rng = np.random.default_rng([int(seed), zlib.crc32(name.encode())])
     spec = _BUILDERS[name](rng)
     materials: Materials = spec["materials"]
