@@ -22,12 +22,19 @@ window becomes keyframe 0 with gravity-aligned attitude, zero position and veloc
 window's mean gyro as bias; the take-off's acceleration then makes the scale metric. When the
 estimate is LOST, the estimator keeps propagating the IMU and, as soon as tracking is back,
 re-initialises in flight from the propagated state with a wide velocity prior (a reset).
+
+Frame times: a frame's stamp ``t`` may be late by the camera-IMU time offset ``td`` (an
+unsynchronised camera). Everything above runs at the frame's exposure time on the IMU's clock,
+``t - td``: ``td`` is ``time_offset_s``, or, with ``estimate_time_offset``, estimated online by
+:mod:`autonomy.vins.time_offset` (the camera's rotation between frames against the gyro's) and
+applied from the next frame on. The caller keeps using its stamps: :class:`FrameUpdate` and its
+sparse map carry ``t``, with the offset that was subtracted.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,6 +47,14 @@ from autonomy.vins.imu_buffer import ImuBuffer, NavState, Propagator
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import NotStill, StaticInit, StaticInitOptions, static_initialise
+from autonomy.vins.time_offset import TimeOffset, TimeOffsetEstimator
+
+#: The time-offset estimator's work on a frame waits for a frame that is not a keyframe, so
+#: that it never adds to the smoother's update: such a frame takes on up to
+#: ``OFFSET_PER_FRAME`` waiting frames, oldest first. Of a run of keyframes longer than
+#: ``OFFSET_BACKLOG`` (a fast turn), the estimator sees only the last ``OFFSET_BACKLOG`` frames.
+OFFSET_PER_FRAME = 3
+OFFSET_BACKLOG = 8
 
 #: The yaw and position priors of a (re)start: the world frame's gauge, fixed at the start.
 _GAUGE_YAW_SIGMA = 1e-3
@@ -50,10 +65,12 @@ _GAUGE_POSITION_SIGMA = 1e-3
 class FrameUpdate:
     """What one frame produced.
 
-    ``keyframe``: the smoother was updated with this frame. ``T_W_B``/``velocity_W``: the body
-    state at ``t`` (None until initialised, or when the IMU does not reach ``t``).
-    ``sparse_map``: the window's landmarks in this frame's camera (None until there is an
-    estimate, and while LOST).
+    ``t``: the frame's time as the caller gave it (its stamp). ``keyframe``: the smoother was
+    updated with this frame. ``T_W_B``/``velocity_W``: the body state when the frame was
+    exposed, at :attr:`t_exposure` (None until initialised, or when the IMU does not reach
+    it). ``sparse_map``: the window's landmarks in this frame's camera, stamped ``t`` (None until
+    there is an estimate, and while LOST). ``time_offset``: the camera-IMU time offset
+    subtracted from ``t`` (module docstring), with its uncertainty.
     """
 
     t: float
@@ -62,6 +79,13 @@ class FrameUpdate:
     velocity_W: np.ndarray | None
     sparse_map: SparseMap | None
     health: Health
+    time_offset: TimeOffset = TimeOffset()
+
+    @property
+    def t_exposure(self) -> float:
+        """The frame's exposure on the IMU's clock, ``t - time_offset.seconds``: the time of
+        ``T_W_B`` and ``velocity_W``."""
+        return self.t - self.time_offset.seconds
 
 
 @dataclass(frozen=True)
@@ -101,6 +125,13 @@ class Vins:
         self._last_reset_t = -math.inf
         self._moved = False
         self._update_ms: float | None = None
+        self._last_exposure_t = -math.inf
+        self._last_offset_s = self.options.time_offset_s
+        self._fixed_offset = TimeOffset(self.options.time_offset_s)
+        self._offset_estimator = (TimeOffsetEstimator(self.T_B_C, math.sqrt(camera.fx * camera.fy),
+                                                      self.options)
+                                  if self.options.estimate_time_offset else None)
+        self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
 
     # ------------------------------------------------------------------ inputs
 
@@ -109,9 +140,25 @@ class Vins:
         """Smoother rebuilds plus in-flight re-initialisations."""
         return self.backend.resets + self.reinitialisations
 
+    @property
+    def time_offset(self) -> TimeOffset:
+        """The camera-IMU time offset the next frame's stamp is corrected by (module
+        docstring)."""
+        if self._offset_estimator is None:
+            return self._fixed_offset
+        return self._offset_estimator.offset
+
+    def exposure_time(self, t: float) -> float:
+        """When a frame stamped ``t`` was exposed, on the IMU's clock: the IMU should reach this
+        (and ``t``) before :meth:`add_frame`."""
+        return float(t) - self.time_offset.seconds
+
     def add_imu(self, sample: ImuSample) -> None:
         """One IMU sample, in time order; ValueError for a bad one (the sample is not used)."""
         self._imu.add(sample)
+        if self._offset_estimator is not None:
+            bias = self._anchor.bias_g if self._anchor is not None else np.zeros(3)
+            self._offset_estimator.add_imu(self._imu.last_time, self._imu.last_gyro, bias)
 
     def track(self, image) -> Tracks:
         """The front-end on one image (uint8 grey or RGB, the camera's size)."""
@@ -122,7 +169,7 @@ class Vins:
         self._update_ms = float(milliseconds)
 
     def add_frame(self, t: float, tracks: Tracks) -> FrameUpdate:
-        """Everything after the front-end for the frame at ``t`` (module docstring)."""
+        """Everything after the front-end for the frame stamped ``t`` (module docstring)."""
         t = float(t)
         if not math.isfinite(t):
             raise ValueError(f"frame time must be a finite number of seconds, got {t}")
@@ -130,6 +177,35 @@ class Vins:
             raise ValueError(f"frame time {t} is not after the previous frame "
                              f"({self._last_frame_t})")
         self._last_frame_t = t
+        offset = self.time_offset
+        exposure = t - offset.seconds
+        if exposure <= self._last_exposure_t:  # the estimate moved by more than the frame gap
+            offset = replace(offset, seconds=self._last_offset_s)
+            exposure = t - offset.seconds
+        self._last_exposure_t, self._last_offset_s = exposure, offset.seconds
+        update = self._add_frame_at(exposure, tracks)
+        if self._offset_estimator is not None:
+            self._estimate_offset(t, tracks, update.keyframe)
+        if exposure == t:
+            return update if offset == update.time_offset else replace(update, time_offset=offset)
+        sparse_map = (None if update.sparse_map is None
+                      else replace(update.sparse_map, t=t))
+        return replace(update, t=t, sparse_map=sparse_map, time_offset=offset)
+
+    def _estimate_offset(self, t: float, tracks: Tracks, keyframe: bool) -> None:
+        """The frame to the time-offset estimator, on a later frame that is not a keyframe
+        (:data:`OFFSET_BACKLOG`); the estimate applies from the frame after."""
+        backlog = self._offset_backlog
+        backlog.append((t, tracks.ids, tracks.normalised))
+        if keyframe:
+            del backlog[:-OFFSET_BACKLOG]
+            return
+        for frame in backlog[:OFFSET_PER_FRAME]:
+            self._offset_estimator.add_frame(*frame)
+        del backlog[:OFFSET_PER_FRAME]
+
+    def _add_frame_at(self, t: float, tracks: Tracks) -> FrameUpdate:
+        """:meth:`add_frame` at the frame's exposure time ``t`` on the IMU's clock."""
         if self.static_init is None:
             return self._try_static_init(t, tracks)
         gap = self._imu_gap(t)

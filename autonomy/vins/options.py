@@ -66,6 +66,27 @@ class VinsOptions:
                                 "parts of the image first")
     min_depth: float = option(0.2, gt=0.0, doc="nearest landmark depth accepted, metres")
     max_depth: float = option(40.0, gt=0.0, doc="farthest landmark depth accepted, metres")
+    # --- camera-IMU time offset (autonomy/vins/time_offset.py, docs/vins.md)
+    estimate_time_offset: bool = option(False, doc="estimate the camera's time offset online "
+                                        "(its rotation between frames against the gyro's) "
+                                        "and correct the frame times by it")
+    time_offset_s: float = option(0.0, ge=-0.1, le=0.1, doc="frames are exposed this long "
+                                  "before their stamp: the fixed offset, or the estimate's "
+                                  "starting value, seconds")
+    max_time_offset_s: float = option(0.05, gt=0.0, le=0.1, doc="the estimate stays within "
+                                      "plus or minus this, seconds")
+    time_offset_window_s: float = option(3.0, ge=0.5, le=30.0, doc="the estimate is fitted "
+                                         "to the frame pairs of this long a window, seconds")
+    time_offset_pair_s: float = option(0.3, ge=0.05, le=2.0, doc="a frame is paired with one"
+                                       " up to this long (and at least half as long) before "
+                                       "it, seconds")
+    time_offset_min_features: int = option(20, ge=8, le=1000, doc="least features a frame "
+                                           "pair must share")
+    time_offset_max_sigma_s: float = option(0.001, gt=0.0, le=0.05, doc="the estimate moves "
+                                            "only when the window's one-sigma is below this "
+                                            "(enough rotational excitation), seconds")
+    time_offset_max_step_s: float = option(0.002, gt=0.0, le=0.05, doc="largest change of the "
+                                           "estimate per frame, seconds")
     # --- health
     min_tracked_ok: int = option(40, ge=0, doc="fewer tracked features than this is DEGRADED")
     min_tracked_lost: int = option(10, ge=0, doc="fewer tracked features than this for "
@@ -96,6 +117,12 @@ class VinsOptions:
         if self.keyframe_min_interval_s > self.keyframe_interval_s:
             raise OptionError("keyframe_min_interval_s", "must not exceed keyframe_interval_s "
                               f"({self.keyframe_interval_s}), got {self.keyframe_min_interval_s}")
+        if abs(self.time_offset_s) > self.max_time_offset_s:
+            raise OptionError("time_offset_s", "must be within plus or minus max_time_offset_s "
+                              f"({self.max_time_offset_s}), got {self.time_offset_s}")
+        if self.time_offset_pair_s >= self.time_offset_window_s:
+            raise OptionError("time_offset_pair_s", "must be shorter than time_offset_window_s"
+                              f" ({self.time_offset_window_s}), got {self.time_offset_pair_s}")
         if self.min_tracked_lost > self.min_tracked_ok:
             raise OptionError("min_tracked_lost", "must not exceed min_tracked_ok "
                               f"({self.min_tracked_ok}), got {self.min_tracked_lost}")

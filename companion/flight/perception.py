@@ -90,7 +90,8 @@ class Perception:
             frame = await self.camera.next_frame()
             channels.frames.publish(frame)
             c.stats.frames += 1
-            await self._wait_for_imu(frame.t)
+            # the IMU up to the frame's exposure (its stamp less the camera-IMU time offset)
+            await self._wait_for_imu(max(frame.t, self.vins.exposure_time(frame.t)))
             update, inferred = await asyncio.gather(workers["vins"].compute(self._track, frame),
                                                     workers["network"].compute(self.depth.infer,
                                                                                frame))

@@ -24,6 +24,7 @@ from autonomy.geometry import PinholeCamera, quat_to_rot
 from autonomy.messages import ImuSample, SparseMap
 from autonomy.trajectory import align_umeyama, ate_rmse, interpolate_poses, path_length
 from autonomy.vins.preintegration import ImuNoise
+from autonomy.vins.time_offset import TimeOffset
 from companion.report import finite_or_none, median_or_none, show
 from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
@@ -73,13 +74,15 @@ class VioFrame:
 class VioTrace:
     """What the estimator produced over a dataset, one entry per frame in each list.
 
-    ``t``: frame time, seconds since the dataset's first IMU sample. ``positions``: the body
+    ``t``: frame exposure time (its stamp less the camera-IMU time offset in use), seconds
+    since the dataset's first IMU sample. ``positions``: the body
     position in the world, None while the estimator has no pose. ``keyframe``: the smoother
     ran on the frame. ``frontend_ms``/``backend_ms``: wall time of tracking and of the frame
     update. ``health``: the name of the health state. ``depth_errors``: one array of
     :func:`depth_relative_errors` per frame with both a sparse map and a depth image (so not
     one per frame). ``static_init``: the estimator's static initialisation (None if it never
-    initialised); ``resets``: how many times it reset.
+    initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
+    offset at the end.
     """
 
     t: list[float] = field(default_factory=list)
@@ -91,6 +94,7 @@ class VioTrace:
     depth_errors: list[np.ndarray] = field(default_factory=list)
     static_init: StaticInit | None = None
     resets: int = 0
+    time_offset: TimeOffset = field(default_factory=TimeOffset)
 
 
 def read_vio_dataset(root: Path) -> VioDataset:
@@ -144,6 +148,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
             depth = read_frame_depth(frame.depth_path, stream.camera)
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
+    trace.time_offset = vins.time_offset
     return trace
 
 
@@ -205,6 +210,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "backend_ms_p95": finite_or_none(np.percentile(backend, 95)) if backend else None,
         "health": dict(Counter(trace.health)),
         "init": _init_metrics(trace.static_init, truth_t, data.truth),
+        "time_offset_ms": 1e3 * trace.time_offset.seconds,
+        "time_offset_sigma_ms": None if trace.time_offset.sigma is None
+        else 1e3 * trace.time_offset.sigma,
     }
 
 
@@ -215,8 +223,9 @@ def _seconds(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
 
 
 def _record(trace: VioTrace, update: FrameUpdate, frontend_ms: float, backend_ms: float) -> None:
-    """Append one frame's update and stage times to ``trace``."""
-    trace.t.append(update.t)
+    """Append one frame's update and stage times to ``trace`` (the pose at the time it holds
+    for: the frame's exposure, its stamp less the camera-IMU time offset)."""
+    trace.t.append(update.t_exposure)
     trace.positions.append(None if update.T_W_B is None else np.array(update.T_W_B[:3, 3]))
     trace.keyframe.append(bool(update.keyframe))
     trace.frontend_ms.append(frontend_ms)
@@ -337,6 +346,9 @@ def format_vio_report(result: dict) -> str:
         f"{show(result['backend_ms_median'], '.1f', ' ms')} median and "
         f"{show(result['backend_ms_p95'], '.1f', ' ms')} p95 per keyframe",
         "health: " + ", ".join(f"{name} {count}" for name, count in result["health"].items()),
+        f"camera-IMU time offset: {result['time_offset_ms']:.2f} ms"
+        + ("" if result["time_offset_sigma_ms"] is None
+           else f" (sigma {result['time_offset_sigma_ms']:.2f} ms)"),
     ]
     return "\n".join(lines)
 

@@ -1,0 +1,234 @@
+"""Recordings with a hidden camera-IMU time offset, and the VINS run over them (issue 23).
+
+:func:`shift_recording` makes a copy of a EuRoC/ASL recording whose camera (and depth) stamps
+are ``td`` seconds late, as an unsynchronised camera's are: the images and the IMU stay as they
+were, only ``cam0/data.csv`` and ``depth0/data.csv`` change (the reader takes the file names from
+them). :func:`run_vins_offset` feeds a recording to the VINS as the flight application does,
+with the IMU fed up to the frame's exposure time when that lies after its stamp (a negative
+offset), and scores each pose at the time the VINS says it holds for.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from autonomy.geometry import quat_to_rot, rot_z, yaw_of
+from autonomy.messages import ImuSample
+from autonomy.trajectory import ate_rmse, interpolate_poses, path_length
+from autonomy.vins import Vins, VinsOptions
+from companion.tools.eval.vio import _read_image, read_vio_dataset
+
+
+def shift_recording(source: Path, target: Path, td: float) -> Path:
+    """``target``: ``source`` with every camera and depth stamp ``td`` seconds later (images,
+    IMU and ground truth shared through symbolic links)."""
+    source, target = Path(source), Path(target)
+    shift_ns = int(round(td * 1e9))
+    for name in ("imu0", "state_groundtruth_estimate0"):
+        (target / "mav0").mkdir(parents=True, exist_ok=True)
+        os.symlink((source / "mav0" / name).resolve(), target / "mav0" / name)
+    for name in ("cam0", "depth0"):
+        folder = source / "mav0" / name
+        if not folder.is_dir():
+            continue
+        out = target / "mav0" / name
+        out.mkdir(parents=True)
+        os.symlink((folder / "data").resolve(), out / "data")
+        shutil.copy(folder / "sensor.yaml", out / "sensor.yaml")
+        lines = []
+        for line in (folder / "data.csv").read_text(encoding="ascii").splitlines():
+            if line and not line.startswith("#"):
+                stamp, rest = line.split(",", 1)
+                line = f"{int(stamp) + shift_ns},{rest}"
+            lines.append(line)
+        (out / "data.csv").write_text("\n".join(lines) + "\n", encoding="ascii")
+    return target
+
+
+@dataclass
+class OffsetRun:
+    """Per frame: ``stamps`` (as recorded), the ``exposures`` the VINS used, its offset
+    ``offsets`` and their ``sigmas`` (NaN when none), ``positions`` and ``velocities`` (None
+    without a pose);
+    ``backend_ms``: the time :meth:`Vins.add_frame` took on each keyframe, ``other_ms`` on
+    each other frame; ``offset_ms``: per frame, ``(keyframe, ms)`` spent in the time-offset
+    estimator's frame work during it; ``offset_imu_s``: total time in its IMU work."""
+
+    stamps: list = field(default_factory=list)
+    exposures: list = field(default_factory=list)
+    offsets: list = field(default_factory=list)
+    sigmas: list = field(default_factory=list)
+    positions: list = field(default_factory=list)
+    velocities: list = field(default_factory=list)
+    health: list = field(default_factory=list)
+    backend_ms: list = field(default_factory=list)
+    other_ms: list = field(default_factory=list)
+    offset_ms: list = field(default_factory=list)
+    offset_imu_s: float = 0.0
+    imu_samples: int = 0
+    resets: int = 0
+    vins: Vins | None = None
+    data: object = None
+
+    def ate(self, *, at_stamps: bool = False) -> tuple[float, float]:
+        """ATE (SE(3)-aligned RMSE, m) and distance of the posed frames, each pose compared
+        with the truth at its exposure time (or, ``at_stamps``, at the frame's stamp)."""
+        times = self.stamps if at_stamps else self.exposures
+        chosen = [k for k, p in enumerate(self.positions) if p is not None]
+        truth_t, truth = self.truth()
+        chosen = [k for k in chosen if truth_t[0] <= times[k] <= truth_t[-1]]
+        true_p, _ = interpolate_poses([times[k] for k in chosen], truth_t, truth.position,
+                                      truth.q_W_B)
+        estimated = np.array([self.positions[k] for k in chosen])
+        return ate_rmse(estimated, true_p), path_length(true_p)
+
+    def position_errors(self, until: float = np.inf) -> np.ndarray:
+        """Each pose (up to ``until``) against the truth at its exposure time, in the VINS
+        world (the start at the origin, zero initial yaw), metres."""
+        truth_t, truth = self.truth()
+        R_yaw = rot_z(-yaw_of(quat_to_rot(truth.q_W_B[0])))
+        positions = (truth.position - truth.position[0]) @ R_yaw.T
+        errors = [np.linalg.norm(p - [np.interp(t, truth_t, positions[:, i]) for i in range(3)])
+                  for t, p in zip(self.exposures, self.positions) if p is not None and t <= until]
+        return np.array(errors)
+
+    def truth(self):
+        data = self.data
+        return (np.asarray(data.truth.t_ns, np.int64) - data.imu.t_ns[0]) * 1e-9, data.truth
+
+
+def run_vins_offset(root: Path, options: VinsOptions, *,
+                    max_frames: int | None = None) -> OffsetRun:
+    """The VINS over the recording at ``root`` (module docstring)."""
+    data = read_vio_dataset(root)
+    stream, imu = data.camera, data.imu
+    t0 = imu.t_ns[0]
+    imu_t = (np.asarray(imu.t_ns, np.int64) - t0) * 1e-9
+    frame_t = (np.asarray(stream.t_ns, np.int64) - t0) * 1e-9
+    vins = Vins(stream.camera, stream.distortion, stream.T_B_C, data.noise, options)
+    run = OffsetRun(vins=vins, data=data)
+    spent = _time_the_offset_estimator(vins, run)
+    fed = 0
+    count = len(frame_t) if max_frames is None else min(max_frames, len(frame_t))
+    for k in range(count):
+        stamp = float(frame_t[k])
+        upto = int(np.searchsorted(imu_t, max(stamp, vins.exposure_time(stamp)), side="right"))
+        for i in range(fed, upto):
+            vins.add_imu(ImuSample(float(imu_t[i]), imu.gyro[i], imu.accel[i]))
+        fed = max(fed, upto)
+        tracks = vins.track(_read_image(stream.paths[k], stream.camera))  # as eval vio reads it
+        start = time.perf_counter()
+        update = vins.add_frame(stamp, tracks)
+        (run.backend_ms if update.keyframe else run.other_ms).append(
+            1e3 * (time.perf_counter() - start))
+        run.offset_ms.append((update.keyframe, 1e3 * spent[0]))
+        spent[0] = 0.0
+        run.stamps.append(update.t)
+        run.exposures.append(update.t_exposure)
+        run.offsets.append(update.time_offset.seconds)
+        sigma = update.time_offset.sigma
+        run.sigmas.append(np.nan if sigma is None else sigma)
+        run.positions.append(None if update.T_W_B is None else update.T_W_B[:3, 3].copy())
+        run.velocities.append(None if update.velocity_W is None else update.velocity_W.copy())
+        run.health.append(update.health.state.name)
+    run.resets = vins.resets
+    return run
+
+
+def _time_the_offset_estimator(vins: Vins, run: OffsetRun) -> list:
+    """Wraps the estimator's methods (if any) to time them: returns the per-frame accumulator
+    of its frame work, seconds; its IMU work goes to ``run.offset_imu_s``."""
+    spent = [0.0]
+    estimator = vins._offset_estimator
+    if estimator is None:
+        return spent
+    add_frame, add_imu = estimator.add_frame, estimator.add_imu
+
+    def timed_frame(*args):
+        start = time.perf_counter()
+        add_frame(*args)
+        spent[0] += time.perf_counter() - start
+
+    def timed_imu(*args):
+        start = time.perf_counter()
+        add_imu(*args)
+        run.offset_imu_s += time.perf_counter() - start
+        run.imu_samples += 1
+
+    estimator.add_frame, estimator.add_imu = timed_frame, timed_imu
+    return spent
+
+
+def summarise(run: OffsetRun, true_offset: float, until: float = 5.5) -> dict:
+    """ATE, position errors (all, and up to ``until``), the offset's convergence and the
+    update times of ``run``, for JSON."""
+    ate, distance = run.ate()
+    offsets, stamps = np.array(run.offsets), np.array(run.stamps)
+    error = np.abs(offsets - true_offset)
+    within = [k for k in range(len(error)) if np.all(error[k:] < 0.002)]
+    return {
+        "ate_rmse_m": ate, "distance_m": distance, "ate_over_distance": ate / distance,
+        "time_offset_ms": 1e3 * offsets[-1], "time_offset_sigma_ms": 1e3 * run.sigmas[-1],
+        "time_offset_error_ms": 1e3 * (offsets[-1] - true_offset),
+        "within_2ms_from_s": float(stamps[within[0]]) if within else None,
+        "position_error_max_m": float(run.position_errors().max()),
+        f"position_error_max_m_until_{until:g}s": float(run.position_errors(until).max()),
+        "resets": run.resets, "keyframes": len(run.backend_ms),
+        "keyframe_ms_median": float(np.median(run.backend_ms)),
+        "keyframe_ms_p95": float(np.percentile(run.backend_ms, 95)),
+        "other_frame_ms_median": float(np.median(run.other_ms)),
+        "other_frame_ms_p95": float(np.percentile(run.other_ms, 95)),
+        **_offset_cost(run),
+    }
+
+
+def _offset_cost(run: OffsetRun) -> dict:
+    """The time-offset estimator's own cost: on average per frame; on the frames that did its
+    work (each does up to three frames' worth); the most on any keyframe; per IMU sample."""
+    if run.imu_samples == 0:
+        return {}
+    spent = np.array([ms for _, ms in run.offset_ms])
+    worked = spent[spent > 0.0]
+    on_keyframes = [ms for keyframe, ms in run.offset_ms if keyframe]
+    return {"offset_ms_per_frame": float(spent.mean()),
+            "offset_ms_working_frame_median": float(np.median(worked)),
+            "offset_ms_working_frame_p95": float(np.percentile(worked, 95)),
+            "offset_ms_on_a_keyframe_max": max(on_keyframes, default=0.0),
+            "offset_us_per_imu_sample": 1e6 * run.offset_imu_s / run.imu_samples}
+
+
+def main(argv=None) -> None:
+    """``python -m tests.time_offset_runs DATASET --td-ms 15 [--estimate]``: the numbers of
+    docs/vins.md ("The camera-IMU time offset") for one recording, as JSON."""
+    import argparse
+    import json
+    import tempfile
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--td-ms", type=float, default=0.0,
+                        help="shift the camera stamps by this (the hidden offset), ms")
+    parser.add_argument("--true-ms", type=float, default=None,
+                        help="the offset the recording already has (a realistic one), ms")
+    parser.add_argument("--estimate", action="store_true", help="estimate_time_offset = true")
+    parser.add_argument("--offset-ms", type=float, default=0.0,
+                        help="time_offset_s: the fixed or starting offset, ms")
+    args = parser.parse_args(argv)
+    options = VinsOptions(estimate_time_offset=args.estimate, time_offset_s=args.offset_ms * 1e-3)
+    with tempfile.TemporaryDirectory() as folder:
+        root = (shift_recording(args.dataset, Path(folder) / "shifted", args.td_ms * 1e-3)
+                if args.td_ms else args.dataset)
+        run = run_vins_offset(root, options)
+    true = args.td_ms if args.true_ms is None else args.true_ms
+    print(json.dumps({"dataset": str(args.dataset), "td_ms": args.td_ms, "estimate": args.estimate,
+                      "start_offset_ms": args.offset_ms, **summarise(run, true * 1e-3)}))
+
+
+if __name__ == "__main__":
+    main()
