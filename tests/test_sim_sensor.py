@@ -256,3 +256,65 @@ def test_a_realistic_recording_has_the_lens_late_stamps_and_aligned_depth(tmp_pa
     assert offsets == pytest.approx(0.015, abs=1e-6)
     depth = read_camera(tmp_path, "depth0")
     assert np.array_equal(depth.t_ns, stream.t_ns)
+
+
+def _deliveries(head: CameraHead, frames: int) -> list[tuple[float, float]]:
+    """``(frame.t, clock when it arrived)`` of the first ``frames`` of ``head`` on a lockstep
+    clock stepped at 200 Hz, as the simulator steps it."""
+    import asyncio
+
+    from drivers.clock import SimClock
+    from drivers.sim.camera import SimCamera
+    from drivers.sim.faults import FaultSchedule
+    from drivers.sim.quadrotor import Quadrotor
+
+    class Vehicle:  # what SimCamera reads of the simulated vehicle
+        vehicle = Quadrotor(position=(0.0, 0.0, 1.5))
+        faults = FaultSchedule(())
+        time = 0.0
+
+    class Renderer:
+        camera = head.render_camera
+
+        def render(self, T_W_C):
+            shape = (self.camera.height, self.camera.width)
+            return np.full((*shape, 3), 60, np.uint8), np.full(shape, 4.0, np.float32)
+
+    clock = SimClock(0.0)
+    camera = SimCamera(Vehicle(), Renderer(), clock, head)
+
+    async def main():
+        async def step():
+            for k in range(1, 400):
+                await asyncio.sleep(0)
+                clock.advance_to(k * 0.005)
+        stepping = asyncio.create_task(step())
+        arrivals = []
+        for _ in range(frames):
+            frame = await camera.next_frame()
+            arrivals.append((frame.t, clock.now()))
+        stepping.cancel()
+        return arrivals
+    return asyncio.run(main())
+
+
+def _after_grid(t: float) -> float:
+    """How long after the last multiple of the 50 ms frame period ``t`` is."""
+    return t - math.floor(t / 0.05 + 1e-9) * 0.05
+
+
+def test_an_ideal_camera_delivers_each_frame_at_its_exposure_tick():
+    # exposed at the first physics tick at or after each frame time, and handed over at that
+    # very tick, not one later: the ideal profile keeps a lockstep flight's timing
+    deliveries = _deliveries(CameraHead(CAMERA, 20.0), 4)
+    for t, arrived in deliveries:
+        assert arrived == t and _after_grid(t) <= 0.005 + 1e-9
+    assert len({round(t / 0.05) for t, _ in deliveries}) == 4
+
+
+def test_a_late_stamped_frame_arrives_at_its_stamp():
+    options = SensorOptions(time_offset_ms=15.0, timestamp_jitter_ms=0.0, drop_probability=0.0)
+    head = CameraHead(CAMERA, 20.0, sensor=options, world="dome", rng=np.random.default_rng(0))
+    for t, arrived in _deliveries(head, 4):
+        assert arrived == pytest.approx(t, abs=1e-9)  # handed over at its stamp
+        assert _after_grid(t - 0.015) <= 0.005 + 1e-9  # 15 ms after its exposure tick

@@ -104,7 +104,8 @@ class SimCamera:
             if capture.stamp is None:
                 self.lost += 1
                 continue
-            await self.clock.sleep(capture.stamp - self.clock.now())
+            if capture.stamp > self.clock.now():  # a late stamp: the frame arrives then
+                await self.clock.sleep(capture.stamp - self.clock.now())
             self.delivered += 1
             image = capture.image
             if self.sim.faults.active("camera_blackout", self.sim.time):
