@@ -1,11 +1,13 @@
 """Workers (companion/flight/workers.py): in lockstep a stage's compute is charged its latency
-in simulated time, and the stage's later calls wait behind it, as behind a busy thread."""
+in simulated time, and the stage's later calls wait behind it, as behind a busy thread. And
+the slot that hands the newest frame from the VINS loop to the slower depth loop."""
 
 import asyncio
 
 import pytest
 
 from drivers.clock import SimClock
+from companion.flight.perception import NewestSlot
 from companion.flight.workers import InlineWorker, ThreadWorker, make_workers
 
 
@@ -60,3 +62,18 @@ def test_real_time_workers_are_threads_whose_compute_is_a_plain_call():
         assert asyncio.run(workers["vins"].compute(lambda: 7)) == 7
     finally:
         workers["vins"].close()
+
+
+def test_the_slow_consumer_gets_the_newest_item_and_waits_for_the_next():
+    """A network busy while frames 1 and 2 arrive takes frame 2 next; then it waits."""
+    async def scenario():
+        slot = NewestSlot()
+        slot.put(1)
+        slot.put(2)
+        assert await slot.take() == 2
+        waiting = asyncio.ensure_future(slot.take())
+        await asyncio.sleep(0)
+        assert not waiting.done()
+        slot.put(3)
+        assert await waiting == 3
+    asyncio.run(scenario())

@@ -185,6 +185,9 @@ class FlightApp:
                               if s.takeoff_t is not None else 0.0),
             "navigation_time_s": navigation,
             "frames": s.frames,
+            # the VINS takes every frame; the depth stage the newest when its network is free
+            "vins_frames": c.channels.vins.published,
+            "depth_frames": c.channels.depth.published,
             # metric depth frames the planner got per second of navigation
             "depth_rate_hz": s.depth_ok / navigation if navigation > 0 else 0.0,
             "depth_failures": dict(s.depth_reasons),

@@ -4,11 +4,11 @@ the planner again, under any config: the field engineer's tuning loop (docs/reco
 The recording is read in log-time order: the order in which the flight's stages handled its
 messages (the recorder logs each when it is handled and publishes it at its own time). Each
 IMU sample goes to the VINS when the flight fed it; each camera frame (decoded from the file,
-so as the recorder stored it) goes through the VINS front-end and back-end, the depth source
-(the ``[depth_network]`` model, or for a simulated flight the synthetic stand-in on the
-recorded true depth, same seed) and the rescaler where the flight's VINS finished it
-(``/vins/health``); its metric depth joins the planner's history where the flight's did
-(``/depth/fit``); each planner round of the recording (``/planner/plan`` with its request) is
+so as the recorder stored it) goes through the VINS front-end and back-end where the flight's
+VINS finished it (``/vins/health``), and through the depth source (the ``[depth_network]``
+model, or for a simulated flight the synthetic stand-in on the recorded true depth, same seed)
+and the rescaler where the flight's depth stage finished it (``/depth/fit``: the network takes
+only the frames it is free for), its metric depth then joining the planner's history; each planner round of the recording (``/planner/plan`` with its request) is
 asked again of the replayed planner, with the round's recorded pose, velocity and goal.
 Nothing waits on a clock: it runs as fast as the CPU allows.
 
@@ -52,6 +52,9 @@ from companion.config import config_from_toml, load_config
 from companion.recording import topics
 from companion.recording.writer import COMPANION_METADATA
 
+#: Frames the VINS finished that wait for the depth stage at most: the flight's network takes
+#: the newest frame when it is free, so all but the last few are ones it skipped.
+_AWAITING_DEPTH_MAX = 8
 #: The camera's frames and what replay needs besides, by topic.
 _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
          topics.VINS_HEALTH.name, topics.DEPTH_FIT.name, topics.DEPTH_METRIC.name,
@@ -160,7 +163,8 @@ class _Replayer:
         self.network = self._network()
         # by the frame's published time in nanoseconds (on_message):
         self.frames: dict[int, np.ndarray] = {}  # decoded images, until the VINS takes them
-        self.depths: dict[int, tuple] = {}  # (metric depth, T_W_C), until the planner takes it
+        # (frame, VINS update) of the frames the VINS finished, until the depth stage takes one
+        self.awaiting_depth: dict[int, tuple[Frame, object]] = {}
         self.truth: dict[int, np.ndarray] = {}  # full resolution, until its frame is done
         self.truth_small: dict[int, np.ndarray] = {}  # at the recorded depth's resolution
         self.errors = {"recorded": _AbsRel(), "replayed": _AbsRel()}
@@ -250,15 +254,27 @@ class _Replayer:
         """The flight's VINS finished the frame at ``t`` here: so does the replay's."""
         image = self.frames.pop(t, None)
         if image is None:  # the recorder dropped the image
+            self.truth.pop(t, None)
             return
-        health = self._process(t, Frame(record["t"], image, self.truth.get(t)))
+        frame = Frame(record["t"], image, self.truth.pop(t, None))
+        update = self._vins(frame)
+        health = update.health
         if (health.tracked, health.landmarks, health.state.value) == \
                 (record["tracked"], record["landmarks"], record["state"]):
             self.report.vins_same_frames += 1
+        self.awaiting_depth[t] = (frame, update)
+        while len(self.awaiting_depth) > _AWAITING_DEPTH_MAX:  # frames the network skipped
+            del self.awaiting_depth[min(self.awaiting_depth)]
 
     def _on_depth_fit(self, t, record) -> None:
-        """The flight's depth of the frame at ``t`` reached its planner here."""
-        depth = self.depths.pop(t, None)
+        """The flight's depth stage finished the frame at ``t`` here and handed its depth to the
+        planner: so does the replay's. Older frames it never took are dropped."""
+        awaiting = self.awaiting_depth.pop(t, None)
+        for skipped in [key for key in self.awaiting_depth if key < t]:
+            del self.awaiting_depth[skipped]
+        if awaiting is None:  # the recorder dropped the image
+            return
+        depth = self._depth(t, *awaiting)
         if depth is not None:
             self.planner.add_depth(*depth)
             self.last_depth_t = record["t"]
@@ -326,8 +342,8 @@ class _Replayer:
 
     # the stages
 
-    def _process(self, key: int, frame: Frame):
-        """The frame through the stages; the VINS health it got."""
+    def _vins(self, frame: Frame):
+        """The frame through the VINS; its update."""
         if self.vins is None:
             self._start()
         self.report.frames += 1
@@ -337,27 +353,30 @@ class _Replayer:
         self.vins_health = update.health
         if update.health.state == HealthState.LOST:
             self.report.vins_lost_frames += 1
+        return update
+
+    def _depth(self, key: int, frame: Frame, update) -> tuple | None:
+        """The frame's metric depth from the network and its VINS update's sparse map, scored
+        on its truth: ``(metric depth, T_W_C)`` for the planner, None without depth."""
         started = time.perf_counter()
         try:
             relative = RelativeDepth(frame.t, self.network(frame))
         except _NoTruth:
             self.report.frames_without_truth += 1
-            return update.health
+            return None
         self.timings["network"].append(time.perf_counter() - started)
         started = time.perf_counter()
         metric = self.stage.process(relative, update.sparse_map)
         self.timings["rescale"].append(time.perf_counter() - started)
-        if metric.ok and update.T_W_B is not None:
-            self.depths[key] = (metric, update.T_W_B @ self.T_B_C)
-        truth = self.truth.pop(key, None)  # the full image is needed no longer
-        if truth is not None:
+        usable = metric.ok and update.T_W_B is not None
+        if frame.truth_depth is not None:
             # scored at the recorded depth's resolution, as the flight's depth is
-            small = truth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE]
+            small = frame.truth_depth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE]
             self.truth_small[key] = small
-            if metric.ok and update.T_W_B is not None:
+            if usable:
                 self.errors["replayed"].add(
                     metric.depth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE], small)
-        return update.health
+        return (metric, update.T_W_B @ self.T_B_C) if usable else None
 
 
 class _AbsRel:
