@@ -12,7 +12,8 @@ from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import read_camera, read_depth_png, read_groundtruth, read_imu
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
-from drivers.sim.record import RecordError, record_dataset
+from drivers.sim.record import (PATH_CLEARANCE, RecordError, record_dataset, route_path,
+                                 smooth_path)
 from drivers.sim.render import RenderError, Renderer
 from drivers.sim.quadrotor import VehicleOptions
 from drivers.sim.world import build_world
@@ -132,3 +133,30 @@ def test_record_command_writes_a_dataset_and_reports_it(tmp_path, capsys):
     assert read_camera(out).camera.width == 320
     assert main(["sim", "record", "--duration", "0.5", "--out", str(out)]) == 1
     assert "not empty" in capsys.readouterr().err
+
+
+def test_rounding_keeps_a_corner_whose_cut_would_touch_the_wall():
+    """A path that turns tight round the corner of a block (0.7 m from it): plain corner
+    cutting passes over the block, the guarded one keeps its clearance."""
+    def clearance(xy):  # the solid block is x < 0, y < 0; free space elsewhere
+        outside = np.maximum(xy, 0.0)
+        return np.where((xy[:, 0] < 0) & (xy[:, 1] < 0), 0.0, np.hypot(*outside.T))
+
+    polyline = np.array([[0.5, -10.0], [0.5, 0.5], [-10.0, 0.5]])  # north, then west
+    plain = smooth_path(polyline)
+    guarded = smooth_path(polyline, clearance=clearance, least=PATH_CLEARANCE)
+    assert clearance(plain).min() < PATH_CLEARANCE
+    assert clearance(guarded).min() >= PATH_CLEARANCE
+    np.testing.assert_allclose(guarded[[0, -1]], polyline[[0, -1]])
+    turn = np.abs(np.diff(np.unwrap(np.arctan2(*np.diff(guarded, axis=0).T[::-1]))))
+    assert turn.max() < np.radians(45)  # still rounded, not the polyline's right angle
+
+
+@pytest.mark.parametrize("world_name", ["mine", "sewer", "dome"])
+def test_every_seeds_recorded_path_keeps_clear_of_the_walls(world_name):
+    """Seeds 0-9 (mine 3 and sewer 1 and 8 once cut a corner into a wall, 0.08-0.22 m)."""
+    for seed in range(10):
+        world = build_world(world_name, seed)
+        path = route_path(world, world.routes[seed % len(world.routes)])
+        at_height = np.column_stack([path, np.full(len(path), world.cruise_height)])
+        assert world.obstacle_clearance(at_height).min() >= PATH_CLEARANCE, seed
