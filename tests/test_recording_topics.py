@@ -112,3 +112,20 @@ def test_a_failsafe_transition_is_a_warning_and_a_normal_one_information():
     warning = decoded(Log, topics.encode_transition(failsafe))
     assert warning.level == Log.WARNING and "failsafe_stop: no depth" in warning.message
     assert decoded(Log, topics.encode_transition(normal)).level == Log.INFO
+
+
+def test_the_vins_health_carries_the_time_offset_in_use():
+    """A field engineer reads the estimated camera-IMU offset off the recording (to put it
+    into the vehicle's config as the next flight's ``vins.time_offset_s``)."""
+    from autonomy.vins.estimator import FrameUpdate
+    from autonomy.vins.health import Health, HealthState
+    from autonomy.vins.time_offset import TimeOffset
+
+    update = FrameUpdate(3.0, True, None, None, None, Health(HealthState.OK, "", 120, 60, 4.5),
+                         TimeOffset(0.0148, 0.0006, estimating=True, updates=40))
+    record = json.loads(topics.encode_vins_health(update))
+    assert record["time_offset_s"] == 0.0148 and record["time_offset_sigma_s"] == 0.0006
+    assert (record["state"], record["tracked"], record["landmarks"]) == ("ok", 120, 60)
+    fixed = json.loads(topics.encode_vins_health(
+        FrameUpdate(3.0, False, None, None, None, Health(HealthState.OK, ""))))
+    assert fixed["time_offset_s"] == 0.0 and fixed["time_offset_sigma_s"] is None

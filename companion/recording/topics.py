@@ -73,7 +73,8 @@ ODOMETRY = Topic("/vins/odometry", _json_schema("companion.Odometry", {
 VINS_MAP = Topic("/vins/map", fm.PointCloud.get_schema())
 VINS_HEALTH = Topic("/vins/health", _json_schema("companion.VinsHealth", {
     "t": _NUMBER, "keyframe": _BOOL, "state": _STRING, "reason": _STRING, "tracked": _NUMBER,
-    "landmarks": _NUMBER, "parallax_px": _NUMBER}))
+    "landmarks": _NUMBER, "parallax_px": _NUMBER, "time_offset_s": _NUMBER,
+    "time_offset_sigma_s": _NUMBER}))
 DEPTH_RELATIVE = Topic("/depth/relative", fm.RawImage.get_schema(), droppable=True)
 DEPTH_METRIC = Topic("/depth/metric", fm.RawImage.get_schema(), droppable=True)
 DEPTH_POINTS = Topic("/depth/points", fm.PointCloud.get_schema(), droppable=True)
@@ -220,7 +221,10 @@ def encode_vins_health(update: FrameUpdate) -> bytes:
     return _json(_clean({"t": update.t, "keyframe": update.keyframe,
                          "state": health.state.value, "reason": health.reason,
                          "tracked": health.tracked, "landmarks": health.landmarks,
-                         "parallax_px": float(health.parallax_px)}))
+                         "parallax_px": float(health.parallax_px),
+                         # the camera-IMU time offset in use, estimated or configured
+                         "time_offset_s": update.time_offset.seconds,
+                         "time_offset_sigma_s": update.time_offset.sigma}))
 
 
 def encode_relative(t: float, disparity: np.ndarray) -> bytes:
