@@ -257,6 +257,8 @@ class _Replayer:
             self.truth.pop(t, None)
             return
         frame = Frame(record["t"], image, self.truth.pop(t, None))
+        if frame.truth_depth is not None:  # what the recorded depth is scored on, if any
+            self.truth_small[t] = _small(frame.truth_depth)
         update = self._vins(frame)
         health = update.health
         if (health.tracked, health.landmarks, health.state.value) == \
@@ -274,7 +276,7 @@ class _Replayer:
             del self.awaiting_depth[skipped]
         if awaiting is None:  # the recorder dropped the image
             return
-        depth = self._depth(t, *awaiting)
+        depth = self._depth(*awaiting)
         if depth is not None:
             self.planner.add_depth(*depth)
             self.last_depth_t = record["t"]
@@ -355,7 +357,7 @@ class _Replayer:
             self.report.vins_lost_frames += 1
         return update
 
-    def _depth(self, key: int, frame: Frame, update) -> tuple | None:
+    def _depth(self, frame: Frame, update) -> tuple | None:
         """The frame's metric depth from the network and its VINS update's sparse map, scored
         on its truth: ``(metric depth, T_W_C)`` for the planner, None without depth."""
         started = time.perf_counter()
@@ -369,13 +371,8 @@ class _Replayer:
         metric = self.stage.process(relative, update.sparse_map)
         self.timings["rescale"].append(time.perf_counter() - started)
         usable = metric.ok and update.T_W_B is not None
-        if frame.truth_depth is not None:
-            # scored at the recorded depth's resolution, as the flight's depth is
-            small = frame.truth_depth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE]
-            self.truth_small[key] = small
-            if usable:
-                self.errors["replayed"].add(
-                    metric.depth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE], small)
+        if usable and frame.truth_depth is not None:
+            self.errors["replayed"].add(_small(metric.depth), _small(frame.truth_depth))
         return (metric, update.T_W_B @ self.T_B_C) if usable else None
 
 
@@ -394,6 +391,11 @@ class _AbsRel:
     @property
     def value(self) -> float:
         return self.total / self.pixels if self.pixels else math.nan
+
+
+def _small(depth: np.ndarray) -> np.ndarray:
+    """``depth`` at the recorded metric depth's resolution, where both are scored."""
+    return depth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE]
 
 
 def _millimetres(message) -> np.ndarray:
