@@ -76,8 +76,8 @@ class FlightRecorder:
         self.put(topics.CAMERA_IMAGE, frame.t, topics.encode_image, frame, self.camera_format,
                  self.jpeg_quality)
         if frame.truth_depth is not None:
-            self.put(topics.TRUTH_DEPTH, frame.t, topics.encode_metric, frame.t,
-                     frame.truth_depth, 1)
+            self.put(topics.TRUTH_DEPTH, frame.t, topics.encode_true_depth, frame.t,
+                     frame.truth_depth)
 
     def _on_imu(self, sample) -> None:
         self.put(topics.IMU, sample.t, topics.encode_imu, sample)

@@ -248,7 +248,7 @@ class _Replayer:
         self.frames[t] = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def _on_truth_depth(self, t, message) -> None:
-        self.truth[t] = _millimetres(message)
+        self.truth[t] = _metres(message)
 
     def _on_vins_health(self, t, record) -> None:
         """The flight's VINS finished the frame at ``t`` here: so does the replay's."""
@@ -291,7 +291,7 @@ class _Replayer:
         is of frames the flight had no depth for."""
         truth = self.truth_small.pop(t, None)
         if truth is not None:
-            self.errors["recorded"].add(_millimetres(message), truth)
+            self.errors["recorded"].add(_metres(message), truth)
         for older in [key for key in self.truth_small if key < t]:
             del self.truth_small[older]
 
@@ -398,9 +398,13 @@ def _small(depth: np.ndarray) -> np.ndarray:
     return depth[::topics.METRIC_STRIDE, ::topics.METRIC_STRIDE]
 
 
-def _millimetres(message) -> np.ndarray:
-    """A ``16UC1`` millimetre image as metres, NaN where 0 (unknown)."""
-    image = np.frombuffer(message.data, np.uint16).reshape(message.height, message.width)
+def _metres(message) -> np.ndarray:
+    """A depth image as metres: ``32FC1`` as it is, ``16UC1`` millimetres (the recorded metric
+    depth, and the true depth of recordings before it was kept exact) NaN where 0."""
+    shape = (message.height, message.width)
+    if message.encoding == "32FC1":
+        return np.frombuffer(message.data, np.float32).reshape(shape)
+    image = np.frombuffer(message.data, np.uint16).reshape(shape)
     return np.where(image > 0, image.astype(np.float32) * 1e-3, np.float32(np.nan))
 
 

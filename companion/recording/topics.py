@@ -243,6 +243,13 @@ def encode_metric(t: float, depth: np.ndarray, stride: int = METRIC_STRIDE) -> b
     return _raw_image(t, np.ascontiguousarray(millimetres, dtype=np.uint16), "16UC1")
 
 
+def encode_true_depth(t: float, depth: np.ndarray) -> bytes:
+    """The renderer's true depth at full resolution, as Foxglove's ``32FC1`` in metres (inf
+    where nothing is hit): exact, so a replay feeds the synthetic network what the flight
+    did (millimetres would round it, and clip the far field at 65.5 m)."""
+    return _raw_image(t, np.ascontiguousarray(depth, dtype=np.float32), "32FC1")
+
+
 def _raw_image(t: float, image: np.ndarray, encoding: str) -> bytes:
     height, width = image.shape
     return fm.RawImage(timestamp=_stamp(t), frame_id=CAMERA, width=width, height=height,
