@@ -324,7 +324,7 @@ def test_level_arcs_1_5_m_over_a_floor_are_safe():
     plan = planner.plan(0.05, T_W_B, FORWARD, np.array([30.0, 0.0, 1.5]))
     # straight on; it climbs (the floor's nearness costs), but level would do
     assert plan.kind == "arc" and plan.primitive.yaw_rate == 0.0
-    safe, _ = planner.check(0.05, plan.T_W_S)
+    safe = planner.check(0.05, plan.T_W_S).safe
     yaw, climb = _kinds(planner)
     level = climb == 0.0
     # every level arc whose end the camera sees (the two hardest turns each way end beside
@@ -339,7 +339,7 @@ def test_level_arcs_0_8_m_over_a_floor_are_unsafe():
     planner, T_W_B, depth = floor_scene(0.8)
     plan = planner.plan(0.05, T_W_B, FORWARD, np.array([30.0, 0.0, 0.8]))
     for tier in planner.tiers:
-        safe, _ = planner.check(0.05, plan.T_W_S, tier)
+        safe = planner.check(0.05, plan.T_W_S, tier).safe
         assert not safe[tier.vertical_speeds <= 0.0].any()
     # what is left is the steepest climb, away from the floor
     assert plan.kind == "arc"
@@ -360,12 +360,12 @@ def test_a_wall_2_5_m_ahead_over_a_floor_leaves_only_the_slowest_arcs_safe():
     # x = 2.55 m when it has turned 90 degrees, its sphere 1 m beyond the wall's face; at
     # 1 m/s the straight arc and its braking end 3 m ahead
     for tier in planner.tiers[:2]:
-        safe, _ = planner.check(0.05, plan.T_W_S, tier)
+        safe = planner.check(0.05, plan.T_W_S, tier).safe
         assert not safe.any()
     # at 0.5 m/s: 1 m of arc and 0.5 m of braking, the sphere just short of the wall's face
     assert plan.kind == "arc" and plan.primitive.speed == pytest.approx(0.5)
     slowest = planner.tiers[-1]
-    safe, _ = planner.check(0.05, plan.T_W_S, slowest)
+    safe = planner.check(0.05, plan.T_W_S, slowest).safe
     for i in np.flatnonzero(safe):
         points = np.vstack([slowest.library[i].points_S, slowest.library[i].stop_points_S,
                             slowest.branches[i].stop_points_S])
@@ -380,7 +380,7 @@ def test_a_thin_pole_within_the_radius_of_the_arc_is_seen(gap, blocked):
     point = [[5.0, 0.0, 1.5]]
     assert planner.history.check(point).free[0] == (not blocked)
     assert _exact_free(depth, camera_pose(T_W_B), point, WIDE)[0] == (not blocked)
-    safe, _ = planner.check(0.05, planner.plan(0.05, T_W_B, FORWARD, AHEAD).T_W_S)
+    safe = planner.check(0.05, planner.plan(0.05, T_W_B, FORWARD, AHEAD).T_W_S).safe
     yaw, climb = _kinds(planner)
     assert safe[(yaw == 0.0) & (climb == 0.0)][0] == (not blocked)
 
@@ -392,6 +392,14 @@ def test_a_wall_ahead_leaves_nothing_safe_and_the_planner_brakes():
     planner = planner_seeing([((1.8, -50, -50), (2.3, 50, 50))])
     plan = planner.plan(0.05, body(), FORWARD, AHEAD)
     assert plan.kind == "stop" and plan.reason == "no safe primitive" and plan.safe_count == 0
+    # the record says why: the slowest tier, the arcs ahead blocked by the observed wall (the
+    # sharpest turns leave the view: unknown space)
+    candidates = plan.candidates
+    assert candidates.chosen == -1 and candidates.speed == planner.tiers[-1].speed
+    ahead = [i for i, p in enumerate(candidates.primitives)
+             if p.yaw_rate == 0.0 and p.vertical_speed == 0.0]
+    assert not candidates.safe.any() and candidates.blocked[ahead].all()
+    assert 0 < candidates.blocked.sum() < len(candidates.primitives)
     velocity, yaw_rate, acceleration, position = plan.setpoint(0.05)
     np.testing.assert_allclose(velocity, FORWARD)  # braking from the present velocity
     np.testing.assert_allclose(acceleration, -FORWARD / planner.options.stop_duration_s)
@@ -417,7 +425,7 @@ def test_a_wall_3_m_ahead_is_approached_by_a_slower_tier():
     plan = planner.plan(0.05, body(), FORWARD, AHEAD)
     # 2 m/s needs 4 m of arc, 2 m of braking and the radius; 1 m/s arcs stop in 3 m, too far
     assert plan.kind == "arc" and plan.primitive.speed == pytest.approx(0.5)
-    safe, _ = planner.check(0.05, plan.T_W_S, planner.tiers[0])
+    safe = planner.check(0.05, plan.T_W_S, planner.tiers[0]).safe
     assert not safe.any()
 
 
@@ -426,7 +434,7 @@ def test_a_wall_on_the_left_turns_the_choice_right():
     plan = planner.plan(0.05, body(), FORWARD, AHEAD)
     assert plan.kind == "arc" and plan.reason == ""
     assert plan.primitive.yaw_rate < 0.0
-    safe, clearance = planner.check(0.05, plan.T_W_S)
+    safe, clearance, _ = planner.check(0.05, plan.T_W_S)
     assert safe.sum() == plan.safe_count and 0 < plan.safe_count < len(planner.tiers[0].library)
     turns = planner.tiers[0].yaw_rates
     assert not safe[turns >= 0.0].any()  # straight on or left: into the wall
@@ -449,7 +457,7 @@ def test_a_primitives_check_stops_at_its_first_occupied_point_with_the_same_verd
     every = planner.history.check(points, start_W=T_W_S[:3, 3], now=0.05)
     grouped = planner.history.check(points, start_W=T_W_S[:3, 3], now=0.05,
                                     groups=tier.primitive_of_point)
-    safe, clearance = planner.check(0.05, T_W_S)
+    safe, clearance, _ = planner.check(0.05, T_W_S)
     np.testing.assert_array_equal(safe, np.logical_and.reduceat(every.free, tier.starts))
     np.testing.assert_array_equal(
         clearance[safe], np.fmin.reduceat(every.clearance, tier.starts)[safe])
@@ -469,7 +477,9 @@ def test_no_depth_and_unknown_depth_mean_stop():
     assert planner.plan(0.0, body(), FORWARD, AHEAD).reason == "no depth"
     blank = np.full((120, 160), np.nan, dtype=np.float32)
     planner.add_depth(metric(blank, 0.0), camera_pose(body()))
-    assert planner.plan(0.05, body(), FORWARD, AHEAD).reason == "no safe primitive"
+    unknown = planner.plan(0.05, body(), FORWARD, AHEAD)
+    assert unknown.reason == "no safe primitive"
+    assert not unknown.candidates.blocked.any()  # nothing observed: unsafe for unknown space
     stale = planner_seeing(ROOM, t=0.0)
     assert stale.plan(0.05, body(), FORWARD, AHEAD).kind == "arc"
     assert stale.plan(5.0, body(), FORWARD, AHEAD).reason == "no depth"  # older than history_s

@@ -103,7 +103,23 @@ def test_a_plan_records_its_choice_and_draws_every_candidate():
     lines = scene.entities[0].lines
     assert len(lines) == len(plan.candidates.primitives)
     chosen = lines[record["chosen"]]
-    assert chosen.color.g > 0.5 and chosen.points[0].x == 0.0  # from the start pose
+    assert [line.color.g for line in lines].count(chosen.color.g) == 1  # green alone
+    assert chosen.points[0].x == 0.0  # from the start pose
+
+
+def test_a_stop_for_want_of_a_safe_primitive_records_why_each_was_unsafe():
+    """A wall 2 m ahead: the record carries the slowest tier's verdicts, the arcs into the
+    wall blocked, the turns out of view unknown, so a failure can be explained from it."""
+    planner = Planner(PINHOLE, PlannerOptions())
+    planner.add_depth(metric_depth(np.full((48, 64), 2.0, np.float32)), CameraOptions().T_B_C())
+    plan = planner.plan(2.5, np.eye(4), np.zeros(3), np.array([10.0, 0.0, 0.0]))
+    record = json.loads(topics.encode_plan(plan))
+    assert (record["kind"], record["reason"], record["chosen"]) == ("stop", "no safe primitive",
+                                                                   -1)
+    assert not any(record["safe"]) and 0 < sum(record["blocked"]) < len(record["blocked"])
+    lines = decoded(SceneUpdate, topics.encode_plan_lines(plan)).entities[0].lines
+    assert len(lines) == len(record["safe"]) + 1  # every candidate red, then the stop green
+    assert lines[-1].color.g > 0.5 and all(line.color.g < 0.5 for line in lines[:-1])
 
 
 def test_a_failsafe_transition_is_a_warning_and_a_normal_one_information():

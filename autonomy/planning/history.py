@@ -150,12 +150,15 @@ class CheckResult:
     of r - (L + R)`` where the outer window decided alone: a lower bound on how far beyond the
     sphere's exit point the surface lies along any pixel ray through it (>= 0 where free;
     +inf where the point was judged by its ray alone; NaN where unknown);
-    ``frame`` (N,) the deciding frame's time, NaN where unknown.
+    ``frame`` (N,) the deciding frame's time, NaN where unknown; ``occupied`` (N,) bool: not
+    free, and a frame measured a surface too near the point for its rule (a point neither free
+    nor occupied was unknown to every frame that judged it: out of view, beyond range).
     """
 
     free: np.ndarray
     clearance: np.ndarray
     frame: np.ndarray
+    occupied: np.ndarray
 
 
 class _Frame:
@@ -280,6 +283,7 @@ class DepthHistory:
         frame_t = np.full(n, np.nan)
         weak_clearance = np.full(n, np.nan)
         weak_t = np.full(n, np.nan)
+        surface_near = np.zeros(n, dtype=bool)
         pending = np.arange(n)
         for frame in reversed(frames):
             if len(pending) == 0:
@@ -287,6 +291,7 @@ class DepthHistory:
             free, strong, gap = self._judge(frame, points[pending], near[pending],
                                             np.isnan(weak_t[pending]),
                                             None if groups is None else groups[pending])
+            surface_near[pending[~free & np.isfinite(gap)]] = True
             decided = strong
             index = pending[decided]
             verdict[index] = np.where(free[decided], 1, 2)
@@ -305,7 +310,8 @@ class DepthHistory:
         use_weak = (verdict == 0) & ~np.isnan(weak_t)
         clearance[use_weak] = weak_clearance[use_weak]
         frame_t[use_weak] = weak_t[use_weak]
-        return CheckResult((verdict == 1) | use_weak, clearance, frame_t)
+        free = (verdict == 1) | use_weak
+        return CheckResult(free, clearance, frame_t, (verdict == 2) | (surface_near & ~free))
 
     def _norms(self, camera: PinholeCamera) -> np.ndarray:
         """``|(x/z, y/z, 1)|`` of every pixel's ray (float32), kept for the last camera."""

@@ -119,15 +119,28 @@ class PlanRequest:
     stop_at_goal: bool
 
 
+class TierCheck(NamedTuple):
+    """A tier's primitives against the depth history: ``safe`` (P,) bool; ``clearance`` (P,)
+    metres, the least along a safe one (:meth:`Planner.check`); ``blocked`` (P,) bool, an
+    observed surface inside the robot's sphere somewhere along the primitive (an unsafe one
+    that is not blocked met only unknown space: out of view, or beyond the depth's range)."""
+
+    safe: np.ndarray
+    clearance: np.ndarray
+    blocked: np.ndarray
+
+
 @dataclass(frozen=True, eq=False)
 class Candidates:
     """One round's choice: the tier's ``primitives`` (in ``Plan.T_W_S``'s start frame), which
-    were ``safe``, and the index of the one ``chosen``."""
+    were ``safe`` and which ``blocked`` by an observed surface (:class:`TierCheck`), and the
+    index of the one ``chosen``, -1 when none was safe (the slowest tier's, on a stop)."""
 
     speed: float
     primitives: Sequence[Primitive]
     safe: np.ndarray
     chosen: int
+    blocked: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,8 +152,8 @@ class Plan:
     from the velocity at ``t``). ``reason``: "" for an arc, else why it stops. ``safe_count``:
     primitives found safe this round. ``clearance``: metres between the robot's sphere and the
     observed surfaces along the primitive (inf where none was measured, NaN for an unchecked
-    stop). ``stop_duration_s``: the braking time. ``candidates``: what an arc was chosen from
-    (None for a stop), ``request``: what the round asked (None for a plan not of
+    stop). ``stop_duration_s``: the braking time. ``candidates``: what an arc was chosen from,
+    or for "no safe primitive" the slowest tier checked (None for another stop), ``request``: what the round asked (None for a plan not of
     :meth:`Planner.plan`), both for the flight recorder and replay.
     """
 
@@ -230,36 +243,38 @@ class Planner:
             room = float(np.hypot(*(goal - start)[:2]))
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
-            safe, clearance = self.check(t, T_W_S, tier)
+            safe, clearance, blocked = self.check(t, T_W_S, tier)
             if safe.any():
                 break
-        else:
-            return self._stop(t, T_W_S, velocity, "no safe primitive")
+        else:  # why each primitive of the slowest tier failed goes into the flight record
+            return replace(self._stop(t, T_W_S, velocity, "no safe primitive"),
+                           candidates=Candidates(tier.speed, tier.library, safe, -1, blocked))
         count = int(safe.sum())
         cost = np.where(safe, self._cost(tier, start, R, goal, clearance), np.inf)
         i = int(np.argmin(cost))
         chosen = float(clearance[i])
         plan = Plan(t, T_W_S, tier.library[i], "arc", "", count, chosen,
-                    self.options.stop_duration_s, Candidates(tier.speed, tier.library, safe, i))
+                    self.options.stop_duration_s,
+                    Candidates(tier.speed, tier.library, safe, i, blocked))
         self._previous = plan
         self._checked_stop = Plan(t, T_W_S, tier.branches[i], "stop", "", count, chosen,
                                   self.options.stop_duration_s)
         return plan
 
-    def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None
-              ) -> tuple[np.ndarray, np.ndarray]:
-        """``(safe, clearance)`` of every primitive of ``tier`` (default the fastest) and its
-        branch, placed at the start frame ``T_W_S``, against the frames no older than
-        ``t - history_s``: ``safe`` (P,) bool; ``clearance`` (P,) the least clearance along a
-        safe one (metres between the sphere's far side and the surface behind it; inf where
-        only rays judged it). An unsafe primitive's points are not all judged (the check
+    def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None) -> TierCheck:
+        """Every primitive of ``tier`` (default the fastest) and its branch, placed at the
+        start frame ``T_W_S``, against the frames no older than ``t - history_s``: ``safe``
+        (P,) bool; ``clearance`` (P,) the least clearance along a safe one (metres between the
+        sphere's far side and the surface behind it; inf where only rays judged it);
+        ``blocked`` (P,) bool. An unsafe primitive's points are not all judged (the check
         stops at the first occupied one), so its clearance means nothing."""
         tier = self.tiers[0] if tier is None else tier
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
         result = self.history.check(tier.points_S @ R.T + start, start_W=start, now=t,
                                     groups=tier.primitive_of_point)
-        safe = np.logical_and.reduceat(result.free, tier.starts)
-        return safe, np.fmin.reduceat(result.clearance, tier.starts)
+        return TierCheck(np.logical_and.reduceat(result.free, tier.starts),
+                         np.fmin.reduceat(result.clearance, tier.starts),
+                         np.logical_or.reduceat(result.occupied, tier.starts))
 
     def approach(self, t: float, T_W_B, goal_W) -> Plan | None:
         """:meth:`glide` to ``goal_W``, checked against the history as the arcs are (its points

@@ -304,11 +304,12 @@ class _Replayer:
                                  np.array(request["velocity"]), np.array(request["goal"]),
                                  stop_at_goal=request["stop_at_goal"])
         self.timings["planner"].append(time.perf_counter() - started)
-        chosen = plan.candidates.chosen if plan.candidates is not None else None
+        chosen = plan.candidates.chosen if plan.kind == "arc" else None
         self._failsafe_check(record, plan)
         report = self.report
         report.rounds += 1
-        if plan.kind == record["kind"] and chosen == record.get("chosen"):
+        if plan.kind == record["kind"] and chosen == (
+                record.get("chosen") if record["kind"] == "arc" else None):
             report.same_decision += 1
         else:
             report.changed_rounds.append({"t": round(record["t"], 3), "recorded": record["kind"],

@@ -285,7 +285,8 @@ def encode_depth_fit(depth: MetricDepth) -> bytes:
 
 def encode_plan(plan: Plan) -> bytes:
     """The planner's decision: the primitive flown; for an arc, the tier it was chosen from
-    (which were safe, which one was chosen); for a round of the planner, what it was asked
+    (which were safe, which blocked by an observed surface, which one was chosen; for "no safe
+    primitive" the slowest tier, chosen -1); for a round of the planner, what it was asked
     (the body's pose as 16 row-major numbers, velocity, goal), which replay asks again."""
     p, candidates = plan.primitive, plan.candidates
     record = _clean({"t": plan.t, "kind": plan.kind, "reason": plan.reason,
@@ -295,7 +296,8 @@ def encode_plan(plan: Plan) -> bytes:
                      "start": plan.T_W_S[:3, 3],
                      "start_yaw": math.atan2(plan.T_W_S[1, 0], plan.T_W_S[0, 0])})
     if candidates is not None:
-        record.update(chosen=candidates.chosen, safe=candidates.safe.tolist())
+        record.update(chosen=candidates.chosen, safe=candidates.safe.tolist(),
+                      blocked=candidates.blocked.tolist())
     if plan.request is not None:
         request = plan.request
         record["request"] = {"T_W_B": request.T_W_B, "velocity": request.velocity_W,
@@ -309,15 +311,16 @@ _UNSAFE = fm.Color(r=0.9, g=0.1, b=0.1, a=0.6)
 
 
 def encode_plan_lines(plan: Plan) -> bytes:
-    """The plan in the 3D view: the chosen primitive green, the tier's other safe ones grey,
-    the unsafe ones red (one scene entity per round, replacing the last)."""
+    """The plan in the 3D view: the primitive flown green, the tier's other safe ones grey,
+    the unsafe ones red, in the tier's order, a stop after them (one scene entity per round,
+    replacing the last)."""
     candidates = plan.candidates
-    if candidates is None:
-        lines = [(plan.primitive, _CHOSEN)]
-    else:
-        lines = [(primitive, _CHOSEN if i == candidates.chosen else
-                  _SAFE if candidates.safe[i] else _UNSAFE)
-                 for i, primitive in enumerate(candidates.primitives)]
+    lines = [] if candidates is None else [
+        (primitive, _CHOSEN if i == candidates.chosen else
+         _SAFE if candidates.safe[i] else _UNSAFE)
+        for i, primitive in enumerate(candidates.primitives)]
+    if candidates is None or candidates.chosen < 0:
+        lines.append((plan.primitive, _CHOSEN))
     entity = fm.SceneEntity(
         timestamp=_stamp(plan.t), frame_id=WORLD, id="plan",
         lines=[_line(plan.T_W_S, primitive, color) for primitive, color in lines])
