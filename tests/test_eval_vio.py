@@ -15,8 +15,8 @@ from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInit
 from companion.cli import main
 from companion.tools.eval.vio import (
-    EvaluationError, VioTrace, depth_relative_errors, evaluate_vio, format_vio_report,
-    read_vio_dataset, score_vio, vio_frames,
+    EvaluationError, ImuFeed, VioTrace, build_vins, depth_relative_errors, evaluate_vio,
+    format_vio_report, read_vio_dataset, score_vio, vio_frames,
 )
 from drivers.dataset.euroc import EurocWriter, read_depth_png
 
@@ -125,18 +125,25 @@ def test_no_initialisation_and_no_keyframes_score_as_none(tmp_path):
     assert "init: none" in format_vio_report(result)
 
 
-def test_each_frame_comes_after_every_imu_sample_up_to_its_time(tmp_path):
+def test_each_frame_comes_after_every_imu_sample_up_to_its_time_and_its_exposure(tmp_path):
     _write_dataset(tmp_path, seconds=1.0)
     data = read_vio_dataset(tmp_path)
     frames = list(vio_frames(data, max_frames=5))
     assert [frame.t for frame in frames] == pytest.approx([0.0, 0.05, 0.1, 0.15, 0.2])
-    fed = [sample.t for frame in frames for sample in frame.imu]
-    assert fed == pytest.approx([0.005 * i for i in range(41)])
     for frame, path in zip(frames, data.camera.paths):
-        assert frame.imu[-1].t <= frame.t < frame.imu[-1].t + 0.005
         assert frame.image.shape == (24, 32, 3) and frame.image.dtype == np.uint8
         assert np.array_equal(frame.image, cv2.imread(str(path))[..., ::-1])  # RGB, not BGR
         assert frame.depth_path is not None and frame.depth_path.is_file()
+    # A camera stamping 15 ms late (td > 0) is exposed before its stamp: the IMU up to the
+    # stamp. One stamping 15 ms early (td < 0) is exposed after it: the IMU up to the exposure.
+    for offset, ahead in ((0.015, 0.0), (-0.015, 0.015)):
+        vins = build_vins(data, VinsOptions(time_offset_s=offset))
+        fed, feed = [], ImuFeed(data)
+        vins.add_imu = lambda sample: fed.append(sample.t)  # noqa: E731 (what reaches it)
+        for frame in frames:
+            feed.before_frame(vins, frame.t)
+            assert frame.t + ahead - 0.005 < fed[-1] <= frame.t + ahead + 1e-9
+        assert fed == pytest.approx([0.005 * i for i in range(len(fed))])  # each once, in order
 
 
 def test_an_image_of_the_wrong_size_is_named(tmp_path):

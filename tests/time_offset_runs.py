@@ -19,10 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from autonomy.geometry import quat_to_rot, rot_z, yaw_of
-from autonomy.messages import ImuSample
 from autonomy.trajectory import ate_rmse, interpolate_poses, path_length
 from autonomy.vins import Vins, VinsOptions
-from companion.tools.eval.vio import _read_image, read_vio_dataset
+from companion.tools.eval.vio import ImuFeed, _read_image, read_vio_dataset
 
 
 def shift_recording(source: Path, target: Path, td: float) -> Path:
@@ -107,21 +106,16 @@ def run_vins_offset(root: Path, options: VinsOptions, *,
                     max_frames: int | None = None) -> OffsetRun:
     """The VINS over the recording at ``root`` (module docstring)."""
     data = read_vio_dataset(root)
-    stream, imu = data.camera, data.imu
-    t0 = imu.t_ns[0]
-    imu_t = (np.asarray(imu.t_ns, np.int64) - t0) * 1e-9
-    frame_t = (np.asarray(stream.t_ns, np.int64) - t0) * 1e-9
+    stream = data.camera
+    frame_t = (np.asarray(stream.t_ns, np.int64) - data.imu.t_ns[0]) * 1e-9
     vins = Vins(stream.camera, stream.distortion, stream.T_B_C, data.noise, options)
     run = OffsetRun(vins=vins, data=data)
     spent = _time_the_offset_estimator(vins, run)
-    fed = 0
+    feed = ImuFeed(data)
     count = len(frame_t) if max_frames is None else min(max_frames, len(frame_t))
     for k in range(count):
         stamp = float(frame_t[k])
-        upto = int(np.searchsorted(imu_t, max(stamp, vins.exposure_time(stamp)), side="right"))
-        for i in range(fed, upto):
-            vins.add_imu(ImuSample(float(imu_t[i]), imu.gyro[i], imu.accel[i]))
-        fed = max(fed, upto)
+        feed.before_frame(vins, stamp)
         tracks = vins.track(_read_image(stream.paths[k], stream.camera))  # as eval vio reads it
         start = time.perf_counter()
         update = vins.add_frame(stamp, tracks)

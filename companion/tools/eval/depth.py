@@ -26,7 +26,7 @@ from autonomy.depth.synthetic import (
 from autonomy.messages import MetricDepth, RelativeDepth
 from companion.report import finite_or_none, mean_or_none, median_or_none, show
 from companion.tools.eval.vio import (
-    EvaluationError, VioDataset, VioFrame, build_vins, read_frame_depth, read_vio_dataset,
+    EvaluationError, ImuFeed, VioDataset, VioFrame, build_vins, read_frame_depth, read_vio_dataset,
     vio_frames,
 )
 
@@ -128,11 +128,11 @@ def tracked_frames(data: VioDataset, options: DepthEvalOptions, max_frames: int 
     update after it and its ground-truth depth: ``(frame, update, truth)``; the VINS fed the
     frame's IMU samples and image as in flight. EvaluationError for a frame without depth0."""
     vins = build_vins(data, options.vins, frontend=options.frontend, static=options.static)
+    imu = ImuFeed(data)
     for frame in vio_frames(data, max_frames):
         if frame.depth_path is None:
             raise EvaluationError(f"{data.root}: frame at t={frame.t:.3f} s has no depth0 image")
-        for sample in frame.imu:
-            vins.add_imu(sample)
+        imu.before_frame(vins, frame.t)
         update = vins.add_frame(frame.t, vins.track(frame.image))
         yield frame, update, read_frame_depth(frame.depth_path, data.camera.camera)
 

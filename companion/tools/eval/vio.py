@@ -60,14 +60,33 @@ class VioDataset:
 
 @dataclass(frozen=True)
 class VioFrame:
-    """One camera frame as the estimator takes it in flight: ``imu``, the IMU samples after the
-    previous frame up to and including ``t`` (seconds since the first IMU sample), then
-    ``image`` (uint8 grey or RGB); ``depth_path``, its ground-truth depth image or None."""
+    """One camera frame as the estimator takes it in flight, stamped ``t`` (seconds since the
+    first IMU sample): ``image`` (uint8 grey or RGB); ``depth_path``, its ground-truth depth
+    image or None. :class:`ImuFeed` gives the VINS the IMU before it."""
 
     t: float
-    imu: list[ImuSample]
     image: np.ndarray
     depth_path: Path | None
+
+
+class ImuFeed:
+    """A dataset's IMU samples fed to a VINS in order, as in flight: before the frame stamped
+    ``t``, every sample up to ``t`` and up to its exposure ``t - td`` (``Vins.exposure_time``),
+    so a camera whose stamps lead the IMU (a negative offset ``td``) has its exposure covered
+    too."""
+
+    def __init__(self, data: "VioDataset"):
+        imu = data.imu
+        self._t = _seconds(imu.t_ns, imu.t_ns[0])
+        self._gyro, self._accel = imu.gyro, imu.accel
+        self._fed = 0
+
+    def before_frame(self, vins: Vins, t: float) -> None:
+        """Feed ``vins`` the samples not yet fed up to ``max(t, its exposure time)``."""
+        upto = int(np.searchsorted(self._t, max(t, vins.exposure_time(t)), side="right"))
+        for i in range(self._fed, upto):
+            vins.add_imu(ImuSample(float(self._t[i]), self._gyro[i], self._accel[i]))
+        self._fed = max(self._fed, upto)
 
 
 @dataclass
@@ -136,9 +155,9 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     stream = data.camera
     vins = build_vins(data, options, frontend=frontend, static=static)
     trace = VioTrace()
+    imu = ImuFeed(data)
     for frame in vio_frames(data, max_frames):
-        for sample in frame.imu:
-            vins.add_imu(sample)
+        imu.before_frame(vins, frame.t)
         start = time.perf_counter()
         tracks = vins.track(frame.image)
         middle = time.perf_counter()
@@ -164,21 +183,15 @@ def build_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOpti
 
 
 def vio_frames(data: VioDataset, max_frames: int | None = None) -> Iterator[VioFrame]:
-    """The camera frames of ``data`` in order (the first ``max_frames``), each with the IMU
-    samples to feed before it; an image of the wrong size or format raises
-    :class:`EvaluationError` naming its file."""
-    stream, imu = data.camera, data.imu
-    imu_t = _seconds(imu.t_ns, imu.t_ns[0])
-    frame_t = _seconds(stream.t_ns, imu.t_ns[0])
-    fed = 0
+    """The camera frames of ``data`` in order (the first ``max_frames``); an image of the wrong
+    size or format raises :class:`EvaluationError` naming its file."""
+    stream = data.camera
+    frame_t = _seconds(stream.t_ns, data.imu.t_ns[0])
     count = len(stream.paths) if max_frames is None else min(max_frames, len(stream.paths))
     for k in range(count):
-        t = float(frame_t[k])
-        upto = max(fed, int(np.searchsorted(imu_t, t, side="right")))
-        samples = [ImuSample(float(imu_t[i]), imu.gyro[i], imu.accel[i]) for i in range(fed, upto)]
         depth_path = data.depth.get(int(stream.t_ns[k])) if data.depth is not None else None
-        yield VioFrame(t, samples, _read_image(stream.paths[k], stream.camera), depth_path)
-        fed = upto
+        yield VioFrame(float(frame_t[k]), _read_image(stream.paths[k], stream.camera),
+                       depth_path)
 
 
 def score_vio(trace: VioTrace, data: VioDataset) -> dict:
