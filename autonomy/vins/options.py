@@ -61,10 +61,9 @@ class VinsOptions:
     max_observation_px: float = option(5.0, gt=0.0, doc="a landmark observed further than this"
                                        " from its projection at the IMU-predicted pose is "
                                        "retired, pixels")
-    max_landmarks: int = option(80, ge=1, le=10000, doc="landmarks the smoother holds (its "
-                                "update time grows with them), up to 1.5 times as many while "
-                                "fewer than half are in view; new ones fill the emptiest parts "
-                                "of the image first")
+    max_landmarks: int = option(80, ge=1, le=10000, doc="landmarks the smoother holds at most "
+                                "(its update time grows with them); new ones fill the emptiest "
+                                "parts of the image first")
     min_depth: float = option(0.2, gt=0.0, doc="nearest landmark depth accepted, metres")
     max_depth: float = option(40.0, gt=0.0, doc="farthest landmark depth accepted, metres")
     # --- camera-IMU time offset (autonomy/vins/time_offset.py, docs/vins.md)
