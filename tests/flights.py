@@ -12,10 +12,10 @@ SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
 _LOCKSTEP_FLIGHTS: dict[simulated.SimMission, dict] = {}
 
 
-def fly(world: str, *, faults=(), goal=None) -> dict:
+def fly(world: str, *, faults=(), goal=None, depth="estimated") -> dict:
     """The lockstep flight's summary; a lockstep flight is deterministic, so one flown already
     is not flown again (several tests read the same fault's flight)."""
-    mission = simulated.SimMission(world=world, faults=tuple(faults), goal=goal)
+    mission = simulated.SimMission(world=world, faults=tuple(faults), goal=goal, depth=depth)
     if mission not in _LOCKSTEP_FLIGHTS:
         _LOCKSTEP_FLIGHTS[mission] = simulated.run(Config(), mission)
     return _LOCKSTEP_FLIGHTS[mission]

@@ -1,6 +1,7 @@
 """The failsafes flown in the simulator over real MAVLink (issue 6's acceptance): a failure in
-cruise (a frozen camera, an IMU gap, a network outputting NaN, a blacked-out camera, a cut
-link, a dead end) ends in the stop, PX4 Hold and a landing, with the reason named.
+cruise (a frozen camera, an IMU gap, a network outputting NaN, a blacked-out camera, a camera
+repeating its last image, a cut link, a dead end) ends in the stop, PX4 Hold and a landing,
+with the reason named.
 
 Every flight runs the product, as in test_flight_sim.py; flights are deterministic in lockstep,
 so one flown for several tests is flown once (:func:`flights.fly`).
@@ -30,6 +31,18 @@ def test_a_failure_in_cruise_ends_in_stop_hold_and_landing(fault, reason):
     assert summary["failsafes"] and reason in summary["failsafes"][0], summary["failsafes"]
     states = [t["to"] for t in summary["transitions"]]
     assert states[-4:] == ["failsafe_stop", "holding", "landing", "landed"], states
+    assert not summary["reached_goal"]
+
+
+def test_a_camera_repeating_its_last_image_leaves_the_vins_blind_and_stops_the_flight():
+    """The features stay tracked, standing still, while the vehicle moves: the landmarks leave
+    the VINS, whose pose is then the IMU's alone. On true depth nothing else stops the flight
+    (estimated depth loses its anchors first), so it is the blind VINS's own failsafe."""
+    summary = fly("dome", faults=[Fault.parse("camera_stale@1")], depth="truth")
+    assert_safe_landing(summary)
+    assert len(summary["failsafes"]) == 1 and \
+        summary["failsafes"][0].startswith("VINS blind (< 5 landmarks for 3."), \
+        summary["failsafes"]
     assert not summary["reached_goal"]
 
 

@@ -185,11 +185,18 @@ class _Vehicle:
         from drivers.sim.quadrotor import Quadrotor
         self.vehicle = Quadrotor(position=(0.0, 0.0, 1.5))
         self.faults = FaultSchedule((Fault("camera_freeze", 0.0, 0.2),
+                                     Fault("camera_stale", 0.3, 0.1),
                                      Fault("camera_blackout", 0.4, 0.1)))
         self.time = 0.0
 
+    def turn_to(self, t: float) -> None:
+        """At time ``t``, yawing at 1 rad/s, so each frame sees a different view."""
+        from drivers.sim.quadrotor import Quadrotor
+        self.time = t
+        self.vehicle = Quadrotor(position=(0.0, 0.0, 1.5), yaw=t)
 
-def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout():
+
+def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_blackout():
     from drivers.sim.camera import CameraHead, SimCamera
     from drivers.sim.render import Renderer
     from drivers.sim.world import build_world
@@ -209,7 +216,7 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout(
 
             async def advance():
                 for k in range(1, 141):
-                    sim.time = k * 0.005
+                    sim.turn_to(k * 0.005)
                     clock.advance_to(sim.time)
                     await asyncio.sleep(0)
             runner = asyncio.create_task(advance())
@@ -230,6 +237,11 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_and_blackout(
     assert [b == 0.0 for b in bright] == black
     assert min(b for b, dark in zip(bright, black) if not dark) > 20.0
     assert all(f.truth_depth.shape == (48, 64) for f in frames)
+    # stale from 0.3 s to 0.4 s: the 0.25 s frame again, image and depth, with fresh stamps
+    repeated = [np.array_equal(f.image, before.image)
+                and np.array_equal(f.truth_depth, before.truth_depth, equal_nan=True)
+                for before, f in zip(frames, frames[1:])]
+    assert repeated == [0.3 <= t < 0.4 for t in times[1:]], times
 
 
 # ---------------------------------------------------------------- the real vehicle's wiring

@@ -11,6 +11,8 @@ with the exponential fit, which ``companion eval rescale`` ranks far below the d
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 
 import pytest
@@ -35,14 +37,24 @@ def recording(tmp_path_factory):
     return summary
 
 
-def replay(capsys, path, *options) -> dict:
-    assert cli.main(["replay", path, "--json", *options]) == 0
-    return json.loads(capsys.readouterr().out)
+def replay(path, *options) -> dict:
+    """``companion replay PATH --json OPTIONS``'s report."""
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert cli.main(["replay", path, "--json", *options]) == 0
+    return json.loads(printed.getvalue())
 
 
-def test_a_replay_with_the_flights_own_config_is_the_flight(recording, capsys, tmp_path):
-    top_view = tmp_path / "replay.png"
-    report = replay(capsys, recording["recording"]["path"], "--plot", str(top_view))
+@pytest.fixture(scope="module")
+def own(recording, tmp_path_factory):
+    """The replay with the flight's own config (and a top view), replayed once for every
+    test that compares with it."""
+    top_view = tmp_path_factory.mktemp("replay") / "replay.png"
+    return replay(recording["recording"]["path"], "--plot", str(top_view)), top_view
+
+
+def test_a_replay_with_the_flights_own_config_is_the_flight(recording, own):
+    report, top_view = own
     assert report["plot"] == str(top_view) and top_view.stat().st_size > 1000
     # every frame the flight's VINS finished (the last one taken may have come as it ended)
     assert recording["frames"] - 1 <= report["frames"] <= recording["frames"]
@@ -54,26 +66,24 @@ def test_a_replay_with_the_flights_own_config_is_the_flight(recording, capsys, t
     assert report["planner_rounds"] > 50 and report["planner_agreement"] >= 0.98
 
 
-def test_a_worse_rescaling_method_replays_to_worse_depth(recording, capsys):
-    own = replay(capsys, recording["recording"]["path"])
-    exponential = replay(capsys, recording["recording"]["path"],
-                         "--set", "rescale.method=exponential")
+def test_a_worse_rescaling_method_replays_to_worse_depth(recording, own):
+    own_report, _ = own
+    exponential = replay(recording["recording"]["path"], "--set", "rescale.method=exponential")
     assert exponential["vins_same_frames"] == exponential["frames"]  # only the depth changed
-    assert exponential["abs_rel"]["replayed"] > own["abs_rel"]["replayed"] + 0.02
-    assert exponential["abs_rel"]["recorded"] == own["abs_rel"]["recorded"]
+    assert exponential["abs_rel"]["replayed"] > own_report["abs_rel"]["replayed"] + 0.02
+    assert exponential["abs_rel"]["recorded"] == own_report["abs_rel"]["recorded"]
 
 
-def test_a_config_that_starves_the_planner_of_depth_replays_to_its_failsafe(recording,
-                                                                             capsys):
+def test_a_config_that_starves_the_planner_of_depth_replays_to_its_failsafe(recording, own):
     """The flight's own failsafe was its 12 s mission timeout; with fits that need more
     anchors than a frame ever has, the replay has no metric depth, and the depth rule fires
     once the flight is guarded."""
-    own = replay(capsys, recording["recording"]["path"])
-    starved = replay(capsys, recording["recording"]["path"], "--set", "rescale.min_anchors=5000")
-    recorded = [f["reason"] for f in own["failsafes"]["recorded"]]
+    own_report, _ = own
+    starved = replay(recording["recording"]["path"], "--set", "rescale.min_anchors=5000")
+    recorded = [f["reason"] for f in own_report["failsafes"]["recorded"]]
     assert recording["failsafes"] == ["mission timeout"]
     assert recorded == ["failsafe: mission timeout"]  # the transition into failsafe_stop
-    assert own["failsafes"]["replayed_first"] is None
+    assert own_report["failsafes"]["replayed_first"] is None
     assert starved["frames_with_depth"]["replayed"] == 0
     assert starved["failsafes"]["replayed_first"]["reason"].startswith("no metric depth")
 

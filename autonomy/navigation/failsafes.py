@@ -24,6 +24,7 @@ class Vitals:
     vins_problem: str  # see vins_problem ("" if none)
     depth_age_s: float
     depth_reason: str  # why the newest frame had no metric depth
+    blind_s: float  # how long the VINS has been flown on blind (BlindClock)
     on_flown_ground: bool  # turning in place or gliding over the flown trail
     no_path_expired: bool  # no safe primitive for longer than no_path_timeout_s
 
@@ -46,6 +47,34 @@ def vins_problem(health_state: HealthState | None, health_reason: str,
     return ""
 
 
+class BlindClock:
+    """How long the vehicle has flown on a blind VINS: fewer than ``blind_landmarks``
+    landmarks in its window, in front of the camera. Its pose is then IMU propagation alone,
+    whose error grows without bound (as t^2 from an accelerometer bias error, t^3 from a gyro
+    bias error) while tracked features, a healthy-looking DEGRADED, hide it.
+
+    A turn in place does not count: it is short (at most 180 degrees at
+    ``align_yaw_rate_deg``) and the view it turns to has no landmark until the parallax glide
+    after it. Flying back over the flown trail does count: the trail is in the VINS's frame,
+    and a drifted VINS glides along it into a wall (docs/results.md: a realistic mine flight
+    backed off blind for 8 s into one). Held, not reset, while not counting."""
+
+    def __init__(self):
+        self.blind_s = 0.0
+        self._last_t: float | None = None
+
+    def update(self, now: float, landmarks: int | None, counting: bool, options) -> None:
+        """One check at ``now``: ``landmarks`` at the newest VINS update (None: none yet, not
+        blind), ``counting`` in the air on the application's setpoints, not turning in place;
+        ``options`` the :class:`~autonomy.navigation.mission.FlightOptions`."""
+        elapsed = 0.0 if self._last_t is None else max(0.0, now - self._last_t)
+        self._last_t = now
+        if landmarks is None or landmarks >= options.blind_landmarks:
+            self.blind_s = 0.0
+        elif counting:
+            self.blind_s += elapsed
+
+
 def failsafe_reason(vitals: Vitals, options) -> str:
     """The first failed check's reason ("" when all pass); ``options`` the
     :class:`~autonomy.navigation.mission.FlightOptions`. Depth may lapse over flown ground
@@ -59,6 +88,8 @@ def failsafe_reason(vitals: Vitals, options) -> str:
         (vitals.camera_age_s > o.camera_timeout_s, "camera silent"),
         (vitals.imu_age_s > o.imu_timeout_s, "IMU silent"),
         (vitals.vins_problem != "", vitals.vins_problem),
+        (vitals.blind_s > o.blind_timeout_s,
+         f"VINS blind (< {o.blind_landmarks} landmarks for {vitals.blind_s:.1f} s)"),
         (vitals.depth_age_s > o.depth_timeout_s and not vitals.on_flown_ground,
          f"no metric depth ({vitals.depth_reason or 'none yet'})"),
         (vitals.no_path_expired, "no safe primitive"),

@@ -95,6 +95,13 @@ class FlightOptions:
     no_path_timeout_s: float = option(
         3.0, gt=0.0, le=30.0,
         doc="the planner finding no safe primitive for this long is a failsafe, seconds")
+    blind_landmarks: int = option(
+        5, ge=0, le=1000,
+        doc="with fewer VINS landmarks than this the vehicle flies blind: its pose is IMU "
+            "propagation alone")
+    blind_timeout_s: float = option(
+        3.0, gt=0.0, le=30.0,
+        doc="flying blind for this long (turns in place not counted) is a failsafe, seconds")
     max_loop_lag_s: float = option(0.3, gt=0.0, le=10.0,
                                    doc="event-loop lag above this is a failsafe, seconds")
     stopped_speed: float = option(0.2, gt=0.0, le=2.0,

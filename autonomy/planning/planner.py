@@ -153,8 +153,9 @@ class Plan:
     primitives found safe this round. ``clearance``: metres between the robot's sphere and the
     observed surfaces along the primitive (inf where none was measured, NaN for an unchecked
     stop). ``stop_duration_s``: the braking time. ``candidates``: what an arc was chosen from,
-    or for "no safe primitive" the slowest tier checked (None for another stop), ``request``: what the round asked (None for a plan not of
-    :meth:`Planner.plan`), both for the flight recorder and replay.
+    or for "no safe primitive" the slowest tier checked (None for another stop);
+    ``request``: what the round asked (None for a plan not of :meth:`Planner.plan`); both for
+    the flight recorder and replay.
     """
 
     t: float

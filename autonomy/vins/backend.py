@@ -372,9 +372,9 @@ class SlidingWindowSmoother:
         sooner, while keyframes that saw them stay, meets the weak spot of GTSAM's fixed-lag
         marginalisation: measured, it made updates fail and the smoother reset.)
         ``observed_pixels`` are the landmarks seen in the newest keyframe: the cells they
-        occupy.
+        occupy; how many they are sets the room (:meth:`_landmark_room`).
         """
-        room = self.options.max_landmarks - len(self._landmarks.ids)
+        room = self._landmark_room(len(observed_pixels))
         if room <= 0 or len(candidates) == 0:
             return
         mask, normalised = self._observations(window, candidates)
@@ -397,6 +397,23 @@ class SlidingWindowSmoother:
             stamps[L(track)] = newest.t
             for j in np.flatnonzero(mask[m]):
                 graph.add(self._projection(window[j].index, track, track_pixels[j]))
+
+    def _landmark_room(self, observed: int) -> int:
+        """New landmarks this keyframe may add: what is left of the budget ``n``; with
+        ``landmark_top_up``, while fewer than ``n / 2`` are in view, enough to bring the view
+        back to ``n / 2`` with at most ``1.5 n`` held.
+
+        The landmarks out of view still count until their keyframes leave the window, so after
+        the front-end loses most of its tracks (a blurred frame, a fast turn) a full budget
+        leaves the view with a handful for as long as the window lasts: too few for the depth
+        stage's rescaling, which needs anchors in the frame. The top-up costs the update at
+        most half the budget again, and only then (docs/vins.md, the landmark budget).
+        """
+        budget, held = self.options.max_landmarks, len(self._landmarks.ids)
+        if not self.options.landmark_top_up:
+            return budget - held
+        top_up = min(budget // 2 - observed, budget + budget // 2 - held)
+        return max(budget - held, top_up)
 
     def _pixels(self, normalised: np.ndarray) -> np.ndarray:
         """Ideal-pinhole pixels (..., 2) of undistorted normalised points (..., 2)."""

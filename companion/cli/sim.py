@@ -14,6 +14,7 @@ from companion.config import Config
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
+    from drivers.sim.faults import FAULT_KINDS
     from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
     from drivers.sim.serve import LINKS
 
@@ -89,8 +90,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     fly.add_argument("--fault", dest="faults", action="append", default=[],
                      metavar="KIND[@AFTER[+DURATION]]",
                      help="inject a fault AFTER seconds into cruise for DURATION seconds "
-                          "(default: 1 s, for good): camera_freeze, camera_blackout, imu_gap, "
-                          "link_cut, network_nan, loop_stall; repeatable")
+                          f"(default: 1 s, for good): {', '.join(FAULT_KINDS)}; repeatable")
     fly.add_argument("--plot", type=Path, default=Path("sim-fly.png"), metavar="PNG",
                      help="where to draw the top view of the flight (default: %(default)s)")
     fly.add_argument("--no-plot", action="store_true", help="draw no plot")

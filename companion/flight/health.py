@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import logging
 
-from autonomy.navigation.failsafes import Vitals, age, failsafe_reason, vins_problem
+from autonomy.navigation.failsafes import (BlindClock, Vitals, age, failsafe_reason,
+                                           vins_problem)
 from autonomy.navigation.mission import (GROUND_STATES, GUARDED_STATES, OFFBOARD_STATES,
                                          FlightState)
 from companion.flight.context import FlightContext
@@ -38,6 +39,7 @@ class Health:
         self.context, self.perception, self.navigation = context, perception, navigation
         self.watchdog, self.notifier = watchdog, notifier
         self.stop_reason = ""
+        self.blind = BlindClock()
 
     async def run(self) -> None:
         c = self.context
@@ -60,6 +62,9 @@ class Health:
             c.mission.failsafe(now, "MAVLink link lost")
             c.go(FlightState.LINK_LOST, "no heartbeat from the flight controller")
             return
+        update = c.channels.vins.value
+        self.blind.update(now, None if update is None else update.health.landmarks,
+                          state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
         if state not in GUARDED_STATES:
             return
         reason = failsafe_reason(self.vitals(now, lag), c.options)
@@ -75,7 +80,7 @@ class Health:
             imu_age_s=age(c.autopilot.last_imu_t, now),
             vins_problem=self._vins_problem(),
             depth_age_s=age(perception.last_depth_t, now),
-            depth_reason=perception.last_depth_reason,
+            depth_reason=perception.last_depth_reason, blind_s=self.blind.blind_s,
             on_flown_ground=self.navigation.on_flown_ground(),
             no_path_expired=self.navigation.no_path.expired(now, c.options))
 

@@ -43,7 +43,7 @@ from autonomy.depth.synthetic import SyntheticNetwork
 from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import BACKOFF_REASON, PARALLAX_REASON
-from autonomy.navigation.failsafes import Vitals, age, failsafe_reason
+from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
 from autonomy.navigation.mission import GUARDED_STATES, FlightState
 from autonomy.planning.planner import Planner
 from autonomy.vins.estimator import Vins
@@ -174,6 +174,7 @@ class _Replayer:
         self.vins_health = None  # the replayed VINS's newest health
         self.last_depth_t: float | None = None  # newest replayed depth in the planner
         self.no_path_since: float | None = None  # replayed rounds with nothing safe since
+        self.blind = BlindClock()  # how long the replayed VINS has been flown on blind
 
     def _network(self):
         config = self.config
@@ -317,24 +318,28 @@ class _Replayer:
 
     def _failsafe_check(self, record: dict, plan) -> None:
         """The failsafe rules at this round, on what the replay changes: the VINS's health,
-        the age of the newest metric depth, how long nothing has been safe. What the
-        recording fixes is taken from it: the state (guarded or not), flown ground (aligning,
-        or a recorded glide). What a replay cannot know reads as healthy: loop lag, the
-        setpoint watchdog, camera and IMU silence (the recording's own failsafes list them),
-        and the turn in place the flight allows once when blocked. Only the first failsafe
-        is reported: after it, the flight it would have been is not the recorded one."""
+        how long it has been flown on blind, the age of the newest metric depth, how long
+        nothing has been safe. What the recording fixes is taken from it: the state (guarded
+        or not), flown ground (aligning, or a recorded glide). What a replay cannot know reads
+        as healthy: loop lag, the setpoint watchdog, camera and IMU silence (the recording's
+        own failsafes list them), and the turn in place the flight allows once when blocked.
+        Only the first failsafe is reported: after it, the flight it would have been is not
+        the recorded one."""
         now = record["t"]
         self.no_path_since = (None if plan.reason != "no safe primitive"
                               else now if self.no_path_since is None else self.no_path_since)
+        health = self.vins_health
+        self.blind.update(now, None if health is None else health.landmarks,
+                          self.state in _GUARDED and self.state != _ALIGNING, self.config.flight)
         if self.report.replayed_failsafe is not None or self.state not in _GUARDED:
             return
-        health = self.vins_health
         vitals = Vitals(
             stop_requested="", loop_lag_s=0.0, watchdog_in_charge=False, camera_age_s=0.0,
             imu_age_s=0.0,
             vins_problem=(f"VINS lost ({health.reason})"
                           if health is not None and health.state == HealthState.LOST else ""),
             depth_age_s=age(self.last_depth_t, now), depth_reason="",
+            blind_s=self.blind.blind_s,
             on_flown_ground=self.state == _ALIGNING or record["reason"] in (PARALLAX_REASON,
                                                                              BACKOFF_REASON),
             no_path_expired=self.no_path_since is not None

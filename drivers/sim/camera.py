@@ -14,7 +14,8 @@ consumer slower than the camera gets the newest frame and the ones it missed are
 ``dropped`` (as a real driver with a one-frame buffer); frames the camera itself lost are
 counted in ``lost``. In lockstep the render happens while simulated time stands still, so the
 frame shows exactly the pose at its exposure. Faults (:mod:`drivers.sim.faults`):
-``camera_freeze`` delivers nothing, ``camera_blackout`` delivers black images.
+``camera_freeze`` delivers nothing, ``camera_blackout`` black images, ``camera_stale`` the last
+image before it began (with its depth) at each new stamp.
 """
 
 from __future__ import annotations
@@ -88,6 +89,7 @@ class SimCamera:
         self.delivered = 0
         self.dropped = 0
         self.lost = 0
+        self._last: Frame | None = None  # what a stale camera repeats
 
     async def next_frame(self) -> Frame:
         """The next frame whose exposure is at or after now (waiting for its stamp)."""
@@ -107,7 +109,10 @@ class SimCamera:
             if capture.stamp > self.clock.now():  # a late stamp: the frame arrives then
                 await self.clock.sleep(capture.stamp - self.clock.now())
             self.delivered += 1
-            image = capture.image
-            if self.sim.faults.active("camera_blackout", self.sim.time):
-                image = np.zeros_like(image)
-            return Frame(capture.stamp, image, capture.depth)
+            faults, t = self.sim.faults, self.sim.time
+            if faults.active("camera_stale", t) and self._last is not None:
+                return Frame(capture.stamp, self._last.image, self._last.truth_depth)
+            self._last = Frame(capture.stamp, capture.image, capture.depth)
+            if faults.active("camera_blackout", t):
+                return Frame(capture.stamp, np.zeros_like(capture.image), capture.depth)
+            return self._last

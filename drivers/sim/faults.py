@@ -6,6 +6,9 @@ Each fault is something that goes wrong on a real vehicle, injected where it wou
 ``camera_freeze``   the camera stops delivering frames (a USB camera or driver that hangs)
 ``camera_blackout`` the camera delivers black frames (lens covered, lights out): the VINS
                     front-end starves, the estimate is lost and re-initialised (a VINS reset)
+``camera_stale``    the camera delivers its last image again with fresh stamps (a driver whose
+                    buffer stopped updating): the features stay tracked but stand still, so
+                    the landmarks leave the VINS and its pose is the IMU's alone
 ``imu_gap``         PX4 stops streaming HIGHRES_IMU
 ``link_cut``        the MAVLink link drops every byte both ways (a cable or radio lost)
 ``network_nan``     the depth network outputs NaN (a broken engine, an overflow in fp16)
@@ -23,8 +26,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-FAULT_KINDS = ("camera_freeze", "camera_blackout", "imu_gap", "link_cut", "network_nan",
-               "loop_stall")
+FAULT_KINDS = ("camera_freeze", "camera_blackout", "camera_stale", "imu_gap", "link_cut",
+               "network_nan", "loop_stall")
 
 CRUISE_SPEED = 1.0
 """Horizontal speed, m/s, from which the vehicle counts as in cruise (the fault clock starts)."""
