@@ -178,6 +178,31 @@ def test_yaw_alignment_maps_the_body_pose_from_vins_world_to_px4_local():
     assert np.allclose(T_L_W[:3, :3], rot_z(1.6))
 
 
+# ---------------------------------------------------------------- the summary
+
+def test_the_summary_ends_with_the_estimated_time_offset_and_how_to_start_from_it():
+    from autonomy.vins.time_offset import TimeOffset
+    from companion.flight.app import format_flight, time_offset_summary
+
+    flight = {"final_state": "landed", "failsafes": [], "flight_time_s": 60.0,
+              "depth_rate_hz": 14.0, "loop_lag_ms_p99": 3.0, "planning_rounds": 600,
+              "stop_rounds": 9, "backoffs": 0, "vins_resets": 0}
+
+    def offset_line(offset: TimeOffset) -> list[str]:
+        summary = {**flight, "vins_time_offset": time_offset_summary(offset)}
+        return [line for line in format_flight(summary).splitlines() if "offset" in line]
+
+    estimated = TimeOffset(seconds=0.01742, sigma=0.0004, estimating=True, updates=80)
+    assert time_offset_summary(estimated) == {"seconds": 0.01742, "sigma_s": 0.0004,
+                                              "estimated": True}
+    assert offset_line(estimated) == [
+        "  camera-IMU offset 17.4 ms (sigma 0.4 ms); to start the next flight from it: "
+        "--set vins.time_offset_s=0.0174"]
+    # nothing to tell: a fixed offset, or an estimate the motion never showed
+    assert offset_line(TimeOffset(seconds=0.015)) == []
+    assert offset_line(TimeOffset(seconds=0.0, estimating=True)) == []
+
+
 # ---------------------------------------------------------------- simulated camera
 
 class _Vehicle:

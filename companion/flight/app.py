@@ -195,11 +195,19 @@ class FlightApp:
             "stop_rounds": s.stop_rounds,
             "backoffs": s.backoffs,
             "vins_resets": self.perception.vins.resets,
+            "vins_time_offset": time_offset_summary(self.perception.vins.time_offset),
             "watchdog_setpoints": self.command.watchdog.fired,
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
             "waypoints_passed": self.navigation.route.index,
             "navigation_end": s.navigation_end_L,
         }
+
+
+def time_offset_summary(offset) -> dict:
+    """The camera-IMU time offset the VINS ended on (a
+    :class:`~autonomy.vins.time_offset.TimeOffset`): ``seconds``, ``sigma_s`` (None while
+    nothing showed it, or fixed), ``estimated`` (online, ``[vins] estimate_time_offset``)."""
+    return {"seconds": offset.seconds, "sigma_s": offset.sigma, "estimated": offset.estimating}
 
 
 def format_flight(summary: dict) -> str:
@@ -226,4 +234,16 @@ def _flight_lines(summary: dict) -> list[str]:
         f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops, "
         f"{summary['backoffs']} backings-off)",
         f"  VINS resets       {summary['vins_resets']}",
+        *_time_offset_lines(summary.get("vins_time_offset")),
     ]
+
+
+def _time_offset_lines(offset: dict | None) -> list[str]:
+    """The offset the VINS estimated, and how to start the next flight from it: the
+    estimate starts from ``[vins] time_offset_s`` and moves only with enough rotation, so a
+    camera's offset is best learned once and then given (docs/vins.md, time offset)."""
+    if offset is None or not offset["estimated"] or offset["sigma_s"] is None:
+        return []
+    return [f"  camera-IMU offset {1e3 * offset['seconds']:.1f} ms "
+            f"(sigma {1e3 * offset['sigma_s']:.1f} ms); to start the next flight from it: "
+            f"--set vins.time_offset_s={offset['seconds']:.4f}"]
