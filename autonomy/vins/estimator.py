@@ -70,7 +70,10 @@ class FrameUpdate:
     exposed, at :attr:`t_exposure` (None until initialised, or when the IMU does not reach
     it). ``sparse_map``: the window's landmarks in this frame's camera, stamped ``t`` (None until
     there is an estimate, and while LOST). ``time_offset``: the camera-IMU time offset
-    subtracted from ``t`` (module docstring), with its uncertainty.
+    subtracted from ``t`` (module docstring), with its uncertainty. ``correction_m``: on a
+    keyframe, how far the smoother's update moved the keyframe's position from where the IMU
+    propagated it, ``|p_smoother - p_imu|``: the estimator's disagreement with itself, small
+    while the landmarks and the IMU agree (None on other frames).
     """
 
     t: float
@@ -80,6 +83,7 @@ class FrameUpdate:
     sparse_map: SparseMap | None
     health: Health
     time_offset: TimeOffset = TimeOffset()
+    correction_m: float | None = None
 
     @property
     def t_exposure(self) -> float:
@@ -277,17 +281,20 @@ class Vins:
 
     def _track_frame(self, t: float, tracks: Tracks) -> FrameUpdate:
         keyframe = self.backend.latest.t < t and self._is_keyframe(t, tracks)
+        correction = None
         if keyframe:
+            predicted = self._propagate_to(t)
             try:
                 self._add_keyframe(t, tracks)
             except BackendError as error:
                 return self._lost(t, tracks, str(error))
             state = self._anchor.state
+            correction = float(np.linalg.norm(state.position - predicted.position))
         else:
             state = self._propagate_to(t)
         speed = float(np.linalg.norm(state.velocity))
         self._moved = self._moved or speed > self.options.moving_speed
-        return self._result(t, tracks, keyframe, state)
+        return self._result(t, tracks, keyframe, state, correction)
 
     def _is_keyframe(self, t: float, tracks: Tracks) -> bool:
         since = t - self.backend.latest.t
@@ -360,7 +367,8 @@ class Vins:
             return 0.0
         return float(np.linalg.norm(tracks.pixels[here] - reference.pixels[there], axis=1).mean())
 
-    def _result(self, t: float, tracks: Tracks, keyframe: bool, state: NavState) -> FrameUpdate:
+    def _result(self, t: float, tracks: Tracks, keyframe: bool, state: NavState,
+                correction_m: float | None = None) -> FrameUpdate:
         T_W_B = make_pose(state.R_W_B, state.position)
         sparse_map = self._sparse_map(t, T_W_B, tracks)
         latest = self.backend.latest
@@ -372,7 +380,8 @@ class Vins:
             update_ms=self._update_ms, moved=self._moved,
             starved_s=0.0 if self._starved_since is None else t - self._starved_since,
             since_reset_s=t - self._last_reset_t), self.options)
-        return FrameUpdate(t, keyframe, T_W_B, state.velocity, sparse_map, health)
+        return FrameUpdate(t, keyframe, T_W_B, state.velocity, sparse_map, health,
+                           correction_m=correction_m)
 
     def _sparse_map(self, t: float, T_W_B: np.ndarray, tracks: Tracks) -> SparseMap:
         """The window's landmarks in the camera at ``t``: ``p_C = T_C_B T_B_W(t) p_W``."""

@@ -196,11 +196,23 @@ class FlightApp:
             "backoffs": s.backoffs,
             "vins_resets": self.perception.vins.resets,
             "vins_time_offset": time_offset_summary(self.perception.vins.time_offset),
+            "vins_correction_m": correction_summary(s.vins_corrections_m),
             "watchdog_setpoints": self.command.watchdog.fired,
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
             "waypoints_passed": self.navigation.route.index,
             "navigation_end": s.navigation_end_L,
         }
+
+
+def correction_summary(corrections_m: list) -> dict:
+    """How far the VINS's smoother moved its keyframes from the IMU's propagation while
+    navigating (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`): ``median``,
+    ``p95`` and ``max`` metres over ``keyframes`` (None for each without one)."""
+    if not corrections_m:
+        return {"keyframes": 0, "median": None, "p95": None, "max": None}
+    values = np.asarray(corrections_m)
+    return {"keyframes": len(values), "median": float(np.median(values)),
+            "p95": float(np.percentile(values, 95)), "max": float(values.max())}
 
 
 def time_offset_summary(offset) -> dict:

@@ -58,6 +58,7 @@ class FlightStats:
     landed_t: float | None = None
     vins_reinitialisations_at_takeoff: int = 0
     vins_rebuilds_seen: int = 0
+    vins_corrections_m: list = field(default_factory=list)  # keyframes' while navigating
 
     @property
     def navigating(self) -> bool:

@@ -181,6 +181,8 @@ class Perception:
     def _after_vins(self, update: FrameUpdate) -> None:
         c = self.context
         c.channels.vins.publish(update)
+        if update.correction_m is not None and c.stats.navigating:
+            c.stats.vins_corrections_m.append(update.correction_m)
         state = c.autopilot.state
         if c.T_L_W is None and update.T_W_B is not None and state is not None:
             c.channels.alignment.publish(Alignment(yaw_alignment(state.T_L_B, update.T_W_B),

@@ -74,7 +74,7 @@ VINS_MAP = Topic("/vins/map", fm.PointCloud.get_schema())
 VINS_HEALTH = Topic("/vins/health", _json_schema("companion.VinsHealth", {
     "t": _NUMBER, "keyframe": _BOOL, "state": _STRING, "reason": _STRING, "tracked": _NUMBER,
     "landmarks": _NUMBER, "parallax_px": _NUMBER, "time_offset_s": _NUMBER,
-    "time_offset_sigma_s": _NUMBER}))
+    "time_offset_sigma_s": _NUMBER, "correction_m": _NUMBER}))
 DEPTH_RELATIVE = Topic("/depth/relative", fm.RawImage.get_schema(), droppable=True)
 DEPTH_METRIC = Topic("/depth/metric", fm.RawImage.get_schema(), droppable=True)
 DEPTH_POINTS = Topic("/depth/points", fm.PointCloud.get_schema(), droppable=True)
@@ -224,7 +224,9 @@ def encode_vins_health(update: FrameUpdate) -> bytes:
                          "parallax_px": float(health.parallax_px),
                          # the camera-IMU time offset in use, estimated or configured
                          "time_offset_s": update.time_offset.seconds,
-                         "time_offset_sigma_s": update.time_offset.sigma}))
+                         "time_offset_sigma_s": update.time_offset.sigma,
+                         # keyframes: how far the smoother moved the IMU-propagated position
+                         "correction_m": update.correction_m}))
 
 
 def encode_relative(t: float, disparity: np.ndarray) -> bytes:

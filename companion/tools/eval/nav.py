@@ -181,7 +181,7 @@ def trial_record(trial: Trial, summary: dict, *, timeout_s: float,
     flight's wall time)."""
     keys = ("start", "reached_goal", "collisions", "failsafes", "final_state", "flight_time_s",
             "navigation_time_s", "path_length_m", "min_clearance_m", "closest_to_goal_m",
-            "vins_resets", "position_error_m", "backoffs")
+            "vins_resets", "position_error_m", "backoffs", "vins_correction_m")
     record = {**dataclasses.asdict(trial), "timeout_s": timeout_s, "outcome": outcome(summary),
               "ended_early": ended_early(summary),
               "time_to_goal_s": time_to_goal(summary)}
