@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import make_pose, rot_z, yaw_alignment
+from autonomy.vins.health import HealthState
+from companion.flight.command import odometry_quality
 from companion.flight.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
 from drivers.sim.host import TruthDepth, TruthTrack, free_udp_port
@@ -176,6 +178,17 @@ def test_yaw_alignment_maps_the_body_pose_from_vins_world_to_px4_local():
     T_L_W = yaw_alignment(T_L_B, T_W_B)
     assert np.allclose(T_L_W @ T_W_B, T_L_B, atol=1e-12)
     assert np.allclose(T_L_W[:3, :3], rot_z(1.6))
+
+
+# ---------------------------------------------------------------- odometry to PX4
+
+@pytest.mark.parametrize("state, blind, quality", [
+    (HealthState.OK, False, 100), (HealthState.DEGRADED, False, 50),
+    (HealthState.LOST, False, 0), (HealthState.INITIALISING, False, 0),
+    # blind past the timeout: PX4 (EKF2_EV_QMIN >= 1) must not hold position on its drift
+    (HealthState.OK, True, 0), (HealthState.DEGRADED, True, 0)])
+def test_odometry_quality_tells_px4_when_not_to_fuse_the_vins(state, blind, quality):
+    assert odometry_quality(state, blind) == quality
 
 
 # ---------------------------------------------------------------- the summary

@@ -79,7 +79,7 @@ def test_names_that_cannot_be_a_param_id_are_refused(name):
 
 def test_the_mock_answers_a_read_by_name_and_by_index_as_px4_does(bench):
     [value] = read(bench, "EKF2_HGT_REF")
-    assert (value.param_id, value.param_type, value.param_count) == ("EKF2_HGT_REF", INT32, 16)
+    assert (value.param_id, value.param_type, value.param_count) == ("EKF2_HGT_REF", INT32, 17)
     assert value.param_value != 3.0 and decode_value(value.param_value, INT32) == 3  # Vision
     assert value.param_index == PARAMETER_NAMES.index("EKF2_HGT_REF")
     [first] = read(bench, index=0)
@@ -119,19 +119,45 @@ def test_param_set_refuses_what_the_mock_cannot_honour_and_names_unknown_ones(be
     assert "[pm] unknown param: NOT_A_PARAM" in bench.texts()
 
 
+def send_vision(bench, x: float, y: float, z: float, quality: int) -> None:
+    """One ODOMETRY at NED ``(x, y, z)`` of ``quality`` (0 invalid or unknown, 100 best)."""
+    bench.client.mav.odometry_send(
+        int(bench.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
+        x, y, z, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] + [0] * 20, [math.nan] + [0] * 20,
+        0, mavlink.MAV_ESTIMATOR_TYPE_VIO, quality)
+
+
 def test_the_vision_position_follows_only_the_axes_ekf2_ev_ctrl_fuses():
     bench = Bench(parameters={"EKF2_EV_CTRL": 1})  # horizontal position only
     try:
-        def send_vision():
-            bench.client.mav.odometry_send(
-                int(bench.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
-                3.0, 4.0, -2.0, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] + [0] * 20,
-                [math.nan] + [0] * 20)
-        bench.run(0.5, send_vision)
+        bench.run(0.5, lambda: send_vision(bench, 3.0, 4.0, -2.0, 100))
         position = bench.last("LOCAL_POSITION_NED")
         assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1),
                                             pytest.approx(4.0, abs=0.1))
         assert position.z == pytest.approx(0.0, abs=0.1)
+    finally:
+        bench.close()
+
+
+def test_vision_below_ekf2_ev_qmin_is_not_fused_and_the_estimate_stays_where_it_left():
+    """EKF2's quality_sufficient (ev_control.cpp): with EKF2_EV_QMIN 1, the companion's
+    quality 0 (its VINS lost or blind) is not fused; at 0 every sample is."""
+    bench = Bench()
+    try:
+        bench.run(0.5, lambda: send_vision(bench, 3.0, 4.0, -2.0, 100))
+        bench.run(1.0, lambda: send_vision(bench, 9.0, 9.0, -2.0, 0))  # a drifting, blind VINS
+        position = bench.last("LOCAL_POSITION_NED")
+        assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1),
+                                            pytest.approx(4.0, abs=0.1))
+        assert not bench.px4.external_vision_active  # timed out: nothing fusable came
+    finally:
+        bench.close()
+    bench = Bench(parameters={"EKF2_EV_QMIN": 0})
+    try:
+        bench.run(0.5, lambda: send_vision(bench, 9.0, 9.0, -2.0, 0))
+        position = bench.last("LOCAL_POSITION_NED")
+        assert (position.x, position.y) == (pytest.approx(9.0, abs=0.1),
+                                            pytest.approx(9.0, abs=0.1))
     finally:
         bench.close()
 

@@ -422,7 +422,8 @@ def test_external_vision_odometry_moves_the_estimate_not_the_truth(bench):
         bench.client.mav.odometry_send(int(bench.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED,
                                        mavlink.MAV_FRAME_BODY_FRD, 3.0, 4.0, 0.0,
                                        [1, 0, 0, 0], 0, 0, 0, 0, 0, 0,
-                                       [math.nan] + [0] * 20, [math.nan] + [0] * 20)
+                                       [math.nan] + [0] * 20, [math.nan] + [0] * 20,
+                                       0, mavlink.MAV_ESTIMATOR_TYPE_VIO, 100)  # best quality
     bench.run(0.5, send_vision)
     position = bench.last("LOCAL_POSITION_NED")
     assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1), pytest.approx(4.0, abs=0.1))

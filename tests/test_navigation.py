@@ -236,7 +236,8 @@ def test_backing_off_glides_along_the_trail_at_most_max_backoffs_times(planner):
 def vitals(**changes) -> Vitals:
     healthy = dict(stop_requested="", loop_lag_s=0.01, watchdog_in_charge=False,
                    camera_age_s=0.05, imu_age_s=0.005, vins_problem="", depth_age_s=0.05,
-                   depth_reason="", blind_s=0.5, on_flown_ground=False, no_path_expired=False)
+                   depth_reason="", blind_s=0.5, blind_expired=False, on_flown_ground=False,
+                   no_path_expired=False)
     return Vitals(**{**healthy, **changes})
 
 
@@ -248,8 +249,9 @@ def vitals(**changes) -> Vitals:
     ({"camera_age_s": 0.6}, "camera silent"),
     ({"imu_age_s": math.inf}, "IMU silent"),
     ({"vins_problem": "VINS reset in flight"}, "VINS reset in flight"),
-    ({"blind_s": 3.04}, "VINS blind (< 5 landmarks for 3.0 s)"),
-    ({"blind_s": 3.04, "on_flown_ground": True}, "VINS blind (< 5 landmarks for 3.0 s)"),
+    ({"blind_s": 3.04, "blind_expired": True}, "VINS blind (< 5 landmarks for 3.0 s)"),
+    ({"blind_s": 3.04, "blind_expired": True, "on_flown_ground": True},
+     "VINS blind (< 5 landmarks for 3.0 s)"),
     ({"depth_age_s": 1.2, "depth_reason": "no fit (too_few_anchors)"},
      "no metric depth (no fit (too_few_anchors))"),
     ({"depth_age_s": math.inf}, "no metric depth (none yet)"),
@@ -268,45 +270,45 @@ def test_the_most_basic_failure_is_the_one_reported():
 
 
 def test_a_blind_vins_is_reported_after_its_loss_and_before_the_depth_it_starves():
-    assert failsafe_reason(vitals(vins_problem="VINS lost (no tracks)", blind_s=9.0),
-                           OPTIONS) == "VINS lost (no tracks)"
-    assert failsafe_reason(vitals(blind_s=9.0, depth_age_s=9.0), OPTIONS).startswith(
-        "VINS blind")
+    assert failsafe_reason(vitals(vins_problem="VINS lost (no tracks)", blind_s=9.0,
+                                  blind_expired=True), OPTIONS) == "VINS lost (no tracks)"
+    assert failsafe_reason(vitals(blind_s=9.0, blind_expired=True, depth_age_s=9.0),
+                           OPTIONS).startswith("VINS blind")
 
 
-def blind_seconds(landmarks_and_counting, rate_hz=20.0) -> list[float]:
-    """The clock's reading after each check of a ``rate_hz`` monitor fed these pairs."""
+def blind_readings(landmarks_and_counting, rate_hz=20.0) -> list[tuple[float, bool]]:
+    """``(blind_s, expired)`` after each check of a ``rate_hz`` monitor fed these pairs."""
     clock, readings = BlindClock(), []
     for i, (landmarks, counting) in enumerate(landmarks_and_counting):
         clock.update(i / rate_hz, landmarks, counting, OPTIONS)
-        readings.append(clock.blind_s)
+        readings.append((clock.blind_s, clock.expired(OPTIONS)))
     return readings
 
 
 def test_the_blind_clock_counts_time_with_too_few_landmarks_only_off_a_turn_in_place():
     # 1 s blind in flight, 2 s turning in place (held), 1 s blind again: 2 s counted
-    readings = blind_seconds([(2, True)] * 21 + [(0, False)] * 40 + [(0, True)] * 20)
-    assert readings[20] == pytest.approx(1.0)
-    assert readings[60] == pytest.approx(1.0)
-    assert readings[-1] == pytest.approx(2.0)
-    assert failsafe_reason(vitals(blind_s=readings[-1]), OPTIONS) == ""
+    readings = blind_readings([(2, True)] * 21 + [(0, False)] * 40 + [(0, True)] * 20)
+    assert readings[20][0] == pytest.approx(1.0)
+    assert readings[60][0] == pytest.approx(1.0)
+    assert readings[-1] == (pytest.approx(2.0), False)
 
 
 def test_the_blind_clock_restarts_when_landmarks_come_back():
     few, enough = OPTIONS.blind_landmarks - 1, OPTIONS.blind_landmarks
-    readings = blind_seconds([(few, True)] * 50 + [(enough, True)] + [(few, True)] * 11)
-    assert readings[49] == pytest.approx(2.45)
-    assert readings[50] == 0.0
-    assert readings[-1] == pytest.approx(0.55)  # from the check that still saw enough
+    readings = blind_readings([(few, True)] * 50 + [(enough, True)] + [(few, True)] * 11)
+    assert readings[49][0] == pytest.approx(2.45)
+    assert readings[50][0] == 0.0
+    assert readings[-1][0] == pytest.approx(0.55)  # from the check that still saw enough
     # no VINS estimate yet is not blind (INITIALISING has its own rules)
-    assert blind_seconds([(None, True)] * 10)[-1] == 0.0
+    assert blind_readings([(None, True)] * 10)[-1] == (0.0, False)
 
 
 def test_a_vins_blind_past_the_timeout_stops_the_flight():
-    readings = blind_seconds([(0, True)] * 70)
-    reasons = [failsafe_reason(vitals(blind_s=s), OPTIONS) for s in readings]
+    readings = blind_readings([(0, True)] * 70)
+    reasons = [failsafe_reason(vitals(blind_s=s, blind_expired=expired), OPTIONS)
+               for s, expired in readings]
     first = next(i for i, reason in enumerate(reasons) if reason)
-    assert readings[first] > OPTIONS.blind_timeout_s >= readings[first - 1]
+    assert readings[first][0] > OPTIONS.blind_timeout_s >= readings[first - 1][0]
     assert reasons[first].startswith("VINS blind (< 5 landmarks for 3.")
 
 

@@ -25,6 +25,7 @@ class Vitals:
     depth_age_s: float
     depth_reason: str  # why the newest frame had no metric depth
     blind_s: float  # how long the VINS has been flown on blind (BlindClock)
+    blind_expired: bool  # for longer than blind_timeout_s
     on_flown_ground: bool  # turning in place or gliding over the flown trail
     no_path_expired: bool  # no safe primitive for longer than no_path_timeout_s
 
@@ -74,6 +75,10 @@ class BlindClock:
         elif counting:
             self.blind_s += elapsed
 
+    def expired(self, options) -> bool:
+        """Blind for longer than ``blind_timeout_s``: the failsafe."""
+        return self.blind_s > options.blind_timeout_s
+
 
 def failsafe_reason(vitals: Vitals, options) -> str:
     """The first failed check's reason ("" when all pass); ``options`` the
@@ -88,7 +93,7 @@ def failsafe_reason(vitals: Vitals, options) -> str:
         (vitals.camera_age_s > o.camera_timeout_s, "camera silent"),
         (vitals.imu_age_s > o.imu_timeout_s, "IMU silent"),
         (vitals.vins_problem != "", vitals.vins_problem),
-        (vitals.blind_s > o.blind_timeout_s,
+        (vitals.blind_expired,
          f"VINS blind (< {o.blind_landmarks} landmarks for {vitals.blind_s:.1f} s)"),
         (vitals.depth_age_s > o.depth_timeout_s and not vitals.on_flown_ground,
          f"no metric depth ({vitals.depth_reason or 'none yet'})"),

@@ -58,8 +58,13 @@ def tracked(setpoint: Setpoint, odometry: Odometry | None, now: float, options) 
     return setpoint._replace(velocity_W=setpoint.velocity_W + correction)
 
 
-def odometry_quality(state: HealthState) -> int:
-    """ODOMETRY.quality (0: invalid, 100: best) from the VINS health."""
+def odometry_quality(state: HealthState, blind: bool) -> int:
+    """ODOMETRY.quality (0: invalid, 100: best) from the VINS health, 0 also once the VINS
+    has been blind past ``blind_timeout_s``: its pose is then IMU propagation that drifts
+    without bound, and PX4 (``EKF2_EV_QMIN`` >= 1) must not hold position on it after the
+    failsafe (docs/operations.md)."""
+    if blind:
+        return 0
     return {HealthState.OK: 100, HealthState.DEGRADED: 50}.get(state, 0)
 
 
@@ -137,4 +142,5 @@ class Command:
             odometry.t, T_L_B[:3, 3], rot_to_quat(T_L_B[:3, :3]),
             T_L_W[:3, :3] @ odometry.velocity_W, odometry.angular_velocity_B,
             odometry.pose_covariance, reset_counter=self.perception.vins.resets,
-            quality=odometry_quality(update.health.state if update else HealthState.LOST))
+            quality=odometry_quality(update.health.state if update else HealthState.LOST,
+                                     c.vins_blind))

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from autonomy.messages import Frame, ImuSample, MetricDepth, Odometry
+from autonomy.navigation.failsafes import BlindClock
 from autonomy.navigation.mission import FlightOptions, FlightState, Mission, Transition
 from autonomy.planning.planner import Plan, Setpoint
 from autonomy.vins.estimator import FrameUpdate
@@ -75,6 +76,14 @@ class FlightContext:
         self.mission = Mission(clock.now(), on_transition=self._transition)
         self.channels = Channels()
         self.stats = FlightStats()
+        # how long the VINS has been flown on blind: the health stage keeps it, the odometry
+        # to PX4 reads it
+        self.blind = BlindClock()
+
+    @property
+    def vins_blind(self) -> bool:
+        """The VINS blind past ``blind_timeout_s``: its pose no longer fit to fly or fuse."""
+        return self.blind.expired(self.options)
 
     def _transition(self, transition: Transition) -> None:
         self.channels.transitions.publish(transition)

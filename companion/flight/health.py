@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import logging
 
-from autonomy.navigation.failsafes import (BlindClock, Vitals, age, failsafe_reason,
-                                           vins_problem)
+from autonomy.navigation.failsafes import Vitals, age, failsafe_reason, vins_problem
 from autonomy.navigation.mission import (GROUND_STATES, GUARDED_STATES, OFFBOARD_STATES,
                                          FlightState)
 from companion.flight.context import FlightContext
@@ -39,7 +38,6 @@ class Health:
         self.context, self.perception, self.navigation = context, perception, navigation
         self.watchdog, self.notifier = watchdog, notifier
         self.stop_reason = ""
-        self.blind = BlindClock()
 
     async def run(self) -> None:
         c = self.context
@@ -63,8 +61,8 @@ class Health:
             c.go(FlightState.LINK_LOST, "no heartbeat from the flight controller")
             return
         update = c.channels.vins.value
-        self.blind.update(now, None if update is None else update.health.landmarks,
-                          state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
+        c.blind.update(now, None if update is None else update.health.landmarks,
+                       state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
         if state not in GUARDED_STATES:
             return
         reason = failsafe_reason(self.vitals(now, lag), c.options)
@@ -80,7 +78,8 @@ class Health:
             imu_age_s=age(c.autopilot.last_imu_t, now),
             vins_problem=self._vins_problem(),
             depth_age_s=age(perception.last_depth_t, now),
-            depth_reason=perception.last_depth_reason, blind_s=self.blind.blind_s,
+            depth_reason=perception.last_depth_reason, blind_s=c.blind.blind_s,
+            blind_expired=c.vins_blind,
             on_flown_ground=self.navigation.on_flown_ground(),
             no_path_expired=self.navigation.no_path.expired(now, c.options))
 

@@ -339,7 +339,7 @@ class _Replayer:
             vins_problem=(f"VINS lost ({health.reason})"
                           if health is not None and health.state == HealthState.LOST else ""),
             depth_age_s=age(self.last_depth_t, now), depth_reason="",
-            blind_s=self.blind.blind_s,
+            blind_s=self.blind.blind_s, blind_expired=self.blind.expired(self.config.flight),
             on_flown_ground=self.state == _ALIGNING or record["reason"] in (PARALLAX_REASON,
                                                                              BACKOFF_REASON),
             no_path_expired=self.no_path_since is not None

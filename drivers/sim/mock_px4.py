@@ -120,7 +120,8 @@ OFFBOARD_LOSS_ACTIONS = tuple(OFFBOARD_LOSS_ACTION_VALUES)
 
 #: The parameters the mock serves, all INT32 or REAL32 as in PX4. Those the mock honours:
 #: COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_LAND, MIS_TAKEOFF_ALT, MPC_TKO_SPEED,
-#: MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1: horizontal and vertical vision position); the
+#: MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1: horizontal and vertical vision position),
+#: EKF2_EV_QMIN (odometry of a lower quality is not fused); the
 #: others are what docs/operations.md asks an operator to set, held at a correctly configured
 #: vehicle's values, for `companion fly --check` to read. MAV_SYS_ID and MAV_COMP_ID are read
 #: once at boot, as PX4 reads them (mavlink_main.cpp, the Mavlink constructor).
@@ -130,6 +131,7 @@ PARAMETER_TYPES = {
     "COM_OF_LOSS_T": mavlink.MAV_PARAM_TYPE_REAL32,
     "EKF2_EV_CTRL": mavlink.MAV_PARAM_TYPE_INT32,
     "EKF2_EV_DELAY": mavlink.MAV_PARAM_TYPE_REAL32,
+    "EKF2_EV_QMIN": mavlink.MAV_PARAM_TYPE_INT32,
     "EKF2_GPS_CTRL": mavlink.MAV_PARAM_TYPE_INT32,
     "EKF2_HGT_REF": mavlink.MAV_PARAM_TYPE_INT32,
     "MAV_1_CONFIG": mavlink.MAV_PARAM_TYPE_INT32,
@@ -207,6 +209,7 @@ def default_parameters(options: Px4Options) -> dict[str, int | float]:
         "COM_OF_LOSS_T": options.offboard_loss_timeout,
         "EKF2_EV_CTRL": 15,     # fuse vision horizontal and vertical position, velocity, yaw
         "EKF2_EV_DELAY": 0.0,   # ms: the mock's vision fusion has no delay
+        "EKF2_EV_QMIN": 1,      # odometry the companion marks invalid (quality 0) not fused
         "EKF2_GPS_CTRL": 0,     # no GNSS: the mock has none
         "EKF2_HGT_REF": 3,      # Vision
         "MAV_1_CONFIG": 102,    # TELEM 2
@@ -370,7 +373,10 @@ class MockPx4:
 
     def _handle_odometry(self, message) -> None:
         """External vision: the position axes EKF2_EV_CTRL fuses (bit 0 horizontal, bit 1
-        vertical) follow it; with neither, it is ignored as EKF2 ignores it."""
+        vertical) follow it; with neither, it is ignored as EKF2 ignores it. A sample whose
+        quality is below EKF2_EV_QMIN (when that is above 0) is not fused, as if it had not
+        come (EKF2's quality_sufficient, src/modules/ekf2/EKF/aid_sources/external_vision/
+        ev_control.cpp), so vision times out after EXTERNAL_VISION_TIMEOUT."""
         if message.frame_id not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD):
             self._statustext(mavlink.MAV_SEVERITY_WARNING,
                              f"ODOMETRY frame {message.frame_id} unsupported")
@@ -378,7 +384,9 @@ class MockPx4:
         position = ned_to_enu((message.x, message.y, message.z))
         ev_ctrl = self.parameters["EKF2_EV_CTRL"]
         fused = np.array([ev_ctrl & 1, ev_ctrl & 1, ev_ctrl & 2], dtype=bool)
-        if not np.all(np.isfinite(position)) or not fused.any():
+        minimum_quality = self.parameters["EKF2_EV_QMIN"]
+        if not np.all(np.isfinite(position)) or not fused.any() \
+                or (minimum_quality > 0 and message.quality < minimum_quality):
             return
         offset = position - np.asarray(self.vehicle.state.position)
         self._ev_offset = np.where(fused, offset, self._ev_offset)
