@@ -191,7 +191,9 @@ def test_odometry_is_the_state_at_the_newest_imu_sample(flight, run):
 
 
 def test_the_sparse_map_is_in_front_of_the_camera_with_the_tracked_pixels(run):
-    """The map also fills the smoother's landmark budget, and never exceeds it."""
+    """The map also fills the smoother's landmark budget, and exceeds it only by the top-up
+    to half the budget in view, to at most 1.5 times it (docs/vins.md, the landmark
+    budget)."""
     sizes = []
     for u, tracks in zip(run.updates, run.tracks):
         m = u.sparse_map
@@ -206,7 +208,8 @@ def test_the_sparse_map_is_in_front_of_the_camera_with_the_tracked_pixels(run):
         seen = dict(zip(tracks.ids.tolist(), tracks.pixels))
         for i in np.flatnonzero(m.tracked):
             np.testing.assert_array_equal(m.pixels[i], seen[int(m.ids[i])])
-    assert max(sizes) == VinsOptions().max_landmarks
+    budget = VinsOptions().max_landmarks
+    assert budget <= max(sizes) <= budget + budget // 2
 
 
 def test_landmark_depths_match_the_rendered_depth(flight, run):

@@ -64,7 +64,7 @@ class VinsOptions:
     max_landmarks: int = option(80, ge=1, le=10000, doc="landmarks the smoother holds at most "
                                 "(its update time grows with them); new ones fill the emptiest "
                                 "parts of the image first")
-    landmark_top_up: bool = option(False, doc="while fewer than half the budget are in view, "
+    landmark_top_up: bool = option(True, doc="while fewer than half the budget are in view, "
                                    "new landmarks bring the view back to half, with up to 1.5 "
                                    "times the budget held")
     min_depth: float = option(0.2, gt=0.0, doc="nearest landmark depth accepted, metres")
