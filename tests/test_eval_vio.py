@@ -207,7 +207,7 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
     result = json.loads(captured.out)
     numbers = ("ate_rmse_m", "distance_m", "ate_over_distance", "scale_error",
                "depth_rel_err_median", "frontend_ms_median", "backend_ms_median",
-               "backend_ms_p95")
+               "backend_ms_p95", "correction_m_median", "correction_m_max")
     assert set(result) >= {"dataset", "frames", "keyframes", "depth_points", "resets",
                            "health", "init", *numbers}
     assert result["frames"] == 161 and 0 < result["keyframes"] <= 161

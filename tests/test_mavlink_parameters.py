@@ -119,18 +119,10 @@ def test_param_set_refuses_what_the_mock_cannot_honour_and_names_unknown_ones(be
     assert "[pm] unknown param: NOT_A_PARAM" in bench.texts()
 
 
-def send_vision(bench, x: float, y: float, z: float, quality: int) -> None:
-    """One ODOMETRY at NED ``(x, y, z)`` of ``quality`` (0 invalid or unknown, 100 best)."""
-    bench.client.mav.odometry_send(
-        int(bench.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
-        x, y, z, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] + [0] * 20, [math.nan] + [0] * 20,
-        0, mavlink.MAV_ESTIMATOR_TYPE_VIO, quality)
-
-
 def test_the_vision_position_follows_only_the_axes_ekf2_ev_ctrl_fuses():
     bench = Bench(parameters={"EKF2_EV_CTRL": 1})  # horizontal position only
     try:
-        bench.run(0.5, lambda: send_vision(bench, 3.0, 4.0, -2.0, 100))
+        bench.run(0.5, lambda: bench.send_vision(3.0, 4.0, -2.0))
         position = bench.last("LOCAL_POSITION_NED")
         assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1),
                                             pytest.approx(4.0, abs=0.1))
@@ -144,8 +136,8 @@ def test_vision_below_ekf2_ev_qmin_is_not_fused_and_the_estimate_stays_where_it_
     quality 0 (its VINS lost or blind) is not fused; at 0 every sample is."""
     bench = Bench()
     try:
-        bench.run(0.5, lambda: send_vision(bench, 3.0, 4.0, -2.0, 100))
-        bench.run(1.0, lambda: send_vision(bench, 9.0, 9.0, -2.0, 0))  # a drifting, blind VINS
+        bench.run(0.5, lambda: bench.send_vision(3.0, 4.0, -2.0))
+        bench.run(1.0, lambda: bench.send_vision(9.0, 9.0, -2.0, 0))  # a drifting, blind VINS
         position = bench.last("LOCAL_POSITION_NED")
         assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1),
                                             pytest.approx(4.0, abs=0.1))
@@ -154,7 +146,7 @@ def test_vision_below_ekf2_ev_qmin_is_not_fused_and_the_estimate_stays_where_it_
         bench.close()
     bench = Bench(parameters={"EKF2_EV_QMIN": 0})
     try:
-        bench.run(0.5, lambda: send_vision(bench, 9.0, 9.0, -2.0, 0))
+        bench.run(0.5, lambda: bench.send_vision(9.0, 9.0, -2.0, 0))
         position = bench.last("LOCAL_POSITION_NED")
         assert (position.x, position.y) == (pytest.approx(9.0, abs=0.1),
                                             pytest.approx(9.0, abs=0.1))

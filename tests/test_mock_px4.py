@@ -79,6 +79,14 @@ class Bench:
         self.client.mav.set_position_target_local_ned_send(
             0, 1, 1, frame, type_mask, 0, 0, 0, *v_ned, 0, 0, 0, yaw or 0.0, 0.0)
 
+    def send_vision(self, x: float, y: float, z: float, quality: int = 100) -> None:
+        """External vision: one ODOMETRY at NED ``(x, y, z)`` of ``quality`` (0 invalid or
+        unknown, 100 best)."""
+        self.client.mav.odometry_send(
+            int(self.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,
+            x, y, z, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] + [0] * 20,
+            [math.nan] + [0] * 20, 0, mavlink.MAV_ESTIMATOR_TYPE_VIO, quality)
+
     def stream_velocity(self, v_ned, seconds, rate_hz=20, **kwargs):
         every = int(round(1 / (rate_hz * DT)))
         ticks = iter(range(10**9))
@@ -418,13 +426,7 @@ def test_a_collision_ends_the_flight():
 
 
 def test_external_vision_odometry_moves_the_estimate_not_the_truth(bench):
-    def send_vision():
-        bench.client.mav.odometry_send(int(bench.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED,
-                                       mavlink.MAV_FRAME_BODY_FRD, 3.0, 4.0, 0.0,
-                                       [1, 0, 0, 0], 0, 0, 0, 0, 0, 0,
-                                       [math.nan] + [0] * 20, [math.nan] + [0] * 20,
-                                       0, mavlink.MAV_ESTIMATOR_TYPE_VIO, 100)  # best quality
-    bench.run(0.5, send_vision)
+    bench.run(0.5, lambda: bench.send_vision(3.0, 4.0, 0.0))
     position = bench.last("LOCAL_POSITION_NED")
     assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1), pytest.approx(4.0, abs=0.1))
     assert np.linalg.norm(bench.vehicle.state.position) < 0.01

@@ -21,7 +21,7 @@ import numpy as np
 from autonomy.geometry import quat_to_rot, rot_z, yaw_of
 from autonomy.trajectory import ate_rmse, interpolate_poses, path_length
 from autonomy.vins import Vins, VinsOptions
-from companion.tools.eval.vio import ImuFeed, _read_image, read_vio_dataset
+from companion.tools.eval.vio import ImuFeed, read_vio_dataset, vio_frames
 
 
 def shift_recording(source: Path, target: Path, td: float) -> Path:
@@ -107,18 +107,15 @@ def run_vins_offset(root: Path, options: VinsOptions, *,
     """The VINS over the recording at ``root`` (module docstring)."""
     data = read_vio_dataset(root)
     stream = data.camera
-    frame_t = (np.asarray(stream.t_ns, np.int64) - data.imu.t_ns[0]) * 1e-9
     vins = Vins(stream.camera, stream.distortion, stream.T_B_C, data.noise, options)
     run = OffsetRun(vins=vins, data=data)
     spent = _time_the_offset_estimator(vins, run)
     feed = ImuFeed(data)
-    count = len(frame_t) if max_frames is None else min(max_frames, len(frame_t))
-    for k in range(count):
-        stamp = float(frame_t[k])
-        feed.before_frame(vins, stamp)
-        tracks = vins.track(_read_image(stream.paths[k], stream.camera))  # as eval vio reads it
+    for frame in vio_frames(data, max_frames):  # as eval vio reads them
+        feed.before_frame(vins, frame.t)
+        tracks = vins.track(frame.image)
         start = time.perf_counter()
-        update = vins.add_frame(stamp, tracks)
+        update = vins.add_frame(frame.t, tracks)
         (run.backend_ms if update.keyframe else run.other_ms).append(
             1e3 * (time.perf_counter() - start))
         run.offset_ms.append((update.keyframe, 1e3 * spent[0]))

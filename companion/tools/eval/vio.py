@@ -101,7 +101,8 @@ class VioTrace:
     :func:`depth_relative_errors` per frame with both a sparse map and a depth image (so not
     one per frame). ``static_init``: the estimator's static initialisation (None if it never
     initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
-    offset at the end.
+    offset at the end; ``corrections_m``: each keyframe's correction
+    (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`).
     """
 
     t: list[float] = field(default_factory=list)
@@ -114,6 +115,7 @@ class VioTrace:
     static_init: StaticInit | None = None
     resets: int = 0
     time_offset: TimeOffset = field(default_factory=TimeOffset)
+    corrections_m: list[float] = field(default_factory=list)
 
 
 def read_vio_dataset(root: Path) -> VioDataset:
@@ -203,7 +205,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``|s - 1|`` of the best similarity (Sim(3)) alignment of the same positions;
     ``distance_m``: ground-truth path length over those frames. ``depth_rel_err_median``:
     median of the traced depth errors (None when the dataset has no ``depth0``). Back-end times
-    are over the keyframes (where the smoother ran). ``init`` compares the static
+    are over the keyframes (where the smoother ran), as are ``correction_m_median`` and
+    ``correction_m_max`` (how far the smoother moved a keyframe from the IMU's propagation,
+    metres). ``init`` compares the static
     initialisation with the ground truth at its end: the angle between the estimated and true
     up-vectors in the body, and the relative gyro-bias error.
     """
@@ -218,6 +222,8 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
         "resets": int(trace.resets),
+        "correction_m_median": median_or_none(trace.corrections_m),
+        "correction_m_max": max(trace.corrections_m, default=None),
         "frontend_ms_median": median_or_none(trace.frontend_ms),
         "backend_ms_median": median_or_none(backend),
         "backend_ms_p95": finite_or_none(np.percentile(backend, 95)) if backend else None,
@@ -244,6 +250,8 @@ def _record(trace: VioTrace, update: FrameUpdate, frontend_ms: float, backend_ms
     trace.frontend_ms.append(frontend_ms)
     trace.backend_ms.append(backend_ms)
     trace.health.append(update.health.state.name)
+    if update.correction_m is not None:
+        trace.corrections_m.append(update.correction_m)
 
 
 def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
@@ -344,7 +352,9 @@ def format_vio_report(result: dict) -> str:
     note = f"; {result['note']}" if "note" in result else ""
     lines = [
         f"{result['dataset']}: {result['frames']} frames, {result['keyframes']} keyframes, "
-        f"{result['resets']} resets",
+        f"{result['resets']} resets; keyframe corrections "
+        f"{show(result['correction_m_median'], '.4f', ' m')} median, "
+        f"{show(result['correction_m_max'], '.4f', ' m')} at most",
         f"trajectory: ATE {show(result['ate_rmse_m'], '.3f', ' m')} over "
         f"{show(result['distance_m'], '.1f', ' m')} "
         f"({show(result['ate_over_distance'], '.2%')}), scale error "
