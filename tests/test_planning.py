@@ -443,6 +443,67 @@ def test_a_wall_on_the_left_turns_the_choice_right():
 
 
 
+def corridor_planner(left_gap, yaw_deg, options=None):
+    """At rest in a 3 m corridor along x, ``left_gap`` from its left wall, facing ``yaw_deg``
+    toward it, seen once by the 640x480 camera."""
+    left = ((-50.0, left_gap, -50.0), (50.0, left_gap + 0.5, 50.0))
+    right = ((-50.0, left_gap - 3.5, -50.0), (50.0, left_gap - 3.0, 50.0))
+    T_W_B = body(yaw=math.radians(yaw_deg))
+    planner = Planner(WIDE, options)
+    depth = render(camera_pose(T_W_B), [left, right, *ROOM], WIDE)
+    planner.add_depth(metric(depth, 0.0), camera_pose(T_W_B))
+    return planner, T_W_B
+
+
+@pytest.mark.parametrize("left_gap, yaw_deg", [(0.8, 0.0), (0.8, 15.0), (0.7, 0.0)])
+def test_a_vehicle_nearer_a_wall_than_its_radius_flies_out_keeping_the_room_it_has(left_gap,
+                                                                                 yaw_deg):
+    """Stopped at a corner that hugs the wall: every arc starts inside the robot's sphere, so
+    none is safe with it; the arcs checked with the largest sphere that passes fly on, and
+    nowhere along the chosen arc and its braking is the vehicle nearer the wall than that."""
+    stuck, T_W_B = corridor_planner(left_gap, yaw_deg, PlannerOptions(escape_radius=1.0))
+    assert stuck.plan(0.05, T_W_B, np.zeros(3), AHEAD).reason == "no safe primitive"
+    planner, T_W_B = corridor_planner(left_gap, yaw_deg)
+    plan = planner.plan(0.05, T_W_B, np.zeros(3), AHEAD)
+    assert plan.kind == "arc" and plan.primitive.yaw_rate <= 0.0  # along or away from it
+    radius = plan.candidates.radius
+    assert planner.options.escape_radius <= radius < planner.options.robot_radius
+    assert radius <= left_gap + 1e-9
+    points = np.vstack([plan.primitive.points_S, plan.primitive.stop_points_S])
+    y_W = (points @ plan.T_W_S[:3, :3].T + plan.T_W_S[:3, 3])[:, 1]
+    assert left_gap - y_W.max() >= radius - 1e-6
+    assert y_W.min() - (left_gap - 3.0) >= radius - 1e-6
+    # the largest sphere that passes: one step larger, nothing is safe
+    larger = planner.check(0.05, plan.T_W_S, planner.tiers[-1], radius + 0.1)
+    assert not larger.safe.any()
+
+
+def test_a_vehicle_nearer_a_wall_than_the_escape_radius_stays_stopped():
+    planner, T_W_B = corridor_planner(0.55, 0.0)
+    plan = planner.plan(0.05, T_W_B, np.zeros(3), AHEAD)
+    assert plan.kind == "stop" and plan.reason == "no safe primitive"
+    assert plan.candidates.radius == pytest.approx(planner.options.escape_radius)
+
+
+def test_a_wall_ahead_beyond_the_radius_does_not_shrink_the_sphere():
+    """The escape is for a vehicle already too near; one that is blocked farther ahead stops
+    with the robot's own sphere (the behaviours turn or back it off)."""
+    planner = planner_seeing([((1.8, -50, -50), (2.3, 50, 50))])
+    plan = planner.plan(0.05, body(), np.zeros(3), AHEAD)
+    assert plan.reason == "no safe primitive"
+    assert plan.candidates.radius == planner.options.robot_radius
+
+
+def test_a_check_with_a_smaller_sphere_frees_what_the_robots_sphere_does_not():
+    history = planner_seeing([((2.0, -50, -50), (2.5, 50, 50)), *ROOM]).history
+    point = [[1.2, 0.0, ALTITUDE]]  # 0.8 m short of the wall
+    assert history.check(point).occupied[0]
+    assert history.check(point, radius=0.7).free[0]
+    assert not history.check(point, radius=0.9).free[0]
+    with pytest.raises(ValueError, match="radius"):
+        history.check(point, radius=1.5)
+
+
 def test_a_primitives_check_stops_at_its_first_occupied_point_with_the_same_verdicts():
     """The planner checks each primitive's points as a group and stops judging a primitive at
     its first occupied point: which primitives are safe, and a safe one's clearance, are what
@@ -644,7 +705,7 @@ def test_bad_inputs_raise_clear_errors():
 
 @pytest.mark.parametrize("key, value", [("period_s", 2.0), ("max_range", 0.5),
                                         ("max_yaw_rate_deg", 0.0), ("robot_radius", 0.0),
-                                        ("history_frames", 0)])
+                                        ("escape_radius", 1.5), ("history_frames", 0)])
 def test_bad_options_are_named(key, value):
     with pytest.raises(OptionError, match=key):
         PlannerOptions(**{key: value})

@@ -99,6 +99,7 @@ def test_a_plan_records_its_choice_and_draws_every_candidate():
     plan = planner.plan(2.5, np.eye(4), np.zeros(3), np.array([10.0, 0.0, 0.0]))
     record = json.loads(topics.encode_plan(plan))
     assert record["kind"] == "arc" and record["safe"][record["chosen"]]
+    assert record["radius"] == planner.options.robot_radius  # the sphere it was checked with
     scene = decoded(SceneUpdate, topics.encode_plan_lines(plan))
     lines = scene.entities[0].lines
     assert len(lines) == len(plan.candidates.primitives)
@@ -108,8 +109,9 @@ def test_a_plan_records_its_choice_and_draws_every_candidate():
 
 
 def test_a_stop_for_want_of_a_safe_primitive_records_why_each_was_unsafe():
-    """A wall 2 m ahead: the record carries the slowest tier's verdicts, the arcs into the
-    wall blocked, the turns out of view unknown, so a failure can be explained from it."""
+    """A wall 2 m ahead (the robot's sphere a step ahead is still clear of it: not hemmed in):
+    the record carries the slowest tier's verdicts, the arcs into the wall blocked, the turns
+    out of view unknown, so a failure can be explained from it."""
     planner = Planner(PINHOLE, PlannerOptions())
     planner.add_depth(metric_depth(np.full((48, 64), 2.0, np.float32)), CameraOptions().T_B_C())
     plan = planner.plan(2.5, np.eye(4), np.zeros(3), np.array([10.0, 0.0, 0.0]))

@@ -253,8 +253,9 @@ class DepthHistory:
                         if f.t >= newest - self.max_age_s]
 
     def check(self, points_W, start_W=None, now: float | None = None,
-              groups=None) -> CheckResult:
-        """Judge the spheres of radius ``robot_radius`` about ``points_W`` (N, 3).
+              groups=None, radius: float | None = None) -> CheckResult:
+        """Judge the spheres of radius ``robot_radius`` (or the smaller ``radius``) about
+        ``points_W`` (N, 3).
 
         ``start_W`` (3,): the vehicle's present position (module docstring: near the vehicle;
         without it no point is judged by its ray); ``now``: ignore frames older than
@@ -269,6 +270,7 @@ class DepthHistory:
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {points.shape}")
         n = len(points)
+        R = self._radius(radius)
         if groups is not None:
             groups = np.asarray(groups)
             if groups.shape != (n,) or groups.dtype.kind not in "iu" or (groups < 0).any():
@@ -276,7 +278,7 @@ class DepthHistory:
         near = np.zeros(n, dtype=bool)
         if start_W is not None:
             start = np.asarray(start_W, dtype=float).reshape(3)
-            near = np.sum((points - start) ** 2, axis=1) <= (2.0 * self.robot_radius) ** 2
+            near = np.sum((points - start) ** 2, axis=1) <= (2.0 * R) ** 2
         frames = [f for f in self._frames if now is None or f.t >= now - self.max_age_s]
         verdict = np.zeros(n, dtype=np.int8)  # 0 undecided, 1 free, 2 occupied (strong)
         clearance = np.full(n, np.nan)
@@ -288,7 +290,7 @@ class DepthHistory:
         for frame in reversed(frames):
             if len(pending) == 0:
                 break
-            free, strong, gap = self._judge(frame, points[pending], near[pending],
+            free, strong, gap = self._judge(frame, points[pending], near[pending], R,
                                             np.isnan(weak_t[pending]),
                                             None if groups is None else groups[pending])
             surface_near[pending[~free & np.isfinite(gap)]] = True
@@ -313,6 +315,14 @@ class DepthHistory:
         free = (verdict == 1) | use_weak
         return CheckResult(free, clearance, frame_t, (verdict == 2) | (surface_near & ~free))
 
+    def _radius(self, radius: float | None) -> float:
+        """The sphere's radius of a check: ``robot_radius``, or a smaller positive one."""
+        if radius is None:
+            return self.robot_radius
+        if not 0.0 < radius <= self.robot_radius:
+            raise ValueError(f"radius must be in (0, {self.robot_radius:g}], got {radius!r}")
+        return float(radius)
+
     def _norms(self, camera: PinholeCamera) -> np.ndarray:
         """``|(x/z, y/z, 1)|`` of every pixel's ray (float32), kept for the last camera."""
         if self._ray_norms is None or self._ray_norms[0] != camera:
@@ -331,12 +341,13 @@ class DepthHistory:
                                (directions, spread, np.cos(spread), np.sin(spread)))
         return kept[side]
 
-    def _judge_by_blocks(self, frame: _Frame, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(free, clearance)`` of spheres about ``p`` (M, 3), camera frame, by the exact
-        rule on every pixel block (for spheres near the vehicle): a ray at angle ``theta``
-        from the centre's direction meets the sphere when ``b = L sin(theta) <= R`` (and, from
-        outside it, ``theta < 90°``) and leaves it at ``s2(theta) = L cos(theta) + sqrt(R² -
-        b²)``, which falls as ``theta`` grows. A block whose rays lie within ``delta`` of its
+    def _judge_by_blocks(self, frame: _Frame, p: np.ndarray, R: float
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """``(free, clearance)`` of spheres of radius ``R`` about ``p`` (M, 3), camera frame,
+        by the exact rule on every pixel block (for spheres near the vehicle): a ray at angle
+        ``theta`` from the centre's direction meets the sphere when ``b = L sin(theta) <= R``
+        (and, from outside it, ``theta < 90°``) and leaves it at ``s2(theta) = L cos(theta) +
+        sqrt(R² - b²)``, which falls as ``theta`` grows. A block whose rays lie within ``delta`` of its
         centre ray, at ``theta_c`` from the centre's direction, has no ray nearer in angle
         than ``theta_c - delta``; its least range must reach ``s2`` there. Free when every
         block meeting the sphere is known and passes (of a sphere reaching the camera plane
@@ -344,7 +355,7 @@ class DepthHistory:
         least margin. Points are taken per :data:`NEAR_CELL_M` cube (the caution that costs is
         the cube's half diagonal, 4 cm)."""
         centres, inverse = _cells(p, NEAR_CELL_M)
-        radius = self.robot_radius + NEAR_CELL_M * math.sqrt(0.75)
+        radius = R + NEAR_CELL_M * math.sqrt(0.75)
         free, margin = self._blocks_rule(frame, centres, radius, NEAR_BLOCK_PX[0])
         for side in NEAR_BLOCK_PX[1:]:
             again = np.flatnonzero(~free)
@@ -382,15 +393,16 @@ class DepthHistory:
         known = ~unknown
         return known & (margin >= 0.0), np.where(known, margin.astype(float), np.nan)
 
-    def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray,
+    def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray, R: float,
                unfreed: np.ndarray | None = None, groups: np.ndarray | None = None):
-        """``(free, strong, clearance)`` of one frame on ``points`` (M, 3); a point neither
+        """``(free, strong, clearance)`` of one frame on the spheres of radius ``R`` about
+        ``points`` (M, 3); a point neither
         free nor strong is unknown to this frame. Module docstring for the rules. ``unfreed``:
         the points no newer frame has called free (weakly); only those get the block rule
         where it could only call them weakly free. ``groups`` (M,): the block rule, the costly
         part, is left off the points whose group this frame finds occupied by the other
         rules (they stay unknown, or occupied by the rings)."""
-        cam, R = frame.camera, self.robot_radius
+        cam = frame.camera
         H, W = cam.height, cam.width
         unfreed = np.ones(len(points), dtype=bool) if unfreed is None else unfreed
         p = points @ frame.R_C_W.T + frame.t_C_W
@@ -404,12 +416,12 @@ class DepthHistory:
         gap = np.full(len(p), np.nan)
         rest = np.flatnonzero(near & in_image & (z <= R))
         if len(rest):
-            rest = self._judge_by_ray(frame, p, u, v, rest, free, strong, gap)
+            rest = self._judge_by_ray(frame, p, u, v, R, rest, free, strong, gap)
             rest = rest[unfreed[rest]]
         whole = np.flatnonzero(in_image & (z > R) & (z + R <= self.max_range))
         retry = np.zeros(0, dtype=np.intp)
         if len(whole):
-            clipped = self._judge_by_rings(frame, p[whole], whole, free, strong, gap)
+            clipped = self._judge_by_rings(frame, p[whole], R, whole, free, strong, gap)
             # near the vehicle, where a narrow passage leaves little room, a sphere the rings
             # refuse gets the finer block-by-block rule (the rings' caution is about R / n)
             retry = whole[near[whole] & strong[whole] & ~free[whole]]
@@ -419,22 +431,21 @@ class DepthHistory:
             dead = np.isin(groups, groups[occupied])
             rest, retry = rest[~dead[rest]], retry[~dead[retry]]
         if len(rest):
-            free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest])
+            free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest], R)
         if len(retry):
-            again, again_gap = self._judge_by_blocks(frame, p[retry])
+            again, again_gap = self._judge_by_blocks(frame, p[retry], R)
             freed = retry[again]
             free[freed], gap[freed] = True, again_gap[again]
             strong[freed] = ~clipped[np.searchsorted(whole, freed)]
         return free, strong, gap
 
     def _judge_by_ray(self, frame: _Frame, p: np.ndarray, u: np.ndarray, v: np.ndarray,
-                      ray: np.ndarray, free: np.ndarray, strong: np.ndarray,
+                      R: float, ray: np.ndarray, free: np.ndarray, strong: np.ndarray,
                       gap: np.ndarray) -> np.ndarray:
         """The near-vehicle rule's first steps on the points ``ray`` (those reaching the
         camera plane), written into ``free``, ``strong``, ``gap``: occupied if the centre's
         pixel sees a surface in front of the centre, free if the image's least range exceeds
         ``L + R``. The points left for the block rule."""
-        R = self.robot_radius
         d = frame.table[0, np.floor(v[ray] + 0.5).astype(np.intp),
                         np.floor(u[ray] + 0.5).astype(np.intp)]
         distance = np.sqrt(np.sum(p[ray] ** 2, axis=1))
@@ -447,12 +458,12 @@ class DepthHistory:
         holds_camera = (nearest < 0.0) & (distance <= R)
         return ray[~free[ray] & ~strong[ray] & ~holds_camera]
 
-    def _judge_by_rings(self, frame: _Frame, c: np.ndarray, whole: np.ndarray,
+    def _judge_by_rings(self, frame: _Frame, c: np.ndarray, R: float, whole: np.ndarray,
                         free: np.ndarray, strong: np.ndarray, gap: np.ndarray) -> np.ndarray:
         """The ring rule on the spheres about ``c`` (M, 3, camera frame; ``z > R``, within
         range), the points ``whole``, written into ``free``, ``strong``, ``gap``; whether
         each one's outer window was clipped to the image (a free verdict is then weak)."""
-        R, H, W = self.robot_radius, frame.camera.height, frame.camera.width
+        H, W = frame.camera.height, frame.camera.width
         xy, zs = c[:, :2].T, c[:, 2]
         q = self.ring_fractions
         b2 = (q[1:, None] * R) ** 2  # threshold k: exit distance s2 at impact q_{k+1} R

@@ -26,6 +26,16 @@ yaw rate and vertical speed and ``(w0, c0)`` those of the previous arc chosen, `
 the least distance along the primitive between the far side of the robot's sphere and the
 surface observed behind it.
 
+**Hemmed in.** A vehicle may stand nearer than ``robot_radius`` to a wall: stopped at a
+corner waypoint that hugs the inside of the turn, or put there by the estimate's error. Then
+every arc begins inside the robot's sphere and none can be safe, however open the way ahead.
+When no arc of the slowest tier is safe and the sphere about its straight arc's first point
+(a step ahead) is occupied, that tier is checked again with the largest sphere, in steps of
+:data:`ESCAPE_STEP_M` down to ``escape_radius``, that is free about that point: the room the
+vehicle has now. An arc then never comes nearer to a surface than the vehicle already is,
+and the clearance cost turns it away from the wall. The plan's candidates say which sphere
+was used.
+
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
 no such stop, braking from the present velocity, which the following rounds continue in the
@@ -55,6 +65,9 @@ from autonomy.planning.primitives import (
 #: The reason an approach glide's plan carries (:meth:`Planner.approach`).
 APPROACH_REASON = "approach"
 
+#: Steps of the sphere's radius a hemmed-in vehicle's arcs are checked with, metres.
+ESCAPE_STEP_M = 0.1
+
 
 @dataclass(frozen=True)
 class PlannerOptions(PrimitiveOptions):
@@ -65,6 +78,9 @@ class PlannerOptions(PrimitiveOptions):
                              "seconds: the stop checked each round follows the arc this long")
     robot_radius: float = option(1.0, gt=0.0, le=10.0, doc="radius of the sphere about each "
                                  "point that must be free, metres")
+    escape_radius: float = option(0.6, gt=0.0, le=10.0, doc="a vehicle already nearer than "
+                                  "robot_radius to a surface flies arcs keeping the room it "
+                                  "has, down to this radius (at robot_radius: never), metres")
     history_frames: int = option(8, ge=1, le=64, doc="newest depth frames kept for checking")
     history_s: float = option(2.0, gt=0.0, le=60.0, doc="oldest depth frame used, seconds "
                               "before the planning time")
@@ -86,6 +102,9 @@ class PlannerOptions(PrimitiveOptions):
         if self.period_s >= self.duration_s:
             raise OptionError("period_s", f"must be < duration_s ({self.duration_s:g}), "
                               f"got {self.period_s:g}")
+        if self.escape_radius > self.robot_radius:
+            raise OptionError("escape_radius", f"must be <= robot_radius "
+                              f"({self.robot_radius:g}), got {self.escape_radius:g}")
         if self.max_range <= self.robot_radius:
             raise OptionError("max_range", f"must be > robot_radius ({self.robot_radius:g}), "
                               f"got {self.max_range:g}")
@@ -134,13 +153,16 @@ class TierCheck(NamedTuple):
 class Candidates:
     """One round's choice: the tier's ``primitives`` (in ``Plan.T_W_S``'s start frame), which
     were ``safe`` and which ``blocked`` by an observed surface (:class:`TierCheck`), and the
-    index of the one ``chosen``, -1 when none was safe (the slowest tier's, on a stop)."""
+    index of the one ``chosen``, -1 when none was safe (the slowest tier's, on a stop), and
+    the ``radius`` of the sphere they were checked with (less than the robot's when hemmed
+    in: module docstring)."""
 
     speed: float
     primitives: Sequence[Primitive]
     safe: np.ndarray
     chosen: int
     blocked: np.ndarray
+    radius: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -243,28 +265,36 @@ class Planner:
         if stop_at_goal:
             room = float(np.hypot(*(goal - start)[:2]))
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
+        radius = self.options.robot_radius
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
             safe, clearance, blocked = self.check(t, T_W_S, tier)
             if safe.any():
                 break
-        else:  # why each primitive of the slowest tier failed goes into the flight record
-            return replace(self._stop(t, T_W_S, velocity, "no safe primitive"),
-                           candidates=Candidates(tier.speed, tier.library, safe, -1, blocked))
+        else:
+            escape = self._escape(t, T_W_S, tier) if self._hemmed_in(t, T_W_S, tier) else None
+            if escape is not None:
+                radius, (safe, clearance, blocked) = escape
+            if not safe.any():  # why each primitive failed goes into the flight record
+                return replace(self._stop(t, T_W_S, velocity, "no safe primitive"),
+                               candidates=Candidates(tier.speed, tier.library, safe, -1,
+                                                     blocked, radius))
         count = int(safe.sum())
         cost = np.where(safe, self._cost(tier, start, R, goal, clearance), np.inf)
         i = int(np.argmin(cost))
         chosen = float(clearance[i])
         plan = Plan(t, T_W_S, tier.library[i], "arc", "", count, chosen,
                     self.options.stop_duration_s,
-                    Candidates(tier.speed, tier.library, safe, i, blocked))
+                    Candidates(tier.speed, tier.library, safe, i, blocked, radius))
         self._previous = plan
         self._checked_stop = Plan(t, T_W_S, tier.branches[i], "stop", "", count, chosen,
                                   self.options.stop_duration_s)
         return plan
 
-    def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None) -> TierCheck:
+    def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None,
+              radius: float | None = None) -> TierCheck:
         """Every primitive of ``tier`` (default the fastest) and its branch, placed at the
-        start frame ``T_W_S``, against the frames no older than ``t - history_s``: ``safe``
+        start frame ``T_W_S``, against the frames no older than ``t - history_s``, with the
+        robot's sphere (or one of ``radius``, no larger): ``safe``
         (P,) bool; ``clearance`` (P,) the least clearance along a safe one (metres between the
         sphere's far side and the surface behind it; inf where only rays judged it);
         ``blocked`` (P,) bool. An unsafe primitive's points are not all judged (the check
@@ -272,10 +302,40 @@ class Planner:
         tier = self.tiers[0] if tier is None else tier
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
         result = self.history.check(tier.points_S @ R.T + start, start_W=start, now=t,
-                                    groups=tier.primitive_of_point)
+                                    groups=tier.primitive_of_point, radius=radius)
         return TierCheck(np.logical_and.reduceat(result.free, tier.starts),
                          np.fmin.reduceat(result.clearance, tier.starts),
                          np.logical_or.reduceat(result.occupied, tier.starts))
+
+    def _hemmed_in(self, t: float, T_W_S: np.ndarray, tier: "PrimitiveTier") -> bool:
+        """Is a surface inside the robot's sphere about ``tier``'s probe (its straight arc's
+        first point, a step ahead of the vehicle)?"""
+        start = T_W_S[:3, 3]
+        probe = T_W_S[:3, :3] @ tier.probe_S + start
+        return bool(self.history.check(probe[None, :], start_W=start, now=t).occupied[0])
+
+    def _escape(self, t: float, T_W_S: np.ndarray, tier: "PrimitiveTier"
+                ) -> tuple[float, TierCheck] | None:
+        """``tier`` checked with the largest sphere, in steps of :data:`ESCAPE_STEP_M` below
+        ``robot_radius`` down to ``escape_radius``, with which an arc is safe (the last tried
+        when none is); ``(radius, check)``, None when no step fits. Module docstring,
+        "Hemmed in"."""
+        o = self.options
+        steps = int(math.floor((o.robot_radius - o.escape_radius) / ESCAPE_STEP_M + 1e-9))
+        if steps == 0:
+            return None
+        for k in range(1, steps + 1):
+            radius = o.robot_radius - k * ESCAPE_STEP_M
+            check = self.check(t, T_W_S, tier, radius)
+            if check.safe.any():
+                break
+        return radius, check
+        steps = int(math.floor((o.robot_radius - o.escape_radius) / ESCAPE_STEP_M + 1e-9))
+        for k in range(1, steps + 1):
+            radius = o.robot_radius - k * ESCAPE_STEP_M
+            if self.history.check(probe, start_W=start, now=t, radius=radius).free[0]:
+                return radius
+        return o.robot_radius
 
     def approach(self, t: float, T_W_B, goal_W) -> Plan | None:
         """:meth:`glide` to ``goal_W``, checked against the history as the arcs are (its points
@@ -384,6 +444,10 @@ class PrimitiveTier:
         self.starts = np.cumsum([0] + [len(g) for g in groups[:-1]])
         self.primitive_of_point = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
         self.ends_S = np.array([a.points_S[-1] for a in self.library])
+        straight = int(np.argmin([abs(a.yaw_rate) + abs(a.vertical_speed)
+                                  for a in self.library]))
+        #: Where the room about a hemmed-in vehicle is measured: the straight arc's first point.
+        self.probe_S = self.points_S[self.starts[straight]]
         #: How far ahead the straight arc comes to rest: its length and braking, v (D + T / 2).
         self.reach = speed * (options.duration_s + options.stop_duration_s / 2.0)
         self.yaw_rates = np.array([a.yaw_rate for a in self.library])
