@@ -607,8 +607,10 @@ def test_bad_setpoints_and_odometry_raise_and_send_nothing():
             autopilot.send_odometry(flight.clock.now(), (0, math.nan, 0), (1, 0, 0, 0))
         with pytest.raises(ValueError, match="unit quaternion"):
             autopilot.send_odometry(flight.clock.now(), (0, 0, 0), (2, 0, 0, 0))
-        with pytest.raises(ValueError, match="quality"):
-            autopilot.send_odometry(flight.clock.now(), (0, 0, 0), (1, 0, 0, 0), quality=101)
+        for quality in (101, -2, 50.0, True):  # MAVLink's range: -1 failed .. 100 best
+            with pytest.raises(ValueError, match="quality"):
+                autopilot.send_odometry(flight.clock.now(), (0, 0, 0), (1, 0, 0, 0),
+                                        quality=quality)
         with pytest.raises(ValueError, match="altitude"):
             await autopilot.takeoff(-1.0)
         await flight.clock.sleep(0.1)

@@ -184,9 +184,9 @@ def test_yaw_alignment_maps_the_body_pose_from_vins_world_to_px4_local():
 
 @pytest.mark.parametrize("state, blind, quality", [
     (HealthState.OK, False, 100), (HealthState.DEGRADED, False, 50),
-    (HealthState.LOST, False, 0), (HealthState.INITIALISING, False, 0),
+    (HealthState.LOST, False, -1), (HealthState.INITIALISING, False, 0),
     # blind past the timeout: PX4 (EKF2_EV_QMIN >= 1) must not hold position on its drift
-    (HealthState.OK, True, 0), (HealthState.DEGRADED, True, 0)])
+    (HealthState.OK, True, -1), (HealthState.DEGRADED, True, -1)])
 def test_odometry_quality_tells_px4_when_not_to_fuse_the_vins(state, blind, quality):
     assert odometry_quality(state, blind) == quality
 

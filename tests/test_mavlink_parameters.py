@@ -133,11 +133,13 @@ def test_the_vision_position_follows_only_the_axes_ekf2_ev_ctrl_fuses():
 
 def test_vision_below_ekf2_ev_qmin_is_not_fused_and_the_estimate_stays_where_it_left():
     """EKF2's quality_sufficient (ev_control.cpp): with EKF2_EV_QMIN 1, the companion's
-    quality 0 (its VINS lost or blind) is not fused; at 0 every sample is."""
+    quality -1 (failed: its VINS lost or blind) is not fused, nor is 0 (unknown); at
+    EKF2_EV_QMIN 0 every sample is."""
     bench = Bench()
     try:
         bench.run(0.5, lambda: bench.send_vision(3.0, 4.0, -2.0))
-        bench.run(1.0, lambda: bench.send_vision(9.0, 9.0, -2.0, 0))  # a drifting, blind VINS
+        bench.run(0.5, lambda: bench.send_vision(9.0, 9.0, -2.0, -1))  # a drifting, blind VINS
+        bench.run(0.5, lambda: bench.send_vision(9.0, 9.0, -2.0, 0))
         position = bench.last("LOCAL_POSITION_NED")
         assert (position.x, position.y) == (pytest.approx(3.0, abs=0.1),
                                             pytest.approx(4.0, abs=0.1))

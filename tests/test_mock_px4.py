@@ -80,7 +80,7 @@ class Bench:
             0, 1, 1, frame, type_mask, 0, 0, 0, *v_ned, 0, 0, 0, yaw or 0.0, 0.0)
 
     def send_vision(self, x: float, y: float, z: float, quality: int = 100) -> None:
-        """External vision: one ODOMETRY at NED ``(x, y, z)`` of ``quality`` (0 invalid or
+        """External vision: one ODOMETRY at NED ``(x, y, z)`` of ``quality`` (-1 failed, 0
         unknown, 100 best)."""
         self.client.mav.odometry_send(
             int(self.time * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD,

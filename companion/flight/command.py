@@ -58,13 +58,17 @@ def tracked(setpoint: Setpoint, odometry: Odometry | None, now: float, options) 
     return setpoint._replace(velocity_W=setpoint.velocity_W + correction)
 
 
+#: ODOMETRY.quality of odometry that has failed (MAVLink: -1 failed, 0 unknown, 1..100).
+FAILED_QUALITY = -1
+
+
 def odometry_quality(state: HealthState, blind: bool) -> int:
-    """ODOMETRY.quality (0: invalid, 100: best) from the VINS health, 0 also once the VINS
-    has been blind past ``blind_timeout_s``: its pose is then IMU propagation that drifts
-    without bound, and PX4 (``EKF2_EV_QMIN`` >= 1) must not hold position on it after the
-    failsafe (docs/operations.md)."""
-    if blind:
-        return 0
+    """ODOMETRY.quality from the VINS health: 100 OK, 50 DEGRADED, 0 (unknown) while it
+    initialises, and -1 (failed) when LOST or once blind past ``blind_timeout_s``: its pose
+    is then IMU propagation that drifts without bound, and PX4 (``EKF2_EV_QMIN`` >= 1) must
+    not hold position on it after the failsafe (docs/operations.md)."""
+    if blind or state == HealthState.LOST:
+        return FAILED_QUALITY
     return {HealthState.OK: 100, HealthState.DEGRADED: 50}.get(state, 0)
 
 

@@ -48,8 +48,8 @@ PX4_PARAMETERS = {
     "EKF2_EV_CTRL": ParameterRule(lambda v: int(v) != 0,
                                   "non-zero, so EKF2 fuses the companion's odometry"),
     "EKF2_EV_QMIN": ParameterRule(lambda v: int(v) >= 1,
-                                  "at least 1, so odometry the companion marks invalid "
-                                  "(quality 0: VINS lost or blind) is not fused"),
+                                  "at least 1, so odometry the companion marks failed "
+                                  "(quality -1: VINS lost or blind) is not fused"),
     "EKF2_HGT_REF": ParameterRule(lambda v: int(v) == 3, "3 (Vision): height from the odometry"),
     "COM_OF_LOSS_T": ParameterRule(lambda v: 0.0 < v <= 1.0,
                                    "at most 1 s, so a dead companion is noticed quickly"),

@@ -843,9 +843,11 @@ class Autopilot:
         ``t`` companion time, ``position_L``/``velocity_L`` frame L (ENU), ``q_L_B`` (w, x, y,
         z), ``angular_velocity_B`` FLU, ``pose_covariance`` 6x6 rotation then position in the
         body frame (conversion in :mod:`drivers.mavlink.odometry`); None or NaN: unknown.
-        ``reset_counter`` goes out modulo 256; ``quality`` 0 (unknown) to 100."""
-        if not isinstance(quality, int) or not 0 <= quality <= 100:
-            raise ValueError(f"quality must be an integer 0..100, got {quality!r}")
+        ``reset_counter`` goes out modulo 256; ``quality`` as MAVLink defines it: -1 the
+        odometry has failed, 0 unknown, 1 (worst) to 100 (best)."""
+        if isinstance(quality, bool) or not isinstance(quality, int) \
+                or not -1 <= quality <= 100:
+            raise ValueError(f"quality must be an integer -1..100, got {quality!r}")
         if not math.isfinite(t):
             raise ValueError(f"odometry time must be finite, got {t!r}")
         fields = odometry_fields(position_L, q_L_B, velocity_L, angular_velocity_B)

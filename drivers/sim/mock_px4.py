@@ -209,7 +209,7 @@ def default_parameters(options: Px4Options) -> dict[str, int | float]:
         "COM_OF_LOSS_T": options.offboard_loss_timeout,
         "EKF2_EV_CTRL": 15,     # fuse vision horizontal and vertical position, velocity, yaw
         "EKF2_EV_DELAY": 0.0,   # ms: the mock's vision fusion has no delay
-        "EKF2_EV_QMIN": 1,      # odometry the companion marks invalid (quality 0) not fused
+        "EKF2_EV_QMIN": 1,      # odometry the companion marks failed (quality -1) not fused
         "EKF2_GPS_CTRL": 0,     # no GNSS: the mock has none
         "EKF2_HGT_REF": 3,      # Vision
         "MAV_1_CONFIG": 102,    # TELEM 2
