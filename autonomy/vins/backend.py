@@ -10,7 +10,16 @@ Factors:
   feature position in pixels of the ideal pinhole, under a Huber loss, through the camera
   mounting ``T_B_C``;
 - priors on the first keyframe (from static initialisation) or, after a rebuild, on the last
-  good estimate.
+  good estimate;
+- a loose prior on every new keyframe's pose at its IMU prediction (``keyframe_prior_*``,
+  0.1 m and 0.05 rad). Position and yaw are unobservable: all the window knows of them is the
+  marginal of the first prior, whose information fades as the flight goes on (the IMU's and
+  the landmarks' constraints are relative), while the IMU factors between close keyframes
+  hold their poses to about 1e-5 of that. iSAM2's Cholesky then meets an "indeterminate
+  linear system" and the smoother is rebuilt, every few tens of seconds in flight and within
+  10 s in a window with no landmark at all. The loose priors keep each window's absolute pose
+  information from fading; against the landmarks' centimetres they cost a keyframe's
+  correction next to nothing (docs/vins.md, the resets).
 
 ``IncrementalFixedLagSmoother`` (iSAM2 underneath) marginalises every variable whose time
 stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's stamp is the
@@ -157,6 +166,9 @@ class SlidingWindowSmoother:
         self._pixel_noise = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k),
             gtsam.noiseModel.Isotropic.Sigma(2, options.pixel_sigma))
+        self._keyframe_prior = None if options.keyframe_prior_position_sigma == 0.0 else \
+            gtsam.noiseModel.Diagonal.Sigmas(np.r_[[options.keyframe_prior_rotation_sigma] * 3,
+                                                   [options.keyframe_prior_position_sigma] * 3])
         focal = math.sqrt(camera.fx * camera.fy)
         self.gate = Gate(options.min_observations, math.radians(options.min_parallax_deg),
                          options.min_depth, options.max_depth, options.max_reprojection_px, focal)
@@ -290,6 +302,8 @@ class SlidingWindowSmoother:
         values.insert(V(k), predicted.velocity())
         values.insert(B(k), _bias(good.bias_g, good.bias_a))
         graph.add(gtsam.CombinedImuFactor(X(i), V(i), X(k), V(k), B(i), B(k), pim))
+        if self._keyframe_prior is not None:
+            graph.add(gtsam.PriorFactorPose3(X(k), predicted.pose(), self._keyframe_prior))
         self._poses[k] = predicted.pose().matrix()
         return graph, values, {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
 
