@@ -29,11 +29,12 @@ surface observed behind it.
 **Hemmed in.** A vehicle may stand nearer than ``robot_radius`` to a wall: stopped at a
 corner waypoint that hugs the inside of the turn, or put there by the estimate's error. Then
 every arc begins inside the robot's sphere and none can be safe, however open the way ahead.
-When no arc of the slowest tier is safe and the sphere about its straight arc's first point
-(a step ahead) is occupied, that tier is checked again with the largest sphere, in steps of
-:data:`ESCAPE_STEP_M` down to ``escape_radius``, that is free about that point: the room the
-vehicle has now. An arc then never comes nearer to a surface than the vehicle already is,
-and the clearance cost turns it away from the wall. The plan's candidates say which sphere
+When no arc of the slowest tier is safe and the robot's sphere about its straight arc's first
+point (a step ahead) meets an observed surface, that tier is checked again with spheres
+:data:`ESCAPE_STEP_M` smaller each time, down to ``escape_radius``, and the first with a safe
+arc is used: the arcs flown keep the most room any arc can, never less than
+``escape_radius``, and the clearance cost turns them away from the wall. A vehicle blocked
+farther ahead is not hemmed in and stops as before. The plan's candidates say which sphere
 was used.
 
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
@@ -79,8 +80,8 @@ class PlannerOptions(PrimitiveOptions):
     robot_radius: float = option(1.0, gt=0.0, le=10.0, doc="radius of the sphere about each "
                                  "point that must be free, metres")
     escape_radius: float = option(0.6, gt=0.0, le=10.0, doc="a vehicle already nearer than "
-                                  "robot_radius to a surface flies arcs keeping the room it "
-                                  "has, down to this radius (at robot_radius: never), metres")
+                                  "robot_radius to a surface flies the arcs that keep the most "
+                                  "room, down to this radius (at robot_radius: never), metres")
     history_frames: int = option(8, ge=1, le=64, doc="newest depth frames kept for checking")
     history_s: float = option(2.0, gt=0.0, le=60.0, doc="oldest depth frame used, seconds "
                               "before the planning time")
