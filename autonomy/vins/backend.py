@@ -11,15 +11,15 @@ Factors:
   mounting ``T_B_C``;
 - priors on the first keyframe (from static initialisation) or, after a rebuild, on the last
   good estimate;
-- a loose prior on every new keyframe's pose at its IMU prediction (``keyframe_prior_*``,
-  0.1 m and 0.05 rad). Position and yaw are unobservable: all the window knows of them is the
+- with ``keyframe_prior_position_sigma`` above 0 (off by default: docs/vins.md, the resets,
+  for what it costs), a loose prior on every new keyframe's pose at its IMU prediction.
+  Position and yaw are unobservable: all the window knows of them is the
   marginal of the first prior, whose information fades as the flight goes on (the IMU's and
   the landmarks' constraints are relative), while the IMU factors between close keyframes
   hold their poses to about 1e-5 of that. iSAM2's Cholesky then meets an "indeterminate
   linear system" and the smoother is rebuilt, every few tens of seconds in flight and within
-  10 s in a window with no landmark at all. The loose priors keep each window's absolute pose
-  information from fading; against the landmarks' centimetres they cost a keyframe's
-  correction next to nothing (docs/vins.md, the resets).
+  10 s in a window with no landmark at all. The loose priors (0.1 m, 0.05 rad) keep each
+  window's absolute pose information from fading.
 
 ``IncrementalFixedLagSmoother`` (iSAM2 underneath) marginalises every variable whose time
 stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's stamp is the

@@ -40,10 +40,10 @@ class VinsOptions:
     imu_noise_scale: float = option(2.0, ge=1.0, le=100.0, doc="multiplies the IMU's white-noise"
                                     " and random-walk densities (datasheet values are "
                                     "optimistic on a vehicle with rotors)")
-    keyframe_prior_position_sigma: float = option(0.1, ge=0.0, le=100.0, doc="loose prior "
+    keyframe_prior_position_sigma: float = option(0.0, ge=0.0, le=100.0, doc="loose prior "
                                                   "on each new keyframe's position at its IMU "
-                                                  "prediction, metres (0: none); it keeps the "
-                                                  "smoother's linear systems well-posed")
+                                                  "prediction, metres (0: none; 0.1 keeps the "
+                                                  "smoother from its resets, docs/vins.md)")
     keyframe_prior_rotation_sigma: float = option(0.05, gt=0.0, le=10.0, doc="the same prior's "
                                                   "rotation, radians")
     # --- initial state uncertainty (one sigma)
