@@ -347,13 +347,13 @@ class DepthHistory:
         by the exact rule on every pixel block (for spheres near the vehicle): a ray at angle
         ``theta`` from the centre's direction meets the sphere when ``b = L sin(theta) <= R``
         (and, from outside it, ``theta < 90°``) and leaves it at ``s2(theta) = L cos(theta) +
-        sqrt(R² - b²)``, which falls as ``theta`` grows. A block whose rays lie within ``delta`` of its
-        centre ray, at ``theta_c`` from the centre's direction, has no ray nearer in angle
-        than ``theta_c - delta``; its least range must reach ``s2`` there. Free when every
-        block meeting the sphere is known and passes (of a sphere reaching the camera plane
-        only the part in view: the caller makes that verdict weak); the clearance is the
-        least margin. Points are taken per :data:`NEAR_CELL_M` cube (the caution that costs is
-        the cube's half diagonal, 4 cm)."""
+        sqrt(R² - b²)``, which falls as ``theta`` grows. A block whose rays lie within
+        ``delta`` of its centre ray, at ``theta_c`` from the centre's direction, has no ray
+        nearer in angle than ``theta_c - delta``; its least range must reach ``s2`` there.
+        Free when every block meeting the sphere is known and passes (of a sphere reaching the
+        camera plane only the part in view: the caller makes that verdict weak); the
+        clearance is the least margin. Points are taken per :data:`NEAR_CELL_M` cube (the
+        caution that costs is the cube's half diagonal, 4 cm)."""
         centres, inverse = _cells(p, NEAR_CELL_M)
         radius = R + NEAR_CELL_M * math.sqrt(0.75)
         free, margin = self._blocks_rule(frame, centres, radius, NEAR_BLOCK_PX[0])
@@ -396,12 +396,12 @@ class DepthHistory:
     def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray, R: float,
                unfreed: np.ndarray | None = None, groups: np.ndarray | None = None):
         """``(free, strong, clearance)`` of one frame on the spheres of radius ``R`` about
-        ``points`` (M, 3); a point neither
-        free nor strong is unknown to this frame. Module docstring for the rules. ``unfreed``:
-        the points no newer frame has called free (weakly); only those get the block rule
-        where it could only call them weakly free. ``groups`` (M,): the block rule, the costly
-        part, is left off the points whose group this frame finds occupied by the other
-        rules (they stay unknown, or occupied by the rings)."""
+        ``points`` (M, 3); a point neither free nor strong is unknown to this frame. Module
+        docstring for the rules. ``unfreed``: the points no newer frame has called free
+        (weakly); only those get the block rule where it could only call them weakly free.
+        ``groups`` (M,): the block rule, the costly part, is left off the points whose group
+        this frame finds occupied by the other rules (they stay unknown, or occupied by the
+        rings)."""
         cam = frame.camera
         H, W = cam.height, cam.width
         unfreed = np.ones(len(points), dtype=bool) if unfreed is None else unfreed

@@ -331,12 +331,6 @@ class Planner:
             if check.safe.any():
                 break
         return radius, check
-        steps = int(math.floor((o.robot_radius - o.escape_radius) / ESCAPE_STEP_M + 1e-9))
-        for k in range(1, steps + 1):
-            radius = o.robot_radius - k * ESCAPE_STEP_M
-            if self.history.check(probe, start_W=start, now=t, radius=radius).free[0]:
-                return radius
-        return o.robot_radius
 
     def approach(self, t: float, T_W_B, goal_W) -> Plan | None:
         """:meth:`glide` to ``goal_W``, checked against the history as the arcs are (its points

@@ -91,8 +91,7 @@ PLAN = Topic("/planner/plan", _json_schema("companion.Plan", {
     "t": _NUMBER, "kind": _STRING, "reason": _STRING, "safe_count": _NUMBER,
     "clearance": _NUMBER, "speed": _NUMBER, "yaw_rate": _NUMBER, "vertical_speed": _NUMBER,
     "chosen": _NUMBER, "safe": {"type": "array", "items": _BOOL}, "radius": _NUMBER,
-    "start": _VECTOR,
-    "start_yaw": _NUMBER, "request": {"type": "object", "properties": {
+    "start": _VECTOR, "start_yaw": _NUMBER, "request": {"type": "object", "properties": {
         "T_W_B": _VECTOR, "velocity": _VECTOR, "goal": _VECTOR, "stop_at_goal": _BOOL}}}))
 SETPOINT = Topic("/command/setpoint", _json_schema("companion.Setpoint", {
     "velocity": _VECTOR, "yaw_rate": _NUMBER, "acceleration": _VECTOR, "position": _VECTOR}))
@@ -289,8 +288,9 @@ def encode_depth_fit(depth: MetricDepth) -> bytes:
 def encode_plan(plan: Plan) -> bytes:
     """The planner's decision: the primitive flown; for an arc, the tier it was chosen from
     (which were safe, which blocked by an observed surface, which one was chosen, the sphere's
-    radius they were checked with; for "no safe primitive" the slowest tier, chosen -1); for a round of the planner, what it was asked
-    (the body's pose as 16 row-major numbers, velocity, goal), which replay asks again."""
+    radius they were checked with; for "no safe primitive" the slowest tier, chosen -1); for a
+    round of the planner, what it was asked (the body's pose as 16 row-major numbers,
+    velocity, goal), which replay asks again."""
     p, candidates = plan.primitive, plan.candidates
     record = _clean({"t": plan.t, "kind": plan.kind, "reason": plan.reason,
                      "safe_count": plan.safe_count, "clearance": float(plan.clearance),
