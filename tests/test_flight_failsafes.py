@@ -67,6 +67,20 @@ def test_link_cut_lets_px4_hold_and_the_companion_lands_once_it_is_back():
     assert "link_lost" in states and states[-3:] == ["holding", "landing", "landed"], states
 
 
+def test_px4_disarming_the_vehicle_in_the_air_ends_the_mission_without_another_command():
+    """The motors stop in cruise (a forced disarm; a crash does the same in the simulator):
+    the mission ends there, named, and the companion neither lands nor re-arms a vehicle that
+    is no longer flying."""
+    summary = fly("dome", faults=[Fault.parse("disarm@1")], depth="truth")
+    assert summary["failsafes"] == ["PX4 disarmed the vehicle in the air"], summary["failsafes"]
+    assert summary["final_state"] == "aborted", summary["transitions"]
+    states = [t["to"] for t in summary["transitions"]]
+    aborted = states.index("aborted")
+    assert states[aborted - 1] == "failsafe_stop", states
+    assert not {"holding", "landing", "taking_off"} & set(states[aborted - 1:]), states
+    assert not summary["reached_goal"]
+
+
 def test_a_dead_end_is_a_no_safe_primitive_failsafe():
     world = build_world("mine", 0)
     start = world.routes[0].start

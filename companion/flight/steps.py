@@ -178,7 +178,10 @@ class MissionSteps:
             c.go(FlightState.HOLDING, "link back")
             await autopilot.hold()
         if c.state == FlightState.HOLDING:
-            await c.clock.sleep(o.hold_before_land_s)
+            # the hold ends early only if the mission does (PX4 disarmed the vehicle: Health)
+            await self._wait(lambda: False, o.hold_before_land_s)
+            if c.mission.done:
+                return
             c.go(FlightState.LANDING, "hold time over")
         if not await autopilot.land():
             log.warning("land command not acknowledged; waiting for PX4 anyway")

@@ -12,6 +12,9 @@ Each fault is something that goes wrong on a real vehicle, injected where it wou
 ``imu_gap``         PX4 stops streaming HIGHRES_IMU
 ``link_cut``        the MAVLink link drops every byte both ways (a cable or radio lost)
 ``network_nan``     the depth network outputs NaN (a broken engine, an overflow in fp16)
+``disarm``          PX4 stops the motors in the air, as on a ground station's forced disarm
+                    (MAV_CMD_COMPONENT_ARM_DISARM with 21196, which PX4's Commander accepts in
+                    flight) or a crash: the vehicle falls
 ``loop_stall``      the application's event loop is blocked (a runaway computation); the
                     application injects this one itself, as only it owns its loop
 ==================  ==========================================================================
@@ -27,7 +30,7 @@ import math
 from dataclasses import dataclass
 
 FAULT_KINDS = ("camera_freeze", "camera_blackout", "camera_stale", "imu_gap", "link_cut",
-               "network_nan", "loop_stall")
+               "network_nan", "disarm", "loop_stall")
 
 CRUISE_SPEED = 1.0
 """Horizontal speed, m/s, from which the vehicle counts as in cruise (the fault clock starts)."""

@@ -507,6 +507,11 @@ class MockPx4:
         self._statustext(mavlink.MAV_SEVERITY_INFO, "Armed by external command")
         return mavlink.MAV_RESULT_ACCEPTED
 
+    def force_disarm(self, reason: str) -> int:
+        """Stop the motors, in the air too, as a forced disarm (param2 21196) does: PX4
+        skips its landed check for it (commander/Commander.cpp, ``Commander::disarm``)."""
+        return self._disarm(True, reason)
+
     def _disarm(self, forced: bool, reason: str = "external command") -> int:
         if not self.vehicle.armed:
             return mavlink.MAV_RESULT_ACCEPTED

@@ -65,7 +65,7 @@ class SimulatedVehicle:
     """The vehicle, its IMU and the mock PX4 on one link, stepped together.
 
     ``faults`` injects the link and flight-controller faults of :mod:`drivers.sim.faults`
-    (link cut, IMU gap). The vehicle stands at ``start`` (x, y, z in the world frame; default
+    (link cut, IMU gap, a forced disarm). The vehicle stands at ``start`` (x, y, z in the world frame; default
     :func:`start_position`) heading ``start_yaw``, radians.
     """
 
@@ -104,6 +104,8 @@ class SimulatedVehicle:
         state = self.vehicle.state
         self.faults.update(state.time, state.velocity)
         self.link.cut = self.faults.active("link_cut", state.time)
+        if self.faults.active("disarm", state.time) and self.vehicle.armed:
+            self.px4.force_disarm("a ground station's forced disarm (fault)")
         imu = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
         if self.faults.active("imu_gap", state.time):
             self.px4.suppressed_streams.add(imu)
