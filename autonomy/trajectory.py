@@ -6,6 +6,12 @@ monocular estimate, similarity) transform that fits best in least squares; the a
 trajectory error (ATE) is what remains (Sturm et al., "A benchmark for the evaluation of
 RGB-D SLAM systems", IROS 2012; Zhang and Scaramuzza, "A tutorial on quantitative trajectory
 evaluation for visual(-inertial) odometry", IROS 2018).
+
+Whether the estimator's covariance is honest is the normalised estimation error squared
+(NEES, Bar-Shalom, Li and Kirubarajan, "Estimation with Applications to Tracking and
+Navigation", 2001, §5.4): ``e^T P^-1 e`` for an error ``e`` of ``d`` dimensions and its
+reported covariance ``P`` averages ``d`` when ``P`` is the error's true covariance, more when
+the estimator is overconfident and less when it is too cautious.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from autonomy.geometry import hamilton_product, quat_exp, quat_log
+from autonomy.geometry import hamilton_product, quat_exp, quat_log, so3_log
 
 #: Relative size below which the second singular value of the cross-covariance counts as zero:
 #: the points are then collinear (or coincide) and the rotation about their line is free.
@@ -125,3 +131,26 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> tuple[float, float, floa
     q0_inverse = (q0[0], -q0[1], -q0[2], -q0[3])
     phi = np.array(quat_log(hamilton_product(q0_inverse, q1)))
     return hamilton_product(q0, quat_exp(a * phi))
+
+
+def pose_error_body(T_estimated: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """The error of a pose estimate in its body frame, rotation first (the order and frame of
+    GTSAM's ``Pose3`` tangent, so of the smoother's marginal covariances):
+    ``[Log(R_e^T R_t), R_e^T (p_t - p_e)]``, to first order ``Log(T_e^-1 T_t)``."""
+    R_e, p_e = T_estimated[:3, :3], T_estimated[:3, 3]
+    R_t, p_t = T_true[:3, :3], T_true[:3, 3]
+    return np.r_[so3_log(R_e.T @ R_t), R_e.T @ (p_t - p_e)]
+
+
+def nees(error: np.ndarray, covariance: np.ndarray) -> float:
+    """``e^T P^-1 e`` (module docstring). A non-finite or singular ``covariance`` raises
+    ``ValueError``: it cannot say how large an error should be."""
+    error = np.asarray(error, dtype=float)
+    covariance = np.asarray(covariance, dtype=float)
+    if covariance.shape != (len(error), len(error)) or not np.isfinite(covariance).all():
+        raise ValueError(f"covariance of shape {covariance.shape} for an error of "
+                         f"{len(error)} is unusable (wrong shape or not finite)")
+    try:
+        return float(error @ np.linalg.solve(covariance, error))
+    except np.linalg.LinAlgError:
+        raise ValueError("singular covariance") from None

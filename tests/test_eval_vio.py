@@ -9,13 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from autonomy.geometry import PinholeCamera, rot_to_quat, rot_z, so3_exp
+from autonomy.geometry import PinholeCamera, make_pose, rot_to_quat, rot_z, so3_exp
 from autonomy.messages import SparseMap
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInit
 from companion.cli import main
 from companion.tools.eval.vio import (
-    EvaluationError, ImuFeed, VioTrace, build_vins, depth_relative_errors, evaluate_vio,
+    EvaluationError, ImuFeed, KeyframeEstimate, VioTrace, build_vins, depth_relative_errors, evaluate_vio,
     format_vio_report, read_vio_dataset, score_vio, vio_frames,
 )
 from drivers.dataset.euroc import EurocWriter, read_depth_png
@@ -105,6 +105,57 @@ def test_a_rigidly_moved_ground_truth_scores_zero_error_and_the_known_offsets(tm
     assert "ATE 0.000 m" in format_vio_report(result)
 
 
+def _keyframes_in_a_yawed_world(errors_body, velocity_error, *, pose_sigma=0.01,
+                                velocity_sigma=0.01, count=20):
+    """Keyframes every 0.1 s whose world is the truth's turned 0.7 rad about z and shifted
+    (the gauge), each off the truth by ``errors_body(k)`` in its body frame (rotation, then
+    position) and by ``velocity_error`` in velocity (the truth is still)."""
+    T_W_G = make_pose(rot_z(0.7), np.array([5.0, -2.0, 1.0]))
+    keyframes = []
+    for k in range(count):
+        t = 0.1 * (k + 1)
+        true = T_W_G @ make_pose(rot_z(t), _position(t))
+        error = errors_body(k)
+        R = true[:3, :3] @ so3_exp(-error[:3])
+        estimate = make_pose(R, true[:3, 3] - R @ error[3:])
+        keyframes.append(KeyframeEstimate(t, estimate, np.asarray(velocity_error, float),
+                                          pose_sigma**2 * np.eye(6),
+                                          velocity_sigma**2 * np.eye(3)))
+    return keyframes
+
+
+def test_the_nees_is_measured_from_the_first_keyframe_not_from_a_best_fit(tmp_path):
+    """Through the gauge (yaw and shift) the first keyframe is exact; every later one is off
+    by 2 and 1 cm in its body frame: a pose NEES of (0.02^2 + 0.01^2) / 0.01^2 = 5, which a
+    best fit of the whole path would hide. The velocity, 3 cm/s off in x: 9."""
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    offset = np.array([0.0, 0.0, 0.0, 0.02, 0.0, -0.01])
+    trace = _known_trace(data, 41)
+    trace.keyframes = _keyframes_in_a_yawed_world(lambda k: offset if k else 0 * offset,
+                                                  [0.03, 0.0, 0.0])
+    result = score_vio(trace, data)
+    assert result["nees_keyframes"] == 20 and result["nees_refused"] == 0
+    assert result["nees_pose_median"] == pytest.approx(5.0, rel=1e-6)
+    assert result["nees_pose_mean"] == pytest.approx(5.0 * 19 / 20, rel=1e-6)
+    assert result["nees_velocity_mean"] == pytest.approx(9.0, rel=1e-6)
+    assert result["nees_pose_by_axis"] == pytest.approx([0, 0, 0, 3.8, 0, 0.95], abs=1e-6)
+    assert "5.0 median (6 if the covariance is honest)" in format_vio_report(result)
+
+
+def test_a_keyframe_with_an_unusable_covariance_is_counted_not_scored(tmp_path):
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 41)
+    keyframes = _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0, 0.0, 0.0], count=3)
+    trace.keyframes = keyframes[:2] + [KeyframeEstimate(
+        keyframes[2].t, keyframes[2].T_W_B, keyframes[2].velocity_W,
+        np.full((6, 6), np.nan), np.eye(3))]
+    result = score_vio(trace, data)
+    assert result["nees_keyframes"] == 2 and result["nees_refused"] == 1
+    assert result["nees_pose_mean"] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_too_few_poses_give_no_trajectory_error_and_say_why(tmp_path):
     _write_dataset(tmp_path, seconds=0.3)
     data = read_vio_dataset(tmp_path)
@@ -121,6 +172,7 @@ def test_no_initialisation_and_no_keyframes_score_as_none(tmp_path):
                                 backend_ms=[1.0], health=["INITIALISING"]),
                        read_vio_dataset(tmp_path))
     assert result["init"] is None and result["backend_ms_p95"] is None
+    assert result["nees_pose_mean"] is None and result["nees_keyframes"] == 0
     assert result["depth_rel_err_median"] is None and result["depth_points"] == 0
     assert "init: none" in format_vio_report(result)
 
@@ -207,11 +259,14 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
     result = json.loads(captured.out)
     numbers = ("ate_rmse_m", "distance_m", "ate_over_distance", "scale_error",
                "depth_rel_err_median", "frontend_ms_median", "backend_ms_median",
-               "backend_ms_p95", "correction_m_median", "correction_m_max")
+               "backend_ms_p95", "correction_m_median", "correction_m_max",
+               "nees_pose_mean", "nees_pose_median", "nees_velocity_mean",
+               "nees_velocity_median")
     assert set(result) >= {"dataset", "frames", "keyframes", "depth_points", "resets",
                            "health", "init", *numbers}
     assert result["frames"] == 161 and 0 < result["keyframes"] <= 161
     assert all(isinstance(result[key], float) and result[key] >= 0.0 for key in numbers)
     assert sum(result["health"].values()) == 161
+    assert result["nees_keyframes"] == result["keyframes"] - result["nees_refused"]
     assert result["depth_points"] > 0 and result["resets"] >= 0
     assert result["init"]["gravity_err_deg"] < 1.0

@@ -1,4 +1,5 @@
-"""Trajectory alignment and error: a known transform is recovered, and a wrong scale shows."""
+"""Trajectory alignment and error: a known transform is recovered, and a wrong scale shows;
+the NEES of errors drawn from a covariance averages their dimension."""
 
 import math
 
@@ -7,8 +8,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from autonomy.geometry import quat_to_rot, rot_to_quat, so3_exp, so3_log
-from autonomy.trajectory import align_umeyama, ate_rmse, interpolate_poses, path_length
+from autonomy.geometry import make_pose, quat_to_rot, rot_to_quat, so3_exp, so3_log
+from autonomy.trajectory import (
+    align_umeyama, ate_rmse, interpolate_poses, nees, path_length, pose_error_body,
+)
 
 rotation_vectors = st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3).map(np.array)
 translations = st.lists(st.floats(-50.0, 50.0), min_size=3, max_size=3).map(np.array)
@@ -110,3 +113,33 @@ def test_interpolation_hits_the_samples_and_refuses_to_extrapolate():
             interpolate_poses([outside], t, positions, quaternions)
     with pytest.raises(ValueError, match="strictly increasing"):
         interpolate_poses([0.0], np.array([0.0, 0.0]), positions[:2], quaternions[:2])
+
+
+@pytest.mark.parametrize("dimension", [3, 6])
+def test_errors_drawn_from_the_covariance_average_their_dimension(dimension):
+    rng = np.random.default_rng(dimension)
+    root = rng.normal(size=(dimension, dimension))
+    covariance = root @ root.T + 0.1 * np.eye(dimension)
+    errors = rng.multivariate_normal(np.zeros(dimension), covariance, size=20000)
+    mean = np.mean([nees(e, covariance) for e in errors])
+    # the mean of 20000 chi-squared draws: sigma sqrt(2 d / 20000) < 0.025
+    assert mean == pytest.approx(dimension, abs=0.1)
+    assert np.mean([nees(e, covariance / 4.0) for e in errors]) == pytest.approx(4 * mean)
+
+
+@pytest.mark.parametrize("covariance, complaint", [
+    (np.zeros((3, 3)), "singular"),
+    (np.full((3, 3), np.nan), "not finite"),
+    (np.eye(2), "wrong shape"),
+])
+def test_an_unusable_covariance_is_refused(covariance, complaint):
+    with pytest.raises(ValueError, match=complaint):
+        nees(np.ones(3), covariance)
+
+
+@given(rotation_vectors, translations)
+def test_the_pose_error_is_the_body_frame_perturbation_that_makes_the_truth(phi, t):
+    estimate = make_pose(so3_exp(phi), t)
+    rotation, shift = np.array([0.01, -0.02, 0.005]), np.array([0.3, -0.1, 0.2])
+    truth = make_pose(estimate[:3, :3] @ so3_exp(rotation), t + estimate[:3, :3] @ shift)
+    assert np.allclose(pose_error_body(estimate, truth), np.r_[rotation, shift], atol=1e-9)

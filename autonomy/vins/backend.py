@@ -269,6 +269,10 @@ class SlidingWindowSmoother:
             self._pose_covariance = (index, covariance)
         return self._pose_covariance[1]
 
+    def velocity_covariance(self) -> np.ndarray:
+        """The latest keyframe velocity's marginal covariance (3x3, world frame)."""
+        return np.asarray(self._smoother.marginalCovariance(V(self.latest.index)))
+
     def depth_sigma(self, depths: np.ndarray) -> np.ndarray:
         """One-sigma depth uncertainty of the landmarks at ``depths`` (same order)."""
         return depth_sigma(depths, self._landmarks.parallax_rad, self.options.pixel_sigma,

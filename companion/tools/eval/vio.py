@@ -3,8 +3,9 @@
 The estimator runs frame by frame on a EuRoC/ASL dataset, real or simulated, exactly as it
 would in flight (IMU samples up to each frame's time, then the frame), into a
 :class:`VioTrace` (:func:`run_vins`), and the trace is scored against the dataset's ground
-truth (:func:`score_vio`): trajectory error after alignment, scale, the depth of its sparse
-landmarks against the ``depth0`` images, and its static initialisation. The time each stage
+truth (:func:`score_vio`): trajectory error after alignment, scale, the consistency of its
+covariance (NEES), the depth of its sparse landmarks against the ``depth0`` images, and its
+static initialisation. The time each stage
 takes is measured here, never in ``autonomy/``.
 """
 
@@ -20,9 +21,11 @@ from typing import TYPE_CHECKING, Iterator
 import cv2
 import numpy as np
 
-from autonomy.geometry import PinholeCamera, quat_to_rot
+from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, yaw_alignment
 from autonomy.messages import ImuSample, SparseMap
-from autonomy.trajectory import align_umeyama, ate_rmse, interpolate_poses, path_length
+from autonomy.trajectory import (
+    align_umeyama, ate_rmse, interpolate_poses, nees, path_length, pose_error_body,
+)
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.time_offset import TimeOffset
 from companion.report import finite_or_none, median_or_none, show
@@ -89,6 +92,19 @@ class ImuFeed:
         self._fed = max(self._fed, upto)
 
 
+@dataclass(frozen=True)
+class KeyframeEstimate:
+    """The smoother's newest keyframe as the odometry reports it: exposure time ``t``, pose
+    ``T_W_B``, ``velocity_W``, and their marginal covariances (6x6 in the body frame, rotation
+    first; 3x3 in the world frame)."""
+
+    t: float
+    T_W_B: np.ndarray
+    velocity_W: np.ndarray
+    pose_covariance: np.ndarray
+    velocity_covariance: np.ndarray
+
+
 @dataclass
 class VioTrace:
     """What the estimator produced over a dataset, one entry per frame in each list.
@@ -102,7 +118,8 @@ class VioTrace:
     one per frame). ``static_init``: the estimator's static initialisation (None if it never
     initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
     offset at the end; ``corrections_m``: each keyframe's correction
-    (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`).
+    (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
+    keyframe's estimate with its covariances, taken when it was the newest.
     """
 
     t: list[float] = field(default_factory=list)
@@ -116,6 +133,7 @@ class VioTrace:
     resets: int = 0
     time_offset: TimeOffset = field(default_factory=TimeOffset)
     corrections_m: list[float] = field(default_factory=list)
+    keyframes: list[KeyframeEstimate] = field(default_factory=list)
 
 
 def read_vio_dataset(root: Path) -> VioDataset:
@@ -165,6 +183,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         middle = time.perf_counter()
         update = vins.add_frame(frame.t, tracks)
         _record(trace, update, 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle))
+        if update.keyframe:
+            trace.keyframes.append(_newest_keyframe(vins))
         if update.sparse_map is not None and frame.depth_path is not None:
             depth = read_frame_depth(frame.depth_path, stream.camera)
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
@@ -207,7 +227,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     median of the traced depth errors (None when the dataset has no ``depth0``). Back-end times
     are over the keyframes (where the smoother ran), as are ``correction_m_median`` and
     ``correction_m_max`` (how far the smoother moved a keyframe from the IMU's propagation,
-    metres). ``init`` compares the static
+    metres). ``nees_pose_*``/``nees_velocity_*``: mean and median NEES of the newest
+    keyframe's pose (6 dimensions) and velocity (3) against the truth, over the keyframes
+    (:func:`_consistency_metrics`); 6 and 3 when the covariance is honest. ``init`` compares the static
     initialisation with the ground truth at its end: the angle between the estimated and true
     up-vectors in the body, and the relative gyro-bias error.
     """
@@ -219,6 +241,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "frames": len(trace.t),
         "keyframes": sum(trace.keyframe),
         **_trajectory_metrics(trace, truth_t, data.truth),
+        **_consistency_metrics(trace.keyframes, truth_t, data.truth),
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
         "resets": int(trace.resets),
@@ -252,6 +275,13 @@ def _record(trace: VioTrace, update: FrameUpdate, frontend_ms: float, backend_ms
     trace.health.append(update.health.state.name)
     if update.correction_m is not None:
         trace.corrections_m.append(update.correction_m)
+
+
+def _newest_keyframe(vins: Vins) -> KeyframeEstimate:
+    backend = vins.backend
+    state = backend.latest
+    return KeyframeEstimate(state.t, state.T_W_B, state.velocity, backend.pose_covariance(),
+                            backend.velocity_covariance())
 
 
 def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
@@ -319,6 +349,54 @@ def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruth
             "scale_error": finite_or_none(abs(scale - 1.0))}
 
 
+def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
+                         truth: GroundTruthTable) -> dict:
+    """NEES of each keyframe's pose and velocity (``autonomy.trajectory``) against the truth
+    at its time, over the keyframes inside the truth's span.
+
+    The truth is put in the estimator's world by the yaw and translation that take the first
+    such keyframe's true pose onto its estimate (``yaw_alignment``), not by a best fit over
+    the whole path: position and yaw are unobservable, so their covariance grows from the
+    gauge prior at the start, and only an error measured from there is the one it describes.
+    ``nees_pose_by_axis``: the mean of ``e_i^2 / P_ii`` for each pose axis (roll, pitch, yaw
+    about the body axes, then x, y, z in the body), 1 where that axis's variance is honest:
+    which part of the estimate is overconfident. A keyframe with an unusable covariance is
+    left out and counted in ``nees_refused``.
+    """
+    inside = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
+    empty = {"nees_pose_mean": None, "nees_pose_median": None, "nees_velocity_mean": None,
+             "nees_velocity_median": None, "nees_pose_by_axis": None, "nees_keyframes": 0,
+             "nees_refused": 0}
+    if not inside:
+        return empty
+    positions, quaternions = interpolate_poses([kf.t for kf in inside], truth_t,
+                                               truth.position, truth.q_W_B)
+    velocities = np.array([[np.interp(kf.t, truth_t, column) for column in truth.velocity.T]
+                           for kf in inside])
+    true_poses = [make_pose(quat_to_rot(q), p) for p, q in zip(positions, quaternions)]
+    T_W_G = yaw_alignment(inside[0].T_W_B, true_poses[0])
+    pose_nees, velocity_nees, by_axis, refused = [], [], [], 0
+    for kf, T_G_B, v_G in zip(inside, true_poses, velocities):
+        error = pose_error_body(kf.T_W_B, T_W_G @ T_G_B)
+        try:
+            pose = nees(error, kf.pose_covariance)
+            velocity = nees(T_W_G[:3, :3] @ v_G - kf.velocity_W, kf.velocity_covariance)
+        except ValueError:
+            refused += 1
+            continue
+        pose_nees.append(pose)
+        velocity_nees.append(velocity)
+        by_axis.append(error**2 / np.diag(kf.pose_covariance))
+    if not pose_nees:
+        return {**empty, "nees_refused": refused}
+    return {"nees_pose_mean": float(np.mean(pose_nees)),
+            "nees_pose_median": float(np.median(pose_nees)),
+            "nees_velocity_mean": float(np.mean(velocity_nees)),
+            "nees_velocity_median": float(np.median(velocity_nees)),
+            "nees_pose_by_axis": np.mean(by_axis, axis=0).tolist(),
+            "nees_keyframes": len(pose_nees), "nees_refused": refused}
+
+
 def _init_metrics(static_init: StaticInit | None, truth_t: np.ndarray,
                   truth: GroundTruthTable) -> dict | None:
     """The static initialisation against the ground truth at its end time ``t_end``: angle
@@ -359,6 +437,11 @@ def format_vio_report(result: dict) -> str:
         f"{show(result['distance_m'], '.1f', ' m')} "
         f"({show(result['ate_over_distance'], '.2%')}), scale error "
         f"{show(result['scale_error'], '.2%')}{note}",
+        f"consistency: NEES of pose {show(result['nees_pose_mean'], '.1f')} mean, "
+        f"{show(result['nees_pose_median'], '.1f')} median (6 if the covariance is honest), of "
+        f"velocity {show(result['nees_velocity_mean'], '.1f')} mean, "
+        f"{show(result['nees_velocity_median'], '.1f')} median (3), over "
+        f"{result['nees_keyframes']} keyframes",
         f"depth: median relative error {show(result['depth_rel_err_median'], '.1%')} over "
         f"{result['depth_points']} landmarks",
         "init: none" if init is None else
