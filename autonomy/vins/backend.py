@@ -262,16 +262,27 @@ class SlidingWindowSmoother:
 
     def pose_covariance(self) -> np.ndarray:
         """The latest keyframe pose's marginal covariance (6x6, rotation then position),
-        computed once per keyframe (odometry asks for it at the IMU rate)."""
+        computed once per keyframe (odometry asks for it at the IMU rate); NaN where GTSAM
+        cannot compute it (:meth:`_marginal`)."""
         index = self.latest.index
         if self._pose_covariance is None or self._pose_covariance[0] != index:
-            covariance = np.asarray(self._smoother.marginalCovariance(X(index)))
-            self._pose_covariance = (index, covariance)
+            self._pose_covariance = (index, self._marginal(X(index), 6))
         return self._pose_covariance[1]
 
     def velocity_covariance(self) -> np.ndarray:
-        """The latest keyframe velocity's marginal covariance (3x3, world frame)."""
-        return np.asarray(self._smoother.marginalCovariance(V(self.latest.index)))
+        """The latest keyframe velocity's marginal covariance (3x3, world frame), as
+        :meth:`pose_covariance`."""
+        return self._marginal(V(self.latest.index), 3)
+
+    def _marginal(self, key: int, size: int) -> np.ndarray:
+        """The marginal covariance of ``key``. iSAM2 can meet an indeterminate linear system
+        computing it on a window whose update went through (the same ill-conditioning that
+        rebuilds the smoother, docs/vins.md): the covariance is then unknown, NaN, which the
+        odometry sends as MAVLink's "unknown" and the evaluation does not score."""
+        try:
+            return np.asarray(self._smoother.marginalCovariance(key))
+        except RuntimeError:
+            return np.full((size, size), np.nan)
 
     def depth_sigma(self, depths: np.ndarray) -> np.ndarray:
         """One-sigma depth uncertainty of the landmarks at ``depths`` (same order)."""
