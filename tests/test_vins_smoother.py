@@ -1,25 +1,27 @@
 """The sliding-window smoother and its resets: position and yaw are unobservable, and once the
 window's information on them has faded iSAM2's Cholesky fails (a reset); the loose keyframe
-priors (``keyframe_prior_position_sigma``, off by default: docs/vins.md) keep it."""
+priors (``keyframe_prior_position_sigma``, off by default: docs/vins.md) keep it. A rebuild
+pins the last good keyframe, and its uncertainty is carried on (``GaugeAnchor``)."""
 
 import math
 
 import numpy as np
 
-from autonomy.geometry import GRAVITY, PinholeCamera
+from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
+from autonomy.trajectory import pose_error_body
 from autonomy.vins import ImuNoise, VinsOptions
-from autonomy.vins.backend import KeyframeState, PriorSigmas, SlidingWindowSmoother
+from autonomy.vins.backend import GaugeAnchor, KeyframeState, PriorSigmas, SlidingWindowSmoother
 
 #: The estimator's noise model of the simulated vehicle's IMU (config/sim.toml [vins_imu]).
 NOISE = ImuNoise(4.8869e-05, 6.865e-04, 1.9393e-05, 3e-3)
 IMU_DT = 0.005
 
 
-def resets_turning_in_place_unseeing(options: VinsOptions, seconds: float = 20.0,
-                                     keyframe_interval: float = 0.05, seed: int = 0) -> int:
-    """Resets of a smoother fed keyframes with no landmark while the IMU turns in place at
-    0.5 rad/s, as over a corner: the keyframes come fast (the front-end's parallax is the
-    rotation's) and nothing but the IMU joins them."""
+def turning_in_place_unseeing(options: VinsOptions, seconds: float = 20.0,
+                              keyframe_interval: float = 0.05, seed: int = 0):
+    """A smoother fed keyframes with no landmark while the IMU turns in place at 0.5 rad/s,
+    as over a corner: the keyframes come fast (the front-end's parallax is the rotation's) and
+    nothing but the IMU joins them. Yields the smoother after each keyframe."""
     smoother = SlidingWindowSmoother(PinholeCamera.from_hfov(640, 480, math.radians(90.0)),
                                      np.eye(4), NOISE, options)
     smoother.start(KeyframeState(0, 0.0, np.eye(4), np.zeros(3), np.zeros(3), np.zeros(3)),
@@ -34,6 +36,12 @@ def resets_turning_in_place_unseeing(options: VinsOptions, seconds: float = 20.0
                                                                3)
             pim.integrateMeasurement(accel, gyro, IMU_DT)
         smoother.add_keyframe(k * keyframe_interval, pim, [], None)
+        yield smoother
+
+
+def resets_turning_in_place_unseeing(options: VinsOptions) -> int:
+    for smoother in turning_in_place_unseeing(options):
+        pass
     return smoother.resets
 
 
@@ -46,3 +54,38 @@ def test_without_them_the_same_window_is_rebuilt():
     """What the priors are for: the same IMU-only window meets an indeterminate linear system
     within 20 s when nothing refreshes its absolute pose information."""
     assert resets_turning_in_place_unseeing(VinsOptions()) >= 1
+
+
+def test_a_rebuild_keeps_the_uncertainty_of_the_keyframe_it_starts_from():
+    """The rebuilt window pins the last good keyframe to 1 cm, but its position was known to
+    metres after seconds blind: the reported covariance must not shrink to the pin's."""
+    position_sigma = []
+    for smoother in turning_in_place_unseeing(VinsOptions()):
+        sigma = np.sqrt(np.diag(smoother.pose_covariance())[3:])
+        if smoother.resets:
+            break
+        position_sigma.append(sigma)
+    assert smoother.resets == 1
+    assert np.all(sigma >= position_sigma[-1]), (sigma, position_sigma[-1])
+    assert np.all(position_sigma[-1] > 0.1)
+
+
+def test_the_anchor_covariance_is_that_of_the_rigid_motion_it_stands_for():
+    """Yaw and position errors of the anchor drawn from its covariance, applied as the rigid
+    motion about it that they are, move a keyframe 12 m away by the covariance it reports
+    (the yaw's lever arm included)."""
+    rng = np.random.default_rng(1)
+    anchor_pose = make_pose(so3_exp(np.array([0.05, -0.03, 2.0])), np.array([1.0, 2.0, 1.5]))
+    root = np.r_[[0.01] * 3, [0.2] * 3][:, None] * rng.normal(size=(6, 6))
+    anchor = GaugeAnchor.at(KeyframeState(0, 0.0, anchor_pose, np.zeros(3), np.zeros(3),
+                                          np.zeros(3)), root @ root.T)
+    keyframe = make_pose(so3_exp(np.array([-0.04, 0.02, -1.0])), np.array([9.0, -7.0, 2.0]))
+    p_g = anchor.position_W
+    errors = []
+    for dpsi, *dp in rng.multivariate_normal(np.zeros(4), anchor.covariance, size=20000):
+        moved = make_pose(rot_z(dpsi) @ keyframe[:3, :3],
+                          p_g + rot_z(dpsi) @ (keyframe[:3, 3] - p_g) + dp)
+        errors.append(pose_error_body(keyframe, moved))
+    expected = anchor.pose_covariance(keyframe)
+    scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected))) + 1e-12
+    assert np.allclose(np.cov(np.array(errors).T) / scale, expected / scale, atol=0.05)

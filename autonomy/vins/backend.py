@@ -27,7 +27,9 @@ time of the last keyframe that saw it. Landmarks enter only through the gate of
 :mod:`autonomy.vins.landmarks`. An update that throws, or that leaves a state no vehicle can be
 in (speed, bias magnitudes), is thrown away: the smoother cannot be copied, so a new one is built
 from the last good keyframe's estimate, the keyframe is added again with its IMU factor only, and
-the event counts as a reset.
+the event counts as a reset. The rebuilt window holds that keyframe's position and yaw nearly
+fixed (they are unobservable: nothing in it could move them), so the uncertainty they had is
+carried by a :class:`GaugeAnchor` and added to every covariance reported after it.
 """
 
 from __future__ import annotations
@@ -110,6 +112,50 @@ class Landmarks:
         return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
 
 
+@dataclass(frozen=True)
+class GaugeAnchor:
+    """The position and yaw a rebuilt smoother starts from, with the uncertainty they had.
+
+    A rebuild pins the last good keyframe ``g`` (position ``p_g``) with tight priors, so the
+    new window's estimates are relative to it: any error of ``g`` in yaw ``dpsi`` (about the
+    world's z) and position ``dp`` (world) moves every later keyframe rigidly about ``p_g``,
+    ``p -> p_g + Rz(dpsi) (p - p_g) + dp``, ``R -> Rz(dpsi) R``, ``v -> Rz(dpsi) v``. To first
+    order a keyframe at ``(R, p)`` is then off by ``J (dpsi, dp)`` in the body-frame tangent
+    (rotation, then position; GTSAM's ``Pose3`` order),
+    ``J = [[R^T e_z, 0], [R^T (e_z x (p - p_g)), R^T]]``, and its covariance grows by
+    ``J C J^T``, with ``C`` (4x4) the covariance of ``(dpsi, dp)`` taken from ``g``'s reported
+    one. Roll, pitch and velocity are observable (gravity, the IMU) and the new window
+    estimates them again from wide priors, so they are not carried.
+    """
+
+    position_W: np.ndarray
+    covariance: np.ndarray
+
+    @classmethod
+    def at(cls, state: KeyframeState, pose_covariance: np.ndarray) -> "GaugeAnchor":
+        """The anchor at ``state`` whose pose covariance (6x6, body tangent) is given:
+        ``dpsi = e_z^T R dtheta_B`` and ``dp = R dp_B``."""
+        R = state.T_W_B[:3, :3]
+        to_world = np.zeros((4, 6))
+        to_world[0, :3] = R[2]
+        to_world[1:, 3:] = R
+        return cls(np.array(state.T_W_B[:3, 3]), to_world @ pose_covariance @ to_world.T)
+
+    def pose_covariance(self, T_W_B: np.ndarray) -> np.ndarray:
+        """What the anchor adds to the covariance of the pose ``T_W_B`` (class docstring)."""
+        R, up = T_W_B[:3, :3], np.array([0.0, 0.0, 1.0])
+        J = np.zeros((6, 4))
+        J[:3, 0] = R.T @ up
+        J[3:, 0] = R.T @ np.cross(up, T_W_B[:3, 3] - self.position_W)
+        J[3:, 1:] = R.T
+        return J @ self.covariance @ J.T
+
+    def velocity_covariance(self, velocity_W: np.ndarray) -> np.ndarray:
+        """What the anchor's yaw adds to the covariance of ``velocity_W`` (world frame)."""
+        turned = np.cross([0.0, 0.0, 1.0], velocity_W)
+        return self.covariance[0, 0] * np.outer(turned, turned)
+
+
 class BackendError(RuntimeError):
     """The smoother could not take a keyframe even after a rebuild."""
 
@@ -180,6 +226,8 @@ class SlidingWindowSmoother:
         self._poses: dict[int, np.ndarray] = {}
         self._retired = np.zeros(0, np.int64)
         self._pose_covariance: tuple[int, np.ndarray] | None = None
+        self._anchor: GaugeAnchor | None = None
+        self._known_pose_covariance = np.full((6, 6), np.nan)
         self._landmarks = Landmarks.empty()
 
     # ------------------------------------------------------------------ public
@@ -203,11 +251,15 @@ class SlidingWindowSmoother:
         s = self.latest
         return gtsam.PreintegratedCombinedMeasurements(self.params, _bias(s.bias_g, s.bias_a))
 
-    def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None) -> None:
+    def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None,
+              anchor: GaugeAnchor | None = None) -> None:
         """Begin a new smoother at ``state`` with priors ``sigmas``; ``ids``/``normalised`` are
-        that keyframe's observations (kept for later triangulation)."""
+        that keyframe's observations (kept for later triangulation); ``anchor``, what a
+        rebuild carries over of the old smoother's uncertainty (:class:`GaugeAnchor`)."""
         self._smoother = self._new_smoother()
         self._pose_covariance = None
+        self._known_pose_covariance = np.full((6, 6), np.nan)
+        self._anchor = anchor
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         k = state.index
         pose = gtsam.Pose3(state.T_W_B)
@@ -234,6 +286,11 @@ class SlidingWindowSmoother:
         smoother was rebuilt (a reset; ``last_failure`` says why). Raises
         :class:`BackendError` when even the rebuilt smoother refuses the keyframe."""
         good, good_keyframe = self.latest, self._window[-1]
+        # taken before the update, which may leave the smoother unusable (computed once per
+        # keyframe, as the odometry asks for it anyway); if GTSAM could not give it, the last
+        # one it gave, the nearest known
+        self.pose_covariance()
+        good_covariance = self._known_pose_covariance
         keyframe = self._keyframe(good.index + 1, t, ids, normalised)
         try:
             self._update_with_vision(keyframe, pim)
@@ -242,17 +299,19 @@ class SlidingWindowSmoother:
         except (RuntimeError, ValueError) as error:
             self.resets += 1
             self.last_failure = f"keyframe {keyframe.index} at t={keyframe.t:.3f}: {error}"
-            self._rebuild(good, good_keyframe, keyframe, pim)
+            self._rebuild(good, good_keyframe, GaugeAnchor.at(good, good_covariance), keyframe,
+                          pim)
             return False
 
-    def _rebuild(self, good: KeyframeState, good_keyframe: _Keyframe, keyframe: _Keyframe,
-                 pim: gtsam.PreintegratedCombinedMeasurements) -> None:
-        """Start over from ``good`` with its uncertainty widened, then add ``keyframe`` with its
-        IMU factor only (the observations of both are kept for later landmarks)."""
+    def _rebuild(self, good: KeyframeState, good_keyframe: _Keyframe, anchor: GaugeAnchor,
+                 keyframe: _Keyframe, pim: gtsam.PreintegratedCombinedMeasurements) -> None:
+        """Start over from ``good`` with its uncertainty widened (its position and yaw carried
+        by ``anchor``), then add ``keyframe`` with its IMU factor only (the observations of
+        both are kept for later landmarks)."""
         sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
                                               REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
         try:
-            self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised)
+            self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
             graph, values, stamps = self._imu_step(keyframe, pim)
             self._smoother.update(graph, values, stamps)
             self._read_estimate(keyframe, self._window + [keyframe])
@@ -261,18 +320,28 @@ class SlidingWindowSmoother:
                                f"t={keyframe.t:.3f}: {error}") from error
 
     def pose_covariance(self) -> np.ndarray:
-        """The latest keyframe pose's marginal covariance (6x6, rotation then position),
+        """The latest keyframe pose's covariance (6x6, rotation then position, body frame):
+        its marginal in the smoother, plus what a rebuild's :class:`GaugeAnchor` carries;
         computed once per keyframe (odometry asks for it at the IMU rate); NaN where GTSAM
         cannot compute it (:meth:`_marginal`)."""
-        index = self.latest.index
-        if self._pose_covariance is None or self._pose_covariance[0] != index:
-            self._pose_covariance = (index, self._marginal(X(index), 6))
+        state = self.latest
+        if self._pose_covariance is None or self._pose_covariance[0] != state.index:
+            covariance = self._marginal(X(state.index), 6)
+            if self._anchor is not None:
+                covariance = covariance + self._anchor.pose_covariance(state.T_W_B)
+            self._pose_covariance = (state.index, covariance)
+            if np.isfinite(covariance).all():
+                self._known_pose_covariance = covariance
         return self._pose_covariance[1]
 
     def velocity_covariance(self) -> np.ndarray:
-        """The latest keyframe velocity's marginal covariance (3x3, world frame), as
+        """The latest keyframe velocity's covariance (3x3, world frame), as
         :meth:`pose_covariance`."""
-        return self._marginal(V(self.latest.index), 3)
+        state = self.latest
+        covariance = self._marginal(V(state.index), 3)
+        if self._anchor is not None:
+            covariance = covariance + self._anchor.velocity_covariance(state.velocity)
+        return covariance
 
     def _marginal(self, key: int, size: int) -> np.ndarray:
         """The marginal covariance of ``key``. iSAM2 can meet an indeterminate linear system
