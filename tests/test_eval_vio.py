@@ -15,8 +15,8 @@ from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInit
 from companion.cli import main
 from companion.tools.eval.vio import (
-    EvaluationError, ImuFeed, KeyframeEstimate, VioTrace, build_vins, depth_relative_errors, evaluate_vio,
-    format_vio_report, read_vio_dataset, score_vio, vio_frames,
+    EvaluationError, ImuFeed, KeyframeEstimate, VioTrace, build_vins, depth_relative_errors,
+    evaluate_vio, format_vio_report, read_vio_dataset, score_vio, vio_frames,
 )
 from drivers.dataset.euroc import EurocWriter, read_depth_png
 

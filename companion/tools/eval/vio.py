@@ -5,8 +5,7 @@ would in flight (IMU samples up to each frame's time, then the frame), into a
 :class:`VioTrace` (:func:`run_vins`), and the trace is scored against the dataset's ground
 truth (:func:`score_vio`): trajectory error after alignment, scale, the consistency of its
 covariance (NEES), the depth of its sparse landmarks against the ``depth0`` images, and its
-static initialisation. The time each stage
-takes is measured here, never in ``autonomy/``.
+static initialisation. The time each stage takes is measured here, never in ``autonomy/``.
 """
 
 from __future__ import annotations
@@ -229,9 +228,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``correction_m_max`` (how far the smoother moved a keyframe from the IMU's propagation,
     metres). ``nees_pose_*``/``nees_velocity_*``: mean and median NEES of the newest
     keyframe's pose (6 dimensions) and velocity (3) against the truth, over the keyframes
-    (:func:`_consistency_metrics`); 6 and 3 when the covariance is honest. ``init`` compares the static
-    initialisation with the ground truth at its end: the angle between the estimated and true
-    up-vectors in the body, and the relative gyro-bias error.
+    (:func:`_consistency_metrics`); 6 and 3 when the covariance is honest. ``init`` compares
+    the static initialisation with the ground truth at its end: the angle between the
+    estimated and true up-vectors in the body, and the relative gyro-bias error.
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
@@ -369,18 +368,12 @@ def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
              "nees_refused": 0}
     if not inside:
         return empty
-    positions, quaternions = interpolate_poses([kf.t for kf in inside], truth_t,
-                                               truth.position, truth.q_W_B)
-    velocities = np.array([[np.interp(kf.t, truth_t, column) for column in truth.velocity.T]
-                           for kf in inside])
-    true_poses = [make_pose(quat_to_rot(q), p) for p, q in zip(positions, quaternions)]
-    T_W_G = yaw_alignment(inside[0].T_W_B, true_poses[0])
     pose_nees, velocity_nees, by_axis, refused = [], [], [], 0
-    for kf, T_G_B, v_G in zip(inside, true_poses, velocities):
-        error = pose_error_body(kf.T_W_B, T_W_G @ T_G_B)
+    for kf, (true_pose, true_velocity) in zip(inside, _truth_in_world(inside, truth_t, truth)):
+        error = pose_error_body(kf.T_W_B, true_pose)
         try:
             pose = nees(error, kf.pose_covariance)
-            velocity = nees(T_W_G[:3, :3] @ v_G - kf.velocity_W, kf.velocity_covariance)
+            velocity = nees(true_velocity - kf.velocity_W, kf.velocity_covariance)
         except ValueError:
             refused += 1
             continue
@@ -395,6 +388,19 @@ def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
             "nees_velocity_median": float(np.median(velocity_nees)),
             "nees_pose_by_axis": np.mean(by_axis, axis=0).tolist(),
             "nees_keyframes": len(pose_nees), "nees_refused": refused}
+
+
+def _truth_in_world(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
+                    truth: GroundTruthTable) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The true pose and velocity at each keyframe's time, in the estimator's world: turned
+    and shifted by the ``yaw_alignment`` that takes the first one onto its estimate."""
+    positions, quaternions = interpolate_poses([kf.t for kf in keyframes], truth_t,
+                                               truth.position, truth.q_W_B)
+    velocities = [np.array([np.interp(kf.t, truth_t, column) for column in truth.velocity.T])
+                  for kf in keyframes]
+    poses = [make_pose(quat_to_rot(q), p) for p, q in zip(positions, quaternions)]
+    T_W_G = yaw_alignment(keyframes[0].T_W_B, poses[0])
+    return [(T_W_G @ pose, T_W_G[:3, :3] @ velocity) for pose, velocity in zip(poses, velocities)]
 
 
 def _init_metrics(static_init: StaticInit | None, truth_t: np.ndarray,
