@@ -74,6 +74,10 @@ class CameraOptions:
                                     "body's y axis, degrees (positive looks down)")
     mount_yaw_deg: float = option(0.0, ge=-180.0, le=180.0, doc="camera turned about the "
                                   "body's z axis, degrees (positive looks left)")
+    learned_time_offset_file: str = option("", doc="where `companion fly` keeps the "
+                                           "camera-IMU time offset a flight estimated, for the "
+                                           "next flight of this camera to start from (relative:"
+                                           " to the working directory); \"\" = not kept")
 
     def __post_init__(self) -> None:
         validate(self)
