@@ -65,8 +65,8 @@ class SimulatedVehicle:
     """The vehicle, its IMU and the mock PX4 on one link, stepped together.
 
     ``faults`` injects the link and flight-controller faults of :mod:`drivers.sim.faults`
-    (link cut, IMU gap, a forced disarm). The vehicle stands at ``start`` (x, y, z in the world frame; default
-    :func:`start_position`) heading ``start_yaw``, radians.
+    (link cut, IMU gap, a forced disarm). The vehicle stands at ``start`` (x, y, z in the
+    world frame; default :func:`start_position`) heading ``start_yaw``, radians.
     """
 
     def __init__(self, link, world, *, seed: int = 0,
