@@ -13,13 +13,12 @@ Factors:
   good estimate;
 - with ``keyframe_prior_position_sigma`` above 0 (off by default: docs/vins.md, the resets,
   for what it costs), a loose prior on every new keyframe's pose at its IMU prediction.
-  Position and yaw are unobservable: all the window knows of them is the
-  marginal of the first prior, whose information fades as the flight goes on (the IMU's and
-  the landmarks' constraints are relative), while the IMU factors between close keyframes
-  hold their poses to about 1e-5 of that. iSAM2's Cholesky then meets an "indeterminate
-  linear system" and the smoother is rebuilt, every few tens of seconds in flight and within
-  10 s in a window with no landmark at all. The loose priors (0.1 m, 0.05 rad) keep each
-  window's absolute pose information from fading.
+  Position and yaw are unobservable: all the window knows of them is the marginal of the
+  first prior, whose information fades as the flight goes on, while the IMU factors between
+  close keyframes hold their poses to about 1e-5 of that; a window with no landmark at all
+  meets iSAM2's "indeterminate linear system" within 10 s, and the priors keep it from
+  fading. In flight the same failure is a sign that the window has gone bad: the rebuild
+  below recovers from it better than keeping the window would (docs/vins.md, the resets).
 
 ``IncrementalFixedLagSmoother`` (iSAM2 underneath) marginalises every variable whose time
 stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's stamp is the
@@ -286,10 +285,9 @@ class SlidingWindowSmoother:
         smoother was rebuilt (a reset; ``last_failure`` says why). Raises
         :class:`BackendError` when even the rebuilt smoother refuses the keyframe."""
         good, good_keyframe = self.latest, self._window[-1]
-        # taken before the update, which may leave the smoother unusable (computed once per
-        # keyframe, as the odometry asks for it anyway); if GTSAM could not give it, the last
-        # one it gave, the nearest known
-        self.pose_covariance()
+        # the last covariance asked for (the odometry asks at every keyframe), taken before the
+        # update, which may leave the smoother unusable; not computed here for callers that
+        # never read covariances
         good_covariance = self._known_pose_covariance
         keyframe = self._keyframe(good.index + 1, t, ids, normalised)
         try:

@@ -60,11 +60,12 @@ class Health:
         guarded."""
         c = self.context
         now, state = c.clock.now(), c.state
-        if state in OFFBOARD_STATES | {FlightState.HOLDING} and not c.autopilot.connected:
+        in_the_air = state in OFFBOARD_STATES | {FlightState.HOLDING}
+        if in_the_air and not c.autopilot.connected:
             c.mission.failsafe(now, "MAVLink link lost")
             c.go(FlightState.LINK_LOST, "no heartbeat from the flight controller")
             return
-        if state in OFFBOARD_STATES | {FlightState.HOLDING} and not c.autopilot.armed:
+        if in_the_air and not c.autopilot.armed:
             # Nothing the companion sends can fly a vehicle whose motors are off, and it must
             # never re-arm one on its own: the mission ends here.
             c.mission.failsafe(now, DISARMED_IN_THE_AIR)
