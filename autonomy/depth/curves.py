@@ -170,6 +170,12 @@ def fit_smoothing_spline(x: np.ndarray, y: np.ndarray, options: RescaleOptions) 
     shape. When FITPACK reports s too small for its knot budget (ier 1–3: it
     would return a near-interpolating spline) s is doubled and the fit retried. Duplicate x
     are merged, their weights scaled by √count.
+
+    FITPACK places knots where the residuals are largest and may put two knots on anchors a
+    fraction of the noise apart; the cubic between them is then fixed by continuity alone
+    and can swing far from the data (500 σ between two anchors near the end of the range).
+    Knots that leave an interval with fewer than ``_ANCHORS_PER_KNOT_INTERVAL`` distinct
+    anchors are dropped and the weighted least-squares spline refitted on the rest.
     """
     xu, yu, counts = _merge_duplicates(x, y)
     sigma = max(local_noise_sigma(xu, yu), 1e-6 * float(np.max(np.abs(yu))))
@@ -178,7 +184,7 @@ def fit_smoothing_spline(x: np.ndarray, y: np.ndarray, options: RescaleOptions) 
     for _ in range(_SMOOTHING_RETRIES):
         tck, _, ier, message = splrep(xu, yu, w=weights, k=3, s=smoothing, full_output=True)
         if ier <= 0:
-            return Spline(tck)
+            return _with_supported_knots(tck, xu, yu, weights)
         if ier > 3:  # 10: invalid input
             break
         smoothing = 2.0 * smoothing if smoothing > 0 else float(len(xu))
@@ -186,6 +192,24 @@ def fit_smoothing_spline(x: np.ndarray, y: np.ndarray, options: RescaleOptions) 
                      f"{message.strip()}")
 
 
+def _with_supported_knots(tck: tuple, x: np.ndarray, y: np.ndarray, weights: np.ndarray) -> Spline:
+    """The spline refitted by weighted least squares on those of its interior knots that
+    leave every knot interval at least ``_ANCHORS_PER_KNOT_INTERVAL`` distinct anchors."""
+    interior = tck[0][4:-4]
+    kept, left = [], 0
+    for knot in interior:
+        index = int(np.searchsorted(x, knot))
+        if min(index - left, len(x) - index) >= _ANCHORS_PER_KNOT_INTERVAL:
+            kept.append(knot)
+            left = index
+    if len(kept) == len(interior):
+        return Spline(tck)
+    return Spline(splrep(x, y, w=weights, k=3, task=-1, t=np.array(kept)))
+
+
+#: Three anchors per knot interval: a cubic piece then answers to data inside it
+#: (benchmarks/smoothing_factor.py, docs/benchmarks.md).
+_ANCHORS_PER_KNOT_INTERVAL = 3
 _SMOOTHING_RETRIES = 4
 
 
