@@ -70,6 +70,24 @@ def test_a_rebuild_keeps_the_uncertainty_of_the_keyframe_it_starts_from():
     assert np.all(position_sigma[-1] > 0.1)
 
 
+
+def test_a_covariance_kept_for_a_period_is_refreshed_when_it_ages_and_after_a_rebuild():
+    """The odometry's covariance (``covariance_period_s``): kept from keyframe to keyframe
+    until it is that old, then the new keyframe's own, and never the old window's after a
+    rebuild, whose covariance has just grown by the anchor's."""
+    period, kept, kept_since, resets, refreshes = 0.5, None, None, 0, 0
+    for smoother in turning_in_place_unseeing(VinsOptions(), seconds=10.0):
+        before, kept = kept, smoother.pose_covariance(period)
+        t = smoother.latest.t
+        if smoother.resets != resets or kept_since is None or t - kept_since >= period - 1e-9:
+            assert kept is not before
+            kept_since, resets, refreshes = t, smoother.resets, refreshes + 1
+        else:
+            assert kept is before
+    assert resets >= 1  # a rebuild was met (blind, it comes within seconds)
+    assert refreshes < 0.3 * 10.0 / 0.05  # 200 keyframes, refreshed at most every 0.5 s or reset
+
+
 def test_the_anchor_covariance_is_that_of_the_rigid_motion_it_stands_for():
     """Yaw and position errors of the anchor drawn from its covariance, applied as the rigid
     motion about it that they are, move a keyframe 12 m away by the covariance it reports

@@ -25,6 +25,10 @@ class VinsOptions:
     factorization: str = option("cholesky", choices=("cholesky", "qr"), doc="iSAM2's "
                                 "elimination: cholesky, or qr (no indeterminate-system rebuilds "
                                 "in the sewer's hallway, about 3x the update time)")
+    covariance_period_s: float = option(0.5, ge=0.0, le=10.0, doc="the odometry's pose "
+                                        "covariance is refreshed at most this often, seconds "
+                                        "of keyframe time (iSAM2's marginal costs about twice "
+                                        "its update; 0: at every keyframe)")
     # --- keyframes
     keyframe_interval_s: float = option(0.1, gt=0.0, le=5.0, doc="a frame this long after the "
                                         "last keyframe becomes one, seconds")
