@@ -74,6 +74,18 @@ AHEAD = np.array([30.0, 0.0, ALTITUDE])
 # ---------------------------------------------------------------- the window look-up
 
 
+def test_the_min_table_holds_the_minimum_of_each_square_inside_the_image():
+    rng = np.random.default_rng(7)
+    H, W = 37, 70  # not powers of two: squares leave the image at the right and bottom
+    image = rng.uniform(1.0, 9.0, (H, W)).astype(np.float32)
+    table = min_table(image)
+    assert table.shape == (6, H, W)  # k = 0 .. floor(log2(37))
+    for k in range(len(table)):
+        side = 1 << k
+        for j, i in zip(rng.integers(0, H, 40), rng.integers(0, W, 40)):
+            assert table[k, j, i] == image[j:j + side, i:i + side].min(), (k, j, i)
+
+
 def test_window_minimum_equals_the_brute_force_minimum_or_a_superset_of_it():
     rng = np.random.default_rng(3)
     H, W = 48, 64
