@@ -2,6 +2,7 @@
 flight, and the scoring gives the known answers for a trace with known errors (the true pose
 moved by a fixed rigid motion, landmarks 10 % too deep)."""
 
+import dataclasses
 import json
 import math
 
@@ -15,7 +16,7 @@ from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInit
 from companion.cli import main
 from companion.tools.eval.vio import (
-    EvaluationError, ImuFeed, KeyframeEstimate, VioTrace, build_vins, depth_relative_errors,
+    EvaluationError, ImuFeed, KeyframeEstimate, Rebuild, VioTrace, build_vins, depth_relative_errors,
     evaluate_vio, format_vio_report, read_vio_dataset, score_vio, vio_frames,
 )
 from drivers.dataset.euroc import EurocWriter, read_depth_png
@@ -120,7 +121,7 @@ def _keyframes_in_a_yawed_world(errors_body, velocity_error, *, pose_sigma=0.01,
         estimate = make_pose(R, true[:3, 3] - R @ error[3:])
         keyframes.append(KeyframeEstimate(t, estimate, np.asarray(velocity_error, float),
                                           pose_sigma**2 * np.eye(6),
-                                          velocity_sigma**2 * np.eye(3)))
+                                          velocity_sigma**2 * np.eye(3), np.zeros(3), 40))
     return keyframes
 
 
@@ -150,10 +151,35 @@ def test_a_keyframe_with_an_unusable_covariance_is_counted_not_scored(tmp_path):
     keyframes = _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0, 0.0, 0.0], count=3)
     trace.keyframes = keyframes[:2] + [KeyframeEstimate(
         keyframes[2].t, keyframes[2].T_W_B, keyframes[2].velocity_W,
-        np.full((6, 6), np.nan), np.eye(3))]
+        np.full((6, 6), np.nan), np.eye(3), np.zeros(3), 40)]
     result = score_vio(trace, data)
     assert result["nees_keyframes"] == 2 and result["nees_refused"] == 1
     assert result["nees_pose_mean"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_rebuild_is_reported_with_the_window_just_before_it(tmp_path):
+    """What a rebuild's record says (docs/vins.md, the resets): the variable GTSAM named, and
+    the last keyframe before it, whose sigmas, landmarks, speed and bias errors are known."""
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 41)
+    trace.keyframes = _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0, 0.03, 0.04],
+                                                  pose_sigma=0.2, count=5)
+    before = dataclasses.replace(trace.keyframes[-1], accel_bias=np.array([0.0, 0.0, 0.05]))
+    failure = ("Indeterminate linear system detected while working near variable\n"
+               "8646911284551352643 (Symbol: x323).")
+    trace.rebuilds = [Rebuild(0.6, failure, before), Rebuild(0.05, "update refused", None)]
+    first, second = score_vio(trace, data)["rebuilds"]
+    assert first["t"] == 0.6 and first["variable"] == "x323" and first["landmarks"] == 40
+    assert first["position_sigma_m"] == pytest.approx(0.2 * math.sqrt(3))
+    assert first["yaw_sigma_deg"] == pytest.approx(math.degrees(0.2))
+    assert first["speed_error_m_s"] == pytest.approx(0.05)  # the truth is still
+    assert first["accel_bias_error_m_s2"] == pytest.approx(0.05)
+    assert "rebuild at t=0.60 s near x323: before it 40 landmarks, position sigma 0.346 m, " \
+           "speed error +0.050 m/s" in format_vio_report(score_vio(trace, data))
+    assert second == {"t": 0.05, "variable": None, "position_sigma_m": None,
+                      "yaw_sigma_deg": None, "landmarks": None, "speed_error_m_s": None,
+                      "accel_bias_error_m_s2": None}
 
 
 def test_too_few_poses_give_no_trajectory_error_and_say_why(tmp_path):
@@ -268,5 +294,5 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
     assert all(isinstance(result[key], float) and result[key] >= 0.0 for key in numbers)
     assert sum(result["health"].values()) == 161
     assert result["nees_keyframes"] == result["keyframes"] - result["nees_refused"]
-    assert result["depth_points"] > 0 and result["resets"] >= 0
+    assert result["depth_points"] > 0 and result["resets"] >= len(result["rebuilds"])
     assert result["init"]["gravity_err_deg"] < 1.0

@@ -1,11 +1,14 @@
 """The sliding-window smoother and its resets: position and yaw are unobservable, and once the
-window's information on them has faded iSAM2's Cholesky fails (a reset); the loose keyframe
-priors (``keyframe_prior_position_sigma``, off by default: docs/vins.md) keep it. A rebuild
-pins the last good keyframe, and its uncertainty is carried on (``GaugeAnchor``)."""
+window's information on them is 1e8 times weaker than its strongest, GTSAM's Cholesky calls
+the system indeterminate (a reset); the loose keyframe priors
+(``keyframe_prior_position_sigma``, off by default: docs/vins.md) keep it. A rebuild pins the
+last good keyframe, and its uncertainty is carried on (``GaugeAnchor``)."""
 
 import math
 
+import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.trajectory import pose_error_body
@@ -18,14 +21,18 @@ IMU_DT = 0.005
 
 
 def turning_in_place_unseeing(options: VinsOptions, seconds: float = 20.0,
-                              keyframe_interval: float = 0.05, seed: int = 0):
+                              keyframe_interval: float = 0.05, seed: int = 0,
+                              gauge_sigmas: tuple[float, float] = (0.005, 0.01)):
     """A smoother fed keyframes with no landmark while the IMU turns in place at 0.5 rad/s,
     as over a corner: the keyframes come fast (the front-end's parallax is the rotation's) and
-    nothing but the IMU joins them. Yields the smoother after each keyframe."""
+    nothing but the IMU joins them. It starts with the yaw and position sigmas
+    ``gauge_sigmas``. Yields the smoother after each keyframe."""
     smoother = SlidingWindowSmoother(PinholeCamera.from_hfov(640, 480, math.radians(90.0)),
                                      np.eye(4), NOISE, options)
+    yaw_sigma, position_sigma = gauge_sigmas
     smoother.start(KeyframeState(0, 0.0, np.eye(4), np.zeros(3), np.zeros(3), np.zeros(3)),
-                   PriorSigmas.with_bias_priors(options, (0.017, 0.017, 0.005), 0.01, 0.02))
+                   PriorSigmas.with_bias_priors(options, (0.017, 0.017, yaw_sigma),
+                                                position_sigma, 0.02))
     rng = np.random.default_rng(seed)
     steps = int(round(keyframe_interval / IMU_DT))
     for k in range(1, int(round(seconds / keyframe_interval)) + 1):
@@ -54,6 +61,50 @@ def test_without_them_the_same_window_is_rebuilt():
     """What the priors are for: the same IMU-only window meets an indeterminate linear system
     within 20 s when nothing refreshes its absolute pose information."""
     assert resets_turning_in_place_unseeing(VinsOptions()) >= 1
+
+
+def first_rebuild_s(gauge_sigmas: tuple[float, float]) -> float | None:
+    for smoother in turning_in_place_unseeing(VinsOptions(), seconds=10.0,
+                                              gauge_sigmas=gauge_sigmas):
+        if smoother.resets:
+            return smoother.latest.t
+    return None
+
+
+def test_the_weaker_the_gauge_the_sooner_the_rebuild():
+    """Why windows are rebuilt (docs/vins.md, the resets): not a window gone wrong, but the
+    gauge's information, position and yaw, too weak beside the rest for GTSAM's Cholesky
+    (:func:`test_gtsam_cholesky_refuses_a_well_posed_system_spanning_1e8`). Started at 1 cm
+    the IMU-only window lasts 7 s; started at 10 cm, not one keyframe."""
+    tight, loose = first_rebuild_s((0.005, 0.01)), first_rebuild_s((0.01, 0.1))
+    assert tight is not None and tight > 5.0
+    assert loose is not None and loose < 0.5
+
+
+def test_gtsam_cholesky_refuses_a_well_posed_system_spanning_1e8():
+    """The library behaviour the rebuilds come from: a variable held by information 1 beside
+    a link of information r to another is solvable for every r, yet GTSAM's Cholesky calls it
+    indeterminate once r reaches 1e8 (its frontal blocks' condition limit, 1/sqrt(eps)); QR
+    solves it. If an upgrade moves the limit, this says so."""
+    def eliminates(ratio: float, qr: bool = False) -> bool:
+        graph = gtsam.GaussianFactorGraph()
+        unit = gtsam.noiseModel.Unit.Create(1)
+        graph.add(X(1), np.eye(1), np.zeros(1), unit)
+        graph.add(X(1), np.eye(1) * math.sqrt(ratio), X(2), -np.eye(1) * math.sqrt(ratio),
+                  np.zeros(1), unit)
+        try:
+            ordering = gtsam.Ordering([X(1), X(2)])
+            if qr:
+                graph.eliminateMultifrontal(ordering, gtsam.EliminateQR)
+            else:  # GTSAM's default elimination, Cholesky (QR only for constrained noise)
+                graph.eliminateMultifrontal(ordering)
+            return True
+        except RuntimeError:
+            return False
+
+    assert eliminates(1e7)
+    assert not eliminates(1e8)
+    assert eliminates(1e12, qr=True)
 
 
 def test_a_rebuild_keeps_the_uncertainty_of_the_keyframe_it_starts_from():

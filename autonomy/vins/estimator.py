@@ -56,10 +56,6 @@ from autonomy.vins.time_offset import TimeOffset, TimeOffsetEstimator
 OFFSET_PER_FRAME = 3
 OFFSET_BACKLOG = 8
 
-#: The yaw and position priors of a (re)start: the world frame's gauge, fixed at the start.
-_GAUGE_YAW_SIGMA = 1e-3
-_GAUGE_POSITION_SIGMA = 1e-3
-
 
 @dataclass(frozen=True)
 class FrameUpdate:
@@ -257,9 +253,10 @@ class Vins:
     def _start_sigmas(self, velocity_sigma: float) -> PriorSigmas:
         """Priors of a (re)start: the options' tilt, the world's gauge fixed in yaw and
         position."""
-        tilt = math.radians(self.options.prior_tilt_sigma_deg)
-        return PriorSigmas.with_bias_priors(self.options, (tilt, tilt, _GAUGE_YAW_SIGMA),
-                                            _GAUGE_POSITION_SIGMA, velocity_sigma)
+        o = self.options
+        tilt = math.radians(o.prior_tilt_sigma_deg)
+        return PriorSigmas.with_bias_priors(o, (tilt, tilt, o.gauge_yaw_sigma),
+                                            o.gauge_position_sigma, velocity_sigma)
 
     def _start(self, state: KeyframeState, sigmas: PriorSigmas, tracks: Tracks) -> None:
         self.backend.start(state, sigmas, tracks.ids, tracks.normalised)

@@ -53,6 +53,11 @@ class VinsOptions:
     # --- initial state uncertainty (one sigma)
     prior_tilt_sigma_deg: float = option(1.0, gt=0.0, le=30.0, doc="roll/pitch after static "
                                          "initialisation, degrees")
+    gauge_position_sigma: float = option(1e-3, gt=0.0, le=10.0, doc="the prior holding the "
+                                         "first keyframe at the world's origin, metres (the "
+                                         "gauge: position is unobservable; docs/vins.md, the "
+                                         "resets)")
+    gauge_yaw_sigma: float = option(1e-3, gt=0.0, le=1.0, doc="the same prior's yaw, radians")
     prior_velocity_sigma: float = option(0.02, gt=0.0, doc="velocity at static "
                                          "initialisation, m/s")
     prior_gyro_bias_sigma: float = option(0.005, gt=0.0, doc="gyro bias after static "

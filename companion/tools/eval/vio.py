@@ -11,6 +11,7 @@ static initialisation. The time each stage takes is measured here, never in ``au
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -95,13 +96,25 @@ class ImuFeed:
 class KeyframeEstimate:
     """The smoother's newest keyframe as the odometry reports it: exposure time ``t``, pose
     ``T_W_B``, ``velocity_W``, and their marginal covariances (6x6 in the body frame, rotation
-    first; 3x3 in the world frame)."""
+    first; 3x3 in the world frame); its accelerometer bias and the window's landmarks."""
 
     t: float
     T_W_B: np.ndarray
     velocity_W: np.ndarray
     pose_covariance: np.ndarray
     velocity_covariance: np.ndarray
+    accel_bias: np.ndarray
+    landmarks: int  #: landmarks in the smoother's window
+
+
+@dataclass(frozen=True)
+class Rebuild:
+    """A smoother rebuild at keyframe time ``t`` (``failure``: why the update was refused),
+    and ``before``, the last keyframe before it (None if there was none)."""
+
+    t: float
+    failure: str
+    before: KeyframeEstimate | None
 
 
 @dataclass
@@ -118,7 +131,8 @@ class VioTrace:
     initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
     offset at the end; ``corrections_m``: each keyframe's correction
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
-    keyframe's estimate with its covariances, taken when it was the newest.
+    keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
+    each rebuild of the smoother.
     """
 
     t: list[float] = field(default_factory=list)
@@ -133,6 +147,7 @@ class VioTrace:
     time_offset: TimeOffset = field(default_factory=TimeOffset)
     corrections_m: list[float] = field(default_factory=list)
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
+    rebuilds: list[Rebuild] = field(default_factory=list)
 
 
 def read_vio_dataset(root: Path) -> VioDataset:
@@ -180,8 +195,12 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         start = time.perf_counter()
         tracks = vins.track(frame.image)
         middle = time.perf_counter()
+        rebuilds = vins.backend.resets
         update = vins.add_frame(frame.t, tracks)
         _record(trace, update, 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle))
+        if vins.backend.resets > rebuilds:
+            trace.rebuilds.append(Rebuild(vins.backend.latest.t, vins.backend.last_failure,
+                                          trace.keyframes[-1] if trace.keyframes else None))
         if update.keyframe:
             trace.keyframes.append(_newest_keyframe(vins))
         if update.sparse_map is not None and frame.depth_path is not None:
@@ -241,6 +260,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "keyframes": sum(trace.keyframe),
         **_trajectory_metrics(trace, truth_t, data.truth),
         **_consistency_metrics(trace.keyframes, truth_t, data.truth),
+        "rebuilds": [_rebuild_report(rebuild, truth_t, data.truth) for rebuild in trace.rebuilds],
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
         "resets": int(trace.resets),
@@ -280,7 +300,8 @@ def _newest_keyframe(vins: Vins) -> KeyframeEstimate:
     backend = vins.backend
     state = backend.latest
     return KeyframeEstimate(state.t, state.T_W_B, state.velocity, backend.pose_covariance(),
-                            backend.velocity_covariance())
+                            backend.velocity_covariance(), state.bias_a,
+                            len(backend.landmarks.ids))
 
 
 def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
@@ -390,6 +411,30 @@ def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
             "nees_keyframes": len(pose_nees), "nees_refused": refused}
 
 
+def _rebuild_report(rebuild: Rebuild, truth_t: np.ndarray, truth: GroundTruthTable) -> dict:
+    """What the window was like just before a rebuild (docs/vins.md, the resets): the
+    variable GTSAM named in its failure, and of the last keyframe before it the reported
+    position and yaw (about the body's z) sigma, the landmarks in the window, and its speed and accelerometer-bias
+    errors against the truth (frame-free, so no alignment)."""
+    named = re.search(r"Symbol: (\w+)", rebuild.failure)
+    report = {"t": rebuild.t, "variable": named.group(1) if named else None,
+              "position_sigma_m": None, "yaw_sigma_deg": None, "landmarks": None,
+              "speed_error_m_s": None, "accel_bias_error_m_s2": None}
+    before = rebuild.before
+    if before is None:
+        return report
+    true_velocity, true_bias = (np.array([np.interp(before.t, truth_t, column)
+                                          for column in table.T])
+                                for table in (truth.velocity, truth.accel_bias))
+    covariance = before.pose_covariance
+    return {**report, "landmarks": before.landmarks,
+            "position_sigma_m": finite_or_none(np.sqrt(np.trace(covariance[3:, 3:]))),
+            "yaw_sigma_deg": finite_or_none(np.degrees(np.sqrt(covariance[2, 2]))),
+            "speed_error_m_s": float(np.linalg.norm(before.velocity_W)
+                                     - np.linalg.norm(true_velocity)),
+            "accel_bias_error_m_s2": float(np.linalg.norm(before.accel_bias - true_bias))}
+
+
 def _truth_in_world(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
                     truth: GroundTruthTable) -> list[tuple[np.ndarray, np.ndarray]]:
     """The true pose and velocity at each keyframe's time, in the estimator's world: turned
@@ -461,6 +506,10 @@ def format_vio_report(result: dict) -> str:
         f"camera-IMU time offset: {result['time_offset_ms']:.2f} ms"
         + ("" if result["time_offset_sigma_ms"] is None
            else f" (sigma {result['time_offset_sigma_ms']:.2f} ms)"),
+        *(f"rebuild at t={r['t']:.2f} s near {r['variable'] or '?'}: before it "
+          f"{show(r['landmarks'], 'd')} landmarks, position sigma "
+          f"{show(r['position_sigma_m'], '.3f', ' m')}, speed error "
+          f"{show(r['speed_error_m_s'], '+.3f', ' m/s')}" for r in result["rebuilds"]),
     ]
     return "\n".join(lines)
 
