@@ -227,8 +227,9 @@ class Vins:
         t = max(self._imu.last_time, self._anchor.state.t)
         state = self._propagate_to(t)
         rate = self._imu.last_gyro - self._anchor.bias_g
-        covariance = (self.backend.pose_covariance(self.options.covariance_period_s) if self.backend.started and not
-                      self._lost_reason else np.full((6, 6), np.nan))
+        usable = self.backend.started and not self._lost_reason
+        covariance = (self.backend.pose_covariance(self.options.covariance_period_s) if usable
+                      else np.full((6, 6), np.nan))
         return Odometry(t, make_pose(state.R_W_B, state.position), state.velocity, rate,
                         covariance)
 

@@ -414,8 +414,8 @@ def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
 def _rebuild_report(rebuild: Rebuild, truth_t: np.ndarray, truth: GroundTruthTable) -> dict:
     """What the window was like just before a rebuild (docs/vins.md, the resets): the
     variable GTSAM named in its failure, and of the last keyframe before it the reported
-    position and yaw (about the body's z) sigma, the landmarks in the window, and its speed and accelerometer-bias
-    errors against the truth (frame-free, so no alignment)."""
+    position and yaw (about the body's z) sigma, the landmarks in the window, and its speed
+    and accelerometer-bias errors against the truth (frame-free, so no alignment)."""
     named = re.search(r"Symbol: (\w+)", rebuild.failure)
     report = {"t": rebuild.t, "variable": named.group(1) if named else None,
               "position_sigma_m": None, "yaw_sigma_deg": None, "landmarks": None,
