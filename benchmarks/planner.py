@@ -197,7 +197,7 @@ def exact_versus_rings(planner: Planner, T_W_S: np.ndarray) -> dict:
         seen.append(p)
         exact.append(bool(r.min() >= 0 and np.all(r[hit] >= b[hit] + np.sqrt(disc[hit]))))
     exact = np.array(exact)
-    rings = h._judge(frame, np.array(seen), np.zeros(len(seen), dtype=bool))[0]
+    rings = h._judge(frame, np.array(seen), np.zeros(len(seen), dtype=bool), radius)[0]
     return {"points_seen_whole": len(seen), "exact_free": int(exact.sum()),
             "rings_free": int(rings.sum()), "rings_free_exact_not": int(np.sum(rings & ~exact)),
             "exact_free_rings_not": int(np.sum(exact & ~rings))}

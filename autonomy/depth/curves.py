@@ -192,7 +192,8 @@ def fit_smoothing_spline(x: np.ndarray, y: np.ndarray, options: RescaleOptions) 
                      f"{message.strip()}")
 
 
-def _with_supported_knots(tck: tuple, x: np.ndarray, y: np.ndarray, weights: np.ndarray) -> Spline:
+def _with_supported_knots(tck: tuple, x: np.ndarray, y: np.ndarray,
+                          weights: np.ndarray) -> Spline:
     """The spline refitted by weighted least squares on those of its interior knots that
     leave every knot interval at least ``_ANCHORS_PER_KNOT_INTERVAL`` distinct anchors."""
     interior = tck[0][4:-4]

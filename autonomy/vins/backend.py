@@ -17,8 +17,9 @@ Factors:
   first prior, whose information fades as the flight goes on, while the IMU factors between
   close keyframes hold their poses to about 1e-5 of that; a window with no landmark at all
   meets iSAM2's "indeterminate linear system" within 10 s, and the priors keep it from
-  fading. In flight the same failure is a sign that the window has gone bad: the rebuild
-  below recovers from it better than keeping the window would (docs/vins.md, the resets).
+  fading. In flight the same failure comes after about 35 m in windows that are otherwise
+  sound: GTSAM's Cholesky refuses a frontal block whose condition passes 1/sqrt(eps), which
+  the faded gauge reaches (docs/vins.md, what makes the windows fail).
 
 ``IncrementalFixedLagSmoother`` (iSAM2 underneath) marginalises every variable whose time
 stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's stamp is the

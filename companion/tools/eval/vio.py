@@ -195,10 +195,10 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         start = time.perf_counter()
         tracks = vins.track(frame.image)
         middle = time.perf_counter()
-        rebuilds = vins.backend.resets
+        resets_before = vins.backend.resets
         update = vins.add_frame(frame.t, tracks)
         _record(trace, update, 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle))
-        if vins.backend.resets > rebuilds:
+        if vins.backend.resets > resets_before:
             trace.rebuilds.append(Rebuild(vins.backend.latest.t, vins.backend.last_failure,
                                           trace.keyframes[-1] if trace.keyframes else None))
         if update.keyframe:
@@ -423,9 +423,8 @@ def _rebuild_report(rebuild: Rebuild, truth_t: np.ndarray, truth: GroundTruthTab
     before = rebuild.before
     if before is None:
         return report
-    true_velocity, true_bias = (np.array([np.interp(before.t, truth_t, column)
-                                          for column in table.T])
-                                for table in (truth.velocity, truth.accel_bias))
+    true_velocity = _truth_at(before.t, truth_t, truth.velocity)
+    true_bias = _truth_at(before.t, truth_t, truth.accel_bias)
     covariance = before.pose_covariance
     return {**report, "landmarks": before.landmarks,
             "position_sigma_m": finite_or_none(np.sqrt(np.trace(covariance[3:, 3:]))),
@@ -435,14 +434,18 @@ def _rebuild_report(rebuild: Rebuild, truth_t: np.ndarray, truth: GroundTruthTab
             "accel_bias_error_m_s2": float(np.linalg.norm(before.accel_bias - true_bias))}
 
 
+def _truth_at(t: float, truth_t: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """A ground-truth vector table (N, k) interpolated at time ``t``, column by column."""
+    return np.array([np.interp(t, truth_t, column) for column in table.T])
+
+
 def _truth_in_world(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
                     truth: GroundTruthTable) -> list[tuple[np.ndarray, np.ndarray]]:
     """The true pose and velocity at each keyframe's time, in the estimator's world: turned
     and shifted by the ``yaw_alignment`` that takes the first one onto its estimate."""
     positions, quaternions = interpolate_poses([kf.t for kf in keyframes], truth_t,
                                                truth.position, truth.q_W_B)
-    velocities = [np.array([np.interp(kf.t, truth_t, column) for column in truth.velocity.T])
-                  for kf in keyframes]
+    velocities = [_truth_at(kf.t, truth_t, truth.velocity) for kf in keyframes]
     poses = [make_pose(quat_to_rot(q), p) for p, q in zip(positions, quaternions)]
     T_W_G = yaw_alignment(keyframes[0].T_W_B, poses[0])
     return [(T_W_G @ pose, T_W_G[:3, :3] @ velocity) for pose, velocity in zip(poses, velocities)]
@@ -461,7 +464,7 @@ def _init_metrics(static_init: StaticInit | None, truth_t: np.ndarray,
     except ValueError:  # initialised outside the ground truth's span: nothing to compare
         return {"t": t, "gravity_err_deg": None, "gyro_bias_err_rel": None}
     up_true = quat_to_rot(q[0]).T @ np.array([0.0, 0.0, 1.0])
-    bias_true = np.array([np.interp(t, truth_t, column) for column in truth.gyro_bias.T])
+    bias_true = _truth_at(t, truth_t, truth.gyro_bias)
     bias_norm = float(np.linalg.norm(bias_true))
     bias_error = float(np.linalg.norm(np.asarray(static_init.gyro_bias) - bias_true))
     return {"t": t, "gravity_err_deg": math.degrees(_angle(static_init.gravity_B, up_true)),
