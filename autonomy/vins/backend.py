@@ -15,21 +15,21 @@ Factors:
   for what it costs), a loose prior on every new keyframe's pose at its IMU prediction.
   Position and yaw are unobservable: all the window knows of them is the marginal of the
   first prior, whose information fades as the flight goes on, while the IMU factors between
-  close keyframes hold their poses to about 1e-5 of that; a window with no landmark at all
-  meets iSAM2's "indeterminate linear system" within 10 s, and the priors keep it from
-  fading. In flight the same failure comes after about 35 m in windows that are otherwise
-  sound: GTSAM's Cholesky refuses a frontal block whose condition passes 1/sqrt(eps), which
-  the faded gauge reaches (docs/vins.md, what makes the windows fail).
+  close keyframes hold their poses to about 1e-5 of that. A window with no landmark at all
+  knows its biases only from their priors too, and meets iSAM2's "indeterminate linear
+  system" within 10 s; the priors keep it from fading. In flight the window is sound, and the
+  smoother eliminates the newest bias last so that GTSAM's Cholesky does not call it
+  indeterminate as the gauge fades (:mod:`autonomy.vins.fixed_lag`).
 
-``IncrementalFixedLagSmoother`` (iSAM2 underneath) marginalises every variable whose time
-stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's stamp is the
-time of the last keyframe that saw it. Landmarks enter only through the gate of
+The fixed-lag smoother (:class:`FixedLagSmoother`, iSAM2 underneath) marginalises every variable
+whose time stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's
+stamp is the time of the last keyframe that saw it. Landmarks enter only through the gate of
 :mod:`autonomy.vins.landmarks`. An update that throws, or that leaves a state no vehicle can be
-in (speed, bias magnitudes), is thrown away: the smoother cannot be copied, so a new one is built
-from the last good keyframe's estimate, the keyframe is added again with its IMU factor only, and
-the event counts as a reset. The rebuilt window holds that keyframe's position and yaw nearly
-fixed (they are unobservable: nothing in it could move them), so the uncertainty they had is
-carried by a :class:`GaugeAnchor` and added to every covariance reported after it.
+in (speed, bias magnitudes), is thrown away: the smoother cannot be copied, so a new one is
+built from the last good keyframe's estimate, the keyframe is added again with its IMU factor
+only, and the event counts as a reset. The rebuilt window holds that keyframe's position and yaw
+nearly fixed (they are unobservable: nothing in it could move them), so the uncertainty they had
+is carried by a :class:`GaugeAnchor` and added to every covariance reported after it.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
+from autonomy.vins.fixed_lag import FixedLagSmoother
 from autonomy.vins.landmarks import (
     Gate, depth_sigma, gate_candidates, spread_choice, widest_ray_angle,
 )
@@ -198,7 +199,7 @@ def _bias(bias_g: np.ndarray, bias_a: np.ndarray) -> gtsam.imuBias.ConstantBias:
 
 
 class SlidingWindowSmoother:
-    """Keyframes and landmarks in a GTSAM ``IncrementalFixedLagSmoother`` (module docstring)."""
+    """Keyframes and landmarks in a fixed-lag smoother on iSAM2 (module docstring)."""
 
     def __init__(self, camera: PinholeCamera, T_B_C: np.ndarray, noise: ImuNoise,
                  options: VinsOptions):
@@ -220,7 +221,7 @@ class SlidingWindowSmoother:
                          options.min_depth, options.max_depth, options.max_reprojection_px, focal)
         self.resets = 0
         self.last_failure = ""
-        self._smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        self._smoother: FixedLagSmoother | None = None
         self._latest: KeyframeState | None = None
         self._window: list[_Keyframe] = []
         self._poses: dict[int, np.ndarray] = {}
@@ -273,7 +274,8 @@ class SlidingWindowSmoother:
         bias_sigmas = np.r_[[sigmas.accel_bias] * 3, [sigmas.gyro_bias] * 3]
         graph.add(gtsam.PriorFactorConstantBias(B(k), _bias(state.bias_g, state.bias_a),
                                                 gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
-        self._smoother.update(graph, values, {X(k): state.t, V(k): state.t, B(k): state.t})
+        self._smoother.update(graph, values, {X(k): state.t, V(k): state.t, B(k): state.t},
+                              eliminate_last=B(k))
         self._latest = state
         self._window = [self._keyframe(k, state.t, ids, normalised)]
         self._poses = {k: np.asarray(state.T_W_B, float)}
@@ -312,7 +314,7 @@ class SlidingWindowSmoother:
         try:
             self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
             graph, values, stamps = self._imu_step(keyframe, pim)
-            self._smoother.update(graph, values, stamps)
+            self._smoother.update(graph, values, stamps, eliminate_last=B(keyframe.index))
             self._read_estimate(keyframe, self._window + [keyframe])
         except (RuntimeError, ValueError) as error:
             raise BackendError(f"the rebuilt smoother refused keyframe {keyframe.index} at "
@@ -362,13 +364,13 @@ class SlidingWindowSmoother:
 
     # ------------------------------------------------------------------ internals
 
-    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+    def _new_smoother(self) -> FixedLagSmoother:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.options.relinearize_threshold)
         params.relinearizeSkip = 1
         params.findUnusedFactorSlots = True
         params.setFactorization(self.options.factorization.upper())
-        return gtsam.IncrementalFixedLagSmoother(self.options.smoother_lag_s, params)
+        return FixedLagSmoother(self.options.smoother_lag_s, params)
 
     @staticmethod
     def _keyframe(index: int, t: float, ids, normalised) -> _Keyframe:
@@ -405,7 +407,7 @@ class SlidingWindowSmoother:
         fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
         self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
                                 stamps)
-        self._smoother.update(graph, values, stamps)
+        self._smoother.update(graph, values, stamps, eliminate_last=B(keyframe.index))
         for _ in range(self.options.extra_iterations):
             self._smoother.update()
         self._read_estimate(keyframe, window)

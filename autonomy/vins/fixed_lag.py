@@ -1,0 +1,110 @@
+"""A fixed-lag smoother on GTSAM's iSAM2 that eliminates a chosen variable last.
+
+It does what GTSAM's ``IncrementalFixedLagSmoother`` does
+(``gtsam_unstable/nonlinear/IncrementalFixedLagSmoother.cpp``): each variable carries a
+timestamp; at every update the variables older than ``lag`` before the newest timestamp are
+eliminated first (ordering constraint group 0, so they are leaves of the Bayes tree) and then
+marginalised out, leaving a linear marginal factor on their neighbours.
+
+What it adds is the last variable of the elimination (group 2, a group of its own): the caller
+names one whose marginal information is strong and even across its dimensions, the newest
+keyframe's IMU bias. The reason is GTSAM's Cholesky (``gtsam/base/cholesky.cpp``,
+``choleskyPartial``): after factoring a clique's frontal block ``A = RᵀR`` it calls the system
+indeterminate when the last two diagonal entries of ``R`` differ by 12 binary exponents or more
+(about 4096x, information 1.7e7x), a test meant to catch rank deficiency. The last entry is the
+marginal information of the root clique's last scalar, the one before it is conditioned on
+that last one. In a visual-inertial window the absolute position and yaw (the gauge, fixed
+only by the first keyframe's prior) are held ever more weakly as the flight goes on, while
+the IMU and the landmarks tie neighbouring keyframes strongly: after 35-40 m a pose or a
+velocity eliminated last after a strongly linked one fails the test, though the window is
+well posed and QR factors it (docs/vins.md, "The rebuilds"). The bias is invariant to the
+gauge, so ending on it keeps that test on two well-determined numbers; the solution is the
+same for any ordering.
+
+Every update re-eliminates the whole window (``extraReelimKeys``) so that the constraint
+groups order all of it; a new keyframe sees most of the window's landmarks, so iSAM2 would
+re-eliminate nearly all of it anyway (docs/benchmarks.md, "VINS back-end").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+import gtsam
+
+#: The elimination ordering's constraint groups: eliminated first, the rest, eliminated last.
+_MARGINALISED, _WINDOW, _LAST = 0, 1, 2
+
+
+class FixedLagSmoother:
+    """iSAM2 over the variables of the last ``lag`` seconds (module docstring)."""
+
+    def __init__(self, lag: float, params: gtsam.ISAM2Params):
+        if not lag > 0.0:
+            raise ValueError(f"the smoother's lag must be positive, got {lag}")
+        self.lag = float(lag)
+        self._isam = gtsam.ISAM2(params)
+        self._stamps: dict[int, float] = {}
+        self._last: int | None = None
+
+    def update(self, graph: gtsam.NonlinearFactorGraph | None = None,
+               values: gtsam.Values | None = None, stamps: Mapping[int, float] | None = None,
+               eliminate_last: int | None = None) -> None:
+        """Add ``graph`` with the new variables ``values``, (re)stamp the variables in
+        ``stamps`` (seconds), solve, and marginalise every variable older than the lag.
+        ``eliminate_last`` is the key eliminated last from now on (it must be in the
+        window); without it, the one named before, until it is marginalised."""
+        graph = gtsam.NonlinearFactorGraph() if graph is None else graph
+        values = gtsam.Values() if values is None else values
+        stamps = dict(stamps or {})
+        last = self._last if eliminate_last is None else eliminate_last
+        if last is not None and last not in stamps and last not in self._stamps:
+            raise ValueError(f"the key to eliminate last, {gtsam.Symbol(last).string()}, has "
+                             "no timestamp in the window")
+        if not stamps and not self._stamps:
+            raise ValueError("the smoother holds no variable yet: the first update must stamp "
+                             "its new variables")
+        self._stamps.update(stamps)
+        self._last = last
+        newest = max(self._stamps.values())
+        old = [key for key, t in self._stamps.items() if t < newest - self.lag]
+        params = gtsam.ISAM2UpdateParams()
+        params.constrainedKeys = self._groups(old)
+        params.extraReelimKeys = _key_list(key for key in self._stamps if not values.exists(key))
+        self._isam.update(graph, values, params)
+        if old:
+            self._isam.marginalizeLeaves(_key_list(old))
+            for key in old:
+                del self._stamps[key]
+            if self._last in old:
+                self._last = None
+
+    def _groups(self, old: list[int]) -> gtsam.KeyGroupMap:
+        """The ordering constraint: ``old`` first, then the window, then the last key. Group
+        numbers are renumbered 0, 1, ... over the groups in use: GTSAM's constrained COLAMD
+        refuses a group number as large as the number of variables."""
+        wanted = dict.fromkeys(self._stamps, _WINDOW)
+        wanted.update(dict.fromkeys(old, _MARGINALISED))
+        if self._last is not None and self._last not in old:
+            wanted[self._last] = _LAST
+        renumber = {group: rank for rank, group in enumerate(sorted(set(wanted.values())))}
+        groups = gtsam.KeyGroupMap()
+        for key, group in wanted.items():
+            groups.insert2(key, renumber[group])
+        return groups
+
+    def params(self) -> gtsam.ISAM2Params:
+        return self._isam.params()
+
+    def calculateEstimate(self) -> gtsam.Values:  # noqa: N802 (GTSAM's smoother interface)
+        return self._isam.calculateEstimate()
+
+    def marginalCovariance(self, key: int):  # noqa: N802 (GTSAM's smoother interface)
+        return self._isam.marginalCovariance(key)
+
+
+def _key_list(keys: Iterable[int]) -> gtsam.KeyList:
+    key_list = gtsam.KeyList()
+    for key in keys:
+        key_list.push_back(key)
+    return key_list
