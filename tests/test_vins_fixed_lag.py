@@ -37,7 +37,7 @@ def fly_a_pose_chain(smoother, steps: int, odometry_sigma: float = 0.01, seed: i
     graph.add(gtsam.PriorFactorPoint3(B(0), np.zeros(3), sigma(3, 1e-2)))
     values.insert(X(0), gtsam.Pose3())
     values.insert(B(0), np.zeros(3))
-    update(smoother, graph, values, {X(0): 0.0, B(0): 0.0}, B(0))
+    update(smoother, graph, values, {X(0): 0.0, B(0): 0.0}, [X(0), B(0)])
     truth = gtsam.Pose3()
     for k in range(1, steps + 1):
         truth = truth.compose(step)
@@ -47,7 +47,7 @@ def fly_a_pose_chain(smoother, steps: int, odometry_sigma: float = 0.01, seed: i
         graph.add(gtsam.BetweenFactorPoint3(B(k - 1), B(k), np.zeros(3), walk))
         values.insert(X(k), truth.compose(gtsam.Pose3.Expmap(rng.normal(0.0, 1e-3, 6))))
         values.insert(B(k), np.zeros(3))
-        update(smoother, graph, values, {X(k): k * STEP, B(k): k * STEP}, B(k))
+        update(smoother, graph, values, {X(k): k * STEP, B(k): k * STEP}, [X(k), B(k)])
         yield k
 
 
@@ -83,7 +83,7 @@ def test_the_variable_to_eliminate_last_must_be_in_the_window():
     graph.add(gtsam.PriorFactorPoint3(B(0), np.zeros(3), gtsam.noiseModel.Unit.Create(3)))
     values.insert(B(0), np.zeros(3))
     with pytest.raises(ValueError, match="b7"):
-        smoother.update(graph, values, {B(0): 0.0}, eliminate_last=B(7))
+        smoother.update(graph, values, {B(0): 0.0}, eliminate_last=[B(0), B(7)])
 
 
 def test_a_first_update_without_timestamps_is_refused():

@@ -18,8 +18,8 @@ Factors:
   close keyframes hold their poses to about 1e-5 of that. A window with no landmark at all
   knows its biases only from their priors too, and meets iSAM2's "indeterminate linear
   system" within 10 s; the priors keep it from fading. In flight the window is sound, and the
-  smoother eliminates the newest bias last so that GTSAM's Cholesky does not call it
-  indeterminate as the gauge fades (:mod:`autonomy.vins.fixed_lag`).
+  smoother eliminates the newest keyframe's variables last so that GTSAM's Cholesky does not
+  call it indeterminate as the gauge fades (:mod:`autonomy.vins.fixed_lag`).
 
 The fixed-lag smoother (:class:`FixedLagSmoother`, iSAM2 underneath) marginalises every variable
 whose time stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's
@@ -194,6 +194,11 @@ def _symbol_indices(keys: np.ndarray, char: str) -> np.ndarray:
     return (keys[chars == ord(char)] & index_mask).astype(np.int64)
 
 
+def _variables(k: int) -> tuple[int, int, int]:
+    """Keyframe ``k``'s pose, velocity and bias keys."""
+    return X(k), V(k), B(k)
+
+
 def _bias(bias_g: np.ndarray, bias_a: np.ndarray) -> gtsam.imuBias.ConstantBias:
     return gtsam.imuBias.ConstantBias(np.asarray(bias_a, float), np.asarray(bias_g, float))
 
@@ -275,7 +280,7 @@ class SlidingWindowSmoother:
         graph.add(gtsam.PriorFactorConstantBias(B(k), _bias(state.bias_g, state.bias_a),
                                                 gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
         self._smoother.update(graph, values, {X(k): state.t, V(k): state.t, B(k): state.t},
-                              eliminate_last=B(k))
+                              eliminate_last=_variables(k))
         self._latest = state
         self._window = [self._keyframe(k, state.t, ids, normalised)]
         self._poses = {k: np.asarray(state.T_W_B, float)}
@@ -314,7 +319,8 @@ class SlidingWindowSmoother:
         try:
             self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
             graph, values, stamps = self._imu_step(keyframe, pim)
-            self._smoother.update(graph, values, stamps, eliminate_last=B(keyframe.index))
+            self._smoother.update(graph, values, stamps,
+                                  eliminate_last=_variables(keyframe.index))
             self._read_estimate(keyframe, self._window + [keyframe])
         except (RuntimeError, ValueError) as error:
             raise BackendError(f"the rebuilt smoother refused keyframe {keyframe.index} at "
@@ -407,7 +413,7 @@ class SlidingWindowSmoother:
         fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
         self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
                                 stamps)
-        self._smoother.update(graph, values, stamps, eliminate_last=B(keyframe.index))
+        self._smoother.update(graph, values, stamps, eliminate_last=_variables(keyframe.index))
         for _ in range(self.options.extra_iterations):
             self._smoother.update()
         self._read_estimate(keyframe, window)
