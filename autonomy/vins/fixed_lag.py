@@ -85,7 +85,8 @@ class FixedLagSmoother:
     def _groups(self, old: list[int]) -> gtsam.KeyGroupMap:
         """The ordering constraint: ``old`` first, then the window, then the last keys. Group
         numbers are renumbered 0, 1, ... over the groups in use: GTSAM's constrained COLAMD
-        refuses a group number as large as the number of variables."""
+        refused groups 1 and 2, or 0 and 2, on two variables ("variables that are not
+        involved in the factor graph")."""
         wanted = dict.fromkeys(self._stamps, _WINDOW)
         wanted.update(dict.fromkeys(self._last, _LAST))
         wanted.update(dict.fromkeys(old, _MARGINALISED))
