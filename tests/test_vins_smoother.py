@@ -1,16 +1,14 @@
 """The sliding-window smoother and its resets. Position and yaw are unobservable; in a window
 with no landmark the biases are known only from their priors too, and once the window's
 information on them is about 1e8 times weaker than its strongest, GTSAM's Cholesky calls the
-system indeterminate (a reset) whatever it eliminates last (tests/test_vins_fixed_lag.py for
-windows with landmarks). The loose keyframe priors (``keyframe_prior_position_sigma``, off by
+system indeterminate (a reset) in each elimination order tried (tests/test_vins_fixed_lag.py
+for windows with landmarks). The loose keyframe priors (``keyframe_prior_position_sigma``, off by
 default: docs/vins.md) keep it. A rebuild pins the last good keyframe, and its uncertainty is
 carried on (``GaugeAnchor``)."""
 
 import math
 
-import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.trajectory import pose_error_body
