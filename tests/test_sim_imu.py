@@ -175,6 +175,39 @@ def test_the_same_seed_gives_the_same_noise():
     assert not np.array_equal(a, c)
 
 
+def run_of(options, count=400, thrust=None):
+    """Per sample of seed 9 at TRUTH: the output, and the bias it carried (gyro then accel)."""
+    model = ImuModel(options, np.random.default_rng(9))
+    outputs, biases = [], []
+    for _ in range(count):
+        outputs.append(np.concatenate(model.measure(TRUTH, 0.005, thrust=thrust)))
+        biases.append(np.concatenate([model.gyro_bias, model.accel_bias]))
+    return model, np.array(outputs), np.array(biases)
+
+
+def test_switching_one_error_source_off_leaves_the_others_draws_as_they_were():
+    """An ablation changes one thing: each source has a stream of its own."""
+    realistic = ImuOptions()
+    base, _, base_biases = run_of(realistic)
+    no_matrices = dataclasses.replace(realistic, gyro_scale_error=0.0, gyro_cross_axis=0.0,
+                                      accel_scale_error=0.0, accel_cross_axis=0.0)
+    no_biases = dataclasses.replace(realistic, gyro_turn_on_bias=0.0, accel_turn_on_bias=0.0,
+                                    gyro_warmup_drift=0.0, accel_warmup_drift=0.0)
+    no_vibration = dataclasses.replace(realistic, accel_vibration_amplitude=0.0,
+                                       gyro_vibration_amplitude=0.0)
+    # Without the matrices, the biases (turn-on, warm-up and walk) are the same numbers.
+    np.testing.assert_array_equal(run_of(no_matrices)[2], base_biases)
+    # Without the turn-on and warm-up biases, the matrices are the same, and so is the walk.
+    model, _, walk_only = run_of(no_biases)
+    np.testing.assert_array_equal(model.accel_matrix, base.accel_matrix)
+    np.testing.assert_array_equal(model.gyro_matrix, base.gyro_matrix)
+    np.testing.assert_array_equal(run_of(IDEAL)[2], walk_only)
+    # Without vibration, every sample is what the realistic model gives with its rotors
+    # stopped (thrust 0: no vibration, though its phase walk still draws).
+    np.testing.assert_array_equal(run_of(no_vibration)[1], run_of(realistic, thrust=0.0)[1])
+    assert not np.array_equal(run_of(no_vibration)[1], run_of(realistic)[1])
+
+
 # --- motor vibration ---------------------------------------------------------------------------
 
 def vibration_options(**changes):

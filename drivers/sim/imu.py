@@ -78,11 +78,14 @@ the model is made)::
    change), so 0.1 dps and 3 mg. ``tau = 300 s`` is an ASSUMED board warm-up time constant (a
    few minutes); no source for it was found.
 
-The model is deterministic from its ``rng``: the per-run draws (``M``, ``b_0``, ``b_final``,
-vibration phases) come first, at construction, and only for the effects that are on; then each
-sample draws the white noise and walk (12 normals) and, with vibration on, one phase step. With
-every new effect off (:meth:`ImuOptions.for_profile` ``"ideal"``) no extra number is drawn and
-the output is bit for bit that of the white-noise-and-walk model alone.
+The model is deterministic from its ``rng``, and each error source draws from a stream of its
+own, so switching one source off leaves every other source's numbers as they were and an
+ablation changes one thing only. ``rng`` itself draws the white noise and walk (12 normals a
+sample); three children spawned from its seed sequence (``Generator.spawn``, which leaves the
+parent's stream untouched) draw the matrices ``M_g`` and ``M_a`` (always both, 18 normals),
+the biases ``b_0`` and ``b_final`` (12 normals) and the vibration's phases and phase walk. With
+every new effect off (:meth:`ImuOptions.for_profile` ``"ideal"``) the output is bit for bit
+that of the white-noise-and-walk model alone.
 """
 
 from __future__ import annotations
@@ -269,26 +272,29 @@ class ImuModel:
         self._walks = np.array(
             [o.gyro_bias_random_walk] * 3 + [o.accel_bias_random_walk] * 3, dtype=float
         )
-        # Per-run draws, each only when its effect is on (the ideal profile draws none).
+        # One stream per error source (module docstring), each drawn only when it is on.
+        matrix_rng, bias_rng, self._vibration_rng = rng.spawn(3)
         self._gyro_matrix: np.ndarray | None = None
         self._accel_matrix: np.ndarray | None = None
         if o.enabled and (o.gyro_scale_error or o.gyro_cross_axis
                           or o.accel_scale_error or o.accel_cross_axis):
-            self._gyro_matrix = _scale_misalignment(rng, o.gyro_scale_error, o.gyro_cross_axis)
-            self._accel_matrix = _scale_misalignment(rng, o.accel_scale_error, o.accel_cross_axis)
+            self._gyro_matrix = _scale_misalignment(matrix_rng, o.gyro_scale_error,
+                                                    o.gyro_cross_axis)
+            self._accel_matrix = _scale_misalignment(matrix_rng, o.accel_scale_error,
+                                                     o.accel_cross_axis)
         self._bias_start: np.ndarray | None = None  # b_0, gyro then accel
         self._bias_final: np.ndarray | None = None  # b_final
         if o.enabled and (o.gyro_turn_on_bias or o.accel_turn_on_bias
                           or o.gyro_warmup_drift or o.accel_warmup_drift):
-            draws = rng.standard_normal(12)
+            draws = bias_rng.standard_normal(12)
             self._bias_start = np.repeat([o.gyro_turn_on_bias, o.accel_turn_on_bias], 3) * draws[:6]
             self._bias_final = self._bias_start + np.repeat(
                 [o.gyro_warmup_drift, o.accel_warmup_drift], 3) * draws[6:]
         self._vibrating = o.enabled and bool(o.accel_vibration_amplitude
                                               or o.gyro_vibration_amplitude)
         if self._vibrating:
-            self._rotor_angle = float(rng.uniform(0.0, 2.0 * math.pi))
-            self._axis_phases = rng.uniform(0.0, 2.0 * math.pi, 6)
+            self._rotor_angle = float(self._vibration_rng.uniform(0.0, 2.0 * math.pi))
+            self._axis_phases = self._vibration_rng.uniform(0.0, 2.0 * math.pi, 6)
             self._vibration_amplitudes = np.repeat(
                 [o.gyro_vibration_amplitude, o.accel_vibration_amplitude], 3)
 
@@ -351,7 +357,7 @@ class ImuModel:
         frequency = o.vibration_frequency_hz * math.sqrt(level)
         self._rotor_angle += 2.0 * math.pi * frequency * dt
         if o.vibration_phase_walk > 0.0:
-            step = self._rng.standard_normal()
+            step = self._vibration_rng.standard_normal()
             self._rotor_angle += o.vibration_phase_walk * math.sqrt(dt) * step
         self._rotor_angle = math.fmod(self._rotor_angle, 2.0 * math.pi)
         gain = self._vibration_gain(frequency, dt)
