@@ -7,12 +7,13 @@ the camera head and ``sim record``.
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
 from autonomy.geometry import PinholeCamera, distort_points, rot_to_quat, so3_log
 from autonomy.options import OptionError
-from drivers.dataset.euroc import read_camera
+from drivers.dataset.euroc import read_camera, read_imu
 from drivers.sim.camera import CameraHead
 from drivers.sim.sensor import (REFERENCE_EXPOSURE_S, REFERENCE_LUX, CameraSensor,
                                 SensorOptions, camera_twist)
@@ -256,6 +257,35 @@ def test_a_realistic_recording_has_the_lens_late_stamps_and_aligned_depth(tmp_pa
     assert offsets == pytest.approx(0.015, abs=1e-6)
     depth = read_camera(tmp_path, "depth0")
     assert np.array_equal(depth.t_ns, stream.t_ns)
+
+
+def test_a_switched_off_sensor_leaves_the_realistic_world_and_imu_with_an_exact_camera(
+        tmp_path):
+    """``[sim_camera] enabled = false``: the ablation of the camera alone."""
+    from drivers.camera.options import CameraOptions
+    from drivers.sim.imu import ImuOptions
+    from drivers.sim.options import SimOptions
+    from drivers.sim.quadrotor import VehicleOptions
+    from drivers.sim.record import record_dataset
+    off = SensorOptions(enabled=False)
+    assert off.for_profile("realistic") is None and SensorOptions().for_profile("ideal") is None
+    assert SensorOptions().for_profile("realistic") == SensorOptions()
+    runs = {}
+    for name, sensor in (("off", off), ("on", SensorOptions()), ("ideal", None)):
+        profile = "ideal" if name == "ideal" else "realistic"
+        record_dataset(tmp_path / name, SimOptions(world="mine", seed=1, profile=profile),
+                       CameraOptions(width=160, height=120), VehicleOptions(), ImuOptions(),
+                       duration=0.5, sim_camera=sensor)
+        runs[name] = (read_camera(tmp_path / name), read_imu(tmp_path / name))
+    stream, imu = runs["off"]
+    assert stream.distortion == pytest.approx((0.0,) * 4)
+    assert stream.t_ns.tolist() == (np.arange(len(stream.t_ns)) * 50_000_000).tolist()
+    # The IMU is the realistic one, sample for sample, and the world the realistic one (the
+    # mine's dust): the image is not the ideal world's.
+    assert np.array_equal(imu.accel, runs["on"][1].accel)
+    assert not np.array_equal(imu.accel, runs["ideal"][1].accel)
+    last, ideal_last = (cv2.imread(str(runs[name][0].paths[-1])) for name in ("off", "ideal"))
+    assert not np.array_equal(last, ideal_last)
 
 
 def _deliveries(head: CameraHead, frames: int) -> list[tuple[float, float]]:

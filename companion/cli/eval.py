@@ -177,7 +177,7 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
             cache=args.cache or rescale.default_cache_dir(),
             recording=rescale.Recording(
                 config.camera, config.vehicle, config.imu,
-                config.sim_camera if config.sim.profile == "realistic" else None),
+                config.sim_camera.for_profile(config.sim.profile)),
             options=depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
                                            config.vins_frontend, config.vins_init),
             open_network=lambda: depth.open_relative_depth_source(

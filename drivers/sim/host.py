@@ -216,8 +216,8 @@ def camera_head(config, world: str, seed: int) -> CameraHead:
     """The simulated camera ``config`` describes in ``world``: ideal, or in the realistic
     profile behind ``[sim_camera]``'s sensor, its errors drawn from ``seed``."""
     camera = config.camera
-    sensor = config.sim_camera if config.sim.profile == "realistic" else None
-    return CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), sensor, world,
+    return CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(),
+                      config.sim_camera.for_profile(config.sim.profile), world,
                       np.random.default_rng([seed, 3]))
 
 

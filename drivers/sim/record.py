@@ -243,7 +243,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``,
     in ``sim.profile``: realistic, through the camera sensor ``sim_camera`` (default
     ``[sim_camera]``'s defaults; its lens is written into ``sensor.yaml``, and the mounting
-    written is the configured one, not the camera's true one), or ideal.
+    written is the configured one, not the camera's true one; none when it is switched off),
+    or ideal.
 
     The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset.
     """
@@ -254,7 +255,7 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")
     world = build_world(sim.world, sim.seed, sim.profile)
     route = world.routes[sim.seed % len(world.routes)]
-    sensor = (sim_camera or SensorOptions()) if sim.profile == "realistic" else None
+    sensor = (sim_camera or SensorOptions()).for_profile(sim.profile)
     imu = imu.for_profile(sim.profile)
     distortion = tuple(sensor.distortion) if sensor and sensor.distortion else (0.0,) * 4
     with EurocWriter(out, camera.pinhole(), camera.T_B_C(), camera.rate_hz,

@@ -71,6 +71,8 @@ class SensorOptions:
     """The simulated camera's sensor, lens and timing: config table ``[sim_camera]``, used by
     the ``realistic`` profile (``[sim] profile``); sources in docs/simulator.md."""
 
+    enabled: bool = option(True, doc="false: the realistic profile with an exact camera (the "
+                           "world and IMU stay realistic), to measure what the sensor costs")
     time_offset_ms: float = option(15.0, ge=-40.0, le=40.0, doc="camera clock behind the IMU's: "
                                    "frames are stamped this late, unknown to the application")
     timestamp_jitter_ms: float = option(1.0, ge=0.0, le=10.0, doc="standard deviation of the "
@@ -113,6 +115,11 @@ class SensorOptions:
         if len(self.distortion) not in (0, 4, 5):
             raise OptionError("distortion", "radial-tangential takes 4 or 5 coefficients "
                               f"(k1 k2 p1 p2 [k3]) or none, got {len(self.distortion)}")
+
+    def for_profile(self, profile: str) -> "SensorOptions | None":
+        """The sensor a camera of the simulator's ``profile`` looks through: these options in
+        ``realistic`` unless switched off (``enabled``), None (an exact camera) otherwise."""
+        return self if profile == "realistic" and self.enabled else None
 
     def illuminance(self, world: str) -> float:
         """The light level of ``world``, lux."""
