@@ -279,11 +279,22 @@ def simulated(record_flight):
     return record_flight("mine", 8.0)
 
 
+def test_a_trajectory_too_large_by_three_percent_reports_its_scale(tmp_path):
+    _write_dataset(tmp_path)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 81)
+    trace.positions = [None if p is None else 1.03 * np.asarray(p) for p in trace.positions]
+    result = score_vio(trace, data)
+    assert result["scale"] == pytest.approx(1.03, rel=1e-6)
+    assert result["scale_error"] == pytest.approx(1.0 - 1.0 / 1.03, rel=1e-6)
+    assert result["ate_rmse_m"] > 1e-3
+
+
 def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
     status, captured = _eval_vio(capsys, simulated, "--json")
     assert status == 0, captured.err
     result = json.loads(captured.out)
-    numbers = ("ate_rmse_m", "distance_m", "ate_over_distance", "scale_error",
+    numbers = ("ate_rmse_m", "distance_m", "ate_over_distance", "scale_error", "scale",
                "depth_rel_err_median", "frontend_ms_median", "backend_ms_median",
                "backend_ms_p95", "correction_m_median", "correction_m_max",
                "nees_pose_mean", "nees_pose_median", "nees_velocity_mean",

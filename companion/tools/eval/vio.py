@@ -240,7 +240,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
 
     ``ate_rmse_m``: RMS position error of the traced body positions against the ground truth
     interpolated at the frame times, after the best rigid (SE(3)) alignment; ``scale_error``:
-    ``|s - 1|`` of the best similarity (Sim(3)) alignment of the same positions;
+    ``|s - 1|`` of the best similarity (Sim(3)) alignment of the same positions onto the
+    truth, and ``scale`` its signed ``1 / s``, the estimate's size over the truth's (above 1:
+    the VINS overestimates distances, and depths with them);
     ``distance_m``: ground-truth path length over those frames. ``depth_rel_err_median``:
     median of the traced depth errors (None when the dataset has no ``depth0``). Back-end times
     are over the keyframes (where the smoother ran), as are ``correction_m_median`` and
@@ -362,11 +364,12 @@ def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruth
         scale = align_umeyama(estimated, true_positions, with_scale=True).s
     except ValueError as error:
         return {"ate_rmse_m": None, "distance_m": distance, "ate_over_distance": None,
-                "scale_error": None,
+                "scale_error": None, "scale": None,
                 "note": f"no trajectory error from {len(chosen)} poses: {error}"}
     return {"ate_rmse_m": ate, "distance_m": distance,
             "ate_over_distance": ate / distance if distance > 0.0 else None,
-            "scale_error": finite_or_none(abs(scale - 1.0))}
+            "scale_error": finite_or_none(abs(scale - 1.0)),
+            "scale": finite_or_none(1.0 / scale) if scale > 0.0 else None}
 
 
 def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
