@@ -17,8 +17,8 @@ import cv2
 import pytest
 
 from companion.cli import main
-from companion.config import Config
-from companion.tools.eval import nav
+from companion.config import Config, load_config
+from companion.tools.eval import nav, provenance
 from companion.tools.eval.vio import EvaluationError
 from drivers.sim.world import build_world
 
@@ -379,3 +379,133 @@ def test_merge_flies_nothing_so_it_takes_no_flight_option(tmp_path, capsys):
     assert main(["eval", "nav", "--merge", str(part), "--trials", "5", "--quick"]) == 2
     err = capsys.readouterr().err
     assert err.splitlines() == ["eval nav: --merge flies nothing; drop --trials, --quick"]
+
+
+# ---------------------------------------------------------------- provenance and resuming
+
+def test_every_record_carries_the_code_revision_and_the_config_hash(short_run):
+    *_, records = short_run
+    flown = nav.trial_config(Config(), nav.TIMEOUT_S)
+    for record in records:
+        assert record["revision"] == provenance.code_revision()
+        assert record["config_hash"] == provenance.config_hash(flown)
+
+
+def test_the_revision_is_the_commit_and_names_an_uncommitted_edit(tmp_path):
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+    assert provenance.code_revision(tmp_path) == provenance.UNKNOWN
+    git("init", "-q")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", "code.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
+    head = subprocess.run(["git", "-C", str(tmp_path), "rev-parse", "HEAD"],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    assert provenance.code_revision(tmp_path) == head
+    (tmp_path / "code.py").write_text("x = 2\n")
+    one_edit = provenance.code_revision(tmp_path)
+    (tmp_path / "code.py").write_text("x = 3\n")
+    other_edit = provenance.code_revision(tmp_path)
+    assert one_edit.startswith(head + "+dirty.") and other_edit.startswith(head + "+dirty.")
+    assert one_edit != other_edit
+
+
+def test_the_config_hash_follows_the_config_not_how_it_was_written():
+    assert provenance.config_hash(load_config(None, ["planner.speed=1.5"])) == \
+        provenance.config_hash(load_config(None, ["planner.speed=1.0", "planner.speed=1.5"]))
+    assert provenance.config_hash(load_config(None, [])) != \
+        provenance.config_hash(load_config(None, ["planner.speed=1.5"]))
+
+
+def _stamped(records, revision="abc", config_hash="123"):
+    return [{**r, "revision": revision, "config_hash": config_hash} for r in records]
+
+
+@pytest.mark.parametrize("parts, words", [
+    ((_stamped(_flown_records(0, 1)), _stamped(_flown_records(1, 1), revision="def")),
+     "different code revisions (abc, def)"),
+    ((_stamped(_flown_records(0, 1)), _stamped(_flown_records(1, 1), config_hash="456")),
+     "different configs (123, 456)"),
+    ((_stamped(_flown_records(0, 1)), _flown_records(1, 1)),
+     "different code revisions (abc, none recorded)"),
+])
+def test_parts_from_different_code_or_configs_are_not_merged(tmp_path, parts, words):
+    files = [_write(tmp_path / f"part{k}.jsonl", records) for k, records in enumerate(parts)]
+    with pytest.raises(EvaluationError, match=words.replace("(", "\\(").replace(")", "\\)")):
+        nav.read_runs(files)
+    assert nav.read_runs(files[:1])  # one part alone is one evaluation
+
+
+def test_an_interrupted_runs_file_keeps_its_records_and_drops_only_a_torn_last_line(tmp_path):
+    records = _stamped(_flown_records(0, 1))
+    path = tmp_path / "runs.jsonl"
+    for record in records[:3]:
+        nav.append_run(record, path)
+    assert nav.read_resumable(path) == (records[:3], None)
+    with open(path, "a") as stream:
+        stream.write(json.dumps(records[3])[:40])  # the interruption, mid-line
+    assert nav.read_resumable(path) == (records[:3], f"{path}:4: a torn last record "
+                                                     "(the interruption) left out")
+    path.write_text("{torn\n" + "".join(json.dumps(r) + "\n" for r in records[:2]))
+    with pytest.raises(EvaluationError, match="runs.jsonl:1: not JSON"):
+        nav.read_resumable(path)
+    assert nav.read_resumable(tmp_path / "absent.jsonl") == ([], None)
+
+
+def _resume_without_flying(monkeypatch, done, **options):
+    """``evaluate_navigation`` of dome and sewer, pairs 0 and 1, seed 0, one trial, resumed
+    from ``done``, with each trial "flown" as the made-up records say; what it flew too."""
+    flown_now = []
+
+    def fly(config, trials, *, provenance=None, on_record=None, **_):
+        made_up = {(r["world"], r["pair"], r["depth"], r["seed"]): r
+                   for r in _flown_records(0, 1)}
+        records = [{**made_up[(t.world, t.pair, t.depth, t.seed)], **provenance}
+                   for t in trials]
+        flown_now.extend(records)
+        for record in records:
+            on_record(record)
+        return records
+    monkeypatch.setattr(nav, "run_trials", fly)
+    appended = []
+    result, records = nav.evaluate_navigation(
+        Config(), worlds=["dome", "sewer"], pairs=[0, 1], trials=1, seed=0,
+        done=done, on_record=appended.append, **options)
+    return result, records, flown_now, appended
+
+
+def test_a_resumed_run_flies_only_what_it_lacks_and_reports_the_whole(monkeypatch):
+    stamp = {"revision": provenance.code_revision(),
+             "config_hash": provenance.config_hash(nav.trial_config(Config(), nav.TIMEOUT_S))}
+    everything = [{**r, **stamp} for r in _flown_records(0, 1)]
+    done = everything[:3]  # interrupted after three of eight trials
+    result, records, flown_now, appended = _resume_without_flying(monkeypatch, done)
+    assert records == everything and result == nav.summarise(everything)
+    assert flown_now == everything[3:] == appended
+    _, records, flown_now, _ = _resume_without_flying(monkeypatch, everything)
+    assert records == everything and flown_now == []
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda done: [{**r, "revision": "0" * 40} for r in done], "different code revisions"),
+    (lambda done: [{**r, "config_hash": "0" * 16} for r in done], "different configs"),
+    (lambda done: done + done[:1], "recorded more than once"),
+    (lambda done: [{**done[0], "seed": 7}], "dome pair 0 gt seed 7 was flown but is not in "
+                                            "this run's plan"),
+])
+def test_a_resume_that_does_not_continue_the_same_run_is_refused(monkeypatch, change, words):
+    stamp = {"revision": provenance.code_revision(),
+             "config_hash": provenance.config_hash(nav.trial_config(Config(), nav.TIMEOUT_S))}
+    done = [{**r, **stamp} for r in _flown_records(0, 1)[:2]]
+    with pytest.raises(EvaluationError, match=words):
+        _resume_without_flying(monkeypatch, change(done))
+
+
+def test_a_runs_file_in_use_is_not_overwritten(tmp_path, capsys):
+    runs = tmp_path / "runs.jsonl"
+    runs.write_text(json.dumps(_flown_records(0, 1)[0]) + "\n")
+    assert main(["eval", "nav", "--quick", "--runs", str(runs)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"eval nav: {runs} exists; --resume it, or choose a new --runs file"]
+    assert main(["eval", "nav", "--quick", "--resume", str(runs), "--runs", str(runs)]) == 2
+    assert "--resume adds to its own file; drop --runs" in capsys.readouterr().err

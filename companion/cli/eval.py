@@ -123,7 +123,12 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                          help="also write the Markdown report to FILE")
     command.add_argument("--runs", type=Path, metavar="FILE",
                          help="write every trial's record (seed, outcome, times, path length, "
-                              "failsafes) to FILE as JSON lines")
+                              "failsafes, code revision, config hash) to FILE as JSON lines, "
+                              "each as its trial completes; FILE must be new")
+    command.add_argument("--resume", type=Path, metavar="FILE",
+                         help="go on with the interrupted run whose --runs file is FILE: fly "
+                              "only the trials it lacks, add them to it, and report them all; "
+                              "give the options the run was started with")
     command.add_argument("--merge", nargs="+", type=Path, metavar="RUNS",
                          help="fly nothing: report the records of these --runs files (an "
                               "evaluation flown in parts, e.g. one --seed each) as one run; "
@@ -202,14 +207,26 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
             print(f"eval nav: --merge flies nothing; drop {', '.join(flight_options)}",
                   file=sys.stderr)
             return common.EXIT_USAGE
+        if args.resume:
+            print("eval nav: --merge flies nothing, so there is nothing to --resume",
+                  file=sys.stderr)
+            return common.EXIT_USAGE
+    runs = args.resume or args.runs
+    if args.resume and args.runs:
+        print("eval nav: --resume adds to its own file; drop --runs", file=sys.stderr)
+        return common.EXIT_USAGE
+    if args.runs and args.runs.exists() and args.runs.stat().st_size:
+        print(f"eval nav: {args.runs} exists; --resume it, or choose a new --runs file",
+              file=sys.stderr)
+        return common.EXIT_USAGE
     try:
-        records = nav.read_runs(args.merge) if args.merge else _fly_nav(args, config)
-    except EvaluationError as error:
+        records = nav.read_runs(args.merge) if args.merge else _fly_nav(args, config, runs)
+    except (EvaluationError, OSError) as error:
         print(f"eval nav: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     result = nav.summarise(records)
     return common.report("eval nav", args, result, nav.format_markdown(result, records),
-                         (args.runs, lambda path: nav.write_runs(records, path)),
+                         (runs, lambda path: nav.write_runs(records, path)),
                          (args.plot, lambda path: nav.plot_navigation(result, path)))
 
 
@@ -217,9 +234,18 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
 _NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers", "quick")
 
 
-def _fly_nav(args: argparse.Namespace, config: Config) -> list[dict]:
+def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> list[dict]:
+    """Fly the trials ``args`` plan, those of the ``--resume`` file excepted, adding each
+    record to ``runs`` (if given) as it completes."""
     from companion.tools.eval import nav
     from drivers.sim.options import WORLD_NAMES
+
+    done = []
+    if args.resume:
+        done, note = nav.read_resumable(args.resume)
+        if note:
+            print(f"eval nav: {note}", file=sys.stderr)
+        nav.write_runs(done, args.resume)  # without the torn line, before adding to it
 
     seed = config.sim.seed if args.seed is None else args.seed
     timeout = nav.TIMEOUT_S if args.timeout is None else args.timeout
@@ -228,5 +254,6 @@ def _fly_nav(args: argparse.Namespace, config: Config) -> list[dict]:
         worlds, pairs, trials = (args.worlds or [nav.QUICK_WORLD])[:1], [0], 1
     _, records = nav.evaluate_navigation(
         config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
-        workers=args.workers, progress=sys.stderr)
+        workers=args.workers, progress=sys.stderr, done=done,
+        on_record=None if runs is None else lambda record: nav.append_run(record, runs))
     return records

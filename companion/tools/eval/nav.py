@@ -36,9 +36,13 @@ None without one.
 Parts. Since the result depends only on the arguments, an evaluation too long for one sitting
 can be flown in parts (one ``--seed S --trials 1`` or one ``--worlds W`` each, every part with
 ``--runs``) and reported as one: :func:`read_runs` merges the parts' records into those of
-the whole run, refusing parts that overlap, flew different time limits, or fly one depth source
-without the other. Trials run in worker processes (``spawn``: each starts clean, its own OpenGL
-context); a one-line progress bar goes to stderr as they finish.
+the whole run, refusing parts that overlap, flew different time limits, fly one depth source
+without the other, or come from different code or configs (each record carries the git
+revision and the config's hash, :mod:`~companion.tools.eval.provenance`). With ``--runs``
+each record is added to the file as its trial completes, so an interrupted run loses only the
+trials in flight, and ``--resume`` flies only the trials its file lacks. Trials run in worker
+processes (``spawn``: each starts clean, its own OpenGL context); a one-line progress bar
+goes to stderr as they finish.
 """
 
 from __future__ import annotations
@@ -56,13 +60,14 @@ import time
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, TextIO
+from typing import Callable, Iterable, TextIO
 
 import cv2
 import numpy as np
 
 from companion.launch import simulated
 from companion.report import mean_or_none, show
+from companion.tools.eval import provenance
 from companion.tools.eval.vio import EvaluationError
 from companion.tools.plot import png_path, text, write_image
 from drivers.sim.options import WORLD_NAMES
@@ -266,9 +271,11 @@ class ProgressBar:
 
 
 def run_trials(config, trials: list[Trial], *, workers: int | None = None,
-               progress: ProgressBar | None = None) -> list[dict]:
+               progress: ProgressBar | None = None, provenance: dict | None = None,
+               on_record: Callable[[dict], None] | None = None) -> list[dict]:
     """Fly ``trials`` in up to ``workers`` ``spawn`` processes (default: the CPU count) and
-    return their records in the order of ``trials``. The first error stops the run (trials not
+    return their records in the order of ``trials``, each with ``provenance``'s keys added
+    and handed to ``on_record`` as it completes. The first error stops the run (trials not
     started are cancelled) and is raised as EvaluationError."""
     if workers is not None and workers < 1:
         raise EvaluationError(f"workers must be at least 1, got {workers}")
@@ -284,9 +291,12 @@ def run_trials(config, trials: list[Trial], *, workers: int | None = None,
     try:
         futures = {pool.submit(fly_trial, config, trial): k for k, trial in enumerate(trials)}
         for future in concurrent.futures.as_completed(futures):
-            records[futures[future]] = future.result()
+            record = {**future.result(), **(provenance or {})}
+            records[futures[future]] = record
+            if on_record is not None:
+                on_record(record)
             if progress is not None:
-                progress.update(records[futures[future]])
+                progress.update(record)
     except BrokenProcessPool:
         raise EvaluationError("a worker process died (out of memory?); no result") from None
     finally:
@@ -298,14 +308,36 @@ def run_trials(config, trials: list[Trial], *, workers: int | None = None,
 
 def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] | None = None,
                         trials: int = TRIALS, seed: int = 0, timeout_s: float = TIMEOUT_S,
-                        workers: int | None = None, progress: TextIO | None = None
+                        workers: int | None = None, progress: TextIO | None = None,
+                        done: Iterable[dict] = (),
+                        on_record: Callable[[dict], None] | None = None
                         ) -> tuple[dict, list[dict]]:
     """Plan (:func:`plan_trials`), fly (:func:`run_trials`) and count (:func:`summarise`):
-    ``(result, records)``; a :class:`ProgressBar` on the ``progress`` stream if given."""
+    ``(result, records)``; a :class:`ProgressBar` on the ``progress`` stream if given.
+
+    ``done``: records of this evaluation flown before (a run resumed, ``--resume``). Their
+    trials are not flown again; they must come from the same code and config as this run
+    (:func:`check_provenance`), and they join the records returned, in the order of the plan.
+    Every record carries the code's revision and the config's hash (:mod:`provenance`)."""
     planned = plan_trials(worlds, pairs, trials, seed)
     flown = trial_config(config, timeout_s)
-    bar = None if progress is None else ProgressBar(len(planned), progress)
-    records = run_trials(flown, planned, workers=workers, progress=bar)
+    stamp = {"revision": provenance.code_revision(), "config_hash": provenance.config_hash(flown)}
+    done = list(done)
+    check_provenance([*done, stamp])
+    finished = {_trial_key(r) for r in done}
+    if len(finished) < len(done):
+        raise EvaluationError("a trial is recorded more than once in the records resumed")
+    keys = [(t.world, t.pair, t.depth, t.seed) for t in planned]
+    foreign = finished - set(keys)
+    if foreign:
+        raise EvaluationError(f"{_describe(min(foreign))} was flown but is not in this run's "
+                              "plan; resume with the options the run was started with")
+    pending = [t for t, key in zip(planned, keys) if key not in finished]
+    bar = None if progress is None else ProgressBar(len(pending), progress)
+    new = run_trials(flown, pending, workers=workers, progress=bar, provenance=stamp,
+                     on_record=on_record)
+    by_trial = {_trial_key(r): r for r in done + new}
+    records = merge_records([by_trial[key] for key in keys])
     return summarise(records), records
 
 
@@ -333,11 +365,46 @@ def count(records: list[dict]) -> dict:
 
 
 def write_runs(records: list[dict], out: Path) -> Path:
-    """Every trial's record as JSON lines at ``out`` (parent folders created)."""
+    """Every trial's record as JSON lines at ``out`` (parent folders created), replacing it
+    at once: written beside it, then renamed over it."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("".join(json.dumps(r) + "\n" for r in records))
+    partial = out.with_name(out.name + ".partial")
+    partial.write_text("".join(json.dumps(r) + "\n" for r in records))
+    os.replace(partial, out)
     return out
+
+
+def append_run(record: dict, out: Path) -> None:
+    """Add one trial's record to ``out`` as it completes: one line in one write, flushed to
+    the disk, so an interruption loses at most the line being written (:func:`read_resumable`
+    drops such a torn last line)."""
+    with open(out, "a") as stream:
+        stream.write(json.dumps(record) + "\n")
+        stream.flush()
+        os.fsync(stream.fileno())
+
+
+def read_resumable(path: Path) -> tuple[list[dict], str | None]:
+    """The records of an interrupted run's ``--runs`` file (none if it does not exist or is
+    empty), and a note when its last line was torn by the interruption and left out. Any
+    other unreadable line is an EvaluationError, as in :func:`read_runs`."""
+    path = Path(path)
+    if not path.exists():
+        return [], None
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as error:
+        raise EvaluationError(f"{path}: cannot read: {error}") from None
+    numbered = [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
+    note = None
+    if numbered:
+        try:
+            json.loads(numbered[-1][1])
+        except json.JSONDecodeError:
+            note = f"{path}:{numbered[-1][0]}: a torn last record (the interruption) left out"
+            numbered.pop()
+    return [_parse_record(line, f"{path}:{n}") for n, line in numbered], note
 
 
 # --------------------------------------------------------------------------------------------
@@ -409,6 +476,7 @@ def merge_records(records: list[dict]) -> list[dict]:
     if twice:
         raise EvaluationError(f"{_describe(twice[0])} is in more than one record "
                               "(a part merged twice?)")
+    check_provenance(records)
     limits = sorted({r["timeout_s"] for r in records})
     if len(limits) > 1:
         raise EvaluationError("the runs flew different time limits ("
@@ -427,6 +495,18 @@ def merge_records(records: list[dict]) -> list[dict]:
         seeds[record["world"], record["pair"], record["depth"]].append(record["seed"])
     return [{**r, "index": seeds[r["world"], r["pair"], r["depth"]].index(r["seed"])}
             for r in ordered]
+
+
+def check_provenance(records: Iterable[dict]) -> None:
+    """EvaluationError unless ``records`` all come from one revision of the code and one
+    config (their ``revision`` and ``config_hash``; records from before these were kept have
+    neither, and merge only with each other)."""
+    records = list(records)
+    for key, what in (("revision", "code revisions"), ("config_hash", "configs")):
+        values = list(dict.fromkeys(str(r.get(key, "none recorded")) for r in records))
+        if len(values) > 1:
+            raise EvaluationError(f"the records come from different {what} ({', '.join(values)})"
+                                  "; one evaluation is flown by one code and config")
 
 
 def _trial_key(record: dict) -> tuple:

@@ -1,0 +1,46 @@
+"""What made an evaluation's records: the code's revision and the config's hash.
+
+Records flown in parts, or resumed after an interruption, are one evaluation only if the same
+code flew them with the same config; each record carries both so that merging can check
+(:func:`companion.tools.eval.nav.merge_records`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import subprocess
+from pathlib import Path
+
+from companion.config import Config, dump_toml
+
+#: The revision of code that is not a git checkout (an installed wheel), or when git is missing.
+UNKNOWN = "unknown"
+#: The checkout this package runs from: companion/tools/eval/ is three folders below it.
+_CHECKOUT = Path(__file__).resolve().parents[3]
+
+
+def code_revision(checkout: Path = _CHECKOUT) -> str:
+    """The git commit ``checkout`` is at; with ``+dirty.<hash>`` when tracked files differ from
+    it, the hash of that difference (``git diff HEAD``), so two different edits of one commit
+    are two revisions. :data:`UNKNOWN` outside a git checkout or without git."""
+    if not (checkout / ".git").exists():
+        return UNKNOWN
+    try:
+        head = _git(checkout, "rev-parse", "HEAD").strip()
+        difference = _git(checkout, "diff", "HEAD", "--no-ext-diff", "--binary")
+    except (OSError, subprocess.SubprocessError):
+        return UNKNOWN
+    if not difference:
+        return head
+    return f"{head}+dirty.{hashlib.sha256(difference.encode()).hexdigest()[:12]}"
+
+
+def config_hash(config: Config) -> str:
+    """SHA-256 (first 16 hex digits) of the effective config as TOML (:func:`dump_toml`): equal
+    for equal configs, however they were written (file, overrides, defaults)."""
+    return hashlib.sha256(dump_toml(config).encode()).hexdigest()[:16]
+
+
+def _git(checkout: Path, *args: str) -> str:
+    return subprocess.run(["git", "-C", str(checkout), *args], capture_output=True, text=True,
+                          timeout=30, check=True).stdout
