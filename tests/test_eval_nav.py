@@ -23,7 +23,7 @@ from companion.tools.eval.vio import EvaluationError
 from drivers.sim.world import build_world
 
 WORLD, PAIR = "sewer", 3  # a_far -> a_top: the shortest pair of the three worlds (seed 0)
-KEYS = {"trials", "success", "collision", "timeout", "mean_time_s"}
+KEYS = {"trials", "success", "collision", "timeout", "error", "mean_time_s"}
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def short_run(tmp_path_factory, opengl):
 
 # ---------------------------------------------------------------- the command, flown
 
-def test_stdout_is_exactly_the_json_shape_issue_7_gives(short_run):
+def test_stdout_is_the_json_shape_issue_7_gives_with_issue_26s_error_count(short_run):
     result, *_ = short_run
     assert list(result) == ["gt", "estimated"]
     for source in result.values():
@@ -53,13 +53,15 @@ def test_stdout_is_exactly_the_json_shape_issue_7_gives(short_run):
         assert set(numbers) == KEYS
         assert numbers["trials"] == 1
         assert numbers["success"] + numbers["collision"] + numbers["timeout"] == 1
+        assert numbers["error"] == 0
         assert numbers["mean_time_s"] is None or numbers["mean_time_s"] > 0
 
 
 def test_the_ground_truth_depth_trial_reaches_its_goal_without_collision(short_run):
     result, _, _, _, records = short_run
     assert result["gt"][WORLD] | {"mean_time_s": None} == {
-        "trials": 1, "success": 1, "collision": 0, "timeout": 0, "mean_time_s": None}
+        "trials": 1, "success": 1, "collision": 0, "timeout": 0, "error": 0,
+        "mean_time_s": None}
     gt = next(r for r in records if r["depth"] == "gt")
     assert gt["reached_goal"] and gt["collisions"] == 0 and gt["failsafes"] == [], gt
     assert result["gt"][WORLD]["mean_time_s"] == gt["flight_time_s"]
@@ -239,10 +241,28 @@ def _records():
 def test_counts_and_mean_time_of_the_successes():
     result = nav.summarise(_records())
     assert result == {
-        "gt": {"dome": {"trials": 4, "success": 2, "collision": 1, "timeout": 1,
+        "gt": {"dome": {"trials": 4, "success": 2, "collision": 1, "timeout": 1, "error": 0,
                         "mean_time_s": 35.0}},
         "estimated": {"dome": {"trials": 1, "success": 0, "collision": 0, "timeout": 1,
-                               "mean_time_s": None}}}
+                               "error": 0, "mean_time_s": None}}}
+
+
+def test_a_trial_that_raises_is_an_error_record_with_its_traceback_and_the_run_goes_on():
+    """Pair 99 of the dome does not exist: the flight raises in its worker."""
+    config = nav.trial_config(Config(), 30.0)
+    broken = [nav.Trial("dome", 99, depth, 0, 0) for depth in nav.DEPTH_SOURCES]
+    records = nav.run_trials(config, broken, workers=2)
+    assert [r["outcome"] for r in records] == ["error", "error"]
+    for record in records:
+        assert record["traceback"].startswith("Traceback (most recent call last)")
+        assert record["error"] == record["traceback"].strip().splitlines()[-1]
+        assert "99" in record["error"] and record["flight_time_s"] is None
+    result = nav.summarise(records)
+    assert result["gt"]["dome"] == {"trials": 1, "success": 0, "collision": 0, "timeout": 0,
+                                    "error": 1, "mean_time_s": None}
+    assert "| dome | GT | 1 | 0 | 0 | 0 | 1 | 0 | 0% | n/a | n/a |" in nav.format_markdown(
+        result, records)
+    assert nav.merge_records(records) == records  # an error is a result like the others
 
 
 def test_markdown_counts_the_timeouts_that_ended_early():
@@ -250,8 +270,8 @@ def test_markdown_counts_the_timeouts_that_ended_early():
     text = nav.format_markdown(nav.summarise(records), records)
     assert "(1 to 4 per start/goal pair and depth source, seeds 0..3, 120 s to reach the goal)" \
         in text
-    assert "| dome | GT | 4 | 2 | 1 | 1 | 1 | 50% | 35.0 | 25.0 |" in text
-    assert "| dome | estimated | 1 | 0 | 0 | 1 | 0 | 0% | n/a | n/a |" in text
+    assert "| dome | GT | 4 | 2 | 1 | 1 | 0 | 1 | 50% | 35.0 | 25.0 |" in text
+    assert "| dome | estimated | 1 | 0 | 0 | 1 | 0 | 0 | 0% | n/a | n/a |" in text
 
 
 def test_the_plot_is_a_png_with_a_bar_per_world_and_source(tmp_path):
@@ -307,7 +327,7 @@ def test_the_merged_report_says_how_many_trials_of_which_seeds(tmp_path):
     records = nav.read_runs(parts)
     text = nav.format_markdown(nav.summarise(records), records)
     assert "(3 per start/goal pair and depth source, seeds 0, 1, 4, 120 s to reach" in text
-    assert "| dome | GT | 6 | 2 | 0 | 4 | 4 | 33% | 31.0 | 20.0 |" in text
+    assert "| dome | GT | 6 | 2 | 0 | 4 | 0 | 4 | 33% | 31.0 | 20.0 |" in text
 
 
 def test_eval_nav_merge_reports_the_parts_as_one_run(tmp_path, capsys):
@@ -319,6 +339,7 @@ def test_eval_nav_merge_reports_the_parts_as_one_run(tmp_path, capsys):
     one_run = _flown_records(0, 2)
     assert result == nav.summarise(one_run)
     assert result["gt"]["sewer"] == {"trials": 4, "success": 2, "collision": 0, "timeout": 2,
+                                     "error": 0,
                                      "mean_time_s": 31.0}
     assert [json.loads(line) for line in merged.read_text().splitlines()] == one_run
     assert "seeds 0..1" in markdown.read_text()

@@ -28,7 +28,11 @@ Outcomes (:func:`outcome`), one per trial:
 - ``timeout``: everything else: out of time, and also a flight that ended early without the
   goal (a failsafe such as no safe primitive, an abort on the ground, or a landing the truth
   did not confirm). The Markdown report counts those separately as "ended early" within the
-  timeouts; the JSON keeps the three counts, which add up to ``trials``.
+  timeouts;
+- ``error``: the trial raised instead of flying to an end (its record keeps the exception as
+  ``error`` and the ``traceback``); the run goes on with the other trials.
+
+The JSON keeps the four counts, which add up to ``trials``.
 
 ``mean_time_s`` is the mean ``flight_time_s`` (take-off to landed) of the successful trials,
 None without one.
@@ -57,6 +61,7 @@ import multiprocessing
 import os
 import sys
 import time
+import traceback
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,14 +76,13 @@ from companion.tools.eval import provenance
 from companion.tools.eval.vio import EvaluationError
 from companion.tools.plot import png_path, text, write_image
 from drivers.sim.options import WORLD_NAMES
-from drivers.sim.render import RenderError
 from drivers.sim.world import build_world
 
 #: The report's depth sources and what each flies
 #: (:data:`companion.launch.simulated.DEPTH_SOURCES`).
 DEPTH_SOURCES = {"gt": "truth", "estimated": "estimated"}
 #: A trial's outcomes, in the order they are counted and drawn.
-OUTCOMES = ("success", "collision", "timeout")
+OUTCOMES = ("success", "collision", "timeout", "error")
 #: Trials per start/goal pair and depth source by default.
 TRIALS = 5
 #: Simulated seconds of navigation a trial may take to reach its goal (the paper's 120 s).
@@ -168,13 +172,15 @@ def trial_config(config, timeout_s: float):
 
 def fly_trial(config, trial: Trial) -> dict:
     """Fly ``trial`` with ``config`` (its time limit already set, :func:`trial_config`) and
-    return its record (:func:`trial_record`). EvaluationError naming the trial when the flight
-    cannot be set up."""
+    return its record (:func:`trial_record`); a trial that raises is recorded too, as an
+    ``error`` with its traceback (:func:`error_record`), and the run goes on."""
     started = time.perf_counter()
     try:
         summary = simulated.run(config, trial.mission())
-    except (simulated.SimError, RenderError, ValueError, OSError) as error:
-        raise EvaluationError(f"{trial.label()}: {error}") from None
+    except Exception:  # noqa: BLE001 - any failure is this trial's result, not the run's end
+        return error_record(trial, traceback.format_exc(),
+                            timeout_s=config.flight.mission_timeout_s,
+                            wall_s=time.perf_counter() - started)
     return trial_record(trial, summary, timeout_s=config.flight.mission_timeout_s,
                         wall_s=time.perf_counter() - started)
 
@@ -184,15 +190,28 @@ def trial_record(trial: Trial, summary: dict, *, timeout_s: float,
     """The plain-number record of a flown trial: what it was, its time limit, its
     :func:`outcome`, whether it :func:`ended_early`, and the summary's numbers (``wall_s``: the
     flight's wall time)."""
-    keys = ("start", "reached_goal", "collisions", "failsafes", "final_state", "flight_time_s",
-            "navigation_time_s", "path_length_m", "min_clearance_m", "closest_to_goal_m",
-            "vins_resets", "position_error_m", "backoffs", "vins_correction_m")
     record = {**dataclasses.asdict(trial), "timeout_s": timeout_s, "outcome": outcome(summary),
               "ended_early": ended_early(summary),
               "time_to_goal_s": time_to_goal(summary)}
-    record.update({key: summary.get(key) for key in keys})
+    record.update({key: summary.get(key) for key in _SUMMARY_KEYS})
     record["wall_s"] = wall_s
     return record
+
+
+def error_record(trial: Trial, trace: str, *, timeout_s: float,
+                 wall_s: float | None = None) -> dict:
+    """The record of a trial that raised: outcome ``error``, the exception's last line as
+    ``error`` and the whole ``traceback``; no flight numbers."""
+    return {**dataclasses.asdict(trial), "timeout_s": timeout_s, "outcome": "error",
+            "ended_early": False, "time_to_goal_s": None, **dict.fromkeys(_SUMMARY_KEYS),
+            "wall_s": wall_s, "error": trace.strip().splitlines()[-1], "traceback": trace}
+
+
+#: The flight summary's numbers a trial's record keeps.
+_SUMMARY_KEYS = ("start", "reached_goal", "collisions", "failsafes", "final_state",
+                 "flight_time_s", "navigation_time_s", "path_length_m", "min_clearance_m",
+                 "closest_to_goal_m", "vins_resets", "position_error_m", "backoffs",
+                 "vins_correction_m")
 
 
 def outcome(summary: dict) -> str:
@@ -275,8 +294,9 @@ def run_trials(config, trials: list[Trial], *, workers: int | None = None,
                on_record: Callable[[dict], None] | None = None) -> list[dict]:
     """Fly ``trials`` in up to ``workers`` ``spawn`` processes (default: the CPU count) and
     return their records in the order of ``trials``, each with ``provenance``'s keys added
-    and handed to ``on_record`` as it completes. The first error stops the run (trials not
-    started are cancelled) and is raised as EvaluationError."""
+    and handed to ``on_record`` as it completes. A trial that raises is an ``error`` record
+    (:func:`fly_trial`); a worker process that dies stops the run (trials not started are
+    cancelled) with an EvaluationError."""
     if workers is not None and workers < 1:
         raise EvaluationError(f"workers must be at least 1, got {workers}")
     if not trials:
@@ -531,12 +551,13 @@ def format_markdown(result: dict, records: list[dict]) -> str:
         "GT: planning on the renderer's true depth; estimated: on the network rescaled with "
         "the VINS map. Success: the goal reached without a collision within the time; "
         "collision: any collision; timeout: neither (of which *ended early*: stopped by a "
-        "failsafe or landed away from the goal before the time ran out). Mean flight time "
-        "(take-off to landed) and path length over the successes.",
+        "failsafe or landed away from the goal before the time ran out); error: the trial "
+        "raised (its record holds the traceback). Mean flight time (take-off to landed) and "
+        "path length over the successes.",
         "",
-        "| world | depth | trials | success | collision | timeout | ended early | "
+        "| world | depth | trials | success | collision | timeout | error | ended early | "
         "success rate | mean flight s | mean path m |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for source, worlds in result.items():
         for world, numbers in worlds.items():
@@ -579,8 +600,9 @@ _SOURCE_NAMES = {"gt": "GT", "estimated": "estimated"}
 # --------------------------------------------------------------------------------------------
 # Plot
 
-#: BGR colours of the outcomes: green, red, grey.
-_COLOURS = {"success": (60, 160, 40), "collision": (40, 40, 210), "timeout": (150, 150, 150)}
+#: BGR colours of the outcomes: green, red, grey, purple.
+_COLOURS = {"success": (60, 160, 40), "collision": (40, 40, 210), "timeout": (150, 150, 150),
+            "error": (150, 40, 120)}
 _LEFT, _TOP, _BAR, _PLOT_H, _GROUP_GAP, _MIN_WIDTH = 60, 100, 56, 300, 50, 480
 
 
@@ -609,7 +631,7 @@ def plot_navigation(result: dict, out: Path) -> Path:
 
 def _plot_legend(canvas: np.ndarray) -> None:
     for k, name in enumerate(OUTCOMES):
-        left = _LEFT + 130 * k
+        left = _LEFT + 110 * k
         cv2.rectangle(canvas, (left, 36), (left + 14, 48), _COLOURS[name], -1)
         text(canvas, name, (left + 20, 47), 0.45)
 
