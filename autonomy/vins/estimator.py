@@ -281,13 +281,20 @@ class Vins:
         keyframe = self.backend.latest.t < t and self._is_keyframe(t, tracks)
         correction = None
         if keyframe:
-            predicted = self._propagate_to(t)
+            before, predicted = self._anchor, self._propagate_to(t)
             try:
                 self._add_keyframe(t, tracks)
             except BackendError as error:
                 return self._lost(t, tracks, str(error))
             state = self._anchor.state
             correction = float(np.linalg.norm(state.position - predicted.position))
+            if correction > self.options.max_keyframe_correction_m:
+                # The window has moved its newest keyframe where the IMU, 0.05-0.2 s on,
+                # cannot have gone: the smoother is diverging. Keep the propagation.
+                self._anchor = _Anchor(predicted, before.bias_g, before.bias_a)
+                return self._lost(t, tracks, (
+                    f"diverging: the smoother moved a keyframe {correction:.3g} m from the "
+                    f"IMU's propagation (> {self.options.max_keyframe_correction_m:g} m)"))
         else:
             state = self._propagate_to(t)
         speed = float(np.linalg.norm(state.velocity))

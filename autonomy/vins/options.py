@@ -118,6 +118,10 @@ class VinsOptions:
                                   "rad/s")
     max_accel_bias: float = option(2.0, gt=0.0, doc="a larger accelerometer bias estimate is "
                                    "divergence, m/s^2")
+    max_keyframe_correction_m: float = option(
+        1.0, gt=0.0, le=1000.0, doc="a keyframe the smoother puts farther than this from the "
+        "IMU's propagation of the last one is divergence: the update is dropped and the VINS "
+        "is LOST until it re-initialises at the propagation, metres (docs/vins.md)")
     max_imu_gap_s: float = option(0.1, gt=0.0, doc="an IMU gap longer than this before a frame "
                                   "is LOST (nothing to propagate with), seconds")
     degraded_after_reset_s: float = option(1.0, ge=0.0, doc="DEGRADED for this long after a "
