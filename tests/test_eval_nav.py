@@ -294,8 +294,31 @@ def test_progress_bar_counts_outcomes_one_line_per_update_off_a_terminal():
         bar.update(record)
     bar.finish()
     lines = stream.getvalue().splitlines()
-    assert lines[0] == "2 trials in 2 worker processes"
-    assert lines[2].startswith("[" + "#" * nav.ProgressBar.WIDTH + "] 2/2  success 2 ")
+    assert lines[0] == "2 trials in 2 worker processes" and len(lines) == 3
+    assert "\r" not in stream.getvalue()  # a log: one line per trial, nothing redrawn
+    # tqdm's meter (share, count, elapsed<ETA), the outcomes, the trials in flight, the last
+    assert lines[1].startswith(" 50%|") and " 1/2 [00:00<00:00, " in lines[1], lines[1]
+    assert lines[1].endswith("success 1 collision 0 timeout 0 error 0, 1 running; "
+                             "last: dome pair 0 gt #0 success")
+    assert lines[2].startswith("100%|##########| 2/2 [") and "0 running" in lines[2]
+
+
+def test_on_a_terminal_the_progress_bar_is_redrawn_in_place():
+    import io
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+    stream = Terminal()
+    bar = nav.ProgressBar(2, stream)
+    bar.start(1)
+    for record in _records()[:2]:
+        bar.update(record)
+    bar.finish()
+    text = stream.getvalue()
+    assert text.startswith("2 trials in 1 worker processes\n")
+    assert text.count("\n") == 2 and "\r" in text  # one line, redrawn, then closed
+    assert "2/2 [" in text and "success 2 collision 0 timeout 0 error 0, 0 running" in text
 
 
 # ---------------------------------------------------------------- runs flown in parts, merged

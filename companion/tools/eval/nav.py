@@ -45,8 +45,8 @@ without the other, or come from different code or configs (each record carries t
 revision and the config's hash, :mod:`~companion.tools.eval.provenance`). With ``--runs``
 each record is added to the file as its trial completes, so an interrupted run loses only the
 trials in flight, and ``--resume`` flies only the trials its file lacks. Trials run in worker
-processes (``spawn``: each starts clean, its own OpenGL context); a one-line progress bar
-goes to stderr as they finish.
+processes (``spawn``: each starts clean, its own OpenGL context); a tqdm progress bar on
+stderr counts them as they finish, with their outcomes, the trials in flight and an ETA.
 """
 
 from __future__ import annotations
@@ -69,6 +69,7 @@ from typing import Callable, Iterable, TextIO
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from companion.launch import simulated
 from companion.report import mean_or_none, show
@@ -251,41 +252,47 @@ def _init_worker(level: int) -> None:
 # Many trials, in parallel
 
 class ProgressBar:
-    """One line on ``stream`` redrawn as trials finish: a bar, the count, the outcomes so far
-    and the last trial. Redrawn in place on a terminal, one line per update elsewhere (a log)."""
-
-    WIDTH = 24
+    """The trials done of the total, their outcomes so far, the trials in flight, the last
+    one, and the elapsed time and ETA, drawn by tqdm: a bar redrawn in place on a terminal,
+    one line per update elsewhere (a log, where redrawing would pile the updates onto one
+    line)."""
 
     def __init__(self, total: int, stream: TextIO | None = None):
-        self.total, self.done = total, 0
+        self.total, self.done, self.workers = total, 0, 1
         self.stream = sys.stderr if stream is None else stream
         self.counts = dict.fromkeys(OUTCOMES, 0)
         self.started = time.monotonic()
         self._tty = getattr(self.stream, "isatty", lambda: False)()
+        self._bar: tqdm | None = None
 
     def start(self, workers: int) -> None:
-        self._write(f"{self.total} trials in {workers} worker processes")
+        self.workers = workers
+        self._line(f"{self.total} trials in {workers} worker processes")
+        if self._tty:
+            self._bar = tqdm(total=self.total, file=self.stream, unit="trial",
+                             dynamic_ncols=True)
 
     def update(self, record: dict) -> None:
         self.done += 1
         self.counts[record["outcome"]] += 1
-        filled = round(self.WIDTH * self.done / self.total)
+        running = min(self.workers, self.total - self.done)
         counts = " ".join(f"{name} {n}" for name, n in self.counts.items())
         last = f"{record['world']} pair {record['pair']} {record['depth']} #{record['index']}"
-        self._write(f"[{'#' * filled}{'.' * (self.WIDTH - filled)}] {self.done}/{self.total}  "
-                    f"{counts}  last: {last} {record['outcome']}  {self._elapsed()}")
+        status = f"{counts}, {running} running; last: {last} {record['outcome']}"
+        if self._bar is not None:
+            self._bar.set_postfix_str(status, refresh=False)
+            self._bar.update(1)
+        else:
+            meter = tqdm.format_meter(self.done, self.total, time.monotonic() - self.started,
+                                      unit="trial", ascii=True)
+            self._line(f"{meter}  {status}")
 
     def finish(self) -> None:
-        if self._tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        if self._bar is not None:
+            self._bar.close()
 
-    def _elapsed(self) -> str:
-        minutes, seconds = divmod(round(time.monotonic() - self.started), 60)
-        return f"{minutes}m{seconds:02d}s"
-
-    def _write(self, line: str) -> None:
-        self.stream.write(f"\r{line}\033[K" if self._tty else line + "\n")
+    def _line(self, text: str) -> None:
+        self.stream.write(text + "\n")
         self.stream.flush()
 
 
