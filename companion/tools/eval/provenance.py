@@ -16,10 +16,10 @@ from companion.config import Config, dump_toml
 #: The revision of code that is not a git checkout (an installed wheel), or when git is missing.
 UNKNOWN = "unknown"
 #: The checkout this package runs from: companion/tools/eval/ is three folders below it.
-_CHECKOUT = Path(__file__).resolve().parents[3]
+CHECKOUT = Path(__file__).resolve().parents[3]
 
 
-def code_revision(checkout: Path = _CHECKOUT) -> str:
+def code_revision(checkout: Path = CHECKOUT) -> str:
     """The git commit ``checkout`` is at; with ``+dirty.<hash>`` when tracked files differ from
     it, the hash of that difference (``git diff HEAD``), so two different edits of one commit
     are two revisions. :data:`UNKNOWN` outside a git checkout or without git."""
