@@ -525,8 +525,7 @@ def _resume_without_flying(monkeypatch, done, **options):
 
 
 def test_a_resumed_run_flies_only_what_it_lacks_and_reports_the_whole(monkeypatch):
-    stamp = {"revision": provenance.code_revision(),
-             "config_hash": provenance.config_hash(nav.trial_config(Config(), nav.TIMEOUT_S))}
+    stamp = provenance.stamp(nav.trial_config(Config(), nav.TIMEOUT_S))
     everything = [{**r, **stamp} for r in _flown_records(0, 1)]
     done = everything[:3]  # interrupted after three of eight trials
     result, records, flown_now, appended = _resume_without_flying(monkeypatch, done)
@@ -544,8 +543,7 @@ def test_a_resumed_run_flies_only_what_it_lacks_and_reports_the_whole(monkeypatc
                                             "this run's plan"),
 ])
 def test_a_resume_that_does_not_continue_the_same_run_is_refused(monkeypatch, change, words):
-    stamp = {"revision": provenance.code_revision(),
-             "config_hash": provenance.config_hash(nav.trial_config(Config(), nav.TIMEOUT_S))}
+    stamp = provenance.stamp(nav.trial_config(Config(), nav.TIMEOUT_S))
     done = [{**r, **stamp} for r in _flown_records(0, 1)[:2]]
     with pytest.raises(EvaluationError, match=words):
         _resume_without_flying(monkeypatch, change(done))

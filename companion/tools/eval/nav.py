@@ -110,9 +110,6 @@ class Trial:
         return simulated.SimMission(world=self.world, seed=self.seed, pair=self.pair,
                                  depth=DEPTH_SOURCES[self.depth])
 
-    def label(self) -> str:
-        return f"{self.world} pair {self.pair} {self.depth} trial {self.index} (seed {self.seed})"
-
 
 def trial_seed(base: int, index: int) -> int:
     """The seed of trial ``index`` (0, 1, ...) of every pair: ``base + index``, so trial k is
@@ -348,13 +345,13 @@ def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] |
     Every record carries the code's revision and the config's hash (:mod:`provenance`)."""
     planned = plan_trials(worlds, pairs, trials, seed)
     flown = trial_config(config, timeout_s)
-    stamp = {"revision": provenance.code_revision(), "config_hash": provenance.config_hash(flown)}
+    stamp = provenance.stamp(flown)
     done = list(done)
     check_provenance([*done, stamp])
     finished = {_trial_key(r) for r in done}
     if len(finished) < len(done):
         raise EvaluationError("a trial is recorded more than once in the records resumed")
-    keys = [(t.world, t.pair, t.depth, t.seed) for t in planned]
+    keys = [_trial_key(dataclasses.asdict(t)) for t in planned]
     foreign = finished - set(keys)
     if foreign:
         raise EvaluationError(f"{_describe(min(foreign))} was flown but is not in this run's "
@@ -419,11 +416,7 @@ def read_resumable(path: Path) -> tuple[list[dict], str | None]:
     path = Path(path)
     if not path.exists():
         return [], None
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as error:
-        raise EvaluationError(f"{path}: cannot read: {error}") from None
-    numbered = [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
+    numbered = _numbered_lines(path)
     note = None
     if numbered:
         try:
@@ -454,15 +447,19 @@ def read_runs(paths: Iterable[Path]) -> list[dict]:
 
 
 def _read_run_file(path: Path) -> list[dict]:
+    records = [_parse_record(line, f"{path}:{n}") for n, line in _numbered_lines(path)]
+    if not records:
+        raise EvaluationError(f"{path}: no trial records (is it an 'eval nav --runs' file?)")
+    return records
+
+
+def _numbered_lines(path: Path) -> list[tuple[int, str]]:
+    """The non-blank lines of a ``--runs`` file with their line numbers (from 1)."""
     try:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as error:
         raise EvaluationError(f"{path}: cannot read: {error}") from None
-    records = [_parse_record(line, f"{path}:{n}")
-               for n, line in enumerate(lines, 1) if line.strip()]
-    if not records:
-        raise EvaluationError(f"{path}: no trial records (is it an 'eval nav --runs' file?)")
-    return records
+    return [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
 
 
 def _parse_record(line: str, where: str) -> dict:

@@ -41,6 +41,12 @@ def config_hash(config: Config) -> str:
     return hashlib.sha256(dump_toml(config).encode()).hexdigest()[:16]
 
 
+def stamp(config: Config) -> dict[str, str]:
+    """What each record of a run flown with ``config`` carries: ``revision`` and
+    ``config_hash``."""
+    return {"revision": code_revision(), "config_hash": config_hash(config)}
+
+
 def _git(checkout: Path, *args: str) -> str:
     return subprocess.run(["git", "-C", str(checkout), *args], capture_output=True, text=True,
                           timeout=30, check=True).stdout
