@@ -122,6 +122,10 @@ class CameraControl:
         DEVICE.controls.append(("auto",))
         return self
 
+    def setAutoExposureLimit(self, max_exposure_us: int) -> "CameraControl":
+        DEVICE.controls.append(("auto limit", max_exposure_us))
+        return self
+
 
 class MessageQueue:
     def __init__(self, size, kind, pipeline):

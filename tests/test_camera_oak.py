@@ -55,6 +55,13 @@ def test_the_colour_socket_asks_for_rgb_and_auto_exposure_when_configured():
     assert fake.DEVICE.controls == [("auto",)]
 
 
+def test_an_auto_exposure_limit_goes_to_the_firmware():
+    oak, _ = frames(OakOptions(auto_exposure=True, auto_exposure_limit_us=8000), 1)
+    assert fake.DEVICE.controls == [("auto",), ("auto limit", 8000)]
+    assert oak.exposure_us == 8000  # what `fly check` reports against the frame period
+    assert frames(OakOptions(auto_exposure=True), 1)[0].exposure_us is None
+
+
 def test_the_lens_comes_from_the_device_calibration():
     oak, _ = frames(OakOptions(), 1)
     model = oak.camera_model
@@ -122,10 +129,13 @@ def test_listing_and_a_missing_sdk(monkeypatch):
         frames(OakOptions(), 1)
 
 
-@pytest.mark.parametrize("key, value", [("socket", "CAM_Z"), ("exposure_us", 0), ("iso", 5)])
-def test_bad_options_name_their_key(key, value):
+@pytest.mark.parametrize("options", [{"socket": "CAM_Z"}, {"exposure_us": 0}, {"iso": 5},
+                                     {"auto_exposure_limit_us": 40000, "auto_exposure": True},
+                                     {"auto_exposure_limit_us": 8000}])
+def test_bad_options_name_their_key(options):
+    key = next(iter(options))
     with pytest.raises(OptionError, match=key):
-        OakOptions(**{key: value})
+        OakOptions(**options)
 
 
 def test_the_fake_has_the_real_depthais_names(monkeypatch):
@@ -139,7 +149,8 @@ def test_the_fake_has_the_real_depthais_names(monkeypatch):
                                                  "getDistortionCoefficients",
                                                  "getDistortionModel")),
                        (dai.ImgFrame, ("getFrame", "getTimestamp", "getSequenceNum")),
-                       (dai.CameraControl, ("setManualExposure", "setAutoExposureEnable")),
+                       (dai.CameraControl, ("setManualExposure", "setAutoExposureEnable",
+                                            "setAutoExposureLimit")),
                        (dai.node.Camera, ("build", "requestOutput", "initialControl")),
                        (dai.Node.Output, ("createOutputQueue",)),
                        (dai.MessageQueue, ("tryGet",)),

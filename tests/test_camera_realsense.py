@@ -82,10 +82,12 @@ class SoftwareD455:
         stream.intrinsics = intrinsics(width, height, model, coeffs)
         return self.sensor.add_video_stream(stream).as_video_stream_profile()
 
-    def push(self, n, *, stamp_ms=None, domain=rs.timestamp_domain.global_time, sensor=None):
-        """Inject frame ``n``; its stamp defaults to host (epoch) time 20 ms ago."""
+    def push(self, n, *, stamp_ms=None, domain=rs.timestamp_domain.global_time, sensor=None,
+             rgb=None):
+        """Inject frame ``n`` (pixels ``rgb``, default :func:`image`); its stamp defaults to
+        host (epoch) time 20 ms ago."""
         frame = rs.software_video_frame()
-        frame.pixels = image(n)
+        frame.pixels = image(n) if rgb is None else rgb
         frame.stride, frame.bpp = 64 * 3, 3
         frame.timestamp = time.time() * 1000.0 - 20.0 if stamp_ms is None else stamp_ms
         frame.domain, frame.frame_number, frame.profile = domain, n, self.profile
@@ -457,3 +459,65 @@ def test_an_exposure_longer_than_a_frame_is_refused():
         RealSenseCamera(CAMERA, RealSenseOptions(exposure_us=40000), MonotonicClock())
     RealSenseCamera(CAMERA, RealSenseOptions(exposure_us=40000, auto_exposure=True),
                     MonotonicClock())
+    with pytest.raises(OptionError, match="auto_exposure_limit_us: 40000 us is longer than a "
+                                          "frame at camera.rate_hz = 30"):
+        RealSenseCamera(CAMERA, RealSenseOptions(auto_exposure=True,
+                                                 auto_exposure_limit_us=40000),
+                        MonotonicClock())
+
+
+@pytest.mark.parametrize("kwargs, key", [
+    ({"auto_exposure_limit_us": 8000}, "auto_exposure_limit_us"),  # without auto_exposure
+    ({"auto_exposure": True, "auto_exposure_limit_us": 8000, "gain": 0}, "gain"),
+])
+def test_a_host_auto_exposure_needs_auto_exposure_and_a_gain_to_multiply(kwargs, key):
+    with pytest.raises(OptionError) as raised:
+        RealSenseOptions(**kwargs)
+    assert raised.value.key == key
+
+
+# ---- the host auto-exposure -----------------------------------------------------------------
+
+def host_auto_exposure(levels, **options):
+    """Stream frames of uniform grey ``levels`` (0-255) through a SoftwareD455 with the host
+    auto-exposure limited to 8 ms; returns the camera's (exposure, gain) after each read frame
+    and the SoftwareD455."""
+    camera = SoftwareD455()
+    settings = []
+
+    async def scenario():
+        options.setdefault("auto_exposure_limit_us", 8000)
+        async with RealSenseCamera(CAMERA, RealSenseOptions(auto_exposure=True, **options),
+                                   MonotonicClock(), device=camera.device) as cam:
+            for n, level in enumerate(levels):
+                camera.push(n, rgb=np.full((48, 64, 3), level, np.uint8))
+                await cam.next_frame()
+                settings.append((camera.sensor.get_option(rs.option.exposure),
+                                 camera.sensor.get_option(rs.option.gain)))
+
+    run(scenario())
+    return settings, camera
+
+
+def test_in_the_dark_the_host_auto_exposure_stops_at_its_limit_and_raises_gain():
+    """A D455's colour sensor lengthens its exposure to a frame period in the dark; with a
+    limit the driver runs the exposure itself, sensor auto-exposure off: 8 ms, then gain."""
+    settings, camera = host_auto_exposure([10] * 12)
+    assert camera.sensor.get_option(rs.option.enable_auto_exposure) == 0
+    exposures = [e for e, _ in settings]
+    assert exposures == sorted(exposures) and max(exposures) == 80  # 100 us steps
+    assert settings[-1] == (80, 128)  # the limit, and the sensor's highest gain
+    gains_at_limit = [g for e, g in settings if e < 80]
+    assert all(g == 64 for g in gains_at_limit)  # gain only once the exposure is at its limit
+
+
+def test_in_bright_light_the_host_auto_exposure_shortens_the_exposure_at_the_lowest_gain():
+    settings, _ = host_auto_exposure([250] * 12, exposure_us=5000, gain=40)
+    exposures = [e for e, _ in settings]
+    assert exposures == sorted(exposures, reverse=True) and exposures[-1] < 10
+    assert {g for _, g in settings} == {40}
+
+
+def test_at_its_target_level_the_host_auto_exposure_holds_still():
+    settings, _ = host_auto_exposure([round(0.4 * 255)] * 6, exposure_us=3000)
+    assert set(settings) == {(30, 64)}

@@ -123,7 +123,7 @@ def _exposure(driver, config) -> CheckResult:
                                                     "driver")
     period_us = 1e6 / config.camera.rate_hz
     return CheckResult("camera exposure", exposure < period_us,
-                       f"{exposure:.0f} us (a frame lasts {period_us:.0f} us)")
+                       f"at most {exposure:.0f} us (a frame lasts {period_us:.0f} us)")
 
 
 async def _check_link(config, clock, listen_s: float) -> list[CheckResult]:

@@ -34,8 +34,9 @@ import numpy as np
 
 from autonomy.geometry import PinholeCamera
 from autonomy.lens import CameraModel
-from autonomy.options import option, validate
+from autonomy.options import OptionError, option, validate
 from drivers.camera.base import CameraError, DeviceInfo, MissingExtra, RawFrame, ThreadedCamera
+from drivers.camera.exposure import longest_us
 from drivers.camera.options import CameraOptions
 from drivers.clock import Clock, MonotonicClock
 
@@ -71,6 +72,10 @@ class OakOptions:
     socket: str = option("CAM_B", choices=SOCKETS, doc="board socket: CAM_A colour, CAM_B/"
                                                        "CAM_C the mono pair")
     auto_exposure: bool = option(False, doc="let the camera choose exposure and ISO")
+    auto_exposure_limit_us: int = option(0, ge=0, le=33000, doc="longest exposure the "
+                                         "auto-exposure may choose, microseconds (the "
+                                         "firmware's limit, depthai setAutoExposureLimit); 0: "
+                                         "up to a frame period")
     exposure_us: int = option(5000, ge=20, le=33000, doc="manual exposure, microseconds")
     iso: int = option(400, ge=100, le=1600, doc="manual sensitivity (ISO)")
     max_failed_reads: int = option(5, ge=1, le=1000, doc="failed reads in a row after which "
@@ -80,6 +85,9 @@ class OakOptions:
 
     def __post_init__(self) -> None:
         validate(self)
+        if self.auto_exposure_limit_us and not self.auto_exposure:
+            raise OptionError("auto_exposure_limit_us", "limits the auto-exposure: set "
+                              "auto_exposure = true, or 0 for a manual exposure")
 
     @property
     def mono(self) -> bool:
@@ -108,7 +116,9 @@ class OakCamera(ThreadedCamera):
 
     @property
     def exposure_us(self) -> int | None:
-        return None if self.options.auto_exposure else self.options.exposure_us
+        """The longest a frame is exposed, us (:func:`~drivers.camera.exposure.longest_us`)."""
+        opt = self.options
+        return longest_us(opt.auto_exposure, opt.auto_exposure_limit_us, opt.exposure_us)
 
     def _open(self) -> _Stream:
         dai = _sdk()
@@ -143,6 +153,8 @@ class OakCamera(ThreadedCamera):
         node = pipeline.create(dai.node.Camera).build(self._socket(dai))
         if opt.auto_exposure:
             node.initialControl.setAutoExposureEnable()
+            if opt.auto_exposure_limit_us:
+                node.initialControl.setAutoExposureLimit(opt.auto_exposure_limit_us)
         else:
             node.initialControl.setManualExposure(opt.exposure_us, opt.iso)
         kind = dai.ImgFrame.Type.GRAY8 if opt.mono else dai.ImgFrame.Type.RGB888i

@@ -43,6 +43,13 @@ Frames the device numbered but never delivered (gaps in ``get_frame_number``) ar
 stops delivering (unplugged, dead) is a :class:`CameraError` from ``next_frame`` after
 ``frame_timeout_s`` (the base class's rule), the end of a recording one at once.
 
+Exposure. Manual by default (``exposure_us``, ``gain``); ``auto_exposure`` hands both to the
+camera, whose colour sensor lengthens the exposure up to a frame period in dim light (motion
+blur the tracker cannot follow) since it takes no limit (realsense-ros issue 2798).
+``auto_exposure_limit_us`` instead runs the auto-exposure on the host within that limit
+(:class:`HostAutoExposure`, the law of :mod:`drivers.camera.exposure`), setting exposure and
+gain on the sensor by hand after each frame.
+
 The camera model comes from the device's own calibration, :func:`camera_model`.
 
 pyrealsense2 is the optional extra ``companion[realsense]``: this module imports without it, and
@@ -67,6 +74,7 @@ from autonomy.lens import CameraModel
 from autonomy.options import OptionError, option, validate
 from drivers.camera.base import (CameraError, DeviceInfo, MissingExtra, RawFrame,
                                  ThreadedCamera)
+from drivers.camera.exposure import STEP_RATE, TARGET_LEVEL, ExposureLaw, longest_us, mean_level
 from drivers.camera.options import CameraOptions
 from drivers.clock import Clock, MonotonicClock
 
@@ -113,12 +121,17 @@ class RealSenseOptions:
 
     serial: str = option("", doc="serial number of the RealSense to read; '' = the only one "
                          "connected")
-    auto_exposure: bool = option(False, doc="let the camera choose exposure and gain; false "
-                                 "keeps exposure_us and gain fixed")
+    auto_exposure: bool = option(False, doc="automatic exposure and gain; false keeps "
+                                 "exposure_us and gain fixed")
+    auto_exposure_limit_us: int = option(0, ge=0, le=1_000_000, doc="longest exposure the "
+                                         "auto-exposure may choose, microseconds; 0 leaves it "
+                                         "to the camera, which has no limit on its colour "
+                                         "sensor, others run it on the host within the limit")
     exposure_us: int = option(5000, ge=100, le=1_000_000, doc="manual exposure, microseconds "
-                              "(rounded to the sensor's 100 us steps; at most one frame period)")
+                              "(rounded to the sensor's 100 us steps; at most one frame "
+                              "period); the host auto-exposure's first")
     gain: int = option(64, ge=0, le=128, doc="manual analogue gain of the colour sensor (D4xx "
-                       "range 0-128, 64 its default)")
+                       "range 0-128, 64 its default); the host auto-exposure's lowest")
     global_time: bool = option(True, doc="stamp frames with the device's hardware clock mapped "
                                "to host time by librealsense; false stamps them on arrival")
     max_failed_reads: int = option(5, ge=1, le=1000, doc="reads in a row with no frame after "
@@ -128,6 +141,17 @@ class RealSenseOptions:
 
     def __post_init__(self) -> None:
         validate(self)
+        if self.auto_exposure_limit_us and not self.auto_exposure:
+            raise OptionError("auto_exposure_limit_us", "limits the auto-exposure: set "
+                              "auto_exposure = true, or 0 for a manual exposure")
+        if self.host_auto_exposure and self.gain < 1:
+            raise OptionError("gain", "the host auto-exposure multiplies gain from it: at "
+                              f"least 1, got {self.gain}")
+
+    @property
+    def host_auto_exposure(self) -> bool:
+        """Whether the driver runs the auto-exposure itself (a limit was set)."""
+        return self.auto_exposure and self.auto_exposure_limit_us > 0
 
 
 @dataclass(frozen=True)
@@ -153,9 +177,12 @@ class RealSenseCamera(ThreadedCamera):
 
     def __init__(self, camera: CameraOptions, options: RealSenseOptions, clock: Clock, *,
                  playback: str | None = None, device: Any = None):
-        if not options.auto_exposure and options.exposure_us > 1e6 / camera.rate_hz:
-            raise OptionError("exposure_us", f"{options.exposure_us} us is longer than a frame "
-                              f"at camera.rate_hz = {camera.rate_hz:g}")
+        longest = {"exposure_us": 0 if options.auto_exposure else options.exposure_us,
+                   "auto_exposure_limit_us": options.auto_exposure_limit_us}
+        for key, exposure_us in longest.items():
+            if exposure_us > 1e6 / camera.rate_hz:
+                raise OptionError(key, f"{exposure_us} us is longer than a frame at "
+                                  f"camera.rate_hz = {camera.rate_hz:g}")
         name = playback or (f"RealSense {options.serial}" if options.serial else "RealSense")
         super().__init__(name, (camera.width, camera.height), clock,
                          frame_timeout_s=options.frame_timeout_s,
@@ -167,6 +194,13 @@ class RealSenseCamera(ThreadedCamera):
         self._model: CameraModel | None = None
         self._recording = _RecordingTimeline(1.0 / camera.rate_hz) if playback else None
         self._warned_stamp = False
+        self.auto_exposure: HostAutoExposure | None = None
+
+    @property
+    def exposure_us(self) -> int | None:
+        """The longest a frame is exposed, us (:func:`~drivers.camera.exposure.longest_us`)."""
+        opt = self.options
+        return longest_us(opt.auto_exposure, opt.auto_exposure_limit_us, opt.exposure_us)
 
     @property
     def camera_model(self) -> CameraModel:
@@ -193,6 +227,8 @@ class RealSenseCamera(ThreadedCamera):
         self._model = camera_model(profile.as_video_stream_profile().get_intrinsics())
         if playback is None:
             self._configure(rs, sensor)
+            if self.options.host_auto_exposure:
+                self.auto_exposure = HostAutoExposure(rs, sensor, self.options)
         syncer = rs.syncer(SYNCER_QUEUE)
         sensor.open(profile)
         try:
@@ -231,7 +267,7 @@ class RealSenseCamera(ThreadedCamera):
     def _configure(self, rs, sensor) -> None:
         """Exposure, gain and global time on the colour sensor (a recording's are fixed)."""
         opt = self.options
-        if opt.auto_exposure:
+        if opt.auto_exposure and not opt.host_auto_exposure:
             _set(rs, sensor, "auto_exposure", rs.option.enable_auto_exposure, 1)
         else:
             _set(rs, sensor, "auto_exposure", rs.option.enable_auto_exposure, 0)
@@ -266,6 +302,8 @@ class RealSenseCamera(ThreadedCamera):
         """The frame's pixels (copied: the SDK reuses its buffer) with its companion time."""
         arrival, epoch = self.clock.now(), time.time()
         rgb = np.asanyarray(frame.get_data()).copy()
+        if self.auto_exposure is not None:
+            self.auto_exposure.after(rgb)
         device_s = frame.get_timestamp() / 1000.0
         if self._recording is not None:
             t = self._recording(device_s, arrival)
@@ -446,6 +484,36 @@ def _size_rate(profile) -> tuple[int, int, int]:
 def _modes(profiles) -> list[str]:
     """The distinct modes of RGB8 profiles, smallest first: "640x480@30 RGB8"."""
     return [f"{w}x{h}@{fps} RGB8" for w, h, fps in sorted({_size_rate(p) for p in profiles})]
+
+
+class HostAutoExposure:
+    """The auto-exposure run on the host for a colour sensor without an exposure limit
+    (module docstring): after each frame, :class:`~drivers.camera.exposure.ExposureLaw` from
+    the frame's mean level, exposure up to ``auto_exposure_limit_us`` first, then gain from
+    ``gain`` up to the sensor's highest, taken as proportional to the sensor's gain units. A
+    setting is sent only when it changes the sensor's value; the sensor applies it some
+    frames later, which the law's damped step allows for."""
+
+    def __init__(self, rs, sensor, options: RealSenseOptions):
+        self._rs, self._sensor = rs, sensor
+        self.gain_min = options.gain
+        self.gain_units_max = sensor.get_option_range(rs.option.gain).max
+        self.law = ExposureLaw(TARGET_LEVEL, STEP_RATE, EXPOSURE_UNIT_US * 1e-6,
+                               options.auto_exposure_limit_us * 1e-6,
+                               max(1.0, self.gain_units_max / self.gain_min))
+        self.product = options.exposure_us * 1e-6  # exposure x gain (as a multiple of gain_min)
+        self.settings = (round(options.exposure_us / EXPOSURE_UNIT_US), options.gain)
+
+    def after(self, rgb: np.ndarray) -> None:
+        """Steer by the frame just read (uint8 RGB)."""
+        self.product = self.law.step(self.product, mean_level(rgb))
+        exposure = self.law.split(self.product)
+        settings = (max(1, round(exposure.time_s * 1e6 / EXPOSURE_UNIT_US)),
+                    min(self.gain_units_max, round(self.gain_min * exposure.gain)))
+        if settings != self.settings:
+            self._sensor.set_option(self._rs.option.exposure, settings[0])
+            self._sensor.set_option(self._rs.option.gain, settings[1])
+            self.settings = settings
 
 
 def _set(rs, sensor, key: str, which, value: float) -> None:

@@ -44,6 +44,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, so3_exp, undistort_points
 from autonomy.lens import CameraModel
 from autonomy.options import OptionError, option, validate
+from drivers.camera.exposure import STEP_RATE, TARGET_LEVEL, Exposure, ExposureLaw, mean_level
 
 #: EuRoC MAV cam0 (an MT9M034 behind a wide-angle lens), Kalibr radial-tangential
 #: coefficients from the dataset's ``mav0/cam0/sensor.yaml`` (Burri et al. 2016).
@@ -60,8 +61,6 @@ REFERENCE_EXPOSURE_S = 0.0156
 #: blur streak, pixels (bilinear sampling fills the gaps).
 MAX_BLUR_SAMPLES = 12
 BLUR_SAMPLE_SPACING = 1.5
-#: Pixel stride of the auto-exposure's brightness measurement (msckf_vio: every 16th).
-METERING_STRIDE = 8
 #: Pixel stride of the grid the optical flow is computed on.
 FLOW_STRIDE = 4
 
@@ -91,11 +90,12 @@ class SensorOptions:
     full_well_electrons: float = option(6000.0, gt=0.0, doc="electrons at saturation")
     read_noise_electrons: float = option(3.0, ge=0.0, doc="read noise, electrons rms")
     exposure_min_ms: float = option(0.1, gt=0.0, doc="shortest auto-exposure time, ms")
-    exposure_max_ms: float = option(33.3, gt=0.0, doc="longest auto-exposure time, ms")
+    exposure_max_ms: float = option(8.0, gt=0.0, doc="longest auto-exposure time, ms (the "
+                                    "vehicle presets' auto_exposure_limit_us)")
     gain_max: float = option(16.0, ge=1.0, doc="highest analogue gain")
-    exposure_target: float = option(0.4, gt=0.0, lt=1.0, doc="mean image level the "
+    exposure_target: float = option(TARGET_LEVEL, gt=0.0, lt=1.0, doc="mean image level the "
                                     "auto-exposure aims at, share of full scale")
-    exposure_rate: float = option(0.5, gt=0.0, le=1.0, doc="auto-exposure step: the exposure "
+    exposure_rate: float = option(STEP_RATE, gt=0.0, le=1.0, doc="auto-exposure step: the exposure "
                                   "moves by (target / mean)^rate per frame")
     exposure_delay_frames: int = option(2, ge=0, le=10, doc="frames before a new exposure "
                                         "takes effect")
@@ -120,6 +120,12 @@ class SensorOptions:
         """The sensor a camera of the simulator's ``profile`` looks through: these options in
         ``realistic`` unless switched off (``enabled``), None (an exact camera) otherwise."""
         return self if profile == "realistic" and self.enabled else None
+
+    def exposure_law(self) -> ExposureLaw:
+        """The auto-exposure's control law within these limits."""
+        return ExposureLaw(self.exposure_target, self.exposure_rate,
+                           self.exposure_min_ms * 1e-3, self.exposure_max_ms * 1e-3,
+                           self.gain_max)
 
     def illuminance(self, world: str) -> float:
         """The light level of ``world``, lux."""
@@ -194,49 +200,29 @@ class Lens:
                          borderMode=cv2.BORDER_REPLICATE)
 
 
-@dataclass(frozen=True)
-class Exposure:
-    """One frame's exposure time (s) and analogue gain."""
-
-    time_s: float
-    gain: float
-
-
 class AutoExposure:
-    """Exposure time first, then gain, steered towards a mean level (msckf_vio's controller:
-    ``E G <- E G (target / mean)^rate``, from the setting that took the measured frame), each
-    new setting taking effect ``delay`` frames after the frame it was computed from."""
+    """The camera's auto-exposure (:class:`~drivers.camera.exposure.ExposureLaw`, the one the
+    vehicle's drivers run), each new setting taking effect ``delay`` frames after the frame it
+    was computed from."""
 
     def __init__(self, options: SensorOptions):
         self.options = options
+        self.law = options.exposure_law()
         self._queue: list[float] = []  # exposure time x gain of the coming frames, seconds
 
     def current(self, radiance_mean: float, scene_scale: float) -> Exposure:
         """The exposure of the next frame. The first frame starts converged (the camera streams
         before the flight), from the mean radiance and the scene's ``lux / 400`` scale."""
-        o = self.options
         if not self._queue:
             level = max(radiance_mean * scene_scale / REFERENCE_EXPOSURE_S, 1e-6)
-            self._queue = [self._clipped(o.exposure_target / level)] * \
-                (o.exposure_delay_frames + 1)
-        return self._split(self._queue[0])
+            self._queue = [self.law.clip(self.options.exposure_target / level)] * \
+                (self.options.exposure_delay_frames + 1)
+        return self.law.split(self._queue[0])
 
     def update(self, measured_mean: float) -> None:
         """Steer by the mean level of the frame just taken (share of full scale), which the
         setting :meth:`current` returned took."""
-        o = self.options
-        step = (o.exposure_target / max(measured_mean, 1e-3)) ** o.exposure_rate
-        self._queue = self._queue[1:] + [self._clipped(self._queue[0] * step)]
-
-    def _clipped(self, product: float) -> float:
-        o = self.options
-        return float(np.clip(product, o.exposure_min_ms * 1e-3,
-                             o.exposure_max_ms * 1e-3 * o.gain_max))
-
-    def _split(self, product: float) -> Exposure:
-        o = self.options
-        time_s = float(np.clip(product, o.exposure_min_ms * 1e-3, o.exposure_max_ms * 1e-3))
-        return Exposure(time_s, float(np.clip(product / time_s, 1.0, o.gain_max)))
+        self._queue = self._queue[1:] + [self.law.step(self._queue[0], measured_mean)]
 
 
 @dataclass(frozen=True)
@@ -300,11 +286,10 @@ class CameraSensor:
         :attr:`render_camera` at the pose of ``t_mid``, the camera moving with ``(v_C, w_C)``
         (optical frame, :func:`camera_twist`)."""
         o = self.options
-        exposure = self.exposure.current(
-            float(rgb[::METERING_STRIDE, ::METERING_STRIDE].mean()) / 255.0, self.scene_scale)
+        exposure = self.exposure.current(mean_level(rgb), self.scene_scale)
         image = self._expose(self._through_lens(rgb, depth, v_C, w_C, exposure.time_s),
                              exposure)
-        self.exposure.update(float(image[::METERING_STRIDE, ::METERING_STRIDE].mean()) / 255.0)
+        self.exposure.update(mean_level(image))
         jitter = float(np.clip(self._rng.normal(0.0, o.timestamp_jitter_ms * 1e-3),
                                -self.period / 4, self.period / 4))
         dropped = self._rng.random() < o.drop_probability
