@@ -4,14 +4,22 @@ ground-truth and on estimated depth, flown in parallel worker processes.
 One run of the command, as a user runs it, is made once for the module: the shortest start/goal
 pair of all worlds (the sewer's pair 3, 10.5 m straight across a room), one trial, both depth
 sources side by side in two worker processes, every flight the real stack over MAVLink. The
-other tests read its output or call the library's pure parts on made-up summaries.
+other tests read its output or call the library's pure parts on made-up summaries; one flies
+the same run again on a real two-node Ray cluster started on this machine (issue 26).
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
 
 import cv2
 import pytest
@@ -21,6 +29,7 @@ from companion.config import Config, load_config
 from companion.tools.eval import nav, provenance
 from companion.tools.eval.vio import EvaluationError
 from drivers.sim.world import build_world
+from ports import free_tcp_port
 
 WORLD, PAIR = "sewer", 3  # a_far -> a_top: the shortest pair of the three worlds (seed 0)
 KEYS = {"trials", "success", "collision", "timeout", "error", "mean_time_s"}
@@ -32,14 +41,22 @@ def short_run(tmp_path_factory, opengl):
     sources in two workers."""
     out = tmp_path_factory.mktemp("nav")
     plot, markdown, runs = out / "nav.png", out / "nav.md", out / "runs.jsonl"
-    run = subprocess.run(
-        [sys.executable, "-m", "companion", "eval", "nav", "--json", "--worlds", WORLD,
-         "--pairs", str(PAIR), "--trials", "1", "--workers", "2", "--plot", str(plot),
-         "--markdown", str(markdown), "--runs", str(runs)],
-        capture_output=True, text=True, timeout=900)
+    run = _eval_nav_short("--workers", "2", "--plot", str(plot), "--markdown", str(markdown),
+                          "--runs", str(runs))
     assert run.returncode == 0, run.stderr
-    records = [json.loads(line) for line in runs.read_text().splitlines()]
-    return json.loads(run.stdout), run.stderr, markdown.read_text(), plot, records
+    return json.loads(run.stdout), run.stderr, markdown.read_text(), plot, _lines(runs)
+
+
+def _eval_nav_short(*options: str) -> subprocess.CompletedProcess:
+    """``companion eval nav --json`` of one trial of the shortest pair, with ``options``."""
+    return subprocess.run(
+        [sys.executable, "-m", "companion", "eval", "nav", "--json", "--worlds", WORLD,
+         "--pairs", str(PAIR), "--trials", "1", *options],
+        capture_output=True, text=True, timeout=900)
+
+
+def _lines(path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
 
 
 # ---------------------------------------------------------------- the command, flown
@@ -84,7 +101,7 @@ def test_every_trial_is_recorded_with_its_seed_and_counted_once(short_run):
 
 def test_progress_goes_to_stderr_as_trials_finish(short_run):
     _, stderr, *_ = short_run
-    assert "2 trials in 2 worker processes" in stderr
+    assert "2 trials on 2 worker processes" in stderr
     assert "1/2" in stderr and "2/2" in stderr
     assert f"last: {WORLD} pair {PAIR}" in stderr
 
@@ -121,12 +138,13 @@ def test_a_pair_the_world_lacks_fails_with_one_line_before_any_flight(capsys):
 
 @pytest.mark.parametrize("argv, expected", [
     ([], dict(worlds=["mine", "sewer", "dome"], pairs=None, trials=5, seed=0, timeout_s=120.0,
-              workers=None)),
+              workers=None, cluster=None)),
     (["--quick"], dict(worlds=["dome"], pairs=[0], trials=1)),
     (["--quick", "--worlds", "mine", "sewer", "--trials", "3"],
      dict(worlds=["mine"], pairs=[0], trials=1)),
     (["--seed", "4", "--set", "sim.seed=9", "--pairs", "2", "1", "--timeout", "60",
       "--workers", "3"], dict(pairs=[2, 1], seed=4, timeout_s=60.0, workers=3)),
+    (["--cluster", "ray://10.0.0.2:10001"], dict(cluster="ray://10.0.0.2:10001", workers=None)),
     (["--set", "sim.seed=9"], dict(seed=9)),
 ])
 def test_the_command_passes_its_options_to_the_library(monkeypatch, capsys, argv, expected):
@@ -289,12 +307,12 @@ def test_progress_bar_counts_outcomes_one_line_per_update_off_a_terminal():
 
     stream = io.StringIO()
     bar = nav.ProgressBar(2, stream)
-    bar.start(2)
+    bar.start(2, "2 worker processes")
     for record in _records()[:2]:
         bar.update(record)
     bar.finish()
     lines = stream.getvalue().splitlines()
-    assert lines[0] == "2 trials in 2 worker processes" and len(lines) == 3
+    assert lines[0] == "2 trials on 2 worker processes" and len(lines) == 3
     assert "\r" not in stream.getvalue()  # a log: one line per trial, nothing redrawn
     # tqdm's meter (share, count, elapsed<ETA), the outcomes, the trials in flight, the last
     assert lines[1].startswith(" 50%|") and " 1/2 [00:00<00:00, " in lines[1], lines[1]
@@ -311,12 +329,12 @@ def test_on_a_terminal_the_progress_bar_is_redrawn_in_place():
             return True
     stream = Terminal()
     bar = nav.ProgressBar(2, stream)
-    bar.start(1)
+    bar.start(1, "1 worker process")
     for record in _records()[:2]:
         bar.update(record)
     bar.finish()
     text = stream.getvalue()
-    assert text.startswith("2 trials in 1 worker processes\n")
+    assert text.startswith("2 trials on 1 worker process\n")
     assert text.count("\n") == 2 and "\r" in text  # one line, redrawn, then closed
     assert "2/2 [" in text and "success 2 collision 0 timeout 0 error 0, 0 running" in text
 
@@ -557,3 +575,125 @@ def test_a_runs_file_in_use_is_not_overwritten(tmp_path, capsys):
         f"eval nav: {runs} exists; --resume it, or choose a new --runs file"]
     assert main(["eval", "nav", "--quick", "--resume", str(runs), "--runs", str(runs)]) == 2
     assert "--resume adds to its own file; drop --runs" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- on a Ray cluster
+
+RAY = str(Path(sys.executable).parent / "ray")
+NODE_START_S = 120.0
+
+
+class Node:
+    """One ``ray start --block`` in a session of its own: every process of the node (its
+    raylet, and the worker processes, which Ray puts in process groups of their own) stays in
+    that session."""
+
+    def __init__(self, *args: str, env: dict):
+        self.process = subprocess.Popen([RAY, "start", "--block", "--num-cpus", "1",
+                                         "--object-store-memory", str(100 * 2**20),
+                                         "--disable-usage-stats", *args],
+                                        env=env, start_new_session=True,
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def processes(self, name: str = "") -> list[int]:
+        """PIDs of this node's processes whose command line contains ``name``."""
+        return [pid for pid, session, command in _processes()
+                if session == self.process.pid and name in command]
+
+    def stop(self) -> None:
+        for pid in self.processes():
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        self.process.wait(timeout=30)
+
+
+def _processes():
+    """(pid, session, command line) of every process readable in /proc."""
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            except (OSError, IndexError):
+                continue
+            yield int(entry.name), int(fields[3]), command
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A head and a worker node on this machine, one CPU each, each in its own session (so
+    that the module stops exactly its own cluster, and a node can be killed alone), their
+    workers at the normal priority (Ray's default niceness 15 starves them on a host as busy
+    as the test suite makes it); yields ``(address, worker node)``."""
+    pytest.importorskip("ray", reason="ray (extra companion[cluster]) not installed")
+    temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must stay short
+    port = free_tcp_port()
+    env = {**os.environ, "RAY_worker_niceness": "0", "RAY_USAGE_STATS_ENABLED": "0"}
+    head = Node("--head", "--port", str(port), "--temp-dir", temp,
+                "--include-dashboard", "false", env=env)
+    worker = Node("--address", f"127.0.0.1:{port}", env=env)
+    try:
+        _wait_for_nodes(f"127.0.0.1:{port}", 2)
+        yield f"127.0.0.1:{port}", worker
+    finally:
+        worker.stop()
+        head.stop()
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+def _wait_for_nodes(address: str, count: int) -> None:
+    deadline = time.monotonic() + NODE_START_S
+    script = ("import ray; ray.init(address=%r, logging_level='ERROR'); "
+              "print(sum(n['Alive'] for n in ray.nodes()))" % address)
+    while time.monotonic() < deadline:
+        alive = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+        if alive.returncode == 0 and alive.stdout.strip() == str(count):
+            return
+        time.sleep(1.0)
+    pytest.fail(f"the Ray cluster at {address} did not reach {count} nodes")
+
+
+def test_a_ray_cluster_losing_a_node_mid_run_flies_exactly_the_local_records(
+        short_run, cluster, tmp_path):
+    """``--cluster`` with the worker node's raylet killed while it flies a trial: Ray flies
+    that trial again on the head, and the run ends with every record as the local pool flew
+    it (the wall time aside)."""
+    address, worker = cluster
+    killed = threading.Event()
+
+    def kill_when_flying():
+        deadline = time.monotonic() + NODE_START_S
+        while time.monotonic() < deadline and not worker.processes("ray::_checked_call"):
+            time.sleep(0.2)
+        for pid in worker.processes("raylet/raylet"):
+            os.kill(pid, signal.SIGKILL)
+            killed.set()
+
+    killer = threading.Thread(target=kill_when_flying, daemon=True)
+    killer.start()
+    runs = tmp_path / "runs.jsonl"
+    run = _eval_nav_short("--cluster", address, "--runs", str(runs))
+    killer.join(timeout=5)
+    assert run.returncode == 0, run.stderr
+    assert killed.is_set(), "the worker node never flew a trial"
+    assert f"2 trials on the Ray cluster at {address} (2 CPUs)" in run.stderr
+    local = short_run[4]
+    assert [_without_wall_time(r) for r in _lines(runs)] == \
+        [_without_wall_time(r) for r in local]
+    assert json.loads(run.stdout) == short_run[0]
+
+
+def _without_wall_time(record: dict) -> dict:
+    """A record without its wall time, the one field that depends on the machine."""
+    return {k: v for k, v in record.items() if k != "wall_s"}
+
+
+def test_a_cluster_without_ray_fails_in_one_line_naming_the_extra(monkeypatch):
+    trials = nav.plan_trials(["dome"], [0], 1, 0)
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if the extra were not installed
+    with pytest.raises(EvaluationError, match=r"pip install 'companion\[cluster\]'"):
+        nav.run_trials(Config(), trials, cluster="auto")
+    with pytest.raises(EvaluationError, match="--workers sizes the local pool"):
+        nav.run_trials(Config(), trials, cluster="auto", workers=2)

@@ -307,3 +307,15 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
     assert result["nees_keyframes"] == result["keyframes"] - result["nees_refused"]
     assert result["depth_points"] > 0 and result["resets"] >= len(result["rebuilds"])
     assert result["init"]["gravity_err_deg"] < 1.0
+
+
+def test_without_consistency_the_same_run_is_scored_without_the_nees(simulated):
+    """The acceptance runs skip the NEES's marginal covariances; nothing else may change."""
+    full = evaluate_vio(simulated, VinsOptions())
+    quick = evaluate_vio(simulated, VinsOptions(), consistency=False)
+    nees = {key for key in full if key.startswith("nees_")}
+    timing = {key for key in full if key.endswith(("_ms_median", "_ms_p95"))}
+    assert {k: v for k, v in quick.items() if k not in nees | timing} == \
+        {k: v for k, v in full.items() if k not in nees | timing}
+    assert quick["nees_keyframes"] == 0 and quick["nees_pose_median"] is None
+    assert full["nees_keyframes"] > 0

@@ -16,18 +16,13 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from companion.config import load_config
 from companion.launch import simulated
 from companion.recording import live, topics
+from ports import free_tcp_port
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 #: Foxglove's WebSocket subprotocol (foxglove-sdk) and its binary MessageData opcode.
 SUBPROTOCOL, MESSAGE_DATA = "foxglove.sdk.v1", 0x01
 WATCHED = (topics.ODOMETRY.name, topics.DEPTH_METRIC.name)
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 async def watch(port: int, timeout_s: float = 120.0) -> dict[str, bytes]:

@@ -114,6 +114,11 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
     command.add_argument("--workers", type=common.positive_int, metavar="N",
                          help="trials flown at once, each in its own process (default: the "
                               "number of CPUs)")
+    command.add_argument("--cluster", metavar="ADDRESS",
+                         help="fly the trials as tasks on a running Ray cluster instead: auto "
+                              "(the cluster this machine joined with `ray start`) or "
+                              "ray://HOST:PORT; needs companion[cluster] and the same code on "
+                              "every node")
     command.add_argument("--quick", action="store_true",
                          help="one trial of pair 0 in one world (the first of --worlds, else "
                               "dome), for CI; overrides --trials and --pairs")
@@ -231,7 +236,8 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
 
 
 #: The options of ``eval nav`` that choose what to fly, which ``--merge`` does not take.
-_NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers", "quick")
+_NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers", "cluster",
+                       "quick")
 
 
 def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> list[dict]:
@@ -254,6 +260,6 @@ def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> lis
         worlds, pairs, trials = (args.worlds or [nav.QUICK_WORLD])[:1], [0], 1
     _, records = nav.evaluate_navigation(
         config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
-        workers=args.workers, progress=sys.stderr, done=done,
+        workers=args.workers, cluster=args.cluster, progress=sys.stderr, done=done,
         on_record=None if runs is None else lambda record: nav.append_run(record, runs))
     return records

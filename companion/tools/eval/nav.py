@@ -45,24 +45,21 @@ without the other, or come from different code or configs (each record carries t
 revision and the config's hash, :mod:`~companion.tools.eval.provenance`). With ``--runs``
 each record is added to the file as its trial completes, so an interrupted run loses only the
 trials in flight, and ``--resume`` flies only the trials its file lacks. Trials run in worker
-processes (``spawn``: each starts clean, its own OpenGL context); a tqdm progress bar on
-stderr counts them as they finish, with their outcomes, the trials in flight and an ETA.
+processes on this machine, or as tasks on a Ray cluster (``--cluster``;
+:mod:`~companion.tools.eval.executor`); a tqdm progress bar on stderr counts them as they
+finish, with their outcomes, the trials in flight and an ETA.
 """
 
 from __future__ import annotations
 
 import collections
-import concurrent.futures
 import dataclasses
 import json
-import logging
 import math
-import multiprocessing
 import os
 import sys
 import time
 import traceback
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, TextIO
@@ -73,7 +70,7 @@ from tqdm import tqdm
 
 from companion.launch import simulated
 from companion.report import mean_or_none, show
-from companion.tools.eval import provenance
+from companion.tools.eval import executor, provenance
 from companion.tools.eval.vio import EvaluationError
 from companion.tools.plot import png_path, text, write_image
 from drivers.sim.options import WORLD_NAMES
@@ -235,16 +232,6 @@ def time_to_goal(summary: dict) -> float | None:
     return times["goal reached"] - times["Offboard"]
 
 
-def _init_worker(level: int) -> None:
-    """A worker's logging: errors only, on stderr. A trial's warnings (failsafes, VINS
-    smoother rebuilds with GTSAM's ten-line explanation) would bury the progress bar; its
-    failsafes and VINS resets are in its record, and ``companion sim fly --seed S+k`` replays
-    the trial with every line."""
-    logging.basicConfig(level=max(level, logging.ERROR), stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(processName)s %(name)s: "
-                               "%(message)s")
-
-
 # --------------------------------------------------------------------------------------------
 # Many trials, in parallel
 
@@ -262,9 +249,9 @@ class ProgressBar:
         self._tty = getattr(self.stream, "isatty", lambda: False)()
         self._bar: tqdm | None = None
 
-    def start(self, workers: int) -> None:
+    def start(self, workers: int, where: str) -> None:
         self.workers = workers
-        self._line(f"{self.total} trials in {workers} worker processes")
+        self._line(f"{self.total} trials on {where}")
         if self._tty:
             self._bar = tqdm(total=self.total, file=self.stream, unit="trial",
                              dynamic_ncols=True)
@@ -294,37 +281,36 @@ class ProgressBar:
 
 
 def run_trials(config, trials: list[Trial], *, workers: int | None = None,
-               progress: ProgressBar | None = None, provenance: dict | None = None,
+               cluster: str | None = None, progress: ProgressBar | None = None,
+               provenance: dict | None = None,
                on_record: Callable[[dict], None] | None = None) -> list[dict]:
-    """Fly ``trials`` in up to ``workers`` ``spawn`` processes (default: the CPU count) and
-    return their records in the order of ``trials``, each with ``provenance``'s keys added
-    and handed to ``on_record`` as it completes. A trial that raises is an ``error`` record
-    (:func:`fly_trial`); a worker process that dies stops the run (trials not started are
-    cancelled) with an EvaluationError."""
-    if workers is not None and workers < 1:
-        raise EvaluationError(f"workers must be at least 1, got {workers}")
+    """Fly ``trials`` on ``cluster`` (a Ray address) or in up to ``workers`` local processes
+    (default: the CPU count; :func:`~companion.tools.eval.executor.open_executor`) and return
+    their records in the order of ``trials``, each with ``provenance``'s keys added and handed
+    to ``on_record`` as it completes. A trial that raises is an ``error`` record
+    (:func:`fly_trial`); a worker process that dies locally, or a task lost on the cluster
+    after its retries, stops the run (trials not started are cancelled) with an
+    EvaluationError."""
     if not trials:
         return []
-    workers = min(workers or os.cpu_count() or 1, len(trials))
-    if progress is not None:
-        progress.start(workers)
-    records: list[dict | None] = [None] * len(trials)
-    pool = concurrent.futures.ProcessPoolExecutor(
-        workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-        initargs=(logging.getLogger().getEffectiveLevel(),))
     try:
-        futures = {pool.submit(fly_trial, config, trial): k for k, trial in enumerate(trials)}
-        for future in concurrent.futures.as_completed(futures):
-            record = {**future.result(), **(provenance or {})}
-            records[futures[future]] = record
+        runner = executor.open_executor(cluster, workers, len(trials))
+    except executor.ExecutorError as error:
+        raise EvaluationError(str(error)) from None
+    if progress is not None:
+        progress.start(runner.workers, runner.where)
+    records: list[dict | None] = [None] * len(trials)
+    try:
+        for k, record in runner.run(fly_trial, config, trials):
+            record = {**record, **(provenance or {})}
+            records[k] = record
             if on_record is not None:
                 on_record(record)
             if progress is not None:
                 progress.update(record)
-    except BrokenProcessPool:
-        raise EvaluationError("a worker process died (out of memory?); no result") from None
+    except executor.ExecutorError as error:
+        raise EvaluationError(str(error)) from None
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
         if progress is not None:
             progress.finish()
     return records
@@ -332,7 +318,8 @@ def run_trials(config, trials: list[Trial], *, workers: int | None = None,
 
 def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] | None = None,
                         trials: int = TRIALS, seed: int = 0, timeout_s: float = TIMEOUT_S,
-                        workers: int | None = None, progress: TextIO | None = None,
+                        workers: int | None = None, cluster: str | None = None,
+                        progress: TextIO | None = None,
                         done: Iterable[dict] = (),
                         on_record: Callable[[dict], None] | None = None
                         ) -> tuple[dict, list[dict]]:
@@ -358,8 +345,8 @@ def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] |
                               "plan; resume with the options the run was started with")
     pending = [t for t, key in zip(planned, keys) if key not in finished]
     bar = None if progress is None else ProgressBar(len(pending), progress)
-    new = run_trials(flown, pending, workers=workers, progress=bar, provenance=stamp,
-                     on_record=on_record)
+    new = run_trials(flown, pending, workers=workers, cluster=cluster, progress=bar,
+                     provenance=stamp, on_record=on_record)
     by_trial = {_trial_key(r): r for r in done + new}
     records = merge_records([by_trial[key] for key in keys])
     return summarise(records), records

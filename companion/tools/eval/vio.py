@@ -101,8 +101,8 @@ class KeyframeEstimate:
     t: float
     T_W_B: np.ndarray
     velocity_W: np.ndarray
-    pose_covariance: np.ndarray
-    velocity_covariance: np.ndarray
+    pose_covariance: np.ndarray | None  # None: not traced (``run_vins``'s ``consistency``)
+    velocity_covariance: np.ndarray | None
     accel_bias: np.ndarray
     landmarks: int  #: landmarks in the smoother's window
 
@@ -172,20 +172,23 @@ def read_vio_dataset(root: Path) -> VioDataset:
 
 
 def evaluate_vio(root: Path, options: VinsOptions, *, frontend: FrontendOptions | None = None,
-                 static: StaticInitOptions | None = None,
-                 max_frames: int | None = None) -> dict:
+                 static: StaticInitOptions | None = None, max_frames: int | None = None,
+                 consistency: bool = True) -> dict:
     """Run the VINS over the dataset at ``root`` (:func:`run_vins`) and score it
-    (:func:`score_vio`)."""
+    (:func:`score_vio`); ``consistency`` false skips the NEES and the marginal covariance it
+    needs at every keyframe (a quarter of the time)."""
     data = read_vio_dataset(root)
-    trace = run_vins(data, options, frontend=frontend, static=static, max_frames=max_frames)
+    trace = run_vins(data, options, frontend=frontend, static=static, max_frames=max_frames,
+                     consistency=consistency)
     return score_vio(trace, data)
 
 
 def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
-             static: StaticInitOptions | None = None,
-             max_frames: int | None = None) -> VioTrace:
+             static: StaticInitOptions | None = None, max_frames: int | None = None,
+             consistency: bool = True) -> VioTrace:
     """Run a :class:`Vins` built with ``options``, ``frontend`` and ``static`` over the frames
-    of ``data`` (:func:`vio_frames`) and trace its output, timing each stage."""
+    of ``data`` (:func:`vio_frames`) and trace its output, timing each stage; each keyframe's
+    covariances are traced for the NEES only with ``consistency``."""
     stream = data.camera
     vins = build_vins(data, options, frontend=frontend, static=static)
     trace = VioTrace()
@@ -202,7 +205,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
             trace.rebuilds.append(Rebuild(vins.backend.latest.t, vins.backend.last_failure,
                                           trace.keyframes[-1] if trace.keyframes else None))
         if update.keyframe:
-            trace.keyframes.append(_newest_keyframe(vins))
+            trace.keyframes.append(_newest_keyframe(vins, consistency))
         if update.sparse_map is not None and frame.depth_path is not None:
             depth = read_frame_depth(frame.depth_path, stream.camera)
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
@@ -298,12 +301,13 @@ def _record(trace: VioTrace, update: FrameUpdate, frontend_ms: float, backend_ms
         trace.corrections_m.append(update.correction_m)
 
 
-def _newest_keyframe(vins: Vins) -> KeyframeEstimate:
+def _newest_keyframe(vins: Vins, covariances: bool) -> KeyframeEstimate:
     backend = vins.backend
     state = backend.latest
-    return KeyframeEstimate(state.t, state.T_W_B, state.velocity, backend.pose_covariance(),
-                            backend.velocity_covariance(), state.bias_a,
-                            len(backend.landmarks.ids))
+    return KeyframeEstimate(state.t, state.T_W_B, state.velocity,
+                            backend.pose_covariance() if covariances else None,
+                            backend.velocity_covariance() if covariances else None,
+                            state.bias_a, len(backend.landmarks.ids))
 
 
 def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
@@ -386,7 +390,8 @@ def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
     which part of the estimate is overconfident. A keyframe with an unusable covariance is
     left out and counted in ``nees_refused``.
     """
-    inside = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
+    inside = [kf for kf in keyframes
+              if kf.pose_covariance is not None and truth_t[0] <= kf.t <= truth_t[-1]]
     empty = {"nees_pose_mean": None, "nees_pose_median": None, "nees_velocity_mean": None,
              "nees_velocity_median": None, "nees_pose_by_axis": None, "nees_keyframes": 0,
              "nees_refused": 0}
@@ -429,9 +434,10 @@ def _rebuild_report(rebuild: Rebuild, truth_t: np.ndarray, truth: GroundTruthTab
     true_velocity = _truth_at(before.t, truth_t, truth.velocity)
     true_bias = _truth_at(before.t, truth_t, truth.accel_bias)
     covariance = before.pose_covariance
+    if covariance is not None:
+        report.update(position_sigma_m=finite_or_none(np.sqrt(np.trace(covariance[3:, 3:]))),
+                      yaw_sigma_deg=finite_or_none(np.degrees(np.sqrt(covariance[2, 2]))))
     return {**report, "landmarks": before.landmarks,
-            "position_sigma_m": finite_or_none(np.sqrt(np.trace(covariance[3:, 3:]))),
-            "yaw_sigma_deg": finite_or_none(np.degrees(np.sqrt(covariance[2, 2]))),
             "speed_error_m_s": float(np.linalg.norm(before.velocity_W)
                                      - np.linalg.norm(true_velocity)),
             "accel_bias_error_m_s2": float(np.linalg.norm(before.accel_bias - true_bias))}
