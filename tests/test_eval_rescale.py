@@ -9,6 +9,7 @@ its JSON, Markdown, plot and cache, or use the library on tiny recordings.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import json
 import math
@@ -24,6 +25,7 @@ from autonomy.messages import SparseMap
 from companion.cli import main
 from companion.config import Config
 from companion.tools.eval import rescale
+from companion.tools.eval.depth import DepthEvalOptions, open_relative_depth_source
 from companion.tools.eval.vio import EvaluationError
 
 METRICS = {"absrel", "delta1", "overestimate_rate"}
@@ -251,3 +253,18 @@ def test_a_report_that_cannot_be_written_fails_in_one_line(quick_run, capsys, mo
 
 def _never(*args, **kwargs):
     raise AssertionError("the evaluation ran")
+
+
+def test_a_world_scored_in_a_worker_process_is_the_world_scored_here(quick_run):
+    """The command scores each world as a task in a worker process (or on a Ray cluster);
+    scoring the same cached flight in this process gives the same numbers."""
+    result, *_, cache = quick_run
+    config = Config()
+    job = rescale.WorldJob(0, cache, _recording(),
+                           DepthEvalOptions(config.vins, config.rescale, config.depth,
+                                            config.vins_frontend, config.vins_init),
+                           functools.partial(open_relative_depth_source, config.depth_network,
+                                             config.synthetic_depth.for_profile("ideal"),
+                                             seed=0))
+    here = rescale.score_cached_world(job, ("mine", rescale.QUICK_FRAMES))
+    assert rescale.summarise({"mine": here})["worlds"] == result["worlds"]

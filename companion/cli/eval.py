@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -72,6 +73,12 @@ def _add_eval_rescale(actions: argparse._SubParsersAction,
     rescale.add_argument("--cache", type=Path, metavar="DIR",
                          help="where recorded datasets are kept and reused (default: "
                               "$XDG_CACHE_HOME/companion/eval, else ~/.cache/companion/eval)")
+    rescale.add_argument("--workers", type=common.positive_int, metavar="N",
+                         help="worlds evaluated at once, each in its own process (default: "
+                              "the number of CPUs)")
+    rescale.add_argument("--cluster", metavar="ADDRESS",
+                         help="evaluate the worlds as tasks on a running Ray cluster instead "
+                              "(as eval nav --cluster); each node records into its own cache")
     rescale.add_argument("--plot", type=common.png_path, metavar="PNG",
                          help="draw the weighted AbsRel per method, GT against VINS, here")
     rescale.add_argument("--markdown", type=Path, metavar="FILE",
@@ -190,9 +197,10 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
                 config.sim_camera.for_profile(config.sim.profile)),
             options=depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
                                            config.vins_frontend, config.vins_init),
-            open_network=lambda: depth.open_relative_depth_source(
-                config.depth_network, config.synthetic_depth.for_profile(config.sim.profile),
-                seed=seed))
+            open_network=functools.partial(
+                depth.open_relative_depth_source, config.depth_network,
+                config.synthetic_depth.for_profile(config.sim.profile), seed=seed),
+            workers=args.workers, cluster=args.cluster)
     except (NetworkError, EvaluationError) as error:
         print(f"eval rescale: {error}", file=sys.stderr)
         return common.EXIT_FAILED

@@ -43,6 +43,7 @@ from autonomy.depth.anchors import sample_nearest_surface
 from autonomy.depth.rescale import METHODS, RescaleOptions, fit
 from autonomy.depth.stage import MetricDepthStage, check_relative_disparity
 from autonomy.messages import SparseMap
+from companion.tools.eval import executor
 from companion.tools.eval.depth import DepthEvalOptions, RelativeDepthSource, tracked_frames
 from companion.report import mean_or_none, show
 from companion.tools.plot import nice_step, png_path, text, write_image
@@ -216,22 +217,51 @@ class WorldScores:
     scores: dict[str, dict[str, list[metrics.DepthMetrics]]]
 
 
+@dataclass(frozen=True)
+class WorldJob:
+    """What every world's task shares: the flights' seed, the cache, how to record, the
+    evaluation's options, and how to open a network (picklable: a module-level function or a
+    ``functools.partial`` of one, since the task may run in another process or machine)."""
+
+    seed: int
+    cache: Path
+    recording: Recording
+    options: DepthEvalOptions
+    open_network: NetworkFactory
+
+
 def evaluate_rescaling(frames: dict[str, int], *, seed: int, cache: Path, recording: Recording,
-                       options: DepthEvalOptions, open_network: NetworkFactory) -> dict:
-    """Record (or reuse) each world's dataset, score every method in it (:func:`score_world`)
-    with a fresh network per world, and summarise (:func:`summarise`). The first network is
-    opened and every dataset made before anything is scored, so a model that cannot run or a
-    cache that cannot be written fails at once."""
-    network = open_network()
-    roots = {w: cached_dataset(cache, w, seed, n, recording) for w, n in frames.items()}
+                       options: DepthEvalOptions, open_network: NetworkFactory,
+                       workers: int | None = None, cluster: str | None = None) -> dict:
+    """Score every method in each world (:func:`score_cached_world`), the worlds side by side
+    as tasks of an executor (local processes, or a Ray cluster at ``cluster``:
+    :mod:`~companion.tools.eval.executor`), and summarise (:func:`summarise`). The network is
+    opened here first, so that a model that cannot run fails before anything is recorded;
+    each world then opens a fresh one (the stand-in keeps state per frame), so the result is
+    the same however the worlds are spread."""
+    open_network()
+    job = WorldJob(seed, Path(cache), recording, options, open_network)
+    items = list(frames.items())
     worlds: dict[str, WorldScores] = {}
-    for world, root in roots.items():
-        log.info("%s: fitting %d methods on %d frames", world, len(METHODS), frames[world])
-        worlds[world] = score_world(read_vio_dataset(root), options,
-                                    open_network() if worlds else network, frames[world])
-        log.info("%s: %d of %d frames scored (with a VINS map where every method fits with "
-                 "both sparse depths)", world, worlds[world].scored, worlds[world].frames)
-    return summarise(worlds)
+    try:
+        runner = executor.open_executor(cluster, workers, len(items))
+        for k, scores in runner.run(score_cached_world, job, items):
+            world = items[k][0]
+            worlds[world] = scores
+            log.info("%s: %d of %d frames scored (with a VINS map where every method fits "
+                     "with both sparse depths)", world, scores.scored, scores.frames)
+    except executor.ExecutorError as error:
+        raise EvaluationError(str(error)) from None
+    return summarise({world: worlds[world] for world in frames})
+
+
+def score_cached_world(job: WorldJob, world_frames: tuple[str, int]) -> WorldScores:
+    """One world's task: its ``frames``-frame dataset from the cache of the machine it runs on
+    (recorded there first if missing, :func:`cached_dataset`), scored by :func:`score_world`
+    with a fresh network."""
+    world, frames = world_frames
+    root = cached_dataset(job.cache, world, job.seed, frames, job.recording)
+    return score_world(read_vio_dataset(root), job.options, job.open_network(), frames)
 
 
 def score_world(data: VioDataset, options: DepthEvalOptions, network: RelativeDepthSource,
