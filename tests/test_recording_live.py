@@ -58,7 +58,7 @@ async def watch(port: int, timeout_s: float = 120.0) -> dict[str, bytes]:
 
 def test_a_websocket_client_receives_odometry_and_depth_during_a_flight(tmp_path):
     port = free_tcp_port()
-    config = load_config(None, [f"recorder.directory={tmp_path}", "flight.mission_timeout_s=15"])
+    config = load_config(None, [f"recorder.directory={tmp_path}", "flight.mission_timeout_s=5"])
     outcome = {}
 
     def fly():
