@@ -690,6 +690,18 @@ def _without_wall_time(record: dict) -> dict:
     return {k: v for k, v in record.items() if k != "wall_s"}
 
 
+@pytest.mark.parametrize("address, words", [
+    ("127.0.0.1:{free}", "cannot reach the Ray cluster at 127.0.0.1:"),
+    ("ray://127.0.0.1:{free}", "cannot reach the Ray cluster at ray://127.0.0.1:"),
+    ("no-port-here", "a Ray cluster address is auto, HOST:PORT or ray://HOST:PORT")])
+def test_a_cluster_address_nothing_answers_at_fails_at_once(capsys, address, words):
+    """Said before ray.init, which retries an address nothing answers at for minutes (the
+    message is this check's, not Ray's): nothing listens on a free port."""
+    pytest.importorskip("ray", reason="ray (extra companion[cluster]) not installed")
+    assert main(["eval", "nav", "--quick", "--cluster", address.format(free=free_tcp_port())]) == 1
+    assert words in capsys.readouterr().err.splitlines()[-1]
+
+
 def test_a_cluster_without_ray_fails_in_one_line_naming_the_extra(monkeypatch):
     trials = nav.plan_trials(["dome"], [0], 1, 0)
     monkeypatch.setitem(sys.modules, "ray", None)  # as if the extra were not installed

@@ -27,6 +27,7 @@ import importlib
 import logging
 import multiprocessing
 import os
+import socket
 import sys
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterator, Sequence
@@ -35,6 +36,8 @@ from companion.tools.eval import provenance
 
 #: Times Ray runs a task again after its worker or node died.
 RAY_RETRIES = 3
+#: Seconds to wait for a cluster's address to answer before saying it cannot be reached.
+CONNECT_TIMEOUT_S = 5.0
 
 
 class ExecutorError(RuntimeError):
@@ -97,6 +100,7 @@ class RayCluster:
     def __init__(self, address: str):
         self.ray = _ray()
         self.address = address
+        _check_reachable(address)
         try:
             self.ray.init(address=address, logging_level=logging.ERROR,
                           log_to_driver=False, configure_logging=False)
@@ -136,6 +140,23 @@ class RayCluster:
         except self.ray.exceptions.RayError as error:
             raise ExecutorError(f"a task was lost on the cluster after {RAY_RETRIES} retries: "
                                 f"{type(error).__name__}: {error}") from None
+
+
+def _check_reachable(address: str) -> None:
+    """ExecutorError at once unless something listens at ``address`` (``HOST:PORT`` or
+    ``ray://HOST:PORT``; ``auto`` is Ray's own to find): ``ray.init`` retries an unreachable
+    address for minutes."""
+    if address == "auto":
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise ExecutorError(f"a Ray cluster address is auto, HOST:PORT or ray://HOST:PORT, "
+                            f"got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as error:
+        raise ExecutorError(f"cannot reach the Ray cluster at {address}: "
+                            f"{error.strerror or error}") from None
 
 
 def _checked_call(function: Callable, shared: Any, item: Any, revision: str) -> Any:
