@@ -123,9 +123,9 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                               "number of CPUs)")
     command.add_argument("--cluster", metavar="ADDRESS",
                          help="fly the trials as tasks on a running Ray cluster instead: auto "
-                              "(the cluster this machine joined with `ray start`) or "
-                              "ray://HOST:PORT; needs companion[cluster] and the same code on "
-                              "every node")
+                              "(the cluster this machine joined with `ray start`), the head's "
+                              "HOST:PORT, or ray://HOST:PORT; needs companion[cluster] and the "
+                              "same code on every node")
     command.add_argument("--quick", action="store_true",
                          help="one trial of pair 0 in one world (the first of --worlds, else "
                               "dome), for CI; overrides --trials and --pairs")

@@ -7,8 +7,9 @@ them and yields each result as it completes, with the item's index.
 - :class:`LocalPool`, the default, needs nothing installed: ``spawn`` worker processes on this
   machine (each starts clean, with its own OpenGL context), ``workers`` of them.
 - :class:`RayCluster` runs each call as a task on an existing Ray cluster (``--cluster auto``
-  for the cluster this machine's ``ray start`` joined, or ``ray://HOST:PORT`` through Ray
-  Client; the ``ray`` package is the extra ``companion[cluster]``). Ray places each task where
+  for the cluster this machine's ``ray start`` joined, ``HOST:PORT`` for the head's address
+  as ``ray start --head`` prints it, or ``ray://HOST:PORT`` through Ray Client; the ``ray``
+  package is the extra ``companion[cluster]``). Ray places each task where
   a CPU is free (``num_cpus=1``), keeps ``shared`` once in its object store for every task,
   and runs a task again when its worker process or node dies (``max_retries``): a node lost
   mid-run loses nothing. A task that raises is not retried (the evaluation records its own
@@ -50,9 +51,9 @@ class MissingCluster(ExecutorError):
 
 
 def open_executor(cluster: str | None, workers: int | None, tasks: int):
-    """:class:`RayCluster` at ``cluster`` (``auto`` or ``ray://HOST:PORT``) or, without one, a
-    :class:`LocalPool` of ``workers`` processes (default: the CPU count), never more than
-    ``tasks``."""
+    """:class:`RayCluster` at ``cluster`` (``auto``, ``HOST:PORT`` or ``ray://HOST:PORT``) or,
+    without one, a :class:`LocalPool` of ``workers`` processes (default: the CPU count), never
+    more than ``tasks``."""
     if workers is not None and workers < 1:
         raise ExecutorError(f"workers must be at least 1, got {workers}")
     if cluster:
