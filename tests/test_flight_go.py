@@ -1,14 +1,7 @@
 """The operator's go: a vehicle never arms until a person says to fly (companion/flight/go.py).
 
 A whole simulated flight waits, disarmed, until `companion go` writes to the real go socket;
-the gate's sources (socket, RC switch edge) and its refusals on their own.
-
-That flight is also the serial link's: as on the paper's vehicle (a Jetson Orin on a
-Pixracer's TELEM port at 921600 baud), the mock PX4 serves a pseudo-terminal and the
-application opens its other end as ``serial:///dev/pts/N:921600``, through the pyserial code a
-flight controller on a UART goes through. The mission is short (take-off, 4 m across the dome,
-landing): what the link must carry is every phase's traffic, not a long route (the whole
-routes are flown over UDP in test_flight_sim.py)."""
+the gate's sources (socket, RC switch edge) and its refusals on their own."""
 
 from __future__ import annotations
 
@@ -23,17 +16,15 @@ from companion.cli import main
 from companion.config import Config
 from companion.flight.go import GoError, GoOptions, OperatorGate, send_go
 from companion.launch import simulated
-from flights import assert_safe_landing
 
 WAIT_WALL_S = 4.0
 
 
-def test_a_vehicle_on_a_serial_link_waits_disarmed_for_companion_go_then_flies_its_mission(
-        tmp_path):
+def test_a_simulated_vehicle_waits_disarmed_for_companion_go_then_flies(tmp_path):
     config = Config()
     socket_path = tmp_path / "go.sock"
     config = dataclasses.replace(config, go=GoOptions(socket=str(socket_path)))
-    mission = simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5), link="serial")
+    mission = simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5))
     sent = []
 
     def operator():  # another process's view: the CLI, once the socket exists, after a while
@@ -54,16 +45,8 @@ def test_a_vehicle_on_a_serial_link_waits_disarmed_for_companion_go_then_flies_i
     waited_s = states[2][1] - states[1][1]
     assert waited_s > 1.0  # simulated seconds on the ground, disarmed, before the go
     assert "operator's go" in summary["transitions"][1]["reason"]
-    assert_safe_landing(summary)
-    assert summary["reached_goal"] and summary["failsafes"] == []
+    assert summary["final_state"] == "landed" and summary["collisions"] == 0
     assert not socket_path.exists()  # the application removes its socket
-    load = summary["mavlink"]
-    assert load["where"].startswith("/dev/pts/") and load["where"].endswith(" at 921600 baud")
-    # both ways the stream (HIGHRES_IMU at 200 Hz, odometry, attitude, setpoints, TIMESYNC)
-    # fits the 92 kB/s of the line with room to spare, and nothing arrived garbled
-    assert load["received_bytes_per_s"] < 0.5 * load["capacity_bytes_per_s"]
-    assert load["sent_bytes_per_s"] < 0.5 * load["capacity_bytes_per_s"]
-    assert load["bad_data"] == {"received": 0, "sent": 0}
 
 
 class Autopilot:

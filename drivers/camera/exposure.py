@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from autonomy.options import OptionError
+
 #: Pixel stride of the brightness measurement (msckf_vio meters every 16th pixel; every 8th
 #: keeps a thin bright structure from being missed at 640x480).
 METERING_STRIDE = 8
@@ -73,8 +75,8 @@ class ExposureLaw:
     def step(self, product: float, measured_mean: float) -> float:
         """The next exposure-gain product after a frame taken at ``product`` (seconds x gain)
         measured ``measured_mean`` (share of full scale)."""
-        gain = (self.target / max(measured_mean, DARKEST_MEAN)) ** self.rate
-        return self.clip(product * gain)
+        factor = (self.target / max(measured_mean, DARKEST_MEAN)) ** self.rate
+        return self.clip(product * factor)
 
     def clip(self, product: float) -> float:
         """``product`` within what the sensor can do."""
@@ -92,10 +94,20 @@ def mean_level(image: np.ndarray) -> float:
     return float(image[::METERING_STRIDE, ::METERING_STRIDE].mean()) / 255.0
 
 
-def longest_us(auto_exposure: bool, limit_us: int, manual_us: int) -> int | None:
+# A driver's exposure options (``[realsense]``, ``[oak]``) share three fields:
+# ``auto_exposure``, ``auto_exposure_limit_us`` (0: none) and ``exposure_us`` (manual).
+
+def check_limit(options) -> None:
+    """OptionError for an auto-exposure limit set on a manual exposure."""
+    if options.auto_exposure_limit_us and not options.auto_exposure:
+        raise OptionError("auto_exposure_limit_us", "limits the auto-exposure: set "
+                          "auto_exposure = true, or 0 for a manual exposure")
+
+
+def longest_us(options) -> int | None:
     """The longest a driver's frame is exposed, us: the manual exposure, or the
     auto-exposure's limit; None when the camera's own auto-exposure may take a whole frame
-    (``limit_us`` 0)."""
-    if auto_exposure:
-        return limit_us or None
-    return manual_us
+    (no limit)."""
+    if options.auto_exposure:
+        return options.auto_exposure_limit_us or None
+    return options.exposure_us

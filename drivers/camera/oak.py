@@ -34,9 +34,9 @@ import numpy as np
 
 from autonomy.geometry import PinholeCamera
 from autonomy.lens import CameraModel
-from autonomy.options import OptionError, option, validate
+from autonomy.options import option, validate
 from drivers.camera.base import CameraError, DeviceInfo, MissingExtra, RawFrame, ThreadedCamera
-from drivers.camera.exposure import longest_us
+from drivers.camera.exposure import check_limit, longest_us
 from drivers.camera.options import CameraOptions
 from drivers.clock import Clock, MonotonicClock
 
@@ -85,9 +85,7 @@ class OakOptions:
 
     def __post_init__(self) -> None:
         validate(self)
-        if self.auto_exposure_limit_us and not self.auto_exposure:
-            raise OptionError("auto_exposure_limit_us", "limits the auto-exposure: set "
-                              "auto_exposure = true, or 0 for a manual exposure")
+        check_limit(self)
 
     @property
     def mono(self) -> bool:
@@ -117,8 +115,7 @@ class OakCamera(ThreadedCamera):
     @property
     def exposure_us(self) -> int | None:
         """The longest a frame is exposed, us (:func:`~drivers.camera.exposure.longest_us`)."""
-        opt = self.options
-        return longest_us(opt.auto_exposure, opt.auto_exposure_limit_us, opt.exposure_us)
+        return longest_us(self.options)
 
     def _open(self) -> _Stream:
         dai = _sdk()

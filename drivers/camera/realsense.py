@@ -74,7 +74,8 @@ from autonomy.lens import CameraModel
 from autonomy.options import OptionError, option, validate
 from drivers.camera.base import (CameraError, DeviceInfo, MissingExtra, RawFrame,
                                  ThreadedCamera)
-from drivers.camera.exposure import STEP_RATE, TARGET_LEVEL, ExposureLaw, longest_us, mean_level
+from drivers.camera.exposure import (STEP_RATE, TARGET_LEVEL, ExposureLaw, check_limit,
+                                     longest_us, mean_level)
 from drivers.camera.options import CameraOptions
 from drivers.clock import Clock, MonotonicClock
 
@@ -141,9 +142,7 @@ class RealSenseOptions:
 
     def __post_init__(self) -> None:
         validate(self)
-        if self.auto_exposure_limit_us and not self.auto_exposure:
-            raise OptionError("auto_exposure_limit_us", "limits the auto-exposure: set "
-                              "auto_exposure = true, or 0 for a manual exposure")
+        check_limit(self)
         if self.host_auto_exposure and self.gain < 1:
             raise OptionError("gain", "the host auto-exposure multiplies gain from it: at "
                               f"least 1, got {self.gain}")
@@ -199,8 +198,7 @@ class RealSenseCamera(ThreadedCamera):
     @property
     def exposure_us(self) -> int | None:
         """The longest a frame is exposed, us (:func:`~drivers.camera.exposure.longest_us`)."""
-        opt = self.options
-        return longest_us(opt.auto_exposure, opt.auto_exposure_limit_us, opt.exposure_us)
+        return longest_us(self.options)
 
     @property
     def camera_model(self) -> CameraModel:

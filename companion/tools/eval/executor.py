@@ -34,6 +34,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterator, Sequence
 
 from companion.tools.eval import provenance
+from companion.tools.eval.vio import EvaluationError
 
 #: Times Ray runs a task again after its worker or node died.
 RAY_RETRIES = 3
@@ -41,13 +42,9 @@ RAY_RETRIES = 3
 CONNECT_TIMEOUT_S = 5.0
 
 
-class ExecutorError(RuntimeError):
+class ExecutorError(EvaluationError):
     """The executor cannot run the tasks: a worker pool that died, a cluster that cannot be
-    reached, a node with other code."""
-
-
-class MissingCluster(ExecutorError):
-    """``--cluster`` was given without the ``ray`` package."""
+    reached or is not installed, a node with other code."""
 
 
 def open_executor(cluster: str | None, workers: int | None, tasks: int):
@@ -174,4 +171,4 @@ def _ray():
     try:
         return importlib.import_module("ray")
     except ImportError:
-        raise MissingCluster("--cluster needs Ray: pip install 'companion[cluster]'") from None
+        raise ExecutorError("--cluster needs Ray: pip install 'companion[cluster]'") from None

@@ -290,13 +290,10 @@ def run_trials(config, trials: list[Trial], *, workers: int | None = None,
     to ``on_record`` as it completes. A trial that raises is an ``error`` record
     (:func:`fly_trial`); a worker process that dies locally, or a task lost on the cluster
     after its retries, stops the run (trials not started are cancelled) with an
-    EvaluationError."""
+    :class:`~companion.tools.eval.executor.ExecutorError` (an EvaluationError)."""
     if not trials:
         return []
-    try:
-        runner = executor.open_executor(cluster, workers, len(trials))
-    except executor.ExecutorError as error:
-        raise EvaluationError(str(error)) from None
+    runner = executor.open_executor(cluster, workers, len(trials))
     if progress is not None:
         progress.start(runner.workers, runner.where)
     records: list[dict | None] = [None] * len(trials)
@@ -308,8 +305,6 @@ def run_trials(config, trials: list[Trial], *, workers: int | None = None,
                 on_record(record)
             if progress is not None:
                 progress.update(record)
-    except executor.ExecutorError as error:
-        raise EvaluationError(str(error)) from None
     finally:
         if progress is not None:
             progress.finish()

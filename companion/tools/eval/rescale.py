@@ -243,15 +243,12 @@ def evaluate_rescaling(frames: dict[str, int], *, seed: int, cache: Path, record
     job = WorldJob(seed, Path(cache), recording, options, open_network)
     items = list(frames.items())
     worlds: dict[str, WorldScores] = {}
-    try:
-        runner = executor.open_executor(cluster, workers, len(items))
-        for k, scores in runner.run(score_cached_world, job, items):
-            world = items[k][0]
-            worlds[world] = scores
-            log.info("%s: %d of %d frames scored (with a VINS map where every method fits "
-                     "with both sparse depths)", world, scores.scored, scores.frames)
-    except executor.ExecutorError as error:
-        raise EvaluationError(str(error)) from None
+    runner = executor.open_executor(cluster, workers, len(items))
+    for k, scores in runner.run(score_cached_world, job, items):
+        world = items[k][0]
+        worlds[world] = scores
+        log.info("%s: %d of %d frames scored (with a VINS map where every method fits with "
+                 "both sparse depths)", world, scores.scored, scores.frames)
     return summarise({world: worlds[world] for world in frames})
 
 
