@@ -4,7 +4,8 @@ In lockstep the simulator shares the application's loop and clock, so a stalled 
 simulated time with it. Here the simulator runs in its own thread on the wall clock, the
 application's stages in worker threads, as on the vehicle; the watchdog thread must send the
 stop while the loop is blocked. Its own module: a real-time flight wants the machine to itself,
-not beside the minutes-long lockstep flights of ``test_flight_sim``.
+not beside the minutes-long lockstep flights of ``test_flight_sim``: it is marked ``realtime``,
+which the README's test command runs after the rest, alone.
 
 On a shared two-core host the real-time pipeline can fall behind for seconds, and the
 camera, IMU and depth monitors would rightly stop the flight before the stall comes (what
@@ -23,7 +24,7 @@ from companion.launch import simulated
 from companion.config import Config
 from drivers.sim.faults import Fault
 
-pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+pytestmark = [pytest.mark.filterwarnings("ignore::DeprecationWarning"), pytest.mark.realtime]
 
 
 def test_an_event_loop_stall_is_caught_by_the_watchdog_in_real_time():

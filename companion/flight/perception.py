@@ -38,9 +38,7 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-#: Longest wait for the IMU to reach a frame's time before the frame is processed anyway, s.
-IMU_WAIT_S = 0.05
-#: How often that wait polls, seconds.
+#: How often the wait for the IMU to reach a frame's time polls, seconds.
 IMU_POLL_S = 0.002
 
 
@@ -158,8 +156,11 @@ class Perception:
         return self.vins.odometry()
 
     async def _wait_for_imu(self, t: float) -> None:
+        """Wait until the IMU reaches ``t``, for as long as the IMU may be late before the
+        flight stops for it (``imu_timeout_s``): a late IMU (a busy host, a slow link) delays
+        the frame instead of losing the VINS to a gap that is not there."""
         clock, autopilot = self.context.clock, self.context.autopilot
-        give_up = clock.now() + IMU_WAIT_S
+        give_up = clock.now() + self.context.options.imu_timeout_s
         while (autopilot.last_imu_t is None or autopilot.last_imu_t < t) \
                 and clock.now() < give_up:
             await clock.sleep(IMU_POLL_S)
