@@ -26,6 +26,7 @@ import pytest
 
 from companion.cli import main
 from companion.config import Config, load_config
+from companion.tools import plot
 from companion.tools.eval import nav, provenance
 from companion.tools.eval.vio import EvaluationError
 from drivers.sim.world import build_world
@@ -294,12 +295,45 @@ def test_markdown_counts_the_timeouts_that_ended_early():
 
 def test_the_plot_is_a_png_with_a_bar_per_world_and_source(tmp_path):
     records = _records()
-    out = nav.plot_navigation(nav.summarise(records), tmp_path / "deep" / "nav.png")
+    out = nav.plot_navigation(nav.summarise(records), records, tmp_path / "deep" / "nav.png")
     image = cv2.imread(str(out))
     assert image is not None and image.shape[1] > 150
     assert (image != 255).any(axis=2).mean() > 0.02  # bars drawn, not a blank canvas
-    with pytest.raises(ValueError, match="PNG"):
-        nav.plot_navigation(nav.summarise(records), tmp_path / "nav.jpg")
+    with pytest.raises(ValueError, match="png"):
+        nav.plot_navigation(nav.summarise(records), records, tmp_path / "nav.jpg")
+
+
+def test_the_plots_bars_stack_each_outcomes_count_per_world_and_source():
+    records = _flown_records(0, 2)
+    records[0] = {**records[0], "outcome": "collision"}  # dome pair 0 GT seed 0
+    records[-1] = {**records[-1], "outcome": "error"}  # sewer pair 1 estimated seed 1
+    result = nav.summarise(records)
+    axes = nav.navigation_figure(result, records).axes[0]
+    order = [(world, source) for world in ("dome", "sewer") for source in ("gt", "estimated")]
+    assert [c.get_label() for c in axes.containers] == list(nav.OUTCOMES)
+    below = [0] * len(order)
+    for name, bars in zip(nav.OUTCOMES, axes.containers):
+        counts = [result[source][world][name] for world, source in order]
+        assert [bar.get_height() for bar in bars] == counts, name
+        assert [bar.get_y() for bar in bars] == below, name  # stacked on the outcomes before
+        below = [b + n for b, n in zip(below, counts)]
+    assert below == [4, 4, 4, 4]  # every trial counted once
+    assert [t.get_text() for t in axes.get_xticklabels()] == ["GT", "estimated"] * 2
+    assert [t.get_text() for t in axes.get_xticklabels(minor=True)] == ["dome", "sewer"]
+    assert [t.get_text() for t in axes.get_legend().get_texts()] == list(nav.OUTCOMES)
+    assert axes.get_ylabel() == "trials" and "higher success is better" in axes.get_title()
+    means = [f"{result[source][world]['mean_time_s']:.0f} s" for world, source in order]
+    assert set(means) <= {t.get_text() for t in axes.texts}  # the successes' mean time
+
+
+def test_the_plots_caption_says_what_was_flown_and_by_which_code():
+    records = [{**r, "revision": "abc123", "config_hash": "f00d"} for r in _flown_records(0, 2)]
+    caption = plot.caption_of(nav.navigation_figure(nav.summarise(records), records))
+    assert caption == ("Flown: 2 per start/goal pair and depth source, seeds 0..1, 120 s to "
+                       "reach the goal; code revision abc123; config hash f00d.")
+    records = _records()  # made before the records carried their provenance
+    caption = plot.caption_of(nav.navigation_figure(nav.summarise(records), records))
+    assert caption.endswith("; code revision none recorded; config hash none recorded.")
 
 
 def test_progress_bar_counts_outcomes_one_line_per_update_off_a_terminal():

@@ -24,6 +24,7 @@ from autonomy.depth.stage import MetricDepthStage
 from autonomy.messages import SparseMap
 from companion.cli import main
 from companion.config import Config
+from companion.tools import plot
 from companion.tools.eval import rescale
 from companion.tools.eval.depth import DepthEvalOptions, open_relative_depth_source
 from companion.tools.eval.vio import EvaluationError
@@ -112,6 +113,53 @@ def test_the_plot_is_a_png(quick_run):
     *_, plot, _ = quick_run
     image = cv2.imread(str(plot))
     assert image is not None and image.shape[0] > 300 and image.shape[1] > 600
+
+
+def _made_up_result() -> dict:
+    """Two worlds' numbers: AbsRel 0.1, 0.2, ... by method with GT, twice that with VINS, and
+    no VINS fit for poly5."""
+    def numbers(absrel):
+        return {"absrel": absrel, "delta1": 0.9, "overestimate_rate": None}
+
+    def world(frames):
+        return {"frames": frames,
+                "methods": {m: {"gt": numbers(0.1 * (k + 1)),
+                                "vins": numbers(None if m == "poly5" else 0.2 * (k + 1))}
+                            for k, m in enumerate(METHODS)}}
+
+    worlds = {"mine": world(850), "dome": world(1000)}
+    return {"worlds": worlds, "weighted": rescale.weighted_average(worlds)}
+
+
+def test_the_plot_has_a_gt_and_a_vins_bar_per_method_as_long_as_its_absrel():
+    result = _made_up_result()
+    axes = rescale.absrel_figure(result, seed=7, revision="abc123").axes[0]
+    gt, vins = axes.containers
+    assert (gt.get_label(), vins.get_label()) == ("GT sparse depth", "VINS sparse depth")
+    widths = {source: [n[source]["absrel"] for n in result["weighted"].values()]
+              for source in ("gt", "vins")}
+    assert [bar.get_width() for bar in gt] == pytest.approx(widths["gt"])
+    assert [bar.get_width() for bar in vins] == pytest.approx(
+        [0.0 if w is None else w for w in widths["vins"]])
+    labels = [t.get_text() for t in axes.texts]
+    assert labels == [f"{w:.3f}" for w in widths["gt"]] + [
+        "no fit" if w is None else f"{w:.3f}" for w in widths["vins"]]
+    assert [t.get_text() for t in axes.get_yticklabels()] == [
+        *METHODS[:-1], "ransac_affine (beyond the paper)"]
+    assert axes.yaxis_inverted()  # the first method on top, as in the table
+    assert axes.get_xlabel() == "AbsRel (lower is better)"
+    assert [t.get_text() for t in axes.get_legend().get_texts()] == [
+        "GT sparse depth", "VINS sparse depth"]
+
+
+def test_the_plots_caption_names_the_seed_frames_and_revision(tmp_path):
+    figure = rescale.absrel_figure(_made_up_result(), seed=7, revision="abc123+dirty.f00d")
+    assert plot.caption_of(figure) == (
+        "Seed 7; frames run per world: mine 850, dome 1000 (the average weighs each world by "
+        "its frames); code revision abc123+dirty.f00d.")
+    out = rescale.plot_absrel(_made_up_result(), tmp_path / "deep" / "absrel.png", seed=7,
+                              revision="abc123")
+    assert cv2.imread(str(out)) is not None
 
 
 def test_a_second_call_reuses_the_cached_recording(quick_run, monkeypatch):

@@ -119,10 +119,18 @@ def recording_wanted(args: argparse.Namespace, config) -> bool:
 
 
 def png_path(text: str) -> Path:
-    """A path ending in .png (checked before a long run, not after it)."""
-    if not text.lower().endswith(".png"):
-        raise argparse.ArgumentTypeError(f"expected a .png file name, got {text!r}")
-    return Path(text)
+    """A path ending in .png, for a plot that can be drawn: a usage error before a long run,
+    not after it, for another name or when matplotlib (the ``plots`` extra) is missing."""
+    from companion.tools import plot
+
+    try:
+        path = plot.png_path(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    missing = plot.missing_extra()
+    if missing is not None:
+        raise argparse.ArgumentTypeError(missing)
+    return path
 
 
 def positive_float(text: str) -> float:

@@ -184,7 +184,7 @@ def _eval_depth(args: argparse.Namespace, config: Config) -> int:
 
 def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
     from autonomy.depth.network import NetworkError
-    from companion.tools.eval import depth, rescale
+    from companion.tools.eval import depth, provenance, rescale
     from companion.tools.eval.vio import EvaluationError
 
     seed = config.sim.seed if args.seed is None else args.seed
@@ -206,7 +206,8 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
         return common.EXIT_FAILED
     return common.report("eval rescale", args, result,
                          rescale.format_markdown(result, seed=seed),
-                         (args.plot, lambda path: rescale.plot_absrel(result, path)))
+                         (args.plot, lambda path: rescale.plot_absrel(
+                             result, path, seed=seed, revision=provenance.code_revision())))
 
 
 def _eval_nav(args: argparse.Namespace, config: Config) -> int:
@@ -240,7 +241,7 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
     result = nav.summarise(records)
     return common.report("eval nav", args, result, nav.format_markdown(result, records),
                          (runs, lambda path: nav.write_runs(records, path)),
-                         (args.plot, lambda path: nav.plot_navigation(result, path)))
+                         (args.plot, lambda path: nav.plot_navigation(result, records, path)))
 
 
 #: The options of ``eval nav`` that choose what to fly, which ``--merge`` does not take.

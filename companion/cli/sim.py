@@ -13,6 +13,10 @@ from companion.cli import common
 from companion.config import Config
 
 
+#: Where ``sim fly`` draws the top view of its flight when not told.
+DEFAULT_PLOT = Path("sim-fly.png")
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
     from drivers.sim.faults import FAULT_KINDS
     from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
@@ -91,8 +95,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                      metavar="KIND[@AFTER[+DURATION]]",
                      help="inject a fault AFTER seconds into cruise for DURATION seconds "
                           f"(default: 1 s, for good): {', '.join(FAULT_KINDS)}; repeatable")
-    fly.add_argument("--plot", type=Path, default=Path("sim-fly.png"), metavar="PNG",
-                     help="where to draw the top view of the flight (default: %(default)s)")
+    fly.add_argument("--plot", type=common.png_path, metavar="PNG",
+                     help=f"where to draw the top view of the flight (default: {DEFAULT_PLOT}, "
+                          "where matplotlib, the [plots] extra, is installed)")
     fly.add_argument("--no-plot", action="store_true", help="draw no plot")
     common.add_record_flags(fly)
     common.add_json_flag(fly, instead_of="the summary table")
@@ -162,12 +167,13 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
     from drivers.sim.render import RenderError
 
     sim = _sim_options(args, config)
+    plot = plot_destination(args)
     try:
         mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
                                        goal=args.goal, start_yaw_deg=args.start_yaw,
                                        clock=args.clock, depth=args.depth, link=args.link,
                                        faults=tuple(Fault.parse(f) for f in args.faults))
-        summary = simulated.run(config, mission, plot=None if args.no_plot else args.plot,
+        summary = simulated.run(config, mission, plot=plot,
                                 progress=None if args.json else common.print_progress,
                                 record=common.recording_wanted(args, config), live=args.live)
     except (simulated.SimError, RenderError, RecordingError, LiveViewError, ValueError,
@@ -179,3 +185,21 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
     safe = summary["collisions"] == 0 and summary["final_state"] == "landed"
     return common.EXIT_OK if safe and (summary["reached_goal"] or mission.faults) \
         else common.EXIT_FAILED
+
+
+def plot_destination(args: argparse.Namespace) -> Path | None:
+    """Where ``sim fly`` draws its top view: ``--plot``, else :data:`DEFAULT_PLOT`; nowhere with
+    ``--no-plot``, nor by default where matplotlib (the ``plots`` extra) is missing, which the
+    flight does not need: one line on stderr says so. (An explicit ``--plot`` without it is
+    refused with the arguments, :func:`common.png_path`.)"""
+    from companion.tools.plot import missing_extra
+
+    if args.no_plot:
+        return None
+    if args.plot is not None:
+        return args.plot
+    missing = missing_extra()
+    if missing is not None:
+        print(f"sim fly: no top view drawn ({DEFAULT_PLOT}): {missing}", file=sys.stderr)
+        return None
+    return DEFAULT_PLOT

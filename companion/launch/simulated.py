@@ -118,7 +118,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         await side.stop()
     summary.update(_truth_summary(config, world, mission, sim, side.track, waypoints, summary))
     if plot is not None:
-        _plot(world, side.track, start, waypoints, sim, plot, summary)
+        _plot(world, mission, side.track, (start, waypoints), sim, plot, summary)
         summary["plot"] = str(plot)
     return summary
 
@@ -172,15 +172,21 @@ def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthT
     }
 
 
-def _plot(world, track, start, waypoints, sim, out: Path, summary: dict) -> None:
-    from companion.tools.plot import top_view
+def _plot(world, mission: SimMission, track: TruthTrack, route, sim, out: Path,
+          summary: dict) -> None:
+    """The top view of the flight (:func:`companion.tools.plot.top_view`): the true path
+    coloured by time over the world, the ``route``'s start and waypoints, the collision."""
+    from companion.tools.eval.provenance import code_revision
+    from companion.tools.plot import flight_caption, top_view
 
+    start, waypoints = route
     collision = sim.vehicle.collision
-    top_view(world, np.array(track.positions), start=start, goal=waypoints[-1],
+    top_view(world, np.array(track.positions), times=track.t, start=start, goal=waypoints[-1],
              waypoints=waypoints[:-1],
              collisions=() if collision is None else (collision.position,), out=out,
-             title=f"{world.name} pair {summary['pair']}: "
-                   f"{'reached' if summary['reached_goal'] else 'not reached'}")
+             title=f"{world.name} pair {mission.pair}: "
+                   f"{'reached' if summary['reached_goal'] else 'not reached'}",
+             caption=f"Flown: {flight_caption(mission)}; code revision {code_revision()}.")
 
 
 def _format_load(load: dict) -> str:

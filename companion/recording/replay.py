@@ -440,7 +440,8 @@ def plot(path: Path, mission: dict | None, config, out: Path) -> None:
     """The recorded flight's estimated path (the VINS odometry, in PX4's local frame) over
     its simulated world, as ``companion sim fly`` draws it (:func:`companion.tools.plot.
     top_view`); only a simulated flight has a world to draw it on."""
-    from companion.tools.plot import top_view
+    from companion.tools.eval.provenance import code_revision
+    from companion.tools.plot import flight_caption, top_view
     from drivers.sim.faults import Fault
     from drivers.sim.host import SimMission, mission_waypoints
     from drivers.sim.world import build_world
@@ -448,7 +449,7 @@ def plot(path: Path, mission: dict | None, config, out: Path) -> None:
     if mission is None:
         raise ReplayError("the top view needs a simulated flight's world; this recording is of "
                           "a real one")
-    T_L_W, positions_W = _estimated_path(path)
+    T_L_W, times, positions_W = _estimated_path(path)
     if T_L_W is None or not positions_W:
         raise ReplayError(f"{path} has no VINS path tied to PX4's local frame to draw")
     sim_mission = SimMission(**{**mission, "faults": tuple(
@@ -457,24 +458,28 @@ def plot(path: Path, mission: dict | None, config, out: Path) -> None:
     start, waypoints, _ = mission_waypoints(build_world(sim_mission.world, sim_mission.seed),
                                             sim_mission, config.flight.takeoff_altitude)
     positions_L = np.asarray(positions_W) @ T_L_W[:3, :3].T + T_L_W[:3, 3]
-    top_view(world, positions_L, start=start, goal=waypoints[-1], waypoints=waypoints[:-1],
-             out=out, title=f"{world.name} pair {sim_mission.pair}: recorded VINS path")
+    top_view(world, positions_L, times=times, start=start, goal=waypoints[-1],
+             waypoints=waypoints[:-1], out=out,
+             title=f"{world.name} pair {sim_mission.pair}: recorded VINS path",
+             caption=f"Recording {Path(path).name}, flown: {flight_caption(sim_mission)}; "
+                     f"drawn by code revision {code_revision()}.")
 
 
-def _estimated_path(path: Path) -> tuple[np.ndarray | None, list]:
-    """PX4's local frame to the VINS world (``local``->``world`` on ``/tf``) and the VINS
-    positions of ``/vins/odometry`` in time order."""
-    T_L_W, positions = None, []
+def _estimated_path(path: Path) -> tuple[np.ndarray | None, list, list]:
+    """PX4's local frame to the VINS world (``local``->``world`` on ``/tf``), and the times
+    (seconds) and VINS positions of ``/vins/odometry`` in time order."""
+    T_L_W, times, positions = None, [], []
     with open(path, "rb") as file:
         reader = make_reader(file, decoder_factories=[DecoderFactory(), _JsonDecoders()])
         for _, channel, _, decoded in reader.iter_decoded_messages(
                 topics=[topics.TRANSFORMS.name, topics.ODOMETRY.name], log_time_order=True):
             if channel.topic == topics.ODOMETRY.name:
+                times.append(decoded["t"])
                 positions.append(decoded["position"])
             elif (decoded.parent_frame_id, decoded.child_frame_id) == (topics.LOCAL,
                                                                         topics.WORLD):
                 T_L_W = _transform(decoded)
-    return T_L_W, positions
+    return T_L_W, times, positions
 
 
 def _transform(message) -> np.ndarray:

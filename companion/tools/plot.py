@@ -1,130 +1,255 @@
-"""A flight drawn from above on its world's map, as a PNG made with OpenCV alone.
+"""The figures of the reports, drawn with matplotlib: the plumbing they share, and a flight
+seen from above.
 
-One picture answers the first questions about a simulated flight — where it went, how close it
-came to things, where it hit them — without a plotting library on the vehicle or in CI
-(matplotlib is deliberately not a dependency). The map is the world's exact clearance
-(:meth:`drivers.sim.world.World.obstacle_clearance`) sampled on a grid at the flight height:
-solid dark, the band a :data:`~drivers.sim.world.ROBOT_RADIUS` robot cannot enter light grey,
-free space near white. World ``x`` is east (right) and ``y`` north (up).
+matplotlib is the optional ``plots`` extra (``pip install -e '.[plots]'``), as in evo: the
+vehicle never draws, so it does not need it. :func:`missing_extra` says, in one line, when it
+is not installed; the command line refuses a ``--plot`` then, before anything runs. Figures are
+made on the Agg canvas without pyplot (no global state, no display), laid out above a caption
+of small text that says what produced them (by matplotlib's constrained layout; the top view
+by hand), and written as PNG at :data:`DPI` dots per inch, exactly their size (no tight
+bounding box), so that a point of the data lands on a pixel that can be computed
+(:class:`TopView`). The charts of the evaluations are drawn beside their data
+(:func:`companion.tools.eval.nav.navigation_figure`,
+:func:`companion.tools.eval.rescale.absrel_figure`).
+
+The top view (:func:`top_view`) answers the first questions about a simulated flight — where
+it went, how close it came to things, where it hit them. Its map is the world's exact
+clearance (:meth:`drivers.sim.world.World.obstacle_clearance`) sampled on a grid at the flight
+height: solid dark, the band a :data:`~drivers.sim.world.ROBOT_RADIUS` robot cannot enter
+light grey, free space near white. World ``x`` is east (right) and ``y`` north (up).
 """
 
 from __future__ import annotations
 
 import math
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from drivers.sim.world import ROBOT_RADIUS, World
 
-SOLID = (45, 45, 45)
-"""Colour (BGR, as everywhere here) of space inside obstacles."""
-BAND = (175, 175, 175)
+#: The extra that installs matplotlib, and the line that says it is missing.
+EXTRA = "plots"
+MISSING = f"the plots need matplotlib: pip install -e '.[{EXTRA}]'"
+#: Dots per inch of every figure: a figure of w x h inches is a PNG of 100 w x 100 h pixels.
+DPI = 100
+#: Size of the caption's text, points, and the room below and above it, inches.
+CAPTION_POINTS, CAPTION_PAD_IN = 7.5, 0.06
+
+SOLID = "#2d2d2d"
+"""Colour of space inside obstacles."""
+BAND = "#afafaf"
 """Colour of free space closer than the robot radius to an obstacle."""
-FREE = (246, 246, 246)
+FREE = "#f6f6f6"
 """Colour of the rest of free space."""
-START, GOAL, WAYPOINT, COLLISION = (0, 160, 0), (0, 140, 255), (170, 120, 0), (0, 0, 230)
+START, GOAL, WAYPOINT, COLLISION = "tab:green", "tab:orange", "tab:blue", "tab:red"
 """Marker colours."""
+PATH_COLOURS = "viridis"
+"""The colour map of the path, from its start to its end."""
 
 MARGIN_M = 2.0
 """Metres of map shown around the world's bounds and everything drawn."""
-_LEFT, _TOP, _RIGHT, _BOTTOM = 60, 40, 20, 46  # pixels around the map for labels
-_FONT = cv2.FONT_HERSHEY_SIMPLEX
+MAP_CELL_M = 0.1
+"""The clearance map's finest cell, metres; coarser where the map is over 1000 cells across."""
 
 
-@dataclass(frozen=True)
-class TopView:
-    """Where :func:`top_view` wrote its image and how world coordinates map onto it."""
-
-    path: Path
-    width: int
-    height: int
-    px_per_m: float
-    x0: float  # world x of the map's left edge, metres
-    y1: float  # world y of the map's top edge, metres
-
-    def pixel(self, xy) -> tuple[int, int]:
-        """(column, row) of the image pixel showing world point ``xy`` (x east, y north)."""
-        x, y = float(xy[0]), float(xy[1])
-        return (int(math.floor(_LEFT + (x - self.x0) * self.px_per_m)),
-                int(math.floor(_TOP + (self.y1 - y) * self.px_per_m)))
+class MissingExtra(ImportError):
+    """matplotlib, the ``plots`` extra, is not installed; the message is :data:`MISSING`."""
 
 
-def top_view(world: World, path_xyz, *, start, goal, waypoints=(), collisions=(), out,
-             title: str = "", height: float | None = None, size_px: int = 1000) -> TopView:
-    """Draw the flown ``path_xyz`` ((N, 3) world points, in time order) over ``world`` seen
-    from above and write it as a PNG to ``out``.
-
-    ``start`` and ``goal`` are one point each, ``waypoints`` and ``collisions`` (K, 2) or
-    (K, 3) points; only x and y are drawn. The map is the clearance at ``height`` (default the
-    world's cruise height) on cells of at least 0.1 m, scaled so the map's long side is
-    ``size_px`` pixels. The path is coloured by sample index, blue at its start to red at its
-    end (by time, for a path sampled at a fixed rate);
-    a scale bar, east/north ticks in metres and the ``title`` (ASCII) frame it. Parent folders
-    of ``out`` are created. Returns the image's geometry; raises ValueError for empty or
-    non-finite input.
-    """
-    path = _points("path_xyz", path_xyz, columns=(3,), allow_empty=False)
-    start_xy = _points("start", np.reshape(start, (1, -1)), columns=(2, 3), allow_empty=False)
-    goal_xy = _points("goal", np.reshape(goal, (1, -1)), columns=(2, 3), allow_empty=False)
-    marks = {name: _points(name, value, columns=(2, 3), allow_empty=True)
-             for name, value in (("waypoints", waypoints), ("collisions", collisions))}
-    if not size_px >= 100:
-        raise ValueError(f"size_px must be >= 100, got {size_px!r}")
-    height = world.cruise_height if height is None else float(height)
-    if not math.isfinite(height):
-        raise ValueError(f"height must be finite, got {height!r}")
-
-    drawn = np.concatenate([path[:, :2], start_xy[:, :2], goal_xy[:, :2],
-                            *(m[:, :2] for m in marks.values())])
-    xmin, ymin, xmax, ymax = world.bounds
-    x0, y0 = min(xmin, drawn[:, 0].min()) - MARGIN_M, min(ymin, drawn[:, 1].min()) - MARGIN_M
-    x1, y1 = max(xmax, drawn[:, 0].max()) + MARGIN_M, max(ymax, drawn[:, 1].max()) + MARGIN_M
-    scale = size_px / max(x1 - x0, y1 - y0)
-    map_w, map_h = round((x1 - x0) * scale), round((y1 - y0) * scale)
-    view = TopView(Path(out), _LEFT + map_w + _RIGHT, _TOP + map_h + _BOTTOM, scale, x0, y1)
-
-    canvas = np.full((view.height, view.width, 3), 255, np.uint8)
-    canvas[_TOP:_TOP + map_h, _LEFT:_LEFT + map_w] = _clearance_map(
-        world, x0, y1, map_w, map_h, scale, height)
-    _draw_path(canvas, view, path)
-    _draw_marker(canvas, view, start_xy[0], START, cv2.MARKER_SQUARE)
-    _draw_marker(canvas, view, goal_xy[0], GOAL, cv2.MARKER_STAR)
-    for point in marks["waypoints"]:
-        _draw_marker(canvas, view, point, WAYPOINT, cv2.MARKER_DIAMOND)
-    for point in marks["collisions"]:
-        _draw_marker(canvas, view, point, COLLISION, cv2.MARKER_TILTED_CROSS)
-    _draw_axes(canvas, view, map_w, map_h, x1, y0)
-    _draw_scale_bar(canvas, view, map_h, x1 - x0)
-    cv2.putText(canvas, title, (_LEFT, 20), _FONT, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
-
-    write_image(canvas, view.path)
-    return view
+def missing_extra() -> str | None:
+    """:data:`MISSING` when matplotlib cannot be imported, else None."""
+    try:
+        _matplotlib()
+    except MissingExtra:
+        return MISSING
+    return None
 
 
-def write_image(canvas: np.ndarray, out: Path) -> Path:
-    """Write ``canvas`` to ``out`` (its folders created); OSError if OpenCV cannot."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), canvas):
-        raise OSError(f"could not write the image to {out} (is the name a .png?)")
-    return out
+def _matplotlib():
+    """matplotlib's ``(Figure, FigureCanvasAgg)``, or :class:`MissingExtra`."""
+    try:
+        import matplotlib  # noqa: F401 - first, so that a matplotlib hidden from imports is missing
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise MissingExtra(MISSING) from None
+    return Figure, FigureCanvasAgg
 
 
 def png_path(out) -> Path:
     """``out`` as a Path, or a ValueError unless its name ends in .png (before the drawing)."""
     out = Path(out)
     if out.suffix.lower() != ".png":
-        raise ValueError(f"{out}: the plot is a PNG; give a name ending in .png")
+        raise ValueError(f"expected a .png file name (the plot is a PNG), got {str(out)!r}")
     return out
 
 
-def text(canvas: np.ndarray, words: str, at: tuple[int, int], scale: float = 0.4,
-         colour=(0, 0, 0)) -> None:
-    """Anti-aliased Hershey text with its baseline's left end at ``at``."""
-    cv2.putText(canvas, words, at, _FONT, scale, colour, 1, cv2.LINE_AA)
+def new_figure(width_in: float, height_in: float, caption: str, *, constrained: bool = True):
+    """A matplotlib Figure of ``width_in`` x ``height_in`` inches on the Agg canvas with
+    ``caption`` at its bottom left (:func:`wrap_caption`); laid out by matplotlib's
+    constrained layout above the caption unless not ``constrained`` (the caller places its
+    axes). :class:`MissingExtra` without matplotlib."""
+    Figure, FigureCanvasAgg = _matplotlib()
+    figure = Figure(figsize=(width_in, height_in), dpi=DPI,
+                    layout="constrained" if constrained else None)
+    FigureCanvasAgg(figure)
+    text, room_in = wrap_caption(caption, width_in)
+    if constrained:
+        figure.get_layout_engine().set(rect=(0.0, room_in / height_in, 1.0,
+                                             1.0 - room_in / height_in))
+    figure.text(0.01, CAPTION_PAD_IN / height_in, text, fontsize=CAPTION_POINTS, color="0.3",
+                ha="left", va="bottom")
+    return figure
+
+
+def wrap_caption(caption: str, width_in: float) -> tuple[str, float]:
+    """``caption`` broken into lines that fit ``width_in`` inches (about 0.55 em a character),
+    and the inches of figure height it takes (1.3 em a line, with padding)."""
+    lines = textwrap.wrap(caption, width=int(0.98 * width_in * 72 / (0.55 * CAPTION_POINTS)),
+                          break_long_words=False, break_on_hyphens=False)
+    return "\n".join(lines), len(lines) * 1.3 * CAPTION_POINTS / 72 + 2 * CAPTION_PAD_IN
+
+
+def caption_of(figure) -> str:
+    """The caption :func:`new_figure` put on ``figure``, its line breaks as spaces."""
+    return " ".join(figure.texts[0].get_text().split())
+
+
+def save(figure, out) -> Path:
+    """Write ``figure`` as a PNG to ``out`` (a .png name, :func:`png_path`; its folders
+    created), at :data:`DPI` and exactly the figure's size; OSError if it cannot be written."""
+    out = png_path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.canvas.print_png(str(out))  # not savefig: no rcParams' bbox or dpi in the way
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# A flight from above
+
+@dataclass(frozen=True)
+class TopView:
+    """Where :func:`top_view` wrote its image, how world coordinates map onto it, and what its
+    legend and colour bar say."""
+
+    path: Path
+    width: int
+    height: int
+    px_per_m: float
+    origin: tuple[float, float]  # (column, row) of world (0, 0), pixels from the top left
+    legend: tuple[str, ...]  # the labels of the legend, top to bottom
+    colour_bar: str  # the label of the path's colour bar
+
+    def pixel(self, xy) -> tuple[int, int]:
+        """(column, row) of the image pixel showing world point ``xy`` (x east, y north)."""
+        column, row = self.origin
+        return (int(math.floor(column + float(xy[0]) * self.px_per_m)),
+                int(math.floor(row - float(xy[1]) * self.px_per_m)))
+
+
+def flight_caption(mission) -> str:
+    """"world dome, seed 0, pair 1, estimated depth, lockstep clock": what a simulated
+    ``mission`` (:class:`drivers.sim.host.SimMission`) flew, for a top view's caption."""
+    goal = f"pair {mission.pair}" if mission.goal is None else \
+        f"pair {mission.pair}'s start to goal {', '.join(f'{v:g}' for v in mission.goal)}"
+    faults = "".join(f", fault {fault.kind}" for fault in mission.faults)
+    return (f"world {mission.world}, seed {mission.seed}, {goal}, {mission.depth} depth, "
+            f"{mission.clock} clock{faults}")
+
+
+def top_view(world: World, path_xyz, *, start, goal, waypoints=(), collisions=(), times=None,
+             out, title: str = "", caption: str = "", height: float | None = None,
+             size_px: int = 1000) -> TopView:
+    """Draw the flown ``path_xyz`` ((N, 3) world points, in time order) over ``world`` seen
+    from above and write it as a PNG to ``out`` (its folders created).
+
+    ``start`` and ``goal`` are one point each, ``waypoints`` and ``collisions`` (K, 2) or
+    (K, 3) points; only x and y are drawn. The map is the clearance at ``height`` (default the
+    world's cruise height). The path is coloured by ``times`` (N seconds, a colour bar in
+    seconds) or, without them, by its fraction of the samples. A legend names every element;
+    ``title`` heads the figure and ``caption`` (what produced it) is set under it. The image
+    is ``size_px`` wide. Returns the image's geometry; ValueError for empty or non-finite
+    input, :class:`MissingExtra` without matplotlib.
+    """
+    out = png_path(out)
+    path = _points("path_xyz", path_xyz, columns=(3,), allow_empty=False)
+    times = None if times is None else _times(times, path)
+    start_xy = _points("start", np.reshape(start, (1, -1)), columns=(2, 3), allow_empty=False)
+    goal_xy = _points("goal", np.reshape(goal, (1, -1)), columns=(2, 3), allow_empty=False)
+    marks = {name: _points(name, value, columns=(2, 3), allow_empty=True)
+             for name, value in (("waypoints", waypoints), ("collisions", collisions))}
+    if not size_px >= 600:
+        raise ValueError(f"size_px must be >= 600, got {size_px!r}")
+    height = world.cruise_height if height is None else float(height)
+    if not math.isfinite(height):
+        raise ValueError(f"height must be finite, got {height!r}")
+
+    drawn = np.concatenate([path[:, :2], start_xy[:, :2], goal_xy[:, :2],
+                            *(m[:, :2] for m in marks.values())])
+    extent = _extent(world.bounds, drawn)
+    figure, axes, colour_bar = _top_view_figure(extent, size_px, caption)
+    _draw_map(axes, world, extent, height)
+    colours = _draw_path(axes, colour_bar, path[:, :2], times)
+    _draw_marker(axes, start_xy, "s", START, "start")
+    _draw_marker(axes, goal_xy, "*", GOAL, "goal", size=16)
+    _draw_marker(axes, marks["waypoints"], "D", WAYPOINT, "waypoint", size=7)
+    _draw_marker(axes, marks["collisions"], "X", COLLISION, "collision")
+    legend = _legend(axes)
+    axes.set(xlim=extent[:2], ylim=extent[2:], xlabel="x east (m)", ylabel="y north (m)",
+             title=title)
+    figure.canvas.draw()  # places the map for good: the equal aspect is applied in drawing
+    view = _view(figure, axes, out, legend, colours)
+    save(figure, out)
+    return view
+
+
+#: Pixels of the top view around its map: left of it (ticks, label), right of it (legend),
+#: above it (title), under it (ticks, label), and the colour bar under those (with its label).
+_LEFT_PX, _LEGEND_PX, _TITLE_PX, _X_AXIS_PX, _COLOUR_BAR_PX = 70, 250, 36, 50, 74
+
+
+def _top_view_figure(extent, size_px: int, caption: str):
+    """``(figure, map axes, colour bar axes)``, placed by hand: the map as wide as the legend
+    leaves room for and exactly as high as its equal aspect makes it, the colour bar under it,
+    the caption under that."""
+    map_w = size_px - _LEFT_PX - _LEGEND_PX
+    map_h = round(map_w * (extent[3] - extent[2]) / (extent[1] - extent[0]))
+    caption_px = round(wrap_caption(caption, size_px / DPI)[1] * DPI)
+    below = caption_px + _COLOUR_BAR_PX + _X_AXIS_PX
+    width, height = size_px, _TITLE_PX + map_h + below
+    figure = new_figure(width / DPI, height / DPI, caption, constrained=False)
+    axes = figure.add_axes((_LEFT_PX / width, below / height, map_w / width, map_h / height))
+    colour_bar = figure.add_axes(((_LEFT_PX + 0.2 * map_w) / width, (caption_px + 40) / height,
+                                  0.6 * map_w / width, 12 / height))
+    return figure, axes, colour_bar
+
+
+def _extent(bounds, drawn: np.ndarray) -> tuple[float, float, float, float]:
+    """``(x0, x1, y0, y1)``: the world's bounds and every point drawn, :data:`MARGIN_M`
+    around them."""
+    xmin, ymin, xmax, ymax = bounds
+    return (min(xmin, drawn[:, 0].min()) - MARGIN_M, max(xmax, drawn[:, 0].max()) + MARGIN_M,
+            min(ymin, drawn[:, 1].min()) - MARGIN_M, max(ymax, drawn[:, 1].max()) + MARGIN_M)
+
+
+def _view(figure, axes, out: Path, legend: tuple[str, ...], colour_bar: str) -> TopView:
+    """The pixel geometry of the drawn ``axes``: matplotlib's display coordinates are pixels
+    from the bottom left at the figure's dpi, the image's rows count from the top."""
+    width, height = (int(round(v)) for v in figure.bbox.size)
+    (c0, r0), (c1, _) = axes.transData.transform([(0.0, 0.0), (1.0, 0.0)])
+    return TopView(out, width, height, float(c1 - c0), (float(c0), height - float(r0)), legend,
+                   colour_bar)
+
+
+def _times(value, path: np.ndarray) -> np.ndarray:
+    """The path's times as a finite array of one value per point, or a ValueError."""
+    times = _points("times", np.reshape(value, (-1, 1)), columns=(1,), allow_empty=False)
+    if len(times) != len(path):
+        raise ValueError(f"times has {len(times)} values for {len(path)} path points")
+    return times[:, 0]
 
 
 def _points(name: str, value, *, columns: tuple[int, ...], allow_empty: bool) -> np.ndarray:
@@ -144,76 +269,69 @@ def _points(name: str, value, *, columns: tuple[int, ...], allow_empty: bool) ->
     return array
 
 
-def _clearance_map(world: World, x0: float, y1: float, width: int, height: int, scale: float,
-                   z: float) -> np.ndarray:
-    """The (height, width, 3) map image: clearance at ``z`` on a grid of cells of at least
-    0.1 m (one query of all cell centres), resized to pixels with nearest neighbour."""
-    cell = max(0.1, 1.0 / scale)
-    nx, ny = max(1, round(width / (cell * scale))), max(1, round(height / (cell * scale)))
-    cx, cy = width / scale / nx, height / scale / ny  # exact cell sizes tiling the map
-    gx, gy = np.meshgrid(x0 + (np.arange(nx) + 0.5) * cx, y1 - (np.arange(ny) + 0.5) * cy)
+def _draw_map(axes, world: World, extent, z: float) -> None:
+    """The clearance at ``z`` over ``extent`` as an image in metres: one query of the centres
+    of cells of at least :data:`MAP_CELL_M`, each cell one colour."""
+    from matplotlib.colors import to_rgb
+
+    x0, x1, y0, y1 = extent
+    cell = max(MAP_CELL_M, max(x1 - x0, y1 - y0) / 1000)
+    nx, ny = max(1, round((x1 - x0) / cell)), max(1, round((y1 - y0) / cell))
+    gx, gy = np.meshgrid(x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx,
+                         y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny)  # first row at the top
     centres = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1)
     clearance = world.obstacle_clearance(centres).reshape(ny, nx)
-    grid = np.empty((ny, nx, 3), np.uint8)
-    grid[:] = FREE
-    grid[clearance < ROBOT_RADIUS] = BAND
-    grid[clearance <= 0.0] = SOLID
-    return cv2.resize(grid, (width, height), interpolation=cv2.INTER_NEAREST)
+    image = np.empty((ny, nx, 3))
+    image[:] = to_rgb(FREE)
+    image[clearance < ROBOT_RADIUS] = to_rgb(BAND)
+    image[clearance <= 0.0] = to_rgb(SOLID)
+    axes.imshow(image, extent=extent, origin="upper", interpolation="nearest", zorder=0)
 
 
-def _draw_path(canvas: np.ndarray, view: TopView, path: np.ndarray) -> None:
-    """The polyline, each segment coloured by its time along the path (blue -> red)."""
-    pixels = [view.pixel(p) for p in path]
-    if len(pixels) == 1:
-        cv2.circle(canvas, pixels[0], 3, (255, 0, 0), -1, cv2.LINE_AA)
-    for k, (a, b) in enumerate(zip(pixels, pixels[1:])):
-        f = k / max(1, len(pixels) - 2)
-        cv2.line(canvas, a, b, (round(255 * (1 - f)), 0, round(255 * f)), 2, cv2.LINE_AA)
+def _draw_path(axes, colour_bar, xy: np.ndarray, times: np.ndarray | None) -> str:
+    """The path as segments coloured by time (``times``, seconds) or by the fraction of the
+    samples, with its colour bar on the ``colour_bar`` axes; the colour bar's label."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import Normalize
+
+    along = np.linspace(0.0, 1.0, len(xy)) if times is None else times
+    label = "fraction of the flight (samples)" if times is None else "time (s)"
+    norm = Normalize(along[0], along[-1] if along[-1] > along[0] else along[0] + 1.0)
+    if len(xy) == 1:
+        mappable = axes.scatter(xy[:, 0], xy[:, 1], c=along, cmap=PATH_COLOURS, norm=norm, s=12,
+                                zorder=2)
+    else:
+        mappable = LineCollection(np.stack([xy[:-1], xy[1:]], axis=1), cmap=PATH_COLOURS,
+                                  norm=norm, linewidths=2.2, zorder=2)
+        mappable.set_array(0.5 * (along[:-1] + along[1:]))
+        axes.add_collection(mappable, autolim=False)
+    axes.figure.colorbar(mappable, cax=colour_bar, orientation="horizontal", label=label)
+    return label
 
 
-def _draw_marker(canvas: np.ndarray, view: TopView, xy, colour, kind: int) -> None:
-    """A marker with a white halo, so it stays visible on dark rock and on the path."""
-    at = view.pixel(xy)
-    cv2.drawMarker(canvas, at, (255, 255, 255), kind, 18, 5, cv2.LINE_AA)
-    cv2.drawMarker(canvas, at, colour, kind, 16, 2, cv2.LINE_AA)
+def _draw_marker(axes, points: np.ndarray, marker: str, colour: str, label: str,
+                 size: float = 11) -> None:
+    """``points`` as markers with a white edge, so they stay visible on dark rock and on the
+    path; nothing (and no legend entry) for none."""
+    if len(points):
+        axes.plot(points[:, 0], points[:, 1], linestyle="none", marker=marker, markersize=size,
+                  markerfacecolor=colour, markeredgecolor="white", markeredgewidth=1.2,
+                  label=label, zorder=3)
 
 
-def nice_step(length: float) -> float:
-    """The largest of 1, 2, 5 times a power of ten not above ``length``."""
-    power = 10.0 ** math.floor(math.log10(length))
-    return max(m * power for m in (1, 2, 5) if m * power <= length)
+def _legend(axes) -> tuple[str, ...]:
+    """The legend beside the map: the path, the markers drawn, the map's colours."""
+    from matplotlib import colormaps
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
-
-def _draw_axes(canvas: np.ndarray, view: TopView, map_w: int, map_h: int, x1: float,
-               y0: float) -> None:
-    """Ticks in metres along the bottom (x, east) and left (y, north) edges, axis names, and
-    a north arrow in the map's top-right corner."""
-    black, small = (0, 0, 0), 0.4
-    step = nice_step(max(x1 - view.x0, view.y1 - y0) / 6)
-    cv2.rectangle(canvas, (_LEFT - 1, _TOP - 1), (_LEFT + map_w, _TOP + map_h), black, 1)
-    for x in np.arange(math.ceil(view.x0 / step) * step, x1, step):
-        col = view.pixel((x, 0))[0]
-        cv2.line(canvas, (col, _TOP + map_h), (col, _TOP + map_h + 5), black, 1)
-        cv2.putText(canvas, f"{x:g}", (col - 10, _TOP + map_h + 18), _FONT, small, black, 1,
-                    cv2.LINE_AA)
-    for y in np.arange(math.ceil(y0 / step) * step, view.y1, step):
-        row = view.pixel((0, y))[1]
-        cv2.line(canvas, (_LEFT - 6, row), (_LEFT - 1, row), black, 1)
-        cv2.putText(canvas, f"{y:g}", (4, row + 4), _FONT, small, black, 1, cv2.LINE_AA)
-    cv2.putText(canvas, "x east (m)", (_LEFT + map_w // 2 - 40, view.height - 8), _FONT, 0.45,
-                black, 1, cv2.LINE_AA)
-    cv2.putText(canvas, "y north (m)", (4, _TOP - 6), _FONT, small, black, 1, cv2.LINE_AA)
-    tip = (_LEFT + map_w - 20, _TOP + 12)
-    cv2.arrowedLine(canvas, (tip[0], tip[1] + 30), tip, black, 2, cv2.LINE_AA, tipLength=0.3)
-    cv2.putText(canvas, "N", (tip[0] - 18, tip[1] + 26), _FONT, 0.5, black, 1, cv2.LINE_AA)
-
-
-def _draw_scale_bar(canvas: np.ndarray, view: TopView, map_h: int, width_m: float) -> None:
-    """A bar of a round number of metres, about a fifth of the map wide, bottom left."""
-    metres = nice_step(width_m / 5)
-    left, base = _LEFT + 12, _TOP + map_h - 14
-    right = left + round(metres * view.px_per_m)
-    cv2.rectangle(canvas, (left - 3, base - 20), (right + 3, base + 6), (255, 255, 255), -1)
-    cv2.rectangle(canvas, (left, base - 2), (right, base + 2), (0, 0, 0), -1)
-    cv2.putText(canvas, f"{metres:g} m", (left, base - 7), _FONT, 0.45, (0, 0, 0), 1,
-                cv2.LINE_AA)
+    handles, _ = axes.get_legend_handles_labels()
+    handles = [Line2D([], [], color=colormaps[PATH_COLOURS](0.5), linewidth=2.2,
+                      label="path (coloured by time)"), *handles,
+               Patch(facecolor=SOLID, label="obstacle"),
+               Patch(facecolor=BAND, edgecolor="0.6",
+                     label=f"within the robot radius ({ROBOT_RADIUS:g} m)"),
+               Patch(facecolor=FREE, edgecolor="0.6", label="free")]
+    legend = axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0),
+                         fontsize=9, borderaxespad=0.0)
+    return tuple(text.get_text() for text in legend.get_texts())

@@ -64,7 +64,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, TextIO
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -72,7 +71,7 @@ from companion.launch import simulated
 from companion.report import mean_or_none, show
 from companion.tools.eval import executor, provenance
 from companion.tools.eval.vio import EvaluationError
-from companion.tools.plot import png_path, text, write_image
+from companion.tools import plot
 from drivers.sim.options import WORLD_NAMES
 from drivers.sim.world import build_world
 
@@ -507,12 +506,20 @@ def check_provenance(records: Iterable[dict]) -> None:
     """EvaluationError unless ``records`` all come from one revision of the code and one
     config (their ``revision`` and ``config_hash``; records from before these were kept have
     neither, and merge only with each other)."""
-    records = list(records)
+    provenance = _provenance(records)
     for key, what in (("revision", "code revisions"), ("config_hash", "configs")):
-        values = list(dict.fromkeys(str(r.get(key, "none recorded")) for r in records))
-        if len(values) > 1:
-            raise EvaluationError(f"the records come from different {what} ({', '.join(values)})"
-                                  "; one evaluation is flown by one code and config")
+        if len(provenance[key]) > 1:
+            raise EvaluationError(f"the records come from different {what} "
+                                  f"({', '.join(provenance[key])}); one evaluation is flown "
+                                  "by one code and config")
+
+
+def _provenance(records: Iterable[dict]) -> dict[str, list[str]]:
+    """The distinct ``revision`` and ``config_hash`` values of ``records``, in order, "none
+    recorded" for records from before these were kept."""
+    records = list(records)
+    return {key: list(dict.fromkeys(str(r.get(key, "none recorded")) for r in records))
+            for key in ("revision", "config_hash")}
 
 
 def _trial_key(record: dict) -> tuple:
@@ -586,67 +593,61 @@ _SOURCE_NAMES = {"gt": "GT", "estimated": "estimated"}
 # --------------------------------------------------------------------------------------------
 # Plot
 
-#: BGR colours of the outcomes: green, red, grey, purple.
-_COLOURS = {"success": (60, 160, 40), "collision": (40, 40, 210), "timeout": (150, 150, 150),
-            "error": (150, 40, 120)}
-_LEFT, _TOP, _BAR, _PLOT_H, _GROUP_GAP, _MIN_WIDTH = 60, 100, 56, 300, 50, 480
+#: Colours of the outcomes: green, red, grey, purple.
+_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:gray",
+            "error": "tab:purple"}
 
 
-def plot_navigation(result: dict, out: Path) -> Path:
-    """Draw, per world, a stacked bar per depth source (successes, collisions, timeouts, from
-    the bottom, each labelled with its count) with its mean flight time above it, as a PNG at
-    ``out`` with OpenCV (:mod:`companion.tools.plot`'s helpers); parent folders are created.
-    ValueError for a name that does not end in .png."""
-    out = png_path(out)
-    worlds = list(next(iter(result.values()), {}))
-    top = max([n["trials"] for w in result.values() for n in w.values()] + [1])
-    group = len(result) * (_BAR + 8) + _GROUP_GAP
-    width = max(_LEFT + len(worlds) * group + 20, _MIN_WIDTH)
-    canvas = np.full((_TOP + _PLOT_H + 60, width, 3), 255, np.uint8)
-    text(canvas, "Navigation outcomes per world and depth source", (10, 22), 0.55)
-    _plot_legend(canvas)
-    text(canvas, "above each bar: the mean flight time of its successes", (_LEFT, 68))
-    _y_axis(canvas, top)
-    for w, world in enumerate(worlds):
-        left = _LEFT + 20 + w * group
-        for s, source in enumerate(result):
-            _stacked_bar(canvas, left + s * (_BAR + 8), result[source][world], top, source)
-        text(canvas, world, (left + (group - _GROUP_GAP) // 2 - 20, _TOP + _PLOT_H + 40), 0.5)
-    return write_image(canvas, out)
+def plot_navigation(result: dict, records: list[dict], out: Path) -> Path:
+    """Draw :func:`navigation_figure` as a PNG at ``out`` (parent folders created).
+    ValueError for a name that does not end in .png, :class:`~companion.tools.plot.
+    MissingExtra` without matplotlib."""
+    return plot.save(navigation_figure(result, records), out)
 
 
-def _plot_legend(canvas: np.ndarray) -> None:
-    for k, name in enumerate(OUTCOMES):
-        left = _LEFT + 110 * k
-        cv2.rectangle(canvas, (left, 36), (left + 14, 48), _COLOURS[name], -1)
-        text(canvas, name, (left + 20, 47), 0.45)
-
-
-def _y_axis(canvas: np.ndarray, top: int) -> None:
-    """The trial-count axis, ticked at whole trials (at most about ten ticks)."""
-    bottom = _TOP + _PLOT_H
-    cv2.line(canvas, (_LEFT, _TOP - 10), (_LEFT, bottom), (0, 0, 0), 1)
-    cv2.line(canvas, (_LEFT, bottom), (canvas.shape[1] - 10, bottom), (0, 0, 0), 1)
-    step = max(1, math.ceil(top / 10))
-    for tick in range(0, top + 1, step):
-        y = bottom - round(_PLOT_H * tick / top)
-        cv2.line(canvas, (_LEFT - 5, y), (_LEFT, y), (0, 0, 0), 1)
-        text(canvas, str(tick), (_LEFT - 30, y + 4))
-    text(canvas, "trials", (8, _TOP - 16))
-
-
-def _stacked_bar(canvas: np.ndarray, left: int, numbers: dict, top: int, source: str) -> None:
-    """One bar: its outcome segments, their counts, the mean time above, the source below."""
-    bottom = _TOP + _PLOT_H
-    y = bottom
+def navigation_figure(result: dict, records: list[dict]):
+    """The matplotlib Figure of the outcomes: per world, a bar per depth source stacking its
+    counts of each outcome (successes at the bottom, each segment labelled with its count),
+    the mean flight time of its successes above it; the caption says what was flown
+    (:func:`_flown`) and by which code and config (the records' revision and config hash)."""
+    bars = [(world, source) for world in next(iter(result.values()), {}) for source in result]
+    x = np.array([k + k // len(result) for k in range(len(bars))], dtype=float)  # a gap a world
+    figure = plot.new_figure(max(6.5, 2.5 + 0.75 * len(bars)), 5.0,
+                             f"Flown: {_flown(records)}; {_made_by(records)}.")
+    axes = figure.add_subplot()
+    bottom = np.zeros(len(bars))
     for name in OUTCOMES:
-        height = round(_PLOT_H * numbers[name] / top)
-        if height:
-            cv2.rectangle(canvas, (left, y - height), (left + _BAR, y), _COLOURS[name], -1)
-            if height >= 14:
-                text(canvas, str(numbers[name]), (left + _BAR // 2 - 6, y - height // 2 + 5),
-                     0.45, (255, 255, 255))
-        y -= height
-    mean = numbers["mean_time_s"]
-    text(canvas, "n/a" if mean is None else f"{mean:.0f} s", (left + 6, y - 6))
-    text(canvas, _SOURCE_NAMES[source], (left + 2, bottom + 18))
+        counts = np.array([result[source][world][name] for world, source in bars])
+        container = axes.bar(x, counts, 0.8, bottom=bottom, color=_COLOURS[name], label=name)
+        axes.bar_label(container, [str(n) if n else "" for n in counts], label_type="center",
+                       color="white", fontsize=9)
+        bottom += counts
+    for at, top, (world, source) in zip(x, bottom, bars):
+        mean = result[source][world]["mean_time_s"]
+        axes.annotate("no success" if mean is None else f"{mean:.0f} s", (at, top),
+                      xytext=(0, 3), textcoords="offset points", ha="center", fontsize=8)
+    _label_bars(axes, x, bars, len(result))
+    axes.set(ylabel="trials", ylim=(0, max([1.0, *bottom]) * 1.12),
+             title="Navigation outcomes per world and depth source: higher success is "
+                   "better\n(above each bar: the mean flight time, take-off to landed, of "
+                   "its successes)")
+    axes.title.set_fontsize(10)
+    axes.yaxis.get_major_locator().set_params(integer=True)
+    axes.legend(title="outcome", loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    return figure
+
+
+def _label_bars(axes, x: np.ndarray, bars: list[tuple[str, str]], sources: int) -> None:
+    """Each bar's depth source under it, each world's name under its bars."""
+    axes.set_xticks(x, [_SOURCE_NAMES[source] for _, source in bars])
+    centres = x.reshape(-1, sources).mean(axis=1)
+    axes.set_xticks(centres, [world for world, _ in bars[::sources]], minor=True)
+    axes.tick_params(axis="x", which="minor", length=0, pad=18, labelsize=11)
+
+
+def _made_by(records: list[dict]) -> str:
+    """"code revision 1a2b...; config hash 3c4d..." of ``records`` (their provenance)."""
+    provenance = _provenance(records)
+    return (f"code revision {', '.join(provenance['revision'])}; "
+            f"config hash {', '.join(provenance['config_hash'])}")
+

@@ -28,14 +28,12 @@ import dataclasses
 import hashlib
 import json
 import logging
-import math
 import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import cv2
 import numpy as np
 
 from autonomy.depth import metrics
@@ -46,7 +44,7 @@ from autonomy.messages import SparseMap
 from companion.tools.eval import executor
 from companion.tools.eval.depth import DepthEvalOptions, RelativeDepthSource, tracked_frames
 from companion.report import mean_or_none, show
-from companion.tools.plot import nice_step, png_path, text, write_image
+from companion.tools import plot
 from companion.tools.eval.vio import EvaluationError, VioDataset, read_vio_dataset
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
@@ -376,12 +374,10 @@ def goal(result: dict) -> dict | None:
 def format_markdown(result: dict, *, seed: int) -> str:
     """Markdown: Table I's shape (rows methods; per world and weighted, GT and VINS
     AbsRel / δ1), the over-estimate rates, and the goal line."""
-    worlds = list(result["worlds"])
-    frames = ", ".join(f"{w} {result['worlds'][w]['frames']}" for w in worlds)
-    columns = [(w, result["worlds"][w]["methods"]) for w in worlds]
+    columns = [(world, numbers["methods"]) for world, numbers in result["worlds"].items()]
     columns.append(("weighted", result["weighted"]))
     return "\n".join([
-        f"## Rescaling methods on simulated flights (seed {seed}; frames: {frames})",
+        f"## Rescaling methods on simulated flights (seed {seed}; frames: {_frames(result)})",
         "",
         "AbsRel / δ1 with sparse depth from the ground truth at the VINS feature pixels (GT) "
         "and from the VINS map (VINS). Per world each frame weighs the same; *weighted* "
@@ -400,6 +396,11 @@ def format_markdown(result: dict, *, seed: int) -> str:
         _goal_line(goal(result)),
         _paper_line(),
     ])
+
+
+def _frames(result: dict) -> str:
+    """"mine 850, sewer 700": the frames run in each world."""
+    return ", ".join(f"{world} {numbers['frames']}" for world, numbers in result["worlds"].items())
 
 
 def _table(columns, cell, key, what: str) -> list[str]:
@@ -445,59 +446,41 @@ def _paper_line() -> str:
 # --------------------------------------------------------------------------------------------
 # Plot
 
-_GT_COLOUR, _VINS_COLOUR = (180, 119, 31), (14, 127, 255)  # BGR: blue, orange
-_LABELS, _BAR, _GAP, _TOP, _WIDTH = 230, 14, 12, 60, 560
+#: The bars' colours and legend labels, by source.
+_BARS = {"gt": ("tab:blue", "GT sparse depth"), "vins": ("tab:orange", "VINS sparse depth")}
 
 
-def plot_absrel(result: dict, out: Path) -> Path:
-    """Draw the weighted AbsRel of every method, a GT and a VINS bar each, as a PNG at ``out``
-    with OpenCV (:mod:`companion.tools.plot`'s helpers); parent folders are created. ValueError for
-    a name that does not end in .png."""
-    out = png_path(out)
+def plot_absrel(result: dict, out: Path, *, seed: int, revision: str) -> Path:
+    """Draw :func:`absrel_figure` as a PNG at ``out`` (parent folders created). ValueError
+    for a name that does not end in .png, :class:`~companion.tools.plot.MissingExtra` without
+    matplotlib."""
+    return plot.save(absrel_figure(result, seed=seed, revision=revision), out)
+
+
+def absrel_figure(result: dict, *, seed: int, revision: str):
+    """The matplotlib Figure of the weighted AbsRel: per method (top to bottom in the order
+    of :data:`~autonomy.depth.rescale.METHODS`) a GT and a VINS bar, each labelled with its
+    value ("no fit" where none); the caption names the worlds and their frames, the ``seed``
+    and the code's ``revision``."""
     weighted = result["weighted"]
-    values = [n[s]["absrel"] for n in weighted.values() for s in SOURCES]
-    top = max([v for v in values if v is not None] + [1e-3])
-    step = nice_step(top / 4)
-    top = math.ceil(top / step) * step
-    height = _TOP + len(weighted) * (2 * _BAR + _GAP) + 40
-    canvas = np.full((height, _LABELS + _WIDTH + 80, 3), 255, np.uint8)
-    text(canvas, "AbsRel per method, weighted over " + ", ".join(result["worlds"]), (10, 22),
-         0.55)
-    _legend(canvas)
-    for row, (method, numbers) in enumerate(weighted.items()):
-        _bars(canvas, row, method, numbers, top)
-    _axis(canvas, height - 40, top, step)
-    return write_image(canvas, out)
-
-
-def _legend(canvas: np.ndarray) -> None:
-    for k, (name, colour) in enumerate((("GT sparse depth", _GT_COLOUR),
-                                        ("VINS sparse depth", _VINS_COLOUR))):
-        left = _LABELS + 200 * k
-        cv2.rectangle(canvas, (left, 34), (left + 14, 46), colour, -1)
-        text(canvas, name, (left + 20, 45), 0.45)
-
-
-def _bars(canvas: np.ndarray, row: int, method: str, numbers: dict, top: float) -> None:
-    """The method's name and its two bars, each labelled with its value ("no fit": none)."""
-    y = _TOP + row * (2 * _BAR + _GAP)
-    text(canvas, method, (10, y + _BAR + 4), 0.45)
-    for k, (source, colour) in enumerate(zip(SOURCES, (_GT_COLOUR, _VINS_COLOUR))):
-        value, y0 = numbers[source]["absrel"], y + k * _BAR
-        right = _LABELS + (0 if value is None else round(_WIDTH * value / top))
-        if value is not None:
-            cv2.rectangle(canvas, (_LABELS, y0), (right, y0 + _BAR - 2), colour, -1)
-        text(canvas, show(value, ".3f") if value is not None else "no fit",
-             (right + 4, y0 + _BAR - 3), 0.38)
-
-
-def _axis(canvas: np.ndarray, y: int, top: float, step: float) -> None:
-    """The AbsRel axis under the bars, ticked every ``step``."""
-    black = (0, 0, 0)
-    cv2.line(canvas, (_LABELS, _TOP - 4), (_LABELS, y), black, 1)
-    cv2.line(canvas, (_LABELS, y), (_LABELS + _WIDTH, y), black, 1)
-    for tick in np.arange(0.0, top + step / 2, step):
-        x = _LABELS + round(_WIDTH * tick / top)
-        cv2.line(canvas, (x, y), (x, y + 5), black, 1)
-        text(canvas, f"{tick:g}", (x - 10, y + 20))
-    text(canvas, "AbsRel", (_LABELS + _WIDTH + 10, y + 5), 0.45)
+    rows = np.arange(len(weighted))
+    figure = plot.new_figure(9.0, 1.6 + 0.45 * len(weighted),
+                             f"Seed {seed}; frames run per world: {_frames(result)} (the "
+                             f"average weighs each world by its frames); code revision "
+                             f"{revision}.")
+    axes = figure.add_subplot()
+    for k, (source, (colour, label)) in enumerate(_BARS.items()):
+        values = [numbers[source]["absrel"] for numbers in weighted.values()]
+        container = axes.barh(rows + (k - 0.5) * 0.4, [v or 0.0 for v in values], 0.4,
+                              color=colour, label=label)
+        axes.bar_label(container, ["no fit" if v is None else f"{v:.3f}" for v in values],
+                       padding=3, fontsize=8)
+    known = [n[s]["absrel"] for n in weighted.values() for s in SOURCES
+             if n[s]["absrel"] is not None]
+    axes.set_yticks(rows, [m + (" (beyond the paper)" if m in BEYOND_PAPER else "")
+                           for m in weighted])
+    axes.invert_yaxis()
+    axes.set(xlim=(0.0, max([1e-3, *known]) * 1.2), xlabel="AbsRel (lower is better)",
+             title="AbsRel per rescaling method, weighted over " + ", ".join(result["worlds"]))
+    axes.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    return figure
