@@ -111,6 +111,11 @@ def read_depth_png(path: Path) -> np.ndarray:
 # ---------------------------------------------------------------- writing
 
 
+PNG_SETTINGS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
+"""How the writer encodes its PNGs: zlib's fastest level, each row filtered by its left
+neighbour (benchmarks/euroc_png.py, docs/benchmarks.md)."""
+
+
 class EurocWriter:
     """Writes a dataset sample by sample; use as a context manager so the CSVs are closed.
 
@@ -120,10 +125,9 @@ class EurocWriter:
     """
 
     def __init__(self, root: Path, camera: PinholeCamera, T_B_C: np.ndarray, camera_rate_hz: float,
-                 imu_yaml: dict[str, float], png_compression: int = 1,
+                 imu_yaml: dict[str, float],
                  distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)):
         self.mav0 = Path(root) / "mav0"
-        self._png = [cv2.IMWRITE_PNG_COMPRESSION, png_compression]
         for name in ("cam0", "depth0"):
             (self.mav0 / name / "data").mkdir(parents=True, exist_ok=True)
             comment = "rendered colour image" if name == "cam0" else "ground-truth z-depth, uint16 mm, 0 = invalid"
@@ -154,10 +158,10 @@ class EurocWriter:
         """One camera frame (RGB uint8) and its ground-truth depth (float metres, NaN unknown)."""
         name = f"{t_ns}.png"
         if not cv2.imwrite(str(self.mav0 / "cam0" / "data" / name),
-                           cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), self._png):
+                           cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), PNG_SETTINGS):
             raise OSError(f"could not write {self.mav0 / 'cam0' / 'data' / name}")
         if not cv2.imwrite(str(self.mav0 / "depth0" / "data" / name),
-                           depth_to_millimetres(depth_m), self._png):
+                           depth_to_millimetres(depth_m), PNG_SETTINGS):
             raise OSError(f"could not write {self.mav0 / 'depth0' / 'data' / name}")
         self._files["cam0"].write(f"{t_ns},{name}\n")
         self._files["depth0"].write(f"{t_ns},{name}\n")
