@@ -42,8 +42,12 @@ def test_a_simulated_vehicle_waits_disarmed_for_companion_go_then_flies(tmp_path
     states = [(t["to"], t["t"]) for t in summary["transitions"]]
     names = [name for name, _ in states]
     assert names[:3] == ["initialising", "awaiting_go", "taking_off"], names
-    waited_s = states[2][1] - states[1][1]
-    assert waited_s > 1.0  # simulated seconds on the ground, disarmed, before the go
+    # The take-off is the go's: the operator sent it WAIT_WALL_S wall seconds after the socket
+    # appeared, and the simulated time that is depends on the host's load (lockstep runs as
+    # fast as the CPU allows; a loaded CI host gave 0.96 s), so the proof is the reason, not
+    # a duration.
+    assert states[2][1] > states[1][1]
+    assert summary["transitions"][2]["reason"] == "go from companion go"
     assert "operator's go" in summary["transitions"][1]["reason"]
     assert summary["final_state"] == "landed" and summary["collisions"] == 0
     assert not socket_path.exists()  # the application removes its socket
