@@ -32,6 +32,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        help="the world (default: [sim] world of the config)")
     world.add_argument("--seed", type=common.non_negative_int,
                        help="seed of the world, the noise and the path (default: [sim] seed)")
+    mission = argparse.ArgumentParser(add_help=False)
+    mission.add_argument("--pair", type=common.non_negative_int, default=0,
+                         help="start/goal pair of the world (default: %(default)s)")
+    mission.add_argument("--goal", type=common.point, metavar="X,Y,Z",
+                         help="fly to this point (metres, world frame, z up) instead of the "
+                              "pair's goal, from the pair's start")
+    mission.add_argument("--depth", choices=("estimated", "truth"), default="estimated",
+                         help="the planner's depth: estimated (network and rescaler on the VINS "
+                              "map) or the renderer's truth (default: %(default)s)")
 
     serve = actions.add_parser(
         "serve", parents=[configured, world], help="serve the vehicle to any MAVLink client",
@@ -66,17 +75,13 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     record.set_defaults(command=_sim_record)
 
     fly = actions.add_parser(
-        "fly", parents=[configured, world], help="fly the whole stack in the simulator",
+        "fly", parents=[configured, world, mission],
+        help="fly the whole stack in the simulator",
         description="Start the simulator (mock PX4 over real MAVLink, rendered camera, "
                     "synthetic IMU) and fly the whole application against it: VINS, depth "
                     "network (the synthetic stand-in unless [depth_network] model is set), "
                     "rescaler and planner, from a start/goal pair of the world. Prints progress "
                     "and a summary, and draws the flown path over the world map.")
-    fly.add_argument("--pair", type=common.non_negative_int, default=0,
-                     help="start/goal pair of the world (default: %(default)s)")
-    fly.add_argument("--goal", type=common.point, metavar="X,Y,Z",
-                     help="fly to this point (metres, world frame, z up) instead of the pair's "
-                          "goal, from the pair's start")
     fly.add_argument("--start-yaw", type=float, metavar="DEG",
                      help="heading the vehicle stands at before take-off, degrees "
                           "counter-clockwise from east (default: facing the first leg)")
@@ -88,9 +93,6 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "(the mock on a pseudo-terminal, opened by the application as "
                           "serial:///dev/pts/N:921600, the code a flight controller on a UART "
                           "goes through) (default: %(default)s)")
-    fly.add_argument("--depth", choices=("estimated", "truth"), default="estimated",
-                     help="the planner's depth: estimated (network and rescaler on the VINS "
-                          "map) or the renderer's truth (default: %(default)s)")
     fly.add_argument("--fault", dest="faults", action="append", default=[],
                      metavar="KIND[@AFTER[+DURATION]]",
                      help="inject a fault AFTER seconds into cruise for DURATION seconds "
@@ -102,6 +104,22 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     common.add_record_flags(fly)
     common.add_json_flag(fly, instead_of="the summary table")
     fly.set_defaults(command=_sim_fly)
+
+    soak = actions.add_parser(
+        "soak", parents=[configured, world, mission],
+        help="fly missions again and again, watching the process for leaks",
+        description="Fly the simulated mission again and again in one process until MINUTES "
+                    "of wall time have passed, sampling the process's memory, threads and "
+                    "open files, and judge the soak: no growth past the bounds, no setpoint "
+                    "deadline missed, every mission landed without a collision "
+                    "(docs/reliability.md). Exit status 1 when it fails.")
+    soak.add_argument("--minutes", type=common.positive_float, default=30.0,
+                      help="wall time to soak for, at least two missions "
+                           "(default: %(default)s)")
+    soak.add_argument("--clock", choices=CLOCK_MODES, default="realtime",
+                      help="realtime, as on the vehicle, or lockstep (default: %(default)s)")
+    common.add_json_flag(soak, instead_of="the verdict's lines")
+    soak.set_defaults(command=_sim_soak)
 
 
 def _sim_options(args: argparse.Namespace, config: Config):
@@ -203,3 +221,35 @@ def plot_destination(args: argparse.Namespace) -> Path | None:
         print(f"sim fly: no top view drawn ({DEFAULT_PLOT}): {missing}", file=sys.stderr)
         return None
     return DEFAULT_PLOT
+
+
+def _sim_soak(args: argparse.Namespace, config: Config) -> int:
+    from companion.launch import simulated
+    from companion.tools.soak import SoakOptions, soak
+    from drivers.sim.render import RenderError
+
+    sim = _sim_options(args, config)
+    mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
+                                   goal=args.goal, clock=args.clock, depth=args.depth)
+
+    def report(record: dict) -> None:
+        print(f"mission {record['mission']}: {record['final_state']}, "
+              f"{'goal reached' if record['reached_goal'] else 'goal not reached'}, "
+              f"{record['rss_mb']:.0f} MB, {record['threads']} threads, "
+              f"{record['open_files']} files, loop lag p99 {record['loop_lag_ms_p99']:.1f} ms",
+              file=sys.stderr, flush=True)
+
+    try:
+        result = soak(lambda: simulated.run(config, mission), SoakOptions(minutes=args.minutes),
+                      report)
+    except (simulated.SimError, RenderError, ValueError, OSError) as error:
+        print(f"sim soak: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"{len(result['missions'])} missions in {result['minutes']:.1f} min: "
+              + ("passed" if result["passed"] else "FAILED"))
+        for problem in result["problems"]:
+            print(f"  {problem}")
+    return common.EXIT_OK if result["passed"] else common.EXIT_FAILED

@@ -1,0 +1,178 @@
+"""Soak: the simulated mission flown again and again in one process, for as long as asked,
+with the process's memory, threads and open files sampled, to show what a long-running
+service must not do: grow, leak, or miss its setpoint deadline (issue 27; docs/reliability.md).
+
+Each mission is :func:`companion.launch.simulated.run` to the end (take-off, the flight, the
+landing), on the clock the mission names (real time for the soak itself, as on the vehicle;
+lockstep to test this module quickly). Between two missions the flight's threads, sockets and
+renderer must all be gone, so the process after mission *k* should look like the process
+after mission 1. A sampler thread reads ``/proc/self`` every ``sample_period_s`` meanwhile,
+for the peaks.
+
+The verdict (:func:`verdict`) compares each mission's end with the first mission's end (the
+first mission warms the caches: imports, the network session, the renderer's shaders):
+
+- resident memory grew by at most ``max_rss_growth_mb``, and its trend over the soak (a least
+  squares line through the missions' ends) is at most ``max_rss_slope_mb_per_h``;
+- the thread count and the open file descriptors are back to the first mission's;
+- no setpoint deadline was missed: the watchdog never sent a setpoint, and no flight stopped
+  on a loop lagging past ``[flight] max_loop_lag_s`` (each mission's 99th percentile of the
+  lag is reported beside);
+- every mission landed without a collision.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from autonomy.options import option, validate
+
+#: The failsafes that mean the application missed its own deadline.
+DEADLINE_FAILSAFES = ("event loop stalled", "setpoint deadline missed")
+
+
+@dataclass(frozen=True)
+class SoakOptions:
+    """How long to soak and what counts as a pass (module docstring)."""
+
+    minutes: float = option(30.0, gt=0.0, doc="fly missions until this much wall time passed")
+    sample_period_s: float = option(5.0, gt=0.0, doc="how often the sampler reads /proc/self")
+    max_rss_growth_mb: float = option(64.0, ge=0.0, doc="resident memory growth allowed from "
+                                      "the first mission's end to any later one's, MB")
+    max_rss_slope_mb_per_h: float = option(32.0, ge=0.0, doc="the trend of resident memory "
+                                           "over the missions' ends allowed, MB per hour")
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class ProcessSample:
+    """The process at one moment: wall seconds since the soak began, resident memory (MB),
+    threads (the kernel's count, Python's and native ones alike) and open file descriptors."""
+
+    t_s: float
+    rss_mb: float
+    threads: int
+    open_files: int
+
+
+def sample_process(t0: float) -> ProcessSample:
+    """Read this process's resident memory and threads from ``/proc/self/status`` and count
+    ``/proc/self/fd``; Linux, as the vehicle."""
+    fields = {}
+    with open("/proc/self/status", encoding="ascii") as status:
+        for line in status:
+            key, _, value = line.partition(":")
+            fields[key] = value.split()
+    return ProcessSample(round(time.monotonic() - t0, 3), int(fields["VmRSS"][0]) / 1024.0,
+                         int(fields["Threads"][0]), len(os.listdir("/proc/self/fd")))
+
+
+class Sampler:
+    """Samples the process every ``period_s`` in a daemon thread until :meth:`stop`."""
+
+    def __init__(self, t0: float, period_s: float):
+        self.t0, self.period_s = t0, period_s
+        self.samples: list[ProcessSample] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="soak-sampler", daemon=True)
+
+    def __enter__(self) -> "Sampler":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.samples.append(sample_process(self.t0))
+
+
+def soak(fly_mission: Callable[[], dict], options: SoakOptions,
+         report: Callable[[dict], None] = lambda record: None) -> dict:
+    """Fly ``fly_mission()`` (a flight's summary) again and again until ``options.minutes`` of
+    wall time have passed (at least twice: a verdict needs a mission after the first), give
+    ``report`` each mission's record as it ends, and return the soak's result: the missions'
+    records, the sampler's peaks and :func:`verdict`'s findings."""
+    t0 = time.monotonic()
+    missions = []
+    with Sampler(t0, options.sample_period_s) as sampler:
+        while len(missions) < 2 or time.monotonic() - t0 < 60.0 * options.minutes:
+            summary = fly_mission()
+            record = mission_record(len(missions), summary, sample_process(t0))
+            missions.append(record)
+            report(record)
+    peaks = {"rss_mb": max([s.rss_mb for s in sampler.samples] + [0.0]),
+             "threads": max([s.threads for s in sampler.samples] + [0])}
+    problems = verdict(missions, options)
+    return {"minutes": round((time.monotonic() - t0) / 60.0, 2), "missions": missions,
+            "samples": len(sampler.samples), "peaks": peaks, "problems": problems,
+            "passed": not problems}
+
+
+def mission_record(index: int, summary: dict, after: ProcessSample) -> dict:
+    """What the soak keeps of one mission: its outcome, its deadline figures and the process
+    sampled after it."""
+    return {"mission": index, "final_state": summary["final_state"],
+            "collisions": summary["collisions"], "reached_goal": summary["reached_goal"],
+            "failsafes": summary["failsafes"],
+            "watchdog_setpoints": summary["watchdog_setpoints"],
+            "loop_lag_ms_p99": round(summary["loop_lag_ms_p99"], 2),
+            "t_s": after.t_s, "rss_mb": round(after.rss_mb, 1), "threads": after.threads,
+            "open_files": after.open_files}
+
+
+def verdict(missions: list[dict], options: SoakOptions) -> list[str]:
+    """Every way ``missions`` (:func:`mission_record`, two or more) fail the module
+    docstring's bounds, each in one sentence; empty when the soak passed."""
+    first, problems = missions[0], []
+    growth = max(m["rss_mb"] for m in missions[1:]) - first["rss_mb"]
+    if growth > options.max_rss_growth_mb:
+        problems.append(f"resident memory grew {growth:.1f} MB after the first mission "
+                        f"(allowed {options.max_rss_growth_mb:g})")
+    slope = rss_slope_mb_per_h(missions)
+    if slope > options.max_rss_slope_mb_per_h:
+        problems.append(f"resident memory trends up {slope:.1f} MB/h "
+                        f"(allowed {options.max_rss_slope_mb_per_h:g})")
+    for key, what in (("threads", "threads"), ("open_files", "open files")):
+        grown = [m["mission"] for m in missions[1:] if m[key] > first[key]]
+        if grown:
+            problems.append(f"more {what} than after the first mission after missions "
+                            f"{', '.join(map(str, grown))}")
+    for m in missions:
+        problems.extend(f"mission {m['mission']}: {p}" for p in _mission_problems(m))
+    return problems
+
+
+def _mission_problems(record: dict) -> list[str]:
+    problems = []
+    if record["final_state"] != "landed" or record["collisions"]:
+        problems.append(f"ended {record['final_state']} with {record['collisions']} collisions")
+    if record["watchdog_setpoints"]:
+        problems.append(f"the watchdog sent {record['watchdog_setpoints']} setpoints "
+                        "(a setpoint deadline missed)")
+    missed = [f for f in record["failsafes"] if f.startswith(DEADLINE_FAILSAFES)]
+    if missed:
+        problems.append(f"stopped on {missed[0]}")
+    return problems
+
+
+def rss_slope_mb_per_h(missions: list[dict]) -> float:
+    """The least-squares trend of resident memory over the missions' ends after the first,
+    MB per hour of wall time (0 with fewer than two such ends)."""
+    later = missions[1:]
+    if len(later) < 2:
+        return 0.0
+    hours = np.array([m["t_s"] for m in later]) / 3600.0
+    if np.ptp(hours) == 0.0:
+        return 0.0
+    return float(np.polyfit(hours, [m["rss_mb"] for m in later], 1)[0])

@@ -1,0 +1,102 @@
+"""The soak (companion/tools/soak.py): the verdict's bounds, the process sampler, and the
+command flying real missions in one process without leaking a thread or a file.
+
+The 30-minute real-time soak itself is a documented run (docs/reliability.md); here the
+command flies two short lockstep missions, which is what shows a leak: each mission's
+threads, sockets and renderer must be gone when it ends."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import pytest
+
+from companion.cli import main
+from companion.tools.soak import SoakOptions, rss_slope_mb_per_h, sample_process, verdict
+
+#: A short dome mission: 5 m along the first pair's first leg, clear of the trunks by 2.2 m.
+SHORT_GOAL = "-19.14,-11.82,1.5"
+
+
+def record(mission: int, *, rss_mb=500.0, threads=20, open_files=30, t_s=None, **changes):
+    """A mission's record as :func:`companion.tools.soak.mission_record` makes it."""
+    return {"mission": mission, "final_state": "landed", "collisions": 0,
+            "reached_goal": True, "failsafes": [], "watchdog_setpoints": 0,
+            "loop_lag_ms_p99": 5.0, "t_s": 60.0 * (mission + 1) if t_s is None else t_s,
+            "rss_mb": rss_mb, "threads": threads, "open_files": open_files, **changes}
+
+
+def test_a_steady_soak_passes():
+    missions = [record(k, rss_mb=500.0 + (k % 2)) for k in range(10)]
+    assert verdict(missions, SoakOptions()) == []
+
+
+def test_memory_growth_past_the_bound_fails():
+    missions = [record(0), record(1, rss_mb=530.0), record(2, rss_mb=580.0)]
+    problems = verdict(missions, SoakOptions(max_rss_growth_mb=64.0, max_rss_slope_mb_per_h=1e6))
+    assert problems == ["resident memory grew 80.0 MB after the first mission (allowed 64)"]
+
+
+def test_a_slow_steady_leak_fails_on_its_trend():
+    # 10 MB an hour: within the growth bound over the soak, not within the trend's
+    missions = [record(k, rss_mb=500.0 + 10.0 * k / 6.0, t_s=600.0 * k) for k in range(7)]
+    assert rss_slope_mb_per_h(missions) == pytest.approx(10.0)
+    problems = verdict(missions, SoakOptions(max_rss_slope_mb_per_h=5.0))
+    assert problems == ["resident memory trends up 10.0 MB/h (allowed 5)"]
+
+
+def test_a_leaked_thread_or_file_fails():
+    missions = [record(0), record(1, threads=21), record(2, threads=21, open_files=31)]
+    assert verdict(missions, SoakOptions()) == [
+        "more threads than after the first mission after missions 1, 2",
+        "more open files than after the first mission after missions 2"]
+
+
+@pytest.mark.parametrize("changes, problem", [
+    ({"watchdog_setpoints": 3}, "mission 1: the watchdog sent 3 setpoints (a setpoint deadline "
+                                "missed)"),
+    ({"failsafes": ["event loop stalled (420 ms late)"]},
+     "mission 1: stopped on event loop stalled (420 ms late)"),
+    ({"final_state": "landed", "collisions": 1}, "mission 1: ended landed with 1 collisions"),
+    ({"final_state": "aborted"}, "mission 1: ended aborted with 0 collisions"),
+])
+def test_a_missed_deadline_or_an_unsafe_mission_fails(changes, problem):
+    assert verdict([record(0), record(1, **changes)], SoakOptions()) == [problem]
+
+
+def test_the_sampler_sees_a_new_thread_and_a_new_file(tmp_path):
+    before = sample_process(0.0)
+    assert before.rss_mb > 10.0 and before.threads >= 1 and before.open_files >= 3
+    release = threading.Event()
+    worker = threading.Thread(target=release.wait)
+    worker.start()
+    handle = open(tmp_path / "held", "w")
+    try:
+        during = sample_process(0.0)
+        assert (during.threads, during.open_files) == (before.threads + 1,
+                                                       before.open_files + 1)
+    finally:
+        release.set()
+        worker.join()
+        handle.close()
+
+
+@pytest.mark.parametrize("options", [{"minutes": 0.0}, {"sample_period_s": -1.0},
+                                     {"max_rss_growth_mb": float("nan")}])
+def test_bad_options_are_refused(options):
+    with pytest.raises(ValueError):
+        SoakOptions(**options)
+
+
+def test_the_command_flies_missions_in_one_process_without_leaking(capsys):
+    status = main(["sim", "soak", "--minutes", "0.01", "--clock", "lockstep", "--depth",
+                   "truth", "--world", "dome", f"--goal={SHORT_GOAL}", "--json"])
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
+    assert status == 0, result["problems"]
+    assert result["passed"] and [m["mission"] for m in result["missions"]] == [0, 1]
+    first, second = result["missions"]
+    assert second["threads"] <= first["threads"] and second["open_files"] <= first["open_files"]
+    assert all(m["reached_goal"] and m["final_state"] == "landed" for m in result["missions"])
+    assert captured.err.count("mission ") == 2  # a progress line as each mission ends
