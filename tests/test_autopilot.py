@@ -30,6 +30,8 @@ from drivers.mavlink.autopilot import (Autopilot, CommandDenied, CommandTimeout,
 from drivers.mavlink.imu_stream import ImuStamper
 from drivers.mavlink.link import mavlink, open_link
 from drivers.mavlink.odometry import pose_covariance_to_mavlink
+from drivers.mavlink.provision import ProvisionError, Provisioned, provision
+from drivers.mavlink.signing import load_key
 from drivers.mavlink.timesync import RESET_AFTER_OUTLIERS, TimesyncFilter
 from drivers.sim.imu import ImuOptions
 from drivers.sim.mock_px4 import Px4Options
@@ -94,20 +96,34 @@ class Flight:
             self.serial_name.unlink(missing_ok=True)
             self.serial_name.symlink_to(self.sim.px4.link.pty_path)
 
-    async def fly(self, body) -> None:
+    @property
+    def url(self) -> str:
+        """Where a companion reaches the served simulator."""
+        return (f"serial://{self.serial_name}:921600" if self.serial_name
+                else f"udpout://127.0.0.1:{self.port}")
+
+    async def serve(self, main) -> None:
+        """Run ``await main(self)`` against the served simulator, then stop serving."""
         await self.start_server()
-        url = (f"serial://{self.serial_name}:921600" if self.serial_name
-               else f"udpout://127.0.0.1:{self.port}")
-        options = replace(self.options, url=url)
-        self.autopilot = Autopilot.open(options, self.clock)
+        try:
+            await main(self)
+        finally:
+            self.stop.set()
+            await asyncio.gather(self.server, return_exceptions=True)
+
+    async def fly(self, body) -> None:
+        await self.serve(lambda flight: flight.with_autopilot(self.options, body))
+
+    async def with_autopilot(self, options: MavlinkOptions, body) -> None:
+        """Run ``await body(self)`` with ``self.autopilot`` open on ``options`` and running."""
+        self.autopilot = Autopilot.open(replace(options, url=self.url), self.clock)
         runner = asyncio.create_task(self.autopilot.run())
         try:
             await body(self)
             assert not runner.done(), "Autopilot.run() ended"
         finally:
-            self.stop.set()
             runner.cancel()
-            await asyncio.gather(runner, self.server, return_exceptions=True)
+            await asyncio.gather(runner, return_exceptions=True)
             self.autopilot.close()
 
     async def connected(self, timeout=5.0) -> bool:
@@ -120,6 +136,12 @@ def fly(body, options=None, clock=None, serial_name=None, **serve_kwargs):
                     **serve_kwargs)
     asyncio.run(asyncio.wait_for(flight.fly(body), WALL_TIMEOUT))
     return flight
+
+
+def serve_flight(main, **serve_kwargs) -> None:
+    """Run ``await main(flight)`` against a simulator served in lockstep, no companion open."""
+    flight = Flight(SimClock(), MavlinkOptions(), **serve_kwargs)
+    asyncio.run(asyncio.wait_for(flight.serve(main), WALL_TIMEOUT))
 
 
 async def stream_velocity(flight: Flight, velocity_L, seconds: float, rate_hz=20.0):
@@ -136,7 +158,7 @@ def test_options_default_to_an_onboard_computer_talking_to_px4():
     options = MavlinkOptions()
     assert (options.system_id, options.component_id) == (1, 191)
     assert (options.target_system, options.target_component) == (1, 1)
-    assert options.imu_rate_hz == 200.0 and options.signing_secret is None
+    assert options.imu_rate_hz == 200.0 and load_key(options) is None
 
 
 @pytest.mark.parametrize("changes, key", [
@@ -575,6 +597,10 @@ def test_a_wrong_key_is_rejected_both_ways():
         assert not await flight.connected(3.0)
         assert flight.sim.px4.link.bad_data_count > 0
         assert flight.autopilot.stats()["bad_data"] > 0
+        assert flight.autopilot.signing["bad_signature"] > 0
+        assert "PX4 (system 1 component 1) on udpout://127.0.0.1" in \
+            flight.autopilot.link_problem
+        assert "signs with another key" in flight.autopilot.link_problem
         assert not await flight.autopilot.arm()
         assert isinstance(flight.autopilot.last_command_error, NotConnected)
         with pytest.raises(NotConnected, match="no HEARTBEAT"):
@@ -591,6 +617,73 @@ def test_px4_requiring_signing_ignores_an_unsigned_companion():
         assert not flight.sim.vehicle.armed
         assert flight.sim.px4.link.bad_data_count > 0
     fly(body, px4_options=Px4Options(signing_key=KEY))
+
+
+def test_a_signing_companion_refuses_a_px4_without_a_key_and_says_so():
+    async def body(flight):
+        assert not await flight.connected(3.0)
+        assert flight.autopilot.signing["unsigned"] > 0
+        assert "does not sign" in flight.autopilot.link_problem
+        assert "companion signing provision" in flight.autopilot.link_problem
+    fly(body, MavlinkOptions(signing_key=KEY))
+
+
+def test_after_provisioning_px4_ignores_an_unsigned_companion_and_flies_a_signed_one():
+    key = bytes.fromhex(KEY)
+
+    async def unsigned(flight):
+        assert await flight.connected()  # PX4's signed messages are not checked without a key
+        assert not await flight.autopilot.arm()
+        assert isinstance(flight.autopilot.last_command_error, CommandTimeout)
+
+    async def signed(flight):
+        assert await flight.connected()
+        assert await flight.autopilot.arm() and await flight.autopilot.takeoff(1.0)
+        assert await until(flight.clock, lambda: flight.autopilot.in_air, 3.0)
+        assert flight.autopilot.signing == {"on": True, "unsigned": 0, "bad_signature": 0}
+
+    async def main(flight):
+        options = MavlinkOptions(url=flight.url)
+        assert await provision(options, flight.clock, key, timeout_s=2.0) == \
+            Provisioned(had_key=False, already=False)
+        assert flight.sim.px4.signing_key == key
+        assert await provision(options, flight.clock, key, timeout_s=2.0) == \
+            Provisioned(had_key=True, already=True)
+        await flight.with_autopilot(MavlinkOptions(), unsigned)
+        assert not flight.sim.vehicle.armed
+        await flight.with_autopilot(MavlinkOptions(signing_key=KEY), signed)
+    serve_flight(main)
+
+
+def test_a_px4_key_is_replaced_only_with_the_old_key_and_never_while_armed():
+    old, new = bytes.fromhex(KEY), bytes(range(32))
+
+    async def main(flight):
+        options = MavlinkOptions(url=flight.url)
+        with pytest.raises(ProvisionError, match="already signs with another key: give that "
+                                                 "key with --current-key-file"):
+            await provision(options, flight.clock, new, timeout_s=1.0)
+        with pytest.raises(ProvisionError, match="signs with neither"):
+            await provision(options, flight.clock, new, current_key=bytes(32 * [5]),
+                            timeout_s=1.0)
+        assert flight.sim.px4.signing_key == old
+        flight.sim.vehicle.arm()
+        with pytest.raises(ProvisionError, match="PX4 is armed"):
+            await provision(options, flight.clock, new, current_key=old, timeout_s=1.0)
+        flight.sim.vehicle.disarm()
+        assert await provision(options, flight.clock, new, current_key=old, timeout_s=2.0) == \
+            Provisioned(had_key=True, already=False)
+        assert flight.sim.px4.signing_key == new
+    serve_flight(main, px4_options=Px4Options(signing_key=KEY))
+
+
+def test_provisioning_a_silent_link_says_what_came_instead():
+    async def main():
+        url = f"udpout://127.0.0.1:{free_udp_port()}"
+        with pytest.raises(ProvisionError, match="no HEARTBEAT from PX4 .*: no MAVLink from "
+                                                 "udpout.* no bytes at all"):
+            await provision(MavlinkOptions(url=url), MonotonicClock(), bytes(32), timeout_s=0.3)
+    asyncio.run(main())
 
 
 def test_bad_setpoints_and_odometry_raise_and_send_nothing():

@@ -236,7 +236,8 @@ def test_the_estimators_imu_defaults_to_the_flight_controllers_whatever_is_set()
 @pytest.mark.parametrize("preset", ["orin-d455.toml", "orin-oak.toml"])
 def test_vehicle_presets_pass_config_check_and_fly_their_camera_over_serial(preset, capsys):
     """The presets an operator installs (docs/operations.md, section 8): valid, their camera's
-    driver with the device's own calibration, PX4 over a UART, the operator's go required."""
+    driver with the device's own calibration, PX4 over a UART, MAVLink signing with the key in
+    a file, the operator's go required."""
     from companion.cli import main
 
     path = SIM_TOML.parent / preset
@@ -247,4 +248,6 @@ def test_vehicle_presets_pass_config_check_and_fly_their_camera_over_serial(pres
         "d455", "realsense")
     assert config.camera.calibration == "device"
     assert config.mavlink.url.startswith("serial:///dev/ttyTHS")
+    assert config.mavlink.signing_key_file == "mavlink-signing.key"  # signing on
+    assert config.mavlink.signing_key == ""  # the key itself never in the file
     assert config.go.required

@@ -14,16 +14,23 @@ import pytest
 
 from companion.cli import main
 from companion.config import Config
+from companion.flight.app import format_flight
 from companion.flight.go import GoError, GoOptions, OperatorGate, send_go
 from companion.launch import simulated
+from drivers.mavlink.autopilot import MavlinkOptions
+from drivers.sim.mock_px4 import Px4Options
 
 WAIT_WALL_S = 4.0
 
 
 def test_a_simulated_vehicle_waits_disarmed_for_companion_go_then_flies(tmp_path):
+    """... with MAVLink signing on at both ends, as the vehicle presets fly."""
+    key = bytes(range(32)).hex()
     config = Config()
     socket_path = tmp_path / "go.sock"
-    config = dataclasses.replace(config, go=GoOptions(socket=str(socket_path)))
+    config = dataclasses.replace(config, go=GoOptions(socket=str(socket_path)),
+                                 mavlink=MavlinkOptions(signing_key=key),
+                                 px4=Px4Options(signing_key=key))
     mission = simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5))
     sent = []
 
@@ -51,6 +58,9 @@ def test_a_simulated_vehicle_waits_disarmed_for_companion_go_then_flies(tmp_path
     assert "operator's go" in summary["transitions"][1]["reason"]
     assert summary["final_state"] == "landed" and summary["collisions"] == 0
     assert not socket_path.exists()  # the application removes its socket
+    assert summary["mavlink_signing"] == {"on": True, "unsigned": 0, "bad_signature": 0}
+    assert "MAVLink signing   on: 0 unsigned and 0 badly signed messages ignored" in \
+        format_flight(summary)
 
 
 class Autopilot:
@@ -114,42 +124,86 @@ def test_companion_go_says_when_nobody_listens(tmp_path, capsys):
     assert "is `companion fly` running" in capsys.readouterr().err
 
 
-def test_a_ground_stations_mission_start_is_the_go_and_is_acknowledged(tmp_path):
-    """Real MAVLink bytes: a ground station (system 255) sends MAV_CMD_MISSION_START to the
-    companion's component; the autopilot driver hands it to the gate and acknowledges it to
-    the sender: TEMPORARILY_REJECTED before the vehicle waits, ACCEPTED while it waits."""
-    from drivers.clock import MonotonicClock
-    from drivers.mavlink.autopilot import Autopilot as RealAutopilot
-    from drivers.mavlink.autopilot import MavlinkOptions
-    from drivers.mavlink.link import mavlink, open_link
-    from drivers.sim.host import free_udp_port
+class GroundStation:
+    """Real MAVLink bytes: a ground station (system 255, component 190) on loopback UDP and a
+    companion's autopilot driver (signing with ``key``, None: off) polled by hand, with the
+    operator's gate taking the driver's go commands."""
 
-    port = free_udp_port()
-    gcs = open_link(f"udpin://127.0.0.1:{port}", source_system=255, source_component=190)
-    autopilot = RealAutopilot.open(MavlinkOptions(url=f"udpout://127.0.0.1:{port}"),
-                                   MonotonicClock())
-    gate = OperatorGate(GoOptions(socket=""), autopilot)
+    def __init__(self, key: bytes | None = None):
+        from drivers.clock import MonotonicClock
+        from drivers.mavlink.autopilot import Autopilot as RealAutopilot
+        from drivers.mavlink.autopilot import MavlinkOptions
+        from drivers.mavlink.link import open_link
+        from drivers.sim.host import free_udp_port
 
-    def ask() -> int:
-        gcs.mav.command_long_send(1, 191, mavlink.MAV_CMD_MISSION_START, 0, 0, 0, 0, 0, 0, 0, 0)
-        deadline = time.monotonic() + 2.0
+        port = free_udp_port()
+        self.link = open_link(f"udpin://127.0.0.1:{port}", source_system=255,
+                              source_component=190)
+        self.autopilot = RealAutopilot.open(
+            MavlinkOptions(url=f"udpout://127.0.0.1:{port}", signing_key=key.hex() if key else ""),
+            MonotonicClock())
+        self.gate = OperatorGate(GoOptions(socket=""), self.autopilot)
+        self.autopilot._poll(self.autopilot.clock.now())  # our HEARTBEAT: the GCS learns where
+        time.sleep(0.05)
+        self.link.receive_pending()
+
+    def mission_start(self, wait_s: float = 2.0) -> int | None:
+        """Send MAV_CMD_MISSION_START to the companion; the result of its COMMAND_ACK, None
+        when none came in ``wait_s``."""
+        from drivers.mavlink.link import mavlink
+
+        self.link.mav.command_long_send(1, 191, mavlink.MAV_CMD_MISSION_START, 0, *[0] * 7)
+        deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
-            autopilot._poll(autopilot.clock.now())
-            for message in gcs.receive_pending():
+            self.autopilot._poll(self.autopilot.clock.now())
+            for message in self.link.receive_pending():
                 if message.get_type() == "COMMAND_ACK":
                     assert (message.target_system, message.target_component) == (255, 190)
                     return message.result
             time.sleep(0.01)
-        raise AssertionError("no COMMAND_ACK")
+        return None
 
+    def close(self) -> None:
+        self.autopilot.close()
+        self.link.close()
+
+
+def test_a_ground_stations_mission_start_is_the_go_and_is_acknowledged():
+    """The driver hands the ground station's MAV_CMD_MISSION_START to the gate and acknowledges
+    it to the sender: TEMPORARILY_REJECTED before the vehicle waits, ACCEPTED while it waits."""
+    from drivers.mavlink.link import mavlink
+
+    gcs = GroundStation()
     try:
-        autopilot._poll(autopilot.clock.now())  # our first HEARTBEAT tells the GCS where we are
-        time.sleep(0.05)
-        gcs.receive_pending()
-        assert ask() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        gate.start_waiting()
-        assert ask() == mavlink.MAV_RESULT_ACCEPTED
-        assert gate.poll() == "MAV_CMD_MISSION_START from 255/190"
+        assert gcs.mission_start() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        gcs.gate.start_waiting()
+        assert gcs.mission_start() == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.gate.poll() == "MAV_CMD_MISSION_START from 255/190"
     finally:
-        autopilot.close()
+        gcs.close()
+
+
+def test_with_signing_only_a_go_signed_with_the_vehicles_key_counts(caplog):
+    """A rogue system's go, unsigned or signed with another key, is ignored (no go, no ACK)
+    and counted, with one warning naming it; the same go signed with the key is taken."""
+    from drivers.mavlink.link import mavlink
+
+    key = bytes(range(32))
+    gcs = GroundStation(key)
+    try:
+        gcs.gate.start_waiting()
+        assert gcs.mission_start(wait_s=0.5) is None
+        assert gcs.autopilot.signing == {"on": True, "unsigned": 1, "bad_signature": 0}
+        gcs.link.setup_signing(bytes(32 * [9]))  # another key
+        assert gcs.mission_start(wait_s=0.5) is None
+        assert gcs.autopilot.signing == {"on": True, "unsigned": 1, "bad_signature": 1}
+        assert gcs.gate.poll() == "" and gcs.autopilot.counts["commands_to_us"] == 0
+        warnings = [r.getMessage() for r in caplog.records if "MAVLink signing" in r.getMessage()]
+        assert warnings == ["MAVLink signing: ignored an unsigned COMMAND_LONG from system 255 "
+                            "component 190 (1 unsigned and 0 badly signed messages so far); a "
+                            "sender without this vehicle's key"]  # one per burst
+        gcs.link.setup_signing(key)
+        assert gcs.mission_start() == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.gate.poll() == "MAV_CMD_MISSION_START from 255/190"
+    finally:
         gcs.close()

@@ -4,6 +4,7 @@ check reported, nothing armed, the exit status saying whether the vehicle may fl
 from __future__ import annotations
 
 import json
+import re
 import time
 
 import pytest
@@ -29,6 +30,8 @@ def test_fly_check_reports_every_check_and_never_arms(served_vehicle, tmp_path, 
     for name in ("MAVLink link", "TIMESYNC", "IMU rate", "EKF2_EV_CTRL", "EKF2_HGT_REF",
                  "COM_OF_LOSS_T", "COM_OBL_RC_ACT"):
         assert results[name]["ok"], results[name]
+    assert not results["MAVLink signing"]["ok"]  # off: anyone on the link could command it
+    assert results["MAVLink signing"]["detail"].startswith("off: ")
     vehicle = outcome["sim"].px4.vehicle
     assert not vehicle.armed and vehicle.landed  # on the ground, disarmed, all along
 
@@ -40,6 +43,33 @@ def test_fly_check_without_a_flight_controller_fails_on_the_link(tmp_path, capsy
     assert status == 1
     assert "FAIL  MAVLink link" in out and "no HEARTBEAT from PX4" in out
     assert "FAIL  depth network" in out and "[depth_network] model is empty" in out
+
+
+def test_fly_check_fails_a_signing_key_that_cannot_be_used(tmp_path, capsys):
+    status = main(["fly", "--check", "--set", f"mavlink.url=udpout://127.0.0.1:{free_udp_port()}",
+                   "--set", f"mavlink.signing_key_file={tmp_path / 'absent.key'}",
+                   "--set", "v4l2.device=/dev/video-none"])
+    out = capsys.readouterr().out
+    assert status == 1
+    assert re.search(r"FAIL  MAVLink signing +MAVLink signing key file .*absent.key: no such "
+                     r"file; make one with `companion signing keygen FILE`", out)
+
+
+def test_a_px4_given_the_key_by_provision_passes_the_signing_check(served_vehicle, tmp_path,
+                                                                   capsys):
+    port, outcome = served_vehicle
+    key = tmp_path / "mavlink-signing.key"
+    link = ["--set", f"mavlink.url=udpout://127.0.0.1:{port}",
+            "--set", f"mavlink.signing_key_file={key}"]
+    assert main(["signing", "keygen", str(key)]) == 0
+    assert main(["signing", "provision", *link]) == 0
+    assert "PX4 (system 1 component 1) took the key" in capsys.readouterr().out
+    assert outcome["sim"].px4.signing_key == bytes.fromhex(key.read_text())
+    main(["fly", "--check", "--json", *link, "--set", "v4l2.device=/dev/video-none"])
+    results = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
+    assert results["MAVLink link"]["ok"] and results["TIMESYNC"]["ok"]
+    assert results["MAVLink signing"]["ok"], results["MAVLink signing"]
+    assert results["MAVLink signing"]["detail"].startswith("on: PX4's messages verify")
 
 
 def test_fly_check_fails_the_px4_parameters_a_flight_needs(served_vehicle, capsys):

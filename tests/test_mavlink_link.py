@@ -211,19 +211,41 @@ def test_garbage_is_counted_not_returned():
         assert server.bad_data_count >= 1
 
 
-def test_signing_rejects_unsigned_messages_except_the_allowlist():
+def test_signing_refuses_unsigned_and_wrongly_signed_messages_and_counts_them_by_sender():
     port = free_udp_port()
     key = bytes(range(32))
     with open_link(f"udpin://127.0.0.1:{port}") as server, \
-            open_link(f"udpout://127.0.0.1:{port}", source_system=255) as client:
+            open_link(f"udpout://127.0.0.1:{port}", source_system=255,
+                      source_component=190) as client:
         server.setup_signing(key, accept_unsigned=px4_protocol.accept_unsigned)
-        client.mav.heartbeat_send(6, 8, 0, 0, 0)
+        client.mav.timesync_send(0, 1)
+        client.mav.heartbeat_send(6, 8, 0, 0, 0)  # on PX4's allowlist, as RADIO_STATUS
         client.mav.radio_status_send(200, 190, 100, 10, 5, 0, 0)
-        assert [m.get_type() for m in server.receive_pending()] == ["RADIO_STATUS"]
+        assert [m.get_type() for m in server.receive_pending()] == ["HEARTBEAT", "RADIO_STATUS"]
+        assert server.refused.summary() == {"unsigned": 1, "bad_signature": 0}
+        client.setup_signing(bytes(32 * [7]))  # another key
+        client.mav.timesync_send(0, 2)
+        assert server.receive_pending() == []
+        assert server.refused.summary() == {"unsigned": 1, "bad_signature": 1}
+        assert server.refused.last.describe() == \
+            "a badly signed TIMESYNC from system 255 component 190"
+        assert server.refused.total(sender=(255, 190)) == 2 == server.bad_data_count
         client.setup_signing(key)
-        client.mav.heartbeat_send(6, 8, 0, 0, 0)
-        (heartbeat,) = server.receive_pending()
-        assert heartbeat.get_type() == "HEARTBEAT" and heartbeat.get_signed()
+        client.mav.timesync_send(0, 3)
+        (timesync,) = server.receive_pending()
+        assert timesync.get_signed() and timesync.ts1 == 3
+        assert server.refused.total() == 2
+
+
+def test_a_link_that_stops_signing_accepts_unsigned_messages_again():
+    port = free_udp_port()
+    with open_link(f"udpin://127.0.0.1:{port}") as server, \
+            open_link(f"udpout://127.0.0.1:{port}") as client:
+        server.setup_signing(bytes(range(32)))
+        server.stop_signing()
+        client.mav.timesync_send(0, 1)
+        assert [m.get_type() for m in server.receive_pending()] == ["TIMESYNC"]
+        assert not server.signing_enabled
 
 
 def test_signing_key_must_be_32_bytes():

@@ -9,6 +9,7 @@ import pytest
 
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
+from drivers.mavlink.signing import signing_timestamp
 from drivers.sim.mock_px4 import MockPx4, Px4Options
 from drivers.sim.quadrotor import Quadrotor
 
@@ -354,6 +355,33 @@ def test_signing_ignores_unsigned_commands_and_accepts_signed_ones():
         assert bench.last("COMMAND_ACK").get_signed()
     finally:
         bench.close()
+
+
+def test_setup_signing_keys_px4_and_only_the_key_changes_it_again(bench):
+    """PX4 v1.18's rules (mavlink_sign_control.cpp, check_for_signing): a keyless PX4 takes a
+    key from anyone; then it signs, ignores unsigned commands and a new key unless signed with
+    its key, refuses one while armed, and a signed blank key turns signing off."""
+    def setup_signing(key):  # an all-zero key goes with timestamp 0: the blank key
+        bench.client.mav.setup_signing_send(1, 1, list(key), signing_timestamp() if any(key)
+                                            else 0)
+        return bench.run(0.05)
+
+    setup_signing(KEY)
+    assert bench.px4.signing_key == KEY
+    heartbeat = bench.all("HEARTBEAT", bench.run(1.0))[-1]
+    assert heartbeat.get_header().incompat_flags & mavlink.MAVLINK_IFLAG_SIGNED
+    assert bench.arm() is None  # unsigned: ignored, no ACK
+    setup_signing(bytes(32))  # unsigned blank key: ignored too
+    assert bench.px4.signing_key == KEY
+    bench.client.setup_signing(KEY)
+    assert bench.arm() == mavlink.MAV_RESULT_ACCEPTED
+    assert "MAVLink signing: rejected while armed" in bench.texts(setup_signing(bytes(32 * [1])))
+    assert bench.px4.signing_key == KEY
+    assert bench.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mavlink.MAV_RESULT_ACCEPTED
+    setup_signing(bytes(32))  # signed with the key: signing off
+    assert bench.px4.signing_key is None
+    bench.client.stop_signing()
+    assert bench.arm() == mavlink.MAV_RESULT_ACCEPTED
 
 
 def test_garbage_bytes_neither_crash_the_mock_nor_change_its_state(bench):

@@ -104,6 +104,19 @@ def test_dedicated_user_with_the_device_groups(unit):
     assert {"dialout", "video", "plugdev"} <= set(groups)
 
 
+def test_the_signing_key_reaches_the_service_under_the_name_the_presets_give(unit):
+    """LoadCredential= hands the service a private copy of root's key file in
+    $CREDENTIALS_DIRECTORY, where the presets' relative signing_key_file is looked up."""
+    from companion.config import load_config
+
+    name, source = one(unit, "Service", "LoadCredential").split(":", 1)
+    assert source == "/etc/companion/mavlink-signing.key"
+    presets = sorted(SYSTEMD.parent.joinpath("config").glob("orin-*.toml"))
+    assert presets
+    for preset in presets:
+        assert load_config(preset).mavlink.signing_key_file == name
+
+
 def test_hardening_hides_no_device(unit):
     service = unit["Service"]
     assert not is_true(service.get("PrivateDevices", ["no"])[-1])

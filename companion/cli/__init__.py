@@ -9,7 +9,7 @@ from typing import Sequence
 
 from companion import __version__
 from companion.cli import (bench, common, config_commands, depth, devices, fly, log, replay,
-                           sim)
+                           signing, sim)
 from companion.cli import eval as eval_commands
 from companion.config import LOG_LEVELS
 
@@ -41,6 +41,6 @@ def _build_parser() -> argparse.ArgumentParser:
                              "config, INFO unless set)")
     commands = common.add_command_group(parser)
     for group in (config_commands, bench, sim, eval_commands, depth, devices, fly, log,
-                  replay):
+                  replay, signing):
         group.add_commands(commands)
     return parser

@@ -25,8 +25,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "repeatable, the last is the goal; replaces [flight] waypoints")
     fly.add_argument("--check", action="store_true",
                      help="open the network, the camera and the link, run every preflight check "
-                          "(camera rate and exposure, IMU rate, TIMESYNC, PX4 parameters), print "
-                          "a pass/fail table and exit without arming")
+                          "(camera rate and exposure, MAVLink signing, IMU rate, TIMESYNC, PX4 "
+                          "parameters), print a pass/fail table and exit without arming")
     common.add_record_flags(fly)
     common.add_json_flag(fly, instead_of="the summary table")
     fly.set_defaults(command=_fly)

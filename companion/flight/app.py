@@ -201,6 +201,8 @@ class FlightApp:
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
             "waypoints_passed": self.navigation.route.index,
             "navigation_end": s.navigation_end_L,
+            # on, and the messages it refused: unsigned, bad_signature
+            "mavlink_signing": c.autopilot.signing,
         }
 
 
@@ -247,7 +249,17 @@ def _flight_lines(summary: dict) -> list[str]:
         f"{summary['backoffs']} backings-off)",
         f"  VINS resets       {summary['vins_resets']}",
         *_time_offset_lines(summary.get("vins_time_offset")),
+        *_signing_lines(summary.get("mavlink_signing")),
     ]
+
+
+def _signing_lines(signing: dict | None) -> list[str]:
+    if signing is None:
+        return []
+    if not signing["on"]:
+        return ["  MAVLink signing   off"]
+    return [f"  MAVLink signing   on: {signing['unsigned']} unsigned and "
+            f"{signing['bad_signature']} badly signed messages ignored"]
 
 
 def _time_offset_lines(offset: dict | None) -> list[str]:

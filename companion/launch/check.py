@@ -1,10 +1,10 @@
 """``companion fly --check``: every preflight check on the real devices, then exit, disarmed.
 
 Opens what ``companion fly`` opens (the depth network, the camera with its calibration, the
-link to PX4), watches them for a few seconds, reads the PX4 parameters docs/operations.md
-requires, and returns one :class:`CheckResult` per check. It never arms and never sends a
-setpoint: an operator runs it on the bench, propellers off or on, before the first flight and
-after any change.
+link to PX4 with its signing key), watches them for a few seconds, reads the PX4 parameters
+docs/operations.md requires, and returns one :class:`CheckResult` per check. It never arms
+and never sends a setpoint: an operator runs it on the bench, propellers off or on, before the
+first flight and after any change.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from drivers.camera.calibration import resolve
 from drivers.camera.drivers import open_camera
 from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot
+from drivers.mavlink.signing import SigningKeyError
 
 #: A measured rate at least this fraction of the configured one passes.
 RATE_FRACTION = 0.9
@@ -129,15 +130,20 @@ def _exposure(driver, config) -> CheckResult:
 async def _check_link(config, clock, listen_s: float) -> list[CheckResult]:
     try:
         autopilot = Autopilot.open(config.mavlink, clock)
+    except SigningKeyError as error:
+        return [CheckResult("MAVLink signing", False, str(error))]
     except (OSError, ValueError) as error:
         return [CheckResult("MAVLink link", False, str(error))]
     task = asyncio.create_task(autopilot.run())
     try:
         if not await _until(lambda: autopilot.connected, LINK_WAIT_S):
-            return [CheckResult("MAVLink link", False, f"no HEARTBEAT from PX4 on "
-                                                       f"{config.mavlink.url} in {LINK_WAIT_S:g} s")]
+            return [CheckResult("MAVLink link", False,
+                                f"no HEARTBEAT from PX4 on {config.mavlink.url} in "
+                                f"{LINK_WAIT_S:g} s: {autopilot.link_problem}"),
+                    _signing(autopilot)]
         await asyncio.sleep(listen_s)
         return [CheckResult("MAVLink link", True, f"PX4 on {config.mavlink.url}"),
+                _signing(autopilot),
                 CheckResult("TIMESYNC", autopilot.time_synced,
                             "answered" if autopilot.time_synced else "no answer from PX4"),
                 _imu_rate(autopilot, config),
@@ -148,6 +154,24 @@ async def _check_link(config, clock, listen_s: float) -> list[CheckResult]:
         with contextlib.suppress(asyncio.CancelledError):
             await task
         autopilot.close()
+
+
+def _signing(autopilot) -> CheckResult:
+    """Signing must be on (else any sender can command the vehicle, the operator's go
+    included) and PX4's messages must verify with the key."""
+    signing = autopilot.signing
+    if not signing["on"]:
+        return CheckResult("MAVLink signing", False,
+                           "off: whoever can send MAVLink to the vehicle can command it, the "
+                           "operator's go included; set [mavlink] signing_key_file "
+                           "(docs/operations.md, MAVLink signing)")
+    ignored = (f"{signing['unsigned']} unsigned and {signing['bad_signature']} badly signed "
+               "messages ignored")
+    if not autopilot.connected:
+        return CheckResult("MAVLink signing", False, f"on, but nothing from PX4 verified with "
+                                                     f"the key; {ignored}")
+    return CheckResult("MAVLink signing", True, f"on: PX4's messages verify with the key; "
+                                                f"{ignored}")
 
 
 def _imu_rate(autopilot, config) -> CheckResult:

@@ -32,6 +32,7 @@ from drivers.camera.calibration import CalibratedCamera, resolve
 from drivers.camera.drivers import open_camera
 from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot
+from drivers.mavlink.signing import load_key
 
 log = logging.getLogger(__name__)
 
@@ -43,13 +44,15 @@ class FlyError(RuntimeError):
 def run(config, waypoints, *, record: bool = True, live: str | None = None) -> dict:
     """Fly ``waypoints`` ((x, y, z) tuples in PX4's local frame, ENU) and return the summary;
     ``record``: into an MCAP file as ``[recorder]`` says, ``live``: served to Foxglove on
-    ``HOST:PORT`` (docs/recording.md)."""
+    ``HOST:PORT`` (docs/recording.md). A signing key that cannot be used is a
+    :class:`~drivers.mavlink.signing.SigningKeyError` before anything opens."""
     if not waypoints:
         raise FlyError("no mission: set [flight] waypoints in the config or give --goal X,Y,Z")
     if not config.depth_network.model:
         raise FlyError("[depth_network] model is empty: companion fly needs the ONNX depth "
                        "network (docs/depth_network.md); the synthetic stand-in only works in "
                        "the simulator")
+    load_key(config.mavlink)  # a key that cannot be used stops here, not after the network
     config = start_from_learned(config)
     summary = asyncio.run(_fly(config, waypoints, record, live))
     keep_learned(config, summary)

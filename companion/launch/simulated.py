@@ -39,6 +39,7 @@ from companion.recording.session import open_recording, recorded, recording_meta
 from companion.report import show
 from drivers.camera.calibration import CalibratedCamera
 from drivers.mavlink.autopilot import Autopilot
+from drivers.mavlink.signing import load_key
 from drivers.sim.faults import FaultSchedule
 from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMission,
                               ThreadedSimulator, TruthDepth, TruthTrack, mission_waypoints,
@@ -60,7 +61,8 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
         live: str | None = None) -> dict:
     """Fly ``mission`` to its end and return the summary (module docstring); ``record``: into
     an MCAP file as ``[recorder]`` says, ``live``: served to Foxglove on ``HOST:PORT``
-    (docs/recording.md)."""
+    (docs/recording.md). A signing key (``[mavlink]``, ``[px4]``) that cannot be used is a
+    :class:`~drivers.mavlink.signing.SigningKeyError` before the simulator starts."""
     if mission.clock not in ("lockstep", "realtime"):
         raise SimError(f"clock must be lockstep or realtime, got {mission.clock!r}")
     if mission.depth not in DEPTH_SOURCES:
@@ -68,6 +70,8 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
                        f"got {mission.depth!r}")
     if mission.link not in LINKS:
         raise SimError(f"link must be one of {', '.join(LINKS)}, got {mission.link!r}")
+    for table in (config.mavlink, config.px4):
+        load_key(table)  # a key that cannot be used stops here, before the simulator starts
     camera = config.camera
     if camera.calibration != "config" or camera.distortion_model != "none":
         raise SimError("the simulator renders an ideal pinhole camera: [camera] calibration "

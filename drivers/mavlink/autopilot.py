@@ -11,7 +11,11 @@ body frame is FLU, and times are on the companion clock.
   :attr:`~Autopilot.landed`, :attr:`~Autopilot.in_air`, :attr:`~Autopilot.state`,
   :attr:`~Autopilot.imu_rate_hz` (measured), :attr:`~Autopilot.last_imu_t`,
   :attr:`~Autopilot.link_losses`, :attr:`~Autopilot.statustexts`, and while not connected
-  :attr:`~Autopilot.link_problem`: why, for a person.
+  :attr:`~Autopilot.link_problem`: why, for a person (a PX4 without our signing key, or with
+  another, included).
+- Signing (``[mavlink] signing_key_file``): everything we send is signed, nothing unsigned or
+  wrongly signed is taken; :attr:`~Autopilot.signing` counts what was refused, and the log
+  says so once per burst (docs/mavlink.md, Signing).
 - A device that goes away (a USB adapter unplugged) is a lost link at once, reopened every
   :data:`REOPEN_INTERVAL_S` until it comes back.
 - IMU: a bounded ring of :class:`~autonomy.messages.ImuSample` drained by
@@ -45,10 +49,10 @@ from drivers.mavlink import px4_protocol
 from drivers.mavlink.frames import (enu_to_ned, frd_to_flu, ned_to_enu,
                                     quat_ned_frd_to_enu_flu)
 from drivers.mavlink.imu_stream import ImuStamper
-from drivers.mavlink.link import (LinkLost, MavlinkLink, mavlink, open_link, parse_url,
-                                  signing_secret)
+from drivers.mavlink.link import LinkLost, MavlinkLink, mavlink, open_link, parse_url
 from drivers.mavlink.odometry import odometry_fields, pose_covariance_to_mavlink
 from drivers.mavlink.parameters import ParameterReader
+from drivers.mavlink.signing import BAD_SIGNATURE, UNSIGNED, check_key_options, load_key
 from drivers.mavlink.timesync import TimesyncFilter
 
 log = logging.getLogger(__name__)
@@ -72,6 +76,9 @@ STATUSTEXT_CHUNK = 50
 #: Seconds between two tries to reopen a device that went away (a USB adapter unplugged: it
 #: comes back under its name when plugged in again).
 REOPEN_INTERVAL_S = 1.0
+#: Seconds without a message refused by signing after which the next one starts a new burst
+#: (and is logged).
+REFUSAL_QUIET_S = 10.0
 
 
 class CompanionStatus(IntEnum):
@@ -121,9 +128,15 @@ class MavlinkOptions:
                                   doc="times a command is re-sent when its ack does not come")
     poll_interval_s: float = option(0.002, gt=0.0, le=0.05,
                                     doc="seconds between two polls of the link")
+    signing_key_file: str = option(
+        "", doc="file holding the MAVLink 2 signing secret as 64 hex digits, readable by its "
+                "owner only (`companion signing keygen FILE` makes one); a relative path is "
+                "looked up in $CREDENTIALS_DIRECTORY (the unit's LoadCredential=), else the "
+                "working directory. Set: every message is signed and unsigned or wrongly "
+                "signed ones are ignored and counted; empty (and no signing_key): signing off")
     signing_key: str = option(
-        "", doc="MAVLink 2 signing secret as 64 hex digits; empty: signing off. When set, "
-                "unsigned messages are ignored except PX4's allowlist")
+        "", doc="the signing secret itself, 64 hex digits, for tests and the simulator only "
+                "(a secret does not belong in a config file); not with signing_key_file")
 
     def __post_init__(self) -> None:
         validate(self)
@@ -131,11 +144,7 @@ class MavlinkOptions:
             parse_url(self.url)
         except ValueError as error:
             raise OptionError("url", str(error)) from None
-        signing_secret(self.signing_key)
-
-    @property
-    def signing_secret(self) -> bytes | None:
-        return signing_secret(self.signing_key)
+        check_key_options(self)
 
 
 @dataclass(frozen=True)
@@ -204,9 +213,11 @@ class Autopilot:
         self.link = link
         self.clock = clock
         self.options = options or MavlinkOptions()
-        if self.options.signing_secret is not None:
-            link.setup_signing(self.options.signing_secret,
-                               accept_unsigned=px4_protocol.accept_unsigned)
+        secret = load_key(self.options)
+        if secret is not None:
+            # nothing unsigned: PX4 signs all it sends once it has the key, and an unsigned
+            # HEARTBEAT (which PX4 itself accepts) is what a rogue would forge to pass as PX4
+            link.setup_signing(secret)
         self.timesync = TimesyncFilter()
         #: Called as ``on_timesync(now, used)`` after each TIMESYNC round trip (the flight
         #: recorder's tap); ``used``: whether it updated ``timesync.offset``.
@@ -242,6 +253,7 @@ class Autopilot:
         self._last_heartbeat = -math.inf
         self._last_poll: float | None = None
         self._reopen_at: float | None = None  # the next try while the device is gone
+        self._refusals_seen, self._last_refusal_t = 0, -math.inf
         self._listen(clock.now())
         self._deaf_s = 0.0  # time since the last HEARTBEAT we were not reading the link
         self._next_heartbeat = -math.inf
@@ -317,15 +329,43 @@ class Autopilot:
             return ""
         if self.link.lost is not None:
             return _reopening(self.link.lost)
-        since, before = self._listening
+        since, before, refused_before = self._listening
         seconds = self.clock.now() - since
         heard = self.link.traffic.since(before)
+        refused = self._px4_refusals() - refused_before
+        if refused:
+            return self._px4_key_problem(refused, seconds)
         if heard.messages:
             return (f"MAVLink arrives from {self.link.address.where} but no HEARTBEAT from "
                     f"system {self.options.target_system} component "
                     f"{self.options.target_component} in {seconds:.1f} s: check [mavlink] "
                     "target_system and target_component (PX4's MAV_SYS_ID)")
         return self.link.describe_silence(seconds, heard)
+
+    def _px4_refusals(self) -> Counter:
+        """Messages from PX4's ids that signing refused, by kind, since the link opened."""
+        px4 = (self.options.target_system, self.options.target_component)
+        return Counter({kind: self.link.refused.total(kind, px4)
+                        for kind in (UNSIGNED, BAD_SIGNATURE)})
+
+    def _px4_key_problem(self, refused: Counter, seconds: float) -> str:
+        """What PX4's refused messages say about its key, and the fix."""
+        px4 = (f"PX4 (system {self.options.target_system} component "
+               f"{self.options.target_component}) on {self.link.address.where}")
+        if refused[BAD_SIGNATURE]:
+            return (f"{px4} signs with another key: {refused[BAD_SIGNATURE]} of its messages "
+                    f"failed our signature check in {seconds:.1f} s; give it this key "
+                    "(`companion signing provision --current-key-file PX4S_KEY`) or use its "
+                    "key here ([mavlink] signing_key_file)")
+        return (f"{px4} does not sign: {refused[UNSIGNED]} unsigned messages ignored in "
+                f"{seconds:.1f} s; it has no signing key: give it this one with `companion "
+                "signing provision` (MAVLink signing needs PX4 v1.18 or later)")
+
+    @property
+    def signing(self) -> dict:
+        """MAVLink signing on this link: ``on``, and the messages it refused since it opened,
+        from any sender: ``unsigned`` and ``bad_signature`` (a wrong key, or a replay)."""
+        return {"on": self.link.signing_enabled, **self.link.refused.summary()}
 
     def take_imu(self) -> list[ImuSample]:
         """Every IMU sample since the last call, oldest first (the ring keeps the newest
@@ -365,6 +405,7 @@ class Autopilot:
                 self._dispatch(message, now)
         self._watch_device(now)
         self._watch_link(now)
+        self._watch_refusals(now)
         self._send_due(now)
         self._check_imu_rate(now)
 
@@ -410,8 +451,23 @@ class Autopilot:
             self._lose_link(now, f"no HEARTBEAT for {now - self._last_heartbeat:.1f} s "
                                  f"({self._deaf_s:.1f} s of it not listening)")
 
+    def _watch_refusals(self, now: float) -> None:
+        """One warning per burst of messages signing refused (the first after
+        :data:`REFUSAL_QUIET_S` without any), naming the newest: a ground station without the
+        key sends a stream of them, and a line for each would bury the log."""
+        refused = self.link.refused
+        total = refused.total()
+        if total == self._refusals_seen:
+            return
+        if now - self._last_refusal_t >= REFUSAL_QUIET_S:
+            counts = refused.summary()
+            log.warning("MAVLink signing: ignored %s (%d unsigned and %d badly signed messages "
+                        "so far); a sender without this vehicle's key", refused.last.describe(),
+                        counts[UNSIGNED], counts[BAD_SIGNATURE])
+        self._refusals_seen, self._last_refusal_t = total, now
+
     def _log_silence(self, now: float) -> None:
-        since, _ = self._listening
+        since, _, _ = self._listening
         if (self._silence_logged or self.link.lost is not None
                 or now - since <= self.options.link_timeout_s):
             return
@@ -420,7 +476,7 @@ class Autopilot:
 
     def _listen(self, now: float) -> None:
         """From ``now`` on, :attr:`link_problem` tells what arrives instead of PX4."""
-        self._listening = (now, self.link.traffic)
+        self._listening = (now, self.link.traffic, self._px4_refusals())
         self._silence_logged = False
 
     def _watch_device(self, now: float) -> None:

@@ -64,12 +64,12 @@ from urllib.parse import urlsplit
 
 import serial
 
-from autonomy.options import OptionError
-
 os.environ["MAVLINK20"] = "1"  # pymavlink picks the wire protocol when a dialect is loaded
 
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
+
+from drivers.mavlink.signing import REFUSED_REASON, SECRET_KEY_LENGTH, Refusals  # noqa: E402
 
 mavutil.set_dialect("common")
 
@@ -81,7 +81,6 @@ DEFAULT_SERIAL_BAUD = 57600
 PX4_BAUD_RATES = (50, 75, 110, 134, 150, 200, 300, 600, 1200, 1800, 2400, 4800, 9600, 19200,
                   38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000, 1500000,
                   2000000, 3000000)
-SECRET_KEY_LENGTH = 32
 #: Most reads of a message (good or bad) in one :meth:`MavlinkLink.receive_pending` call, so a
 #: flood, of garbage too, cannot starve the caller's loop; the rest wait for the next call.
 MAX_MESSAGES_PER_RECEIVE = 2000
@@ -135,22 +134,6 @@ class Traffic:
 
     def since(self, earlier: "Traffic") -> "Traffic":
         return Traffic(self.bytes - earlier.bytes, self.messages - earlier.messages)
-
-
-def signing_secret(key_hex: str) -> bytes | None:
-    """The MAVLink 2 signing secret written as 64 hex digits (a 32-byte key; PX4's
-    ``MAV_SIGN_CFG`` key is the same), None for "" (signing off); an
-    :class:`~autonomy.options.OptionError` naming ``signing_key`` otherwise."""
-    if not key_hex:
-        return None
-    try:
-        key = bytes.fromhex(key_hex)
-    except ValueError:
-        key = b""
-    if len(key) != 32:
-        raise OptionError("signing_key", "must be 64 hex digits (a 32-byte key), "
-                          f"got {len(key_hex)} characters")
-    return key
 
 
 def parse_url(url: str) -> LinkAddress:
@@ -248,9 +231,10 @@ class MavlinkLink:
     """One MAVLink 2 connection: send messages, take every pending one without blocking.
 
     ``mav`` is pymavlink's encoder bound to this link (``link.mav.heartbeat_send(...)``).
-    Bytes that do not parse (noise, bad CRC, rejected unsigned messages) are counted in
-    :attr:`bad_data_count` and never returned. Sending may happen from another thread than
-    receiving; a loss is handled on the receiving side.
+    Bytes that do not parse (noise, bad CRC, messages signing refused) are counted in
+    :attr:`bad_data_count` and never returned; those signing refused are also sorted by kind
+    and sender in :attr:`refused`. Sending may happen from another thread than receiving; a
+    loss is handled on the receiving side.
     """
 
     def __init__(self, connection: mavutil.mavfile, address: LinkAddress,
@@ -259,6 +243,7 @@ class MavlinkLink:
         self.address = address
         self.pty_path = pty_path
         self.bad_data_count = 0
+        self.refused = Refusals()
         self.messages_received = 0
         #: Why the device went away (a :class:`LinkLost`); None while it is there.
         self.lost: LinkLost | None = None
@@ -299,11 +284,16 @@ class MavlinkLink:
                     break  # nothing more has arrived
                 continue
             if message.get_type() == "BAD_DATA":
-                self.bad_data_count += 1
+                self._count_bad(message)
                 continue
             messages.append(message)
         self.messages_received += len(messages)
         return messages
+
+    def _count_bad(self, message) -> None:
+        self.bad_data_count += 1
+        if message.reason == REFUSED_REASON:
+            self.refused.add(message.data)
 
     def _receive_one(self):
         try:
@@ -346,7 +336,8 @@ class MavlinkLink:
     def setup_signing(self, secret_key: bytes, *,
                       accept_unsigned: Callable[[int], bool] | None = None,
                       link_id: int = 0, initial_timestamp: int | None = None) -> None:
-        """Sign every outgoing message and reject unsigned incoming ones.
+        """Sign every outgoing message and reject unsigned incoming ones (a new key replaces
+        the old one at once; the lock keeps a send from another thread off a half-changed key).
 
         ``accept_unsigned(message_id)`` may let chosen unsigned messages through (PX4 keeps a
         short allowlist). ``initial_timestamp`` is in the spec's 10 µs units since
@@ -361,9 +352,17 @@ class MavlinkLink:
         callback = None
         if accept_unsigned is not None:
             callback = lambda _mav, message_id: bool(accept_unsigned(message_id))  # noqa: E731
-        self._connection.setup_signing(bytes(secret_key), sign_outgoing=True,
-                                       allow_unsigned_callback=callback,
-                                       initial_timestamp=initial_timestamp, link_id=link_id)
+        with self._lock:
+            self._connection.setup_signing(bytes(secret_key), sign_outgoing=True,
+                                           allow_unsigned_callback=callback,
+                                           initial_timestamp=initial_timestamp,
+                                           link_id=link_id)
+
+    def stop_signing(self) -> None:
+        """Sign nothing and accept every message again (a flight controller whose key was
+        cleared)."""
+        with self._lock:
+            self._connection.disable_signing()
 
     def close(self) -> None:
         self._connection.close()

@@ -5,8 +5,9 @@ Sources (PX4-Autopilot):
   reserved; uint8_t main_mode; uint8_t sub_mode; }; uint32_t data; }`` — on PX4's
   little-endian targets the main mode is bits 16-23 of HEARTBEAT.custom_mode and the sub
   mode bits 24-31; the low 16 bits are zero.
-- ``src/modules/mavlink/mavlink_sign_control.cpp``: with signing required, only
-  RADIO_STATUS, ADSB_VEHICLE and COLLISION are accepted unsigned.
+- ``src/modules/mavlink/mavlink_sign_control.cpp`` (``accept_unsigned``, PX4 v1.18 and
+  main since PR #26894): with a key, only HEARTBEAT, RADIO_STATUS, ADSB_VEHICLE and COLLISION
+  are accepted unsigned; without one, everything.
 - ``src/modules/mavlink/mavlink_receiver.cpp`` (handle_message_set_position_target_local_ned):
   MAV_FRAME_LOCAL_NED and MAV_FRAME_BODY_NED only; a bit set in type_mask means "ignore".
 - ``src/modules/commander/Commander.cpp``: param2 = 21196 on MAV_CMD_COMPONENT_ARM_DISARM
@@ -126,8 +127,10 @@ AUTO_LAND = Px4Mode(MainMode.AUTO, AutoSubMode.LAND)
 #: MAV_CMD_COMPONENT_ARM_DISARM param2 that forces arming/disarming (Commander.cpp).
 FORCE_ARM_DISARM_MAGIC = 21196
 
-#: Messages PX4 accepts unsigned even when signing is required (mavlink_sign_control.cpp).
+#: Messages PX4 accepts unsigned while it has a key (mavlink_sign_control.cpp,
+#: ``unsigned_messages``: HEARTBEAT "for link discovery", the rest as the MAVLink spec says).
 UNSIGNED_MESSAGE_IDS = frozenset({
+    mavlink.MAVLINK_MSG_ID_HEARTBEAT,
     mavlink.MAVLINK_MSG_ID_RADIO_STATUS,
     mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE,
     mavlink.MAVLINK_MSG_ID_COLLISION,
@@ -135,7 +138,7 @@ UNSIGNED_MESSAGE_IDS = frozenset({
 
 
 def accept_unsigned(message_id: int) -> bool:
-    """PX4's rule for an unsigned message on a link that requires signing."""
+    """PX4's rule for an unsigned message while it has a signing key."""
     return message_id in UNSIGNED_MESSAGE_IDS
 
 

@@ -6,7 +6,8 @@ status streams (PX4's Onboard stream set, ATTITUDE and RC_CHANNELS included), th
 armability bits of SYS_STATUS, commands with COMMAND_ACK, message intervals, HIGHRES_IMU at up
 to the physics rate, a stand-in state estimate, TIMESYNC, offboard control with PX4's entry and
 loss rules, take-off, land and hold, the parameter protocol over a table of the parameters the
-mock honours, optional MAVLink 2 signing. Each rule names the PX4 source file it follows.
+mock honours, MAVLink 2 signing with PX4's key provisioning (SETUP_SIGNING). Each rule names
+the PX4 source file it follows.
 
 It never blocks: :meth:`MockPx4.update` is called once per physics tick with the IMU sample
 of the step that just ended; it reads every pending byte, applies commands to the vehicle
@@ -37,8 +38,9 @@ from autonomy.options import option, validate
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.frames import (enu_to_ned, flu_to_frd, ned_to_enu,
                                     quat_enu_flu_to_ned_frd)
-from drivers.mavlink.link import MavlinkLink, mavlink, signing_secret
+from drivers.mavlink.link import MavlinkLink, mavlink
 from drivers.mavlink.parameters import decode_value, encode_value
+from drivers.mavlink.signing import check_key_options, load_key
 from drivers.sim.quadrotor import ControlTarget, Quadrotor
 
 log = logging.getLogger(__name__)
@@ -187,17 +189,19 @@ class Px4Options:
     attitude_noise: float = option(
         0.002, ge=0.0, le=1.0,
         doc="white noise (1 sigma, radians per axis) of the stand-in estimator's attitude")
+    signing_key_file: str = option(
+        "", doc="file holding the MAVLink 2 signing key PX4 boots with, 64 hex digits (PX4 "
+                "keeps it on its SD card, /mavlink/mavlink-signing-key.bin); found as [mavlink] "
+                "signing_key_file is. Empty (and no signing_key): no key, PX4 signs nothing and "
+                "accepts everything until a SETUP_SIGNING gives it one")
     signing_key: str = option(
-        "", doc="MAVLink 2 signing secret as 64 hex digits; empty: signing off. When set, "
-                "unsigned messages are ignored except PX4's allowlist [MAV_SIGN_CFG]")
+        "", doc="the key PX4 boots with, itself, as 64 hex digits (tests); not with "
+                "signing_key_file. With a key, unsigned messages are ignored except PX4's "
+                "allowlist")
 
     def __post_init__(self) -> None:
         validate(self)
-        signing_secret(self.signing_key)
-
-    @property
-    def signing_secret(self) -> bytes | None:
-        return signing_secret(self.signing_key)
+        check_key_options(self)
 
 
 def default_parameters(options: Px4Options) -> dict[str, int | float]:
@@ -286,9 +290,9 @@ class MockPx4:
         self.parameters = self._parameter_table(parameters or {})
         self._rng = rng if rng is not None else np.random.default_rng(0)
         self._min_interval = 1.0 / physics_rate_hz
-        if self.options.signing_secret is not None:
-            link.setup_signing(self.options.signing_secret,
-                               accept_unsigned=px4_protocol.accept_unsigned)
+        #: The signing key PX4 has now (None: none, signing off).
+        self.signing_key: bytes | None = None
+        self._use_key(load_key(self.options))
         self.mode = px4_protocol.AUTO_LOITER
         self.time = float(vehicle.state.time)
         self._intervals: dict[int, float | None] = {}
@@ -409,6 +413,7 @@ class MockPx4:
             "PARAM_REQUEST_READ": self._handle_param_request_read,
             "PARAM_REQUEST_LIST": self._handle_param_request_list,
             "PARAM_SET": self._handle_param_set,
+            "SETUP_SIGNING": self._handle_setup_signing,
         }.get(kind)
         if handler is None:
             return
@@ -662,6 +667,41 @@ class MockPx4:
         elif message.ts1 == self._timesync_sent_ns:
             # offset = remote - local, with the remote stamp taken halfway through the round trip
             self.timesync_offset_ns = (2 * message.tc1 - message.ts1 - now_ns) // 2
+
+    # ---------------------------------------------------------------- signing
+    # PX4 v1.18 (main since PR #26894 "align signing with MAVLink spec"): the key's presence
+    # switches signing on, on every link, USB included; there is no MAV_SIGN_CFG any more.
+
+    def _use_key(self, key: bytes | None, initial_timestamp: int | None = None) -> None:
+        """Sign with ``key`` and refuse unsigned messages outside PX4's allowlist, or, for
+        None, sign nothing and accept everything (mavlink_sign_control.cpp,
+        ``_update_signing_state`` and ``accept_unsigned``)."""
+        self.signing_key = key
+        if key is None:
+            self.link.stop_signing()
+        else:
+            self.link.setup_signing(key, accept_unsigned=px4_protocol.accept_unsigned,
+                                    initial_timestamp=initial_timestamp)
+
+    def _handle_setup_signing(self, message) -> None:
+        """A new key (mavlink_sign_control.cpp, ``check_for_signing``). It got here past the
+        link's signature check: unsigned while PX4 has no key, else signed with the key it has
+        (SETUP_SIGNING is not on the allowlist), so only a holder of the key can change it.
+        Refused while armed (PR #26894's armed guard; the STATUSTEXT as QGroundControl issue
+        #14250 quotes it). A blank key (all zero, timestamp 0) clears the key; any other
+        replaces key and timestamp. The target ids are not looked at, as check_for_signing
+        does not."""
+        if self.vehicle.armed:
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL,
+                             "MAVLink signing: rejected while armed")
+            return
+        key = bytes(message.secret_key)
+        if any(key) or message.initial_timestamp:
+            log.info("signing key set by SETUP_SIGNING from system %d",
+                     message.get_srcSystem())
+            self._use_key(key, message.initial_timestamp)
+        else:
+            self._use_key(None)
 
     # ---------------------------------------------------------------- parameters
     # MavlinkParametersManager::handle_message and send_param, mavlink_parameters.cpp.
