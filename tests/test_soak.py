@@ -27,30 +27,49 @@ def record(mission: int, *, rss_mb=500.0, threads=20, open_files=30, t_s=None, *
             "rss_mb": rss_mb, "threads": threads, "open_files": open_files, **changes}
 
 
+#: The verdict's options with the first mission as the baseline, as the short command run.
+ONE = SoakOptions(warm_up_missions=1)
+
+
 def test_a_steady_soak_passes():
     missions = [record(k, rss_mb=500.0 + (k % 2)) for k in range(10)]
-    assert verdict(missions, SoakOptions()) == []
+    assert verdict(missions, ONE) == []
+
+
+def test_what_the_warm_up_grows_is_not_held_against_the_soak():
+    missions = [record(k, rss_mb=min(400.0 + 40.0 * k, 480.0), t_s=600.0 * k)
+                for k in range(8)]
+    assert verdict(missions, SoakOptions(warm_up_missions=3)) == []
+    assert verdict(missions, ONE)[0] == "resident memory grew 80.0 MB after the warm-up (allowed 64)"
+
+
+def test_a_short_soak_judges_growth_but_not_a_trend():
+    missions = [record(0, rss_mb=500.0, t_s=60.0), record(1, rss_mb=501.0, t_s=70.0)]
+    assert verdict(missions, ONE) == []  # 360 MB/h on paper, over 10 s
+    assert verdict(missions, SoakOptions(warm_up_missions=1, min_trend_minutes=0.0)) == [
+        "resident memory trends up 360.0 MB/h (allowed 32)"]
 
 
 def test_memory_growth_past_the_bound_fails():
     missions = [record(0), record(1, rss_mb=530.0), record(2, rss_mb=580.0)]
-    problems = verdict(missions, SoakOptions(max_rss_growth_mb=64.0, max_rss_slope_mb_per_h=1e6))
-    assert problems == ["resident memory grew 80.0 MB after the first mission (allowed 64)"]
+    problems = verdict(missions, SoakOptions(warm_up_missions=1, max_rss_growth_mb=64.0,
+                                             max_rss_slope_mb_per_h=1e6))
+    assert problems == ["resident memory grew 80.0 MB after the warm-up (allowed 64)"]
 
 
 def test_a_slow_steady_leak_fails_on_its_trend():
     # 10 MB an hour: within the growth bound over the soak, not within the trend's
     missions = [record(k, rss_mb=500.0 + 10.0 * k / 6.0, t_s=600.0 * k) for k in range(7)]
     assert rss_slope_mb_per_h(missions) == pytest.approx(10.0)
-    problems = verdict(missions, SoakOptions(max_rss_slope_mb_per_h=5.0))
+    problems = verdict(missions, SoakOptions(warm_up_missions=1, max_rss_slope_mb_per_h=5.0))
     assert problems == ["resident memory trends up 10.0 MB/h (allowed 5)"]
 
 
 def test_a_leaked_thread_or_file_fails():
     missions = [record(0), record(1, threads=21), record(2, threads=21, open_files=31)]
-    assert verdict(missions, SoakOptions()) == [
-        "more threads than after the first mission after missions 1, 2",
-        "more open files than after the first mission after missions 2"]
+    assert verdict(missions, ONE) == [
+        "more threads than after the warm-up after missions 1, 2",
+        "more open files than after the warm-up after missions 2"]
 
 
 @pytest.mark.parametrize("changes, problem", [
@@ -62,7 +81,7 @@ def test_a_leaked_thread_or_file_fails():
     ({"final_state": "aborted"}, "mission 1: ended aborted with 0 collisions"),
 ])
 def test_a_missed_deadline_or_an_unsafe_mission_fails(changes, problem):
-    assert verdict([record(0), record(1, **changes)], SoakOptions()) == [problem]
+    assert verdict([record(0), record(1, **changes)], ONE) == [problem]
 
 
 def test_the_sampler_sees_a_new_thread_and_a_new_file(tmp_path):
@@ -83,6 +102,7 @@ def test_the_sampler_sees_a_new_thread_and_a_new_file(tmp_path):
 
 
 @pytest.mark.parametrize("options", [{"minutes": 0.0}, {"sample_period_s": -1.0},
+                                     {"warm_up_missions": 0},
                                      {"max_rss_growth_mb": float("nan")}])
 def test_bad_options_are_refused(options):
     with pytest.raises(ValueError):
@@ -90,7 +110,8 @@ def test_bad_options_are_refused(options):
 
 
 def test_the_command_flies_missions_in_one_process_without_leaking(capsys):
-    status = main(["sim", "soak", "--minutes", "0.01", "--clock", "lockstep", "--depth",
+    status = main(["sim", "soak", "--minutes", "0.01", "--warm-up", "1", "--clock", "lockstep",
+                   "--depth",
                    "truth", "--world", "dome", f"--goal={SHORT_GOAL}", "--json"])
     captured = capsys.readouterr()
     result = json.loads(captured.out)

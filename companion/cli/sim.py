@@ -116,6 +116,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     soak.add_argument("--minutes", type=common.positive_float, default=30.0,
                       help="wall time to soak for, at least two missions "
                            "(default: %(default)s)")
+    soak.add_argument("--warm-up", type=common.positive_int, default=3, metavar="MISSIONS",
+                      help="missions flown before the baseline the rest are judged against "
+                           "(default: %(default)s)")
     soak.add_argument("--clock", choices=CLOCK_MODES, default="realtime",
                       help="realtime, as on the vehicle, or lockstep (default: %(default)s)")
     common.add_json_flag(soak, instead_of="the verdict's lines")
@@ -240,7 +243,8 @@ def _sim_soak(args: argparse.Namespace, config: Config) -> int:
               file=sys.stderr, flush=True)
 
     try:
-        result = soak(lambda: simulated.run(config, mission), SoakOptions(minutes=args.minutes),
+        result = soak(lambda: simulated.run(config, mission), SoakOptions(minutes=args.minutes,
+                                                                  warm_up_missions=args.warm_up),
                       report)
     except (simulated.SimError, RenderError, ValueError, OSError) as error:
         print(f"sim soak: {error}", file=sys.stderr)
