@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -149,6 +150,23 @@ def test_malformed_override(text):
     with pytest.raises(ConfigError) as caught:
         parse_override(text)
     assert str(caught.value) == f"--set {text}: expected SECTION.KEY=VALUE, got {text!r}"
+
+
+def test_arrays_nested_too_deep_for_the_toml_parser_are_a_config_error(tmp_path):
+    """tomllib recurses into nested arrays; 1000 levels exceed Python's recursion limit
+    (fuzz/regressions/config_set/*-nested-too-deep)."""
+    deep = "[" * 1000
+    assert load_error(write(tmp_path, f"[rescale]\nkappa = {deep}\n")).endswith(
+        "invalid TOML: arrays or tables nested too deeply")
+    assert "rescale.kappa: must be a number, got '[[[" in load_error(
+        None, (f"rescale.kappa={deep}",))
+
+
+def test_an_override_that_is_not_utf8_is_refused():
+    """Python keeps a command line's undecodable bytes as surrogates, which no TOML file nor
+    recording can hold (fuzz/regressions/config_set/set-not-utf8)."""
+    message = load_error(None, (os.fsdecode(b"recorder.directory=/flights/\xff"),))
+    assert message == "--set recorder.directory=/flights/\\xff: not UTF-8 text"
 
 
 def test_override_with_unknown_key_names_the_override():
