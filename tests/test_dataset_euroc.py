@@ -115,6 +115,9 @@ def test_a_camera_yaml_that_says_too_little_is_named(tmp_path):
         yaml.write_text(text.replace(old, new))
         with pytest.raises(DatasetError, match=problem):
             read_camera(tmp_path)
+    yaml.write_text("- 1\n")
+    with pytest.raises(DatasetError, match="sensor.yaml: not a YAML map of keys"):
+        read_camera(tmp_path)
 
 
 def test_imu_noise_reads_back_and_names_a_missing_key(tmp_path):

@@ -322,7 +322,8 @@ def _read_camera_yaml(path: Path):
 
 @contextmanager
 def _yaml(path: Path):
-    """An OpenCV ``FileStorage`` on the YAML file ``path``, released on leaving."""
+    """An OpenCV ``FileStorage`` on the YAML file ``path``, released on leaving; its top
+    level must be a map of keys (OpenCV asserts as much when a key is looked up)."""
     if not path.is_file():
         raise DatasetError(f"{path}: no such file")
     try:
@@ -330,6 +331,8 @@ def _yaml(path: Path):
     except (cv2.error, SystemError):  # OpenCV's parse error surfaces as either
         raise DatasetError(f"{path}: not readable as YAML") from None
     try:
+        if not storage.root().isMap():
+            raise DatasetError(f"{path}: not a YAML map of keys")
         yield storage
     finally:
         storage.release()
