@@ -2,7 +2,8 @@
 
     python fuzz/seeds.py [config_set] [euroc_reader] [mcap_reader]
 
-- ``config_set``: the Orin presets of ``config/`` and a few ``--set`` lines;
+- ``config_set``: the presets of ``config/`` (``sim.toml`` lists every key) and a few
+  ``--set`` lines;
 - ``euroc_reader``: each file of the harness's valid dataset, as an input picking it;
 - ``mcap_reader``: a short lockstep flight of the simulator, recorded by the project's own
   recorder with a 64x48 PNG camera, of which the first frames are written again by the
@@ -42,9 +43,10 @@ def _write(target: str, seeds: dict[str, bytes]) -> None:
 
 
 def config_seeds() -> dict[str, bytes]:
-    """The presets as files, and overrides on a small file and on none."""
+    """The presets as files (``sim.toml`` has every key), and overrides on a small file and on
+    none."""
     root = harness.FUZZ.parent / "config"
-    seeds = {f"preset-{path.stem}": path.read_bytes() for path in sorted(root.glob("orin-*.toml"))}
+    seeds = {f"preset-{path.stem}": path.read_bytes() for path in sorted(root.glob("*.toml"))}
     seeds["overrides"] = (b"[rescale]\nmethod = \"monotone_spline\"\n"
                           b"--set mavlink.url=serial:///dev/ttyTHS1:921600\n"
                           b"--set camera.mount_pitch_deg=-5\n--set log.level=DEBUG\n")

@@ -186,6 +186,14 @@ def test_bad_override_is_blamed_not_the_file(tmp_path):
     assert message == "--set rescale.kappa=-1: rescale.kappa: must be >= 0, got -1.0"
 
 
+def test_the_simulated_vehicles_cross_field_error_is_a_config_error(tmp_path):
+    """It was a plain ValueError out of load_config (found by fuzz/mcap_reader.py in a
+    recording's config; fuzz/regressions/config_set/vehicle-thrust-max-below-hover)."""
+    path = write(tmp_path, "[vehicle]\nthrust_max = 0.1\n")
+    assert load_error(path) == (f"{path}: vehicle.thrust_max: must exceed thrust_hover (0.5), "
+                                "or the vehicle cannot climb; got 0.1")
+
+
 def test_cross_field_error_on_a_default_key_blames_the_last_source(tmp_path):
     path = write(tmp_path, "[rescale]\nkappa = 5.0\n")
     message = load_error(path, ("rescale.max_depth=0.01",))
