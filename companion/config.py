@@ -122,9 +122,16 @@ def parse_override(text: str) -> Override:
     """Split ``section.key=value`` and read the value as TOML.
 
     A value that is not valid TOML is kept as a bare string, so that
-    ``rescale.method=monotone_spline`` works without shell-escaped quotes.
+    ``rescale.method=monotone_spline`` works without shell-escaped quotes. An argument that is
+    not UTF-8 (Python keeps its undecodable bytes as surrogates) is refused: the config is
+    UTF-8 text, as a file and in a recording.
     """
     source = f"--set {text}"
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        raise ConfigError(f"--set {shown}", "not UTF-8 text") from None
     name, equals, raw = text.partition("=")
     section, dot, key = name.strip().partition(".")
     if not (equals and dot and section and key) or "." in key:
@@ -135,7 +142,7 @@ def parse_override(text: str) -> Override:
 def _parse_toml_value(raw: str) -> Any:
     try:
         document = tomllib.loads(f"value = {raw}")
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):  # tomllib recurses into nested arrays
         return raw
     # A newline in the value could smuggle in more keys; such a value is not one TOML value.
     return document["value"] if len(document) == 1 else raw
@@ -158,11 +165,7 @@ def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Confi
 def config_from_toml(text: str, source: str, overrides: Sequence[str] = ()) -> Config:
     """As :func:`load_config`, from TOML ``text`` (a recording's config) named ``source`` in
     errors."""
-    try:
-        document = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(source, f"invalid TOML: {error}") from None
-    return _load((document, source), overrides)
+    return _load((_parse_toml(text, source), source), overrides)
 
 
 def _load(document: tuple[dict[str, Any], str] | None, overrides: Sequence[str]) -> Config:
@@ -185,12 +188,21 @@ def _read_toml(path: Path) -> dict[str, Any]:
     except OSError as error:
         raise ConfigError(source, f"cannot read: {error.strerror or error}") from None
     try:
-        return tomllib.loads(data.decode("utf-8"))
+        text = data.decode("utf-8")
     except UnicodeDecodeError as error:
         problem = f"not UTF-8 text ({error.reason} at byte {error.start})"
         raise ConfigError(source, problem) from None
+    return _parse_toml(text, source)
+
+
+def _parse_toml(text: str, source: str) -> dict[str, Any]:
+    """The TOML document ``text``; ConfigError naming ``source`` when it is not one."""
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(source, f"invalid TOML: {error}") from None
+    except RecursionError:  # tomllib recurses into nested arrays and inline tables
+        raise ConfigError(source, "invalid TOML: arrays or tables nested too deeply") from None
 
 
 def _add_document(settings: _Settings, document: dict[str, Any], source: str) -> None:

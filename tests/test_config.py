@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -151,6 +152,23 @@ def test_malformed_override(text):
     assert str(caught.value) == f"--set {text}: expected SECTION.KEY=VALUE, got {text!r}"
 
 
+def test_arrays_nested_too_deep_for_the_toml_parser_are_a_config_error(tmp_path):
+    """tomllib recurses into nested arrays; 1000 levels exceed Python's recursion limit
+    (fuzz/regressions/config_set/*-nested-too-deep)."""
+    deep = "[" * 1000
+    assert load_error(write(tmp_path, f"[rescale]\nkappa = {deep}\n")).endswith(
+        "invalid TOML: arrays or tables nested too deeply")
+    assert "rescale.kappa: must be a number, got '[[[" in load_error(
+        None, (f"rescale.kappa={deep}",))
+
+
+def test_an_override_that_is_not_utf8_is_refused():
+    """Python keeps a command line's undecodable bytes as surrogates, which no TOML file nor
+    recording can hold (fuzz/regressions/config_set/set-not-utf8)."""
+    message = load_error(None, (os.fsdecode(b"recorder.directory=/flights/\xff"),))
+    assert message == "--set recorder.directory=/flights/\\xff: not UTF-8 text"
+
+
 def test_override_with_unknown_key_names_the_override():
     message = load_error(None, ("rescale.kapa=3",))
     assert message == "--set rescale.kapa=3: rescale.kapa: unknown key; did you mean 'kappa'?"
@@ -166,6 +184,14 @@ def test_bad_override_is_blamed_not_the_file(tmp_path):
     path = write(tmp_path, "[rescale]\nkappa = 5.0\n")
     message = load_error(path, ("rescale.kappa=-1",))
     assert message == "--set rescale.kappa=-1: rescale.kappa: must be >= 0, got -1.0"
+
+
+def test_the_simulated_vehicles_cross_field_error_is_a_config_error(tmp_path):
+    """It was a plain ValueError out of load_config (found by fuzz/mcap_reader.py in a
+    recording's config; fuzz/regressions/config_set/vehicle-thrust-max-below-hover)."""
+    path = write(tmp_path, "[vehicle]\nthrust_max = 0.1\n")
+    assert load_error(path) == (f"{path}: vehicle.thrust_max: must exceed thrust_hover (0.5), "
+                                "or the vehicle cannot climb; got 0.1")
 
 
 def test_cross_field_error_on_a_default_key_blames_the_last_source(tmp_path):

@@ -79,6 +79,47 @@ def test_malformed_files_are_named_with_the_problem(tmp_path):
         read_depth_png(bad_png)
 
 
+def test_values_that_are_not_numbers_or_not_in_order_are_named(tmp_path):
+    """What the fuzzer found the reader let through or choked on (fuzz/regressions/
+    euroc_reader/): each is a DatasetError naming the file."""
+    imu = tmp_path / "mav0" / "imu0" / "data.csv"
+    imu.parent.mkdir(parents=True)
+    for text, problem in [("1,nan,0,0,0,0,0\n", "sample 1 holds a value that is not a finite"),
+                          ("99999999999999999999,0,0,0,0,0,0\n", "beyond 64-bit nanoseconds"),
+                          ("1,0,0,0,0,0,0\xb5\n", r"not ASCII text \(byte 13\)")]:
+        imu.write_bytes(text.encode("latin-1"))
+        with pytest.raises(DatasetError, match=problem):
+            read_imu(tmp_path)
+    with EurocWriter(tmp_path, PinholeCamera.from_hfov(64, 48, 1.5), np.eye(4), 20.0, NOISE):
+        pass
+    frames = tmp_path / "mav0" / "cam0" / "data.csv"
+    for text, problem in [("", "no frames"), ("5,a.png\n5,b.png\n", "not strictly increasing"),
+                          ("5\n", "frame 1 has 1 columns, expected 2")]:
+        frames.write_text(text)
+        with pytest.raises(DatasetError, match=problem):
+            read_camera(tmp_path)
+
+
+def test_a_camera_yaml_that_says_too_little_is_named(tmp_path):
+    with EurocWriter(tmp_path, PinholeCamera.from_hfov(64, 48, 1.5), np.eye(4), 20.0, NOISE):
+        pass
+    (tmp_path / "mav0" / "cam0" / "data.csv").write_text("5,a.png\n")
+    yaml = tmp_path / "mav0" / "cam0" / "sensor.yaml"
+    text = yaml.read_text()
+    for old, new, problem in [("rate_hz: 20", "", "missing rate_hz"),
+                              ("rate_hz: 20", "rate_hz: 0", "rate_hz must be a positive"),
+                              ("resolution: [64, 48]", "resolution: [64]", "resolution has 1"),
+                              ("resolution: [64, 48]", "resolution: [64.5, 48]", "whole pixels"),
+                              ("T_BS:", "T_SB:", "missing T_BS"),
+                              ("intrinsics: [", "intrinsics: [.inf, ", "intrinsics has 5")]:
+        yaml.write_text(text.replace(old, new))
+        with pytest.raises(DatasetError, match=problem):
+            read_camera(tmp_path)
+    yaml.write_text("- 1\n")
+    with pytest.raises(DatasetError, match="sensor.yaml: not a YAML map of keys"):
+        read_camera(tmp_path)
+
+
 def test_imu_noise_reads_back_and_names_a_missing_key(tmp_path):
     with EurocWriter(tmp_path, PinholeCamera.from_hfov(64, 48, 1.5), np.eye(4), 20.0, NOISE):
         pass

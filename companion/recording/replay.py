@@ -30,11 +30,12 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
-from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
 from autonomy.depth import metrics
@@ -52,6 +53,8 @@ from companion.config import config_from_toml, load_config
 from companion.recording import topics
 from companion.recording.writer import COMPANION_METADATA
 
+#: The schema of each of the recorder's topics, by name.
+_SCHEMAS = {topic.name: topic.schema.name for topic in topics.TOPICS}
 #: Frames the VINS finished that wait for the depth stage at most: the flight's network takes
 #: the newest frame when it is free, so all but the last few are ones it skipped.
 _AWAITING_DEPTH_MAX = 8
@@ -66,6 +69,9 @@ _GUARDED = {state.value for state in GUARDED_STATES}
 _ALIGNING = FlightState.ALIGNING.value
 #: Recorded failsafes: the transitions into these states.
 _FAILSAFE_STATES = {FlightState.FAILSAFE_STOP.value, FlightState.LINK_LOST.value}
+#: A recorded rotation further than this from a unit quaternion is not one (the recorder
+#: writes doubles, off by about 1e-16).
+_UNIT_QUATERNION_TOLERANCE = 1e-6
 
 
 class ReplayError(RuntimeError):
@@ -132,8 +138,19 @@ def recorded_config(path: Path, overrides=(), config_path: Path | None = None):
         config = config_from_toml(metadata["config"], f"{path} (recorded config)", overrides)
     else:
         raise ReplayError(f"{path} holds no config; give one with --config")
-    mission = json.loads(metadata["mission"]) if "mission" in metadata else None
+    mission = _mission(metadata["mission"], path) if "mission" in metadata else None
     return config, mission
+
+
+def _mission(text: str, path: Path) -> dict:
+    """The recorded simulated mission: a JSON object with an integer ``seed`` at least."""
+    try:
+        mission = json.loads(text)
+    except ValueError as error:
+        raise ReplayError(f"{path}: its mission is not JSON ({error})") from None
+    if not (isinstance(mission, dict) and isinstance(mission.get("seed"), int)):
+        raise ReplayError(f"{path}: its mission is not a simulated mission with a seed")
+    return mission
 
 
 def _metadata(path: Path) -> dict[str, str]:
@@ -144,10 +161,41 @@ def _metadata(path: Path) -> dict[str, str]:
                     return dict(record.metadata)
     except FileNotFoundError:
         raise ReplayError(f"{path}: no such file") from None
-    except (McapError, ValueError, EOFError) as error:
-        raise ReplayError(f"{path} is not a readable MCAP recording ({error}); a truncated "
-                          "one can be recovered with `companion log recover`") from None
+    except Exception as error:  # noqa: BLE001 - whatever the MCAP reader makes of bad bytes
+        raise _unreadable(path, error) from None
     return {}
+
+
+def _decoded(file, topics_read) -> Iterator[tuple]:
+    """mcap's ``(schema, channel, message, decoded)`` of ``file``, as :func:`_read` takes them."""
+    reader = make_reader(file, decoder_factories=[_Decoders()])
+    yield from reader.iter_decoded_messages(topics=list(topics_read), log_time_order=True)
+
+
+def _unreadable(path: Path, error: Exception) -> ReplayError:
+    return ReplayError(f"{path} is not a readable MCAP recording ({type(error).__name__}: "
+                       f"{error}); a truncated one can be recovered with `companion log "
+                       "recover`")
+
+
+def _read(path: Path, topics_read) -> Iterator[tuple[str, int, object]]:
+    """``(topic, publish time in ns, decoded message)`` of the recording's messages on
+    ``topics_read``, in log-time order. Whatever the MCAP reader or a decoder (zstd, protobuf,
+    JSON) raises on bytes it cannot read is a :class:`ReplayError`: the file is damaged."""
+    with open(path, "rb") as file:
+        messages = _decoded(file, topics_read)
+        while True:
+            try:
+                schema, channel, message, decoded = next(messages)
+            except StopIteration:
+                return
+            except Exception as error:  # noqa: BLE001 - the reader's and decoders' errors
+                raise _unreadable(path, error) from None
+            expected = _SCHEMAS[channel.topic]
+            if getattr(schema, "name", None) != expected:
+                raise ReplayError(f"{path}: {channel.topic} holds {getattr(schema, 'name', None)}"
+                                  f" messages, not the recorder's {expected}")
+            yield channel.topic, message.publish_time, decoded
 
 
 class _Replayer:
@@ -212,6 +260,8 @@ class _Replayer:
         given are the records' own float seconds, where they have one, so that the replay's
         comparisons of times (an IMU sample at a frame's instant) fall as the flight's did."""
         handler = getattr(self, "_on_" + topic.strip("/").replace("/", "_"))
+        if topic in _RECORDS:
+            _check_record(topic, message, _RECORDS[topic])
         handler(t, message)
 
     def finish(self) -> ReplayReport:
@@ -226,8 +276,14 @@ class _Replayer:
     # what the recording holds
 
     def _on_camera_calibration(self, t, message) -> None:
-        K = message.K
-        self.pinhole = PinholeCamera(message.width, message.height, K[0], K[4], K[2], K[5])
+        K = np.asarray(message.K, dtype=float)
+        try:
+            if K.shape != (9,) or not np.isfinite(K).all():
+                raise ValueError(f"K must be 9 finite numbers, got {message.K}")
+            self.pinhole = PinholeCamera(message.width, message.height, K[0], K[4], K[2], K[5])
+        except ValueError as error:
+            raise ReplayError(f"{topics.CAMERA_CALIBRATION.name}: not a camera model "
+                              f"({error})") from None
 
     def _on_tf(self, t, message) -> None:
         if (message.parent_frame_id, message.child_frame_id) == (topics.BODY, topics.CAMERA):
@@ -283,7 +339,10 @@ class _Replayer:
             self.last_depth_t = record["t"]
 
     def _on_flight_events(self, t, message) -> None:
-        source, self.state, reason = topics.parse_transition(message.message)
+        try:
+            source, self.state, reason = topics.parse_transition(message.message)
+        except ValueError as error:
+            raise ReplayError(f"{topics.EVENTS.name}: {error}") from None
         if self.state in _FAILSAFE_STATES:
             self.report.recorded_failsafes.append({"t": round(t * 1e-9, 3), "reason": reason})
 
@@ -292,7 +351,11 @@ class _Replayer:
         is of frames the flight had no depth for."""
         truth = self.truth_small.pop(t, None)
         if truth is not None:
-            self.errors["recorded"].add(_metres(message), truth)
+            depth = _metres(message)
+            if depth.shape != truth.shape:
+                raise ReplayError(f"{topics.DEPTH_METRIC.name}: an image of {depth.shape}, "
+                                  f"its frame's true depth at its stride {truth.shape}")
+            self.errors["recorded"].add(depth, truth)
         for older in [key for key in self.truth_small if key < t]:
             del self.truth_small[older]
 
@@ -300,6 +363,7 @@ class _Replayer:
         request = record.get("request")
         if request is None or self.planner is None:
             return
+        _check_record(f"{topics.PLAN.name} request", request, _REQUEST)
         started = time.perf_counter()
         plan = self.planner.plan(record["t"], np.array(request["T_W_B"]).reshape(4, 4),
                                  np.array(request["velocity"]), np.array(request["goal"]),
@@ -354,6 +418,7 @@ class _Replayer:
         """The frame through the VINS; its update."""
         if self.vins is None:
             self._start()
+        self._check_frame(frame)
         self.report.frames += 1
         started = time.perf_counter()
         update = self.vins.add_frame(frame.t, self.vins.track(frame.image))
@@ -362,6 +427,15 @@ class _Replayer:
         if update.health.state == HealthState.LOST:
             self.report.vins_lost_frames += 1
         return update
+
+    def _check_frame(self, frame: Frame) -> None:
+        """ReplayError for a frame whose image or true depth is not the camera's size."""
+        size = (self.pinhole.height, self.pinhole.width)
+        for name, image in (("image", frame.image), ("true depth", frame.truth_depth)):
+            if image is not None and image.shape[:2] != size:
+                raise ReplayError(f"the camera {name} at t={frame.t:.3f} is "
+                                  f"{image.shape[1]}x{image.shape[0]}, the calibration "
+                                  f"{size[1]}x{size[0]}")
 
     def _depth(self, frame: Frame, update) -> tuple | None:
         """The frame's metric depth from the network and its VINS update's sparse map, scored
@@ -407,32 +481,42 @@ def _small(depth: np.ndarray) -> np.ndarray:
 def _metres(message) -> np.ndarray:
     """A depth image as metres: ``32FC1`` as it is, ``16UC1`` millimetres (the recorded metric
     depth, and the true depth of recordings before it was kept exact) NaN where 0."""
-    shape = (message.height, message.width)
-    if message.encoding == "32FC1":
-        return np.frombuffer(message.data, np.float32).reshape(shape)
-    image = np.frombuffer(message.data, np.uint16).reshape(shape)
+    dtype = {"32FC1": np.float32, "16UC1": np.uint16}.get(message.encoding)
+    if dtype is None:
+        raise ReplayError(f"a depth image encoded {message.encoding!r}, not 32FC1 or 16UC1")
+    try:
+        image = np.frombuffer(message.data, dtype).reshape(message.height, message.width)
+    except ValueError:
+        raise ReplayError(f"a {message.width}x{message.height} depth image of "
+                          f"{len(message.data)} bytes") from None
+    if dtype is np.float32:
+        return image
     return np.where(image > 0, image.astype(np.float32) * 1e-3, np.float32(np.nan))
 
 
-class _JsonDecoders:
-    """mcap's decoder-factory protocol for the recorder's JSON channels."""
+class _Decoders:
+    """mcap's decoder-factory protocol for the recorder's messages: JSON, and protobuf by the
+    project's own schema of the name the file gives, not by the file's schema (a damaged or
+    foreign one could rename or retype what replay reads); an unknown name decodes nothing."""
+
+    def __init__(self):
+        self._protobuf = DecoderFactory()
+        self._schemas = {topic.schema.name: Schema(
+            id=number, name=topic.schema.name, encoding=topic.schema.encoding,
+            data=topic.schema.data) for number, topic in enumerate(topics.TOPICS)}
 
     def decoder_for(self, message_encoding: str, schema):
-        return json.loads if message_encoding == "json" else None
+        if message_encoding == "json":
+            return json.loads
+        own = self._schemas.get(getattr(schema, "name", None))
+        return None if own is None else self._protobuf.decoder_for(message_encoding, own)
 
 
 def replay(path: Path, config, mission: dict | None) -> ReplayReport:
     """Replay the recording at ``path`` under ``config`` (module docstring)."""
     replayer = _Replayer(config, mission)
-    try:
-        with open(path, "rb") as file:
-            reader = make_reader(file, decoder_factories=[DecoderFactory(), _JsonDecoders()])
-            for _, channel, message, decoded in reader.iter_decoded_messages(
-                    topics=list(_READ), log_time_order=True):
-                replayer.on_message(channel.topic, message.publish_time, decoded)
-    except (McapError, EOFError) as error:
-        raise ReplayError(f"{path}: {error}; a truncated recording can be recovered with "
-                          "`companion log recover`") from None
+    for topic, t, message in _read(path, _READ):
+        replayer.on_message(topic, t, message)
     return replayer.finish()
 
 
@@ -469,20 +553,61 @@ def _estimated_path(path: Path) -> tuple[np.ndarray | None, list, list]:
     """PX4's local frame to the VINS world (``local``->``world`` on ``/tf``), and the times
     (seconds) and VINS positions of ``/vins/odometry`` in time order."""
     T_L_W, times, positions = None, [], []
-    with open(path, "rb") as file:
-        reader = make_reader(file, decoder_factories=[DecoderFactory(), _JsonDecoders()])
-        for _, channel, _, decoded in reader.iter_decoded_messages(
-                topics=[topics.TRANSFORMS.name, topics.ODOMETRY.name], log_time_order=True):
-            if channel.topic == topics.ODOMETRY.name:
-                times.append(decoded["t"])
-                positions.append(decoded["position"])
-            elif (decoded.parent_frame_id, decoded.child_frame_id) == (topics.LOCAL,
-                                                                        topics.WORLD):
-                T_L_W = _transform(decoded)
+    for topic, _, decoded in _read(path, (topics.TRANSFORMS.name, topics.ODOMETRY.name)):
+        if topic == topics.ODOMETRY.name:
+            _check_record(topic, decoded, _ODOMETRY)
+            times.append(decoded["t"])
+            positions.append(decoded["position"])
+        elif (decoded.parent_frame_id, decoded.child_frame_id) == (topics.LOCAL, topics.WORLD):
+            T_L_W = _transform(decoded)
     return T_L_W, times, positions
 
 
 def _transform(message) -> np.ndarray:
-    """A ``foxglove.FrameTransform`` as the 4x4 pose of its child in its parent."""
+    """A ``foxglove.FrameTransform`` as the 4x4 pose of its child in its parent; ReplayError
+    when it is not a pose (a translation not finite, a rotation not a unit quaternion)."""
     q, p = message.rotation, message.translation
-    return make_pose(quat_to_rot(np.array([q.w, q.x, q.y, q.z])), np.array([p.x, p.y, p.z]))
+    q_wxyz, position = np.array([q.w, q.x, q.y, q.z]), np.array([p.x, p.y, p.z])
+    if not (np.isfinite(position).all()
+            and abs(np.linalg.norm(q_wxyz) - 1.0) <= _UNIT_QUATERNION_TOLERANCE):
+        raise ReplayError(f"{topics.TRANSFORMS.name}: {message.parent_frame_id} -> "
+                          f"{message.child_frame_id} is not a pose")
+    return make_pose(quat_to_rot(q_wxyz), position)
+
+
+def _number(value) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value))
+
+
+def _vector(size: int) -> Callable[[object], bool]:
+    return lambda value: (isinstance(value, list) and len(value) == size
+                          and all(map(_number, value)))
+
+
+def _of(kind: type) -> Callable[[object], bool]:
+    return lambda value: isinstance(value, kind)
+
+
+#: What replay reads of each of the recorder's JSON records, by topic: key -> its check.
+_RECORDS = {
+    topics.IMU.name: {"t": _number, "gyro": _vector(3), "accel": _vector(3)},
+    topics.VINS_HEALTH.name: {"t": _number, "tracked": _number, "landmarks": _number,
+                              "state": _of(str)},
+    topics.DEPTH_FIT.name: {"t": _number},
+    topics.PLAN.name: {"t": _number, "kind": _of(str), "reason": _of(str)},
+}
+#: A planner round's request (``/planner/plan``'s ``request``), and the odometry top_view draws.
+_REQUEST = {"T_W_B": _vector(16), "velocity": _vector(3), "goal": _vector(3),
+            "stop_at_goal": _of(bool)}
+_ODOMETRY = {"t": _number, "position": _vector(3)}
+
+
+def _check_record(topic: str, record, fields: dict) -> None:
+    """ReplayError unless ``record`` is a JSON object whose ``fields`` pass their checks:
+    the file holds something else than the recorder wrote."""
+    if not isinstance(record, dict):
+        raise ReplayError(f"a {topic} record that is not a JSON object: {record!r:.80}")
+    for key, check in fields.items():
+        if not check(record.get(key)):
+            raise ReplayError(f"a {topic} record whose {key!r} is {record.get(key)!r:.80}")

@@ -15,6 +15,7 @@ the simulator's, so evaluation code cannot tell them apart.
 from __future__ import annotations
 
 import csv
+import math
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -232,39 +233,59 @@ def read_groundtruth(root: Path) -> GroundTruthTable:
 def read_camera(root: Path, name: str = "cam0") -> CameraStream:
     """The image stream ``mav0/<name>``: its timestamps, file paths and ``sensor.yaml``."""
     folder = Path(root) / "mav0" / name
-    rows = _read_rows(folder / "data.csv")
-    try:
-        t_ns = np.array([int(row[0]) for row in rows], dtype=np.int64)
-    except ValueError as error:
-        raise DatasetError(f"{folder / 'data.csv'}: bad timestamp ({error})") from None
+    rows = _read_rows(folder / "data.csv", 2, "frame")
+    t_ns = _timestamps(folder / "data.csv", rows)
     paths = tuple(folder / "data" / row[1].strip() for row in rows)
     camera, distortion, T_B_C, rate = _read_camera_yaml(folder / "sensor.yaml")
     return CameraStream(t_ns, paths, camera, distortion, T_B_C, rate)
 
 
-def _read_rows(path: Path) -> list[list[str]]:
+def _read_rows(path: Path, columns: int, row_name: str) -> list[list[str]]:
+    """The rows of an ASCII CSV file, comment lines left out, each of ``columns`` columns
+    (a row being a ``row_name``); DatasetError when there are none or the file is not that."""
     try:
         with open(path, newline="", encoding="ascii") as handle:
-            return [row for row in csv.reader(handle) if row and not row[0].startswith("#")]
+            rows = [row for row in csv.reader(handle) if row and not row[0].startswith("#")]
     except FileNotFoundError:
         raise DatasetError(f"{path}: no such file") from None
+    except UnicodeDecodeError as error:
+        raise DatasetError(f"{path}: not ASCII text (byte {error.start})") from None
+    except csv.Error as error:
+        raise DatasetError(f"{path}: not CSV ({error})") from None
+    if not rows:
+        raise DatasetError(f"{path}: no {row_name}s")
+    bad = next((i for i, row in enumerate(rows) if len(row) != columns), None)
+    if bad is not None:
+        raise DatasetError(f"{path}: {row_name} {bad + 1} has {len(rows[bad])} columns, "
+                           f"expected {columns}")
+    return rows
+
+
+def _timestamps(path: Path, rows: list[list[str]]) -> np.ndarray:
+    """The rows' first column: int64 nanoseconds, strictly increasing (else DatasetError)."""
+    try:
+        t_ns = np.array([int(row[0]) for row in rows], dtype=np.int64)
+    except ValueError as error:
+        raise DatasetError(f"{path}: bad timestamp ({error})") from None
+    except OverflowError:
+        raise DatasetError(f"{path}: a timestamp beyond 64-bit nanoseconds") from None
+    if np.any(np.diff(t_ns) <= 0):
+        raise DatasetError(f"{path}: timestamps are not strictly increasing")
+    return t_ns
 
 
 def _read_table(path: Path, columns: int) -> tuple[np.ndarray, np.ndarray]:
-    rows = _read_rows(path)
-    if not rows:
-        raise DatasetError(f"{path}: no samples")
-    bad = next((i for i, row in enumerate(rows) if len(row) != columns + 1), None)
-    if bad is not None:
-        raise DatasetError(f"{path}: sample {bad + 1} has {len(rows[bad])} columns, "
-                           f"expected {columns + 1}")
+    """A sensor table: timestamps and ``columns`` finite numbers a sample."""
+    rows = _read_rows(path, columns + 1, "sample")
+    t_ns = _timestamps(path, rows)
     try:
-        t_ns = np.array([int(row[0]) for row in rows], dtype=np.int64)
         values = np.array([[float(x) for x in row[1:]] for row in rows])
     except ValueError as error:
         raise DatasetError(f"{path}: {error}") from None
-    if np.any(np.diff(t_ns) <= 0):
-        raise DatasetError(f"{path}: timestamps are not strictly increasing")
+    bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+    if bad.size:
+        raise DatasetError(f"{path}: sample {bad[0] + 1} holds a value that is not a finite "
+                           "number")
     return t_ns, values
 
 
@@ -280,23 +301,29 @@ def read_imu_noise(root: Path) -> ImuNoise:
 
 
 def _read_camera_yaml(path: Path):
+    """The camera model, distortion, mounting ``T_BS`` and rate of a camera's sensor.yaml;
+    DatasetError for anything missing or not a number where one is expected."""
     with _yaml(path) as storage:
-        def numbers(key: str) -> list[float]:
-            node = _node(storage, path, key)
-            return [node.at(i).real() for i in range(node.size())]
-
-        fu, fv, cu, cv = numbers("intrinsics")
-        width, height = (int(x) for x in numbers("resolution"))
-        T_BS = storage.getNode("T_BS").getNode("data")
-        T_B_C = np.array([T_BS.at(i).real() for i in range(16)]).reshape(4, 4)
-        distortion = tuple(numbers("distortion_coefficients"))
-        rate = storage.getNode("rate_hz").real()
-    return PinholeCamera(width, height, fu, fv, cu, cv), distortion, T_B_C, rate
+        fu, fv, cu, cv = _numbers(storage, path, "intrinsics", 4)
+        width, height = _numbers(storage, path, "resolution", 2)
+        T_B_C = np.array(_numbers(storage, path, "T_BS", 16)).reshape(4, 4)
+        distortion = tuple(_numbers(storage, path, "distortion_coefficients"))
+        rate = _number(storage, path, "rate_hz")
+    if not (width.is_integer() and height.is_integer()):
+        raise DatasetError(f"{path}: resolution must be whole pixels, got {width}x{height}")
+    if not (math.isfinite(rate) and rate > 0.0):
+        raise DatasetError(f"{path}: rate_hz must be a positive number, got {rate}")
+    try:
+        camera = PinholeCamera(int(width), int(height), fu, fv, cu, cv)
+    except ValueError as error:
+        raise DatasetError(f"{path}: {error}") from None
+    return camera, distortion, T_B_C, rate
 
 
 @contextmanager
 def _yaml(path: Path):
-    """An OpenCV ``FileStorage`` on the YAML file ``path``, released on leaving."""
+    """An OpenCV ``FileStorage`` on the YAML file ``path``, released on leaving; its top
+    level must be a map of keys (OpenCV asserts as much when a key is looked up)."""
     if not path.is_file():
         raise DatasetError(f"{path}: no such file")
     try:
@@ -304,6 +331,8 @@ def _yaml(path: Path):
     except (cv2.error, SystemError):  # OpenCV's parse error surfaces as either
         raise DatasetError(f"{path}: not readable as YAML") from None
     try:
+        if not storage.root().isMap():
+            raise DatasetError(f"{path}: not a YAML map of keys")
         yield storage
     finally:
         storage.release()
@@ -314,6 +343,24 @@ def _node(storage: cv2.FileStorage, path: Path, key: str) -> cv2.FileNode:
     if node.empty():
         raise DatasetError(f"{path}: missing {key}")
     return node
+
+
+def _numbers(storage: cv2.FileStorage, path: Path, key: str,
+             count: int | None = None) -> list[float]:
+    """The list ``key`` (for a matrix, its ``data``) as finite numbers, ``count`` of them when
+    given; DatasetError otherwise."""
+    node = _node(storage, path, key)
+    if node.isMap():
+        node = node.getNode("data")
+    items = [node.at(i) for i in range(node.size())] if node.isSeq() else None
+    if items is None or not all(item.isReal() or item.isInt() for item in items):
+        raise DatasetError(f"{path}: {key} is not a list of numbers")
+    values = [item.real() for item in items]
+    if count is not None and len(values) != count:
+        raise DatasetError(f"{path}: {key} has {len(values)} numbers, expected {count}")
+    if not all(math.isfinite(value) for value in values):
+        raise DatasetError(f"{path}: {key} holds a number that is not finite")
+    return values
 
 
 def _number(storage: cv2.FileStorage, path: Path, key: str) -> float:

@@ -31,6 +31,7 @@ body frame is FLU, and times are on the companion clock.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import threading
@@ -79,6 +80,9 @@ REOPEN_INTERVAL_S = 1.0
 #: Seconds without a message refused by signing after which the next one starts a new burst
 #: (and is logged).
 REFUSAL_QUIET_S = 10.0
+#: A quaternion further than this from unit norm is no attitude (PX4 sends float32 unit
+#: quaternions, off by about 1e-7): the estimate carrying it is refused.
+QUATERNION_NORM_TOLERANCE = 1e-3
 
 
 class CompanionStatus(IntEnum):
@@ -634,7 +638,10 @@ class Autopilot:
 
     def _on_home_position(self, message, now: float) -> None:
         self.home_altitude_amsl = message.altitude * 1e-3
-        self.home_position_L = ned_to_enu((message.x, message.y, message.z))
+        position = ned_to_enu((message.x, message.y, message.z))
+        self.home_position_L = position if np.isfinite(position).all() else None
+        if self.home_position_L is None:
+            self.counts["home_position_unknown"] += 1
 
     def _on_odometry(self, message, now: float) -> None:
         t = self.timesync.to_local(message.time_usec * 1e-6)
@@ -673,10 +680,14 @@ class Autopilot:
                                      *self._attitude))
 
     def _set_state(self, state: VehicleState) -> None:
-        if not (np.isfinite(state.position_L).all() and np.isfinite(state.q_L_B).all()):
+        """Keep ``state`` when its position is finite and its quaternion a unit one (within
+        :data:`QUATERNION_NORM_TOLERANCE`, then normalised); else count ``state_invalid``."""
+        norm = float(np.linalg.norm(state.q_L_B))
+        if not (np.isfinite(state.position_L).all()
+                and abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE):
             self.counts["state_invalid"] += 1
             return
-        self.state = state
+        self.state = dataclasses.replace(state, q_L_B=state.q_L_B / norm)
 
     def _on_rc_channels(self, message, now: float) -> None:
         count = min(int(message.chancount), 18)

@@ -45,7 +45,7 @@ from typing import Callable
 import numpy as np
 
 from autonomy.geometry import GRAVITY, hamilton_product, quat_exp, quat_from_axes, quat_log
-from autonomy.options import option, validate
+from autonomy.options import OptionError, option, validate
 
 #: ``obstacle_clearance(points (N, 3)) -> (N,)`` metres to the nearest solid surface other than
 #: the floor, <= 0 inside solid (``World.obstacle_clearance``).
@@ -145,14 +145,11 @@ class VehicleOptions:
     def __post_init__(self) -> None:
         validate(self)
         if self.thrust_min >= self.thrust_hover:
-            raise ValueError(
-                f"thrust_min ({self.thrust_min}) must be below thrust_hover ({self.thrust_hover})"
-            )
+            raise OptionError("thrust_min", f"must be below thrust_hover ({self.thrust_hover}), "
+                                            f"got {self.thrust_min}")
         if self.thrust_max <= self.thrust_hover:
-            raise ValueError(
-                f"thrust_max ({self.thrust_max}) must exceed thrust_hover ({self.thrust_hover}), "
-                "or the vehicle cannot climb"
-            )
+            raise OptionError("thrust_max", f"must exceed thrust_hover ({self.thrust_hover}), or "
+                                            f"the vehicle cannot climb; got {self.thrust_max}")
 
 
 def _vector_or_none(name: str, value) -> np.ndarray | None:

@@ -1,0 +1,1 @@
+"""Fuzz harnesses of the project's own readers of outside input (fuzz/README.md)."""

@@ -1,0 +1,132 @@
+#!/usr/bin/env python3
+"""Fuzz the EuRoC/ASL dataset reader (drivers/dataset/euroc.py) with hostile files.
+
+    python fuzz/euroc_reader.py [libFuzzer options] [CORPUS_DIR ...]
+
+Each input is one file of a small, otherwise valid dataset: its first byte picks which
+(``imu0/data.csv``, ``state_groundtruth_estimate0/data.csv``, ``cam0/data.csv``,
+``cam0/sensor.yaml``, ``imu0/sensor.yaml``), the rest is that file's bytes. The other files
+are the valid ones of :data:`VALID`. Every reader then reads the dataset: ``read_imu``,
+``read_groundtruth``, ``read_camera``, ``read_imu_noise``.
+
+The invariant: each reader either raises :class:`~drivers.dataset.euroc.DatasetError` naming
+the file, or returns what its docstring promises: int64 nanosecond times strictly increasing,
+values finite, in arrays of the documented shapes,
+and a camera with a positive size and finite intrinsics, a finite 4x4 mounting and a
+positive rate. Anything else escaping (a UnicodeDecodeError, an OverflowError, a ValueError
+from the camera model...) is a finding; so is a NaN or a timestamp out of order let through.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from fuzz import harness  # noqa: E402
+
+if __name__ == "__main__":
+    harness.require_atheris()
+
+with harness.instrumented(__name__ == "__main__"):
+    import numpy as np
+
+    from drivers.dataset.euroc import (DatasetError, read_camera, read_groundtruth, read_imu,
+                                       read_imu_noise)
+
+TARGET = "euroc_reader"
+_T_BS = "T_BS:\n  cols: 4\n  rows: 4\n  data: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n"
+#: A valid two-sample dataset, by file (the first byte of an input picks one of them).
+VALID = {
+    "mav0/imu0/data.csv": "#timestamp [ns],wx,wy,wz,ax,ay,az\n"
+                          "1000000,0.1,0.2,0.3,0.0,0.0,9.81\n2000000,0.1,0.2,0.3,0.0,0.0,9.81\n",
+    "mav0/state_groundtruth_estimate0/data.csv":
+        "#time(ns),px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz\n"
+        "1000000,0,0,1,1,0,0,0,0,0,0,0,0,0,0,0,0\n2000000,0,0,1,1,0,0,0,0,0,0,0,0,0,0,0,0\n",
+    "mav0/cam0/data.csv": "#timestamp [ns],filename\n1000000,1000000.png\n2000000,2000000.png\n",
+    "mav0/cam0/sensor.yaml": "%YAML:1.0\nsensor_type: camera\n" + _T_BS + "rate_hz: 20\n"
+                             "resolution: [64, 48]\ncamera_model: pinhole\n"
+                             "intrinsics: [40.0, 40.0, 31.5, 23.5]\n"
+                             "distortion_model: radial-tangential\n"
+                             "distortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n",
+    "mav0/imu0/sensor.yaml": "%YAML:1.0\nsensor_type: imu\n" + _T_BS + "rate_hz: 200\n"
+                             "gyroscope_noise_density: 0.0001\ngyroscope_random_walk: 1e-05\n"
+                             "accelerometer_noise_density: 0.001\n"
+                             "accelerometer_random_walk: 0.0001\n",
+}
+FILES = list(VALID)
+#: Where each input's dataset is written (one per process, reused).
+_ROOT = Path(tempfile.mkdtemp(prefix="fuzz-euroc-"))
+
+
+def write(data: bytes) -> None:
+    """The dataset of one input under _ROOT (module docstring)."""
+    chosen = FILES[data[0] % len(FILES)] if data else None
+    for name, text in VALID.items():
+        path = _ROOT / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data[1:] if name == chosen else text.encode())
+
+
+def run(data: bytes) -> list[str]:
+    """Read the dataset of one input with every reader, checking the invariant (module
+    docstring); what the readers said: their DatasetErrors, paths relative to the dataset."""
+    write(data)
+    said = []
+    for read, check in ((read_imu, _check_imu), (read_groundtruth, _check_groundtruth),
+                        (read_camera, _check_camera), (read_imu_noise, _check_noise)):
+        try:
+            result = read(_ROOT)
+        except DatasetError as error:
+            assert str(error).startswith(str(_ROOT)), f"names no file: {error}"
+            said.append(str(error)[len(str(_ROOT)) + 1:])
+            continue
+        check(result)
+    return said
+
+
+def test_one_input(data: bytes) -> None:
+    """libFuzzer's entry point: :func:`run`."""
+    run(data)
+
+
+def _check_times(t_ns: np.ndarray) -> None:
+    assert t_ns.dtype == np.int64 and t_ns.ndim == 1 and len(t_ns) > 0, t_ns
+    assert (np.diff(t_ns) > 0).all(), f"timestamps not increasing: {t_ns}"
+
+
+def _check_rows(t_ns: np.ndarray, *arrays: np.ndarray) -> None:
+    _check_times(t_ns)
+    for array, columns in arrays:
+        assert array.shape == (len(t_ns), columns), array.shape
+        assert np.isfinite(array).all(), f"non-finite values: {array}"
+
+
+def _check_imu(table) -> None:
+    _check_rows(table.t_ns, (table.gyro, 3), (table.accel, 3))
+
+
+def _check_groundtruth(table) -> None:
+    _check_rows(table.t_ns, (table.position, 3), (table.q_W_B, 4), (table.velocity, 3),
+                (table.gyro_bias, 3), (table.accel_bias, 3))
+
+
+def _check_camera(stream) -> None:
+    _check_times(stream.t_ns)
+    assert len(stream.paths) == len(stream.t_ns)
+    camera = stream.camera
+    assert camera.width >= 1 and camera.height >= 1, camera
+    assert all(math.isfinite(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy)), camera
+    assert all(math.isfinite(c) for c in stream.distortion), stream.distortion
+    assert stream.T_B_C.shape == (4, 4) and np.isfinite(stream.T_B_C).all(), stream.T_B_C
+    assert math.isfinite(stream.rate_hz) and stream.rate_hz > 0.0, stream.rate_hz
+
+
+def _check_noise(noise) -> None:
+    assert noise is not None
+
+
+if __name__ == "__main__":
+    harness.fuzz(test_one_input)
