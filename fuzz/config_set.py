@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -34,7 +33,7 @@ with harness.instrumented(__name__ == "__main__"):
 TARGET = "config_set"
 OVERRIDE = b"--set "
 #: Where each input's file is written (one per process, reused).
-_FILE = Path(tempfile.mkdtemp(prefix="fuzz-config-")) / "flight.toml"
+_FILE = harness.scratch(TARGET) / "flight.toml"
 
 
 def split(data: bytes) -> tuple[bytes, list[str]]:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -58,7 +57,7 @@ VALID = {
 }
 FILES = list(VALID)
 #: Where each input's dataset is written (one per process, reused).
-_ROOT = Path(tempfile.mkdtemp(prefix="fuzz-euroc-"))
+_ROOT = harness.scratch(TARGET)
 
 
 def write(data: bytes) -> None:

@@ -10,10 +10,13 @@ tests call on the seed corpus and its mutations.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import random
+import shutil
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 from typing import Callable, Iterator
@@ -54,6 +57,13 @@ def fuzz(test_one_input: Callable[[bytes], None]) -> None:
     warnings.simplefilter("ignore", RuntimeWarning)
     atheris.Setup(sys.argv, test_one_input)
     atheris.Fuzz()
+
+
+def scratch(target: str) -> Path:
+    """A folder for the files a harness writes its inputs to, removed when the process ends."""
+    folder = Path(tempfile.mkdtemp(prefix=f"fuzz-{target}-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    return folder
 
 
 def corpus(target: str) -> list[bytes]:

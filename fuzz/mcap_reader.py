@@ -21,7 +21,6 @@ KeyError, a protobuf DecodeError, a JSON error...) is a finding.
 from __future__ import annotations
 
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -39,7 +38,7 @@ TARGET = "mcap_reader"
 #: The mission replay is given when the recording's own config or mission is unusable.
 DEFAULT_MISSION = {"seed": 0}
 #: Where each input is written, and what recover writes (one folder per process, reused).
-_FOLDER = Path(tempfile.mkdtemp(prefix="fuzz-mcap-"))
+_FOLDER = harness.scratch(TARGET)
 _FILE, _RECOVERED = _FOLDER / "flight.mcap", _FOLDER / "recovered.mcap"
 
 
