@@ -23,7 +23,8 @@ The invariant, checked after every step: the poll task never ends and nothing es
 every IMU sample taken is finite (time, gyro, accel, three of each) and later than the one
 before; the TIMESYNC offset and round trip are None or finite; the vehicle state is None or
 finite with a unit quaternion; the measured IMU rate, the last IMU time and home are finite;
-the RC channels are at most 18 pulse widths that fit a uint16. Every handler error must be
+the RC channels are at most 18, each a pulse width under 65535 or None (the value 65535 says
+"unused"). Every handler error must be
 the one the driver documents (a PARAM_VALUE of a type that does not fit 4 bytes).
 """
 
@@ -321,7 +322,8 @@ class Invariant:
     def _check_rc(channels) -> None:
         if channels is None:
             return
-        assert len(channels) <= 18 and all(0 <= c < 2**16 for c in channels), channels
+        assert len(channels) <= 18 and all(c is None or 0 <= c < 2**16 - 1
+                                           for c in channels), channels
 
 
 # ---------------------------------------------------------------- one session

@@ -101,6 +101,25 @@ def test_the_rc_switch_gives_the_go_only_on_a_low_to_high_edge_while_waiting(tmp
         Autopilot.rc_channels_us = None
 
 
+def test_an_rc_channel_reported_unused_is_no_go_and_needs_a_fresh_low(tmp_path):
+    gate = _gate(tmp_path, rc_channel=7)
+    try:
+        gate.start_waiting()
+        Autopilot.rc_channels_us = [1500] * 6 + [1000]
+        assert gate.poll() == ""
+        Autopilot.rc_channels_us = [1500] * 6 + [None]  # RC_CHANNELS' UINT16_MAX: unused
+        assert gate.poll() == ""
+        Autopilot.rc_channels_us = [1500] * 6 + [1900]  # back, high: not an edge seen whole
+        assert gate.poll() == ""
+        Autopilot.rc_channels_us = [1500] * 6 + [1000]
+        assert gate.poll() == ""
+        Autopilot.rc_channels_us = [1500] * 6 + [1900]
+        assert gate.poll() == "RC channel 7"
+    finally:
+        gate.close()
+        Autopilot.rc_channels_us = None
+
+
 def test_a_mavlink_go_counts_only_while_waiting(tmp_path):
     gate = _gate(tmp_path)
     try:

@@ -142,7 +142,11 @@ class OperatorGate:
         values = getattr(self.autopilot, "rc_channels_us", None)
         if not channel or values is None or len(values) < channel:
             return False
-        high = values[channel - 1] >= self.options.rc_high_us
+        pulse = values[channel - 1]
+        if pulse is None:  # the receiver reports the channel unused: a fresh low is needed
+            self._rc_was_low = False
+            return False
+        high = pulse >= self.options.rc_high_us
         if not high:
             self._rc_was_low = True
         return high and self._rc_was_low

@@ -80,6 +80,8 @@ REOPEN_INTERVAL_S = 1.0
 #: Seconds without a message refused by signing after which the next one starts a new burst
 #: (and is logged).
 REFUSAL_QUIET_S = 10.0
+#: RC_CHANNELS' value for "this channel is unused" (UINT16_MAX, common.xml): no pulse width.
+RC_UNUSED = 65535
 #: A quaternion further than this from unit norm is no attitude (PX4 sends float32 unit
 #: quaternions, off by about 1e-7): the estimate carrying it is refused.
 QUATERNION_NORM_TOLERANCE = 1e-3
@@ -237,8 +239,9 @@ class Autopilot:
         self.home_position_L: np.ndarray | None = None
         self.imu_rate_hz = 0.0
         self.last_imu_t: float | None = None
-        #: The latest RC_CHANNELS pulse widths (channel 1 first, microseconds), None before one.
-        self.rc_channels_us: tuple[int, ...] | None = None
+        #: The latest RC_CHANNELS pulse widths (channel 1 first, microseconds; None for a
+        #: channel the receiver reports unused), None before one.
+        self.rc_channels_us: tuple[int | None, ...] | None = None
         #: ``on_go(source) -> bool``: a ground station's MAV_CMD_MISSION_START to us; True
         #: when taken (acknowledged ACCEPTED), False when not now (TEMPORARILY_REJECTED).
         self.on_go = None
@@ -691,8 +694,8 @@ class Autopilot:
 
     def _on_rc_channels(self, message, now: float) -> None:
         count = min(int(message.chancount), 18)
-        self.rc_channels_us = tuple(int(getattr(message, f"chan{i}_raw"))
-                                    for i in range(1, count + 1))
+        raw = (int(getattr(message, f"chan{i}_raw")) for i in range(1, count + 1))
+        self.rc_channels_us = tuple(None if pulse == RC_UNUSED else pulse for pulse in raw)
 
     def _for_us(self, message) -> bool:
         return (message.target_system == self.options.system_id
