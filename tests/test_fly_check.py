@@ -3,14 +3,18 @@ check reported, nothing armed, the exit status saying whether the vehicle may fl
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import time
+from types import SimpleNamespace
 
 import pytest
 
 from companion.cli import main
-from companion.launch.check import PX4_PARAMETERS
+from companion.config import Config
+from companion.flight.go import GoOptions
+from companion.launch.check import PX4_PARAMETERS, _rc_switch
 from companion.tools.testmodel import build_test_model
 from drivers.sim.host import free_udp_port
 
@@ -94,3 +98,15 @@ def test_fly_check_fails_the_px4_parameters_a_flight_needs(served_vehicle, capsy
 def test_only_land_or_hold_passes_as_the_offboard_loss_action(value, ok):
     # commander_params.c: 0-2 hand the vehicle to the sticks, 3 Return, 6 Terminate, 7 Disarm
     assert PX4_PARAMETERS["COM_OBL_RC_ACT"].holds(value) is ok
+
+
+@pytest.mark.parametrize("channels, ok, detail", [
+    (None, False, "no RC_CHANNELS with channel 7 from PX4"),
+    ((1500,) * 6, False, "no RC_CHANNELS with channel 7 from PX4"),
+    ((1500,) * 6 + (None,), False, "channel 7 reported unused by the receiver"),
+    ((1500,) * 6 + (1000,), True, "channel 7 at 1000 us"),
+])
+def test_the_rc_go_switch_check_fails_a_channel_missing_or_reported_unused(channels, ok, detail):
+    config = dataclasses.replace(Config(), go=GoOptions(rc_channel=7))
+    [result] = _rc_switch(SimpleNamespace(rc_channels_us=channels), config)
+    assert (result.ok, result.detail) == (ok, detail)

@@ -185,10 +185,14 @@ def _rc_switch(autopilot, config) -> list[CheckResult]:
     if not channel:
         return []
     values = autopilot.rc_channels_us
-    ok = values is not None and len(values) >= channel
-    detail = (f"channel {channel} at {values[channel - 1]} us" if ok
-              else f"no RC_CHANNELS with channel {channel} from PX4")
-    return [CheckResult("RC go switch", ok, detail)]
+    if values is None or len(values) < channel:
+        return [CheckResult("RC go switch", False,
+                            f"no RC_CHANNELS with channel {channel} from PX4")]
+    pulse = values[channel - 1]
+    if pulse is None:
+        return [CheckResult("RC go switch", False,
+                            f"channel {channel} reported unused by the receiver")]
+    return [CheckResult("RC go switch", True, f"channel {channel} at {pulse} us")]
 
 
 async def _parameters(autopilot) -> list[CheckResult]:
