@@ -17,7 +17,11 @@ from companion.config import Config
 from companion.flight.app import format_flight
 from companion.flight.go import GoError, GoOptions, OperatorGate, send_go
 from companion.launch import simulated
+from drivers.clock import MonotonicClock
+from drivers.mavlink.autopilot import Autopilot as RealAutopilot
 from drivers.mavlink.autopilot import MavlinkOptions
+from drivers.mavlink.link import mavlink, open_link
+from drivers.sim.host import free_udp_port
 from drivers.sim.mock_px4 import Px4Options
 
 WAIT_WALL_S = 4.0
@@ -149,12 +153,6 @@ class GroundStation:
     operator's gate taking the driver's go commands."""
 
     def __init__(self, key: bytes | None = None):
-        from drivers.clock import MonotonicClock
-        from drivers.mavlink.autopilot import Autopilot as RealAutopilot
-        from drivers.mavlink.autopilot import MavlinkOptions
-        from drivers.mavlink.link import open_link
-        from drivers.sim.host import free_udp_port
-
         port = free_udp_port()
         self.link = open_link(f"udpin://127.0.0.1:{port}", source_system=255,
                               source_component=190)
@@ -169,8 +167,6 @@ class GroundStation:
     def mission_start(self, wait_s: float = 2.0) -> int | None:
         """Send MAV_CMD_MISSION_START to the companion; the result of its COMMAND_ACK, None
         when none came in ``wait_s``."""
-        from drivers.mavlink.link import mavlink
-
         self.link.mav.command_long_send(1, 191, mavlink.MAV_CMD_MISSION_START, 0, *[0] * 7)
         deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
@@ -190,8 +186,6 @@ class GroundStation:
 def test_a_ground_stations_mission_start_is_the_go_and_is_acknowledged():
     """The driver hands the ground station's MAV_CMD_MISSION_START to the gate and acknowledges
     it to the sender: TEMPORARILY_REJECTED before the vehicle waits, ACCEPTED while it waits."""
-    from drivers.mavlink.link import mavlink
-
     gcs = GroundStation()
     try:
         assert gcs.mission_start() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -205,8 +199,6 @@ def test_a_ground_stations_mission_start_is_the_go_and_is_acknowledged():
 def test_with_signing_only_a_go_signed_with_the_vehicles_key_counts(caplog):
     """A rogue system's go, unsigned or signed with another key, is ignored (no go, no ACK)
     and counted, with one warning naming it; the same go signed with the key is taken."""
-    from drivers.mavlink.link import mavlink
-
     key = bytes(range(32))
     gcs = GroundStation(key)
     try:

@@ -114,8 +114,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "deadline missed, every mission landed without a collision "
                     "(docs/reliability.md). Exit status 1 when it fails.")
     soak.add_argument("--minutes", type=common.positive_float, default=30.0,
-                      help="wall time to soak for, at least two missions "
-                           "(default: %(default)s)")
+                      help="wall time to soak for, and at least one mission after the "
+                           "warm-up (default: %(default)s)")
     soak.add_argument("--warm-up", type=common.positive_int, default=3, metavar="MISSIONS",
                       help="missions flown before the baseline the rest are judged against "
                            "(default: %(default)s)")
@@ -242,10 +242,9 @@ def _sim_soak(args: argparse.Namespace, config: Config) -> int:
               f"{record['open_files']} files, loop lag p99 {record['loop_lag_ms_p99']:.1f} ms",
               file=sys.stderr, flush=True)
 
+    options = SoakOptions(minutes=args.minutes, warm_up_missions=args.warm_up)
     try:
-        result = soak(lambda: simulated.run(config, mission), SoakOptions(minutes=args.minutes,
-                                                                  warm_up_missions=args.warm_up),
-                      report)
+        result = soak(lambda: simulated.run(config, mission), options, report)
     except (simulated.SimError, RenderError, ValueError, OSError) as error:
         print(f"sim soak: {error}", file=sys.stderr)
         return common.EXIT_FAILED
