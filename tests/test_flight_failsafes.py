@@ -91,3 +91,17 @@ def test_a_dead_end_is_a_no_safe_primitive_failsafe():
     assert_safe_landing(summary)
     assert summary["failsafes"] == ["no safe primitive"]
     assert summary["path_length_m"] < 5.0  # it never went anywhere
+
+
+def test_px4_disarming_the_vehicle_during_the_take_off_ends_the_mission_at_once():
+    """The motors stop 0.5 s into the climb: the mission ends in ABORTED as soon as PX4's
+    heartbeat says so, with no landing command (it used to wait out the take-off timeout,
+    20 s, then command a landing of the falling vehicle: found by the fault matrix)."""
+    from companion.tools.fault_matrix import MATRIX_GOAL
+
+    summary = fly("dome", faults=[Fault.parse("disarm@takeoff:0.5")], goal=MATRIX_GOAL)
+    assert summary["failsafes"] == ["PX4 disarmed the vehicle in the air"], summary["failsafes"]
+    states = [t["to"] for t in summary["transitions"]]
+    assert states[-2:] == ["taking_off", "aborted"], states
+    aborted_t = summary["transitions"][-1]["t"]
+    assert aborted_t - summary["fault_moments"]["takeoff"] < 2.0  # a heartbeat or two

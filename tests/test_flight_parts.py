@@ -19,7 +19,7 @@ from companion.flight.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
 from drivers.sim.host import TruthDepth, TruthTrack, free_udp_port
 from drivers.mavlink.link import open_link
-from drivers.sim.faults import CuttableLink, Fault, FaultSchedule
+from drivers.sim.faults import FaultyLink, Fault, FaultSchedule
 from drivers.sim.world import build_world
 
 
@@ -29,11 +29,15 @@ def test_fault_parse_reads_kind_start_and_duration():
     assert Fault.parse("imu_gap") == Fault("imu_gap", 1.0, math.inf)
     assert Fault.parse("link_cut@2.5") == Fault("link_cut", 2.5, math.inf)
     assert Fault.parse("camera_freeze@1+0.5") == Fault("camera_freeze", 1.0, 0.5)
+    assert Fault.parse("px4_reboot@landing:0.5") == Fault("px4_reboot", 0.5, math.inf, "landing")
+    for fault in (Fault("imu_gap", 2.0, 0.5, "takeoff"), Fault("link_cut", 0.0)):
+        assert Fault.parse(str(fault)) == fault
 
 
 @pytest.mark.parametrize("text, words", [
     ("gremlins", "unknown fault"),
-    ("imu_gap@soon", "expected kind[@after_s[+duration_s]]"),
+    ("imu_gap@soon", "expected kind[@[moment:]after_s[+duration_s]]"),
+    ("imu_gap@later:1", "unknown moment 'later'"),
     ("imu_gap@-1", "after_s must be"),
     ("imu_gap@1+0", "duration_s must be > 0"),
 ])
@@ -44,14 +48,57 @@ def test_fault_parse_rejects_bad_text_clearly(text, words):
 
 def test_fault_clock_starts_when_the_vehicle_first_cruises():
     schedule = FaultSchedule((Fault("imu_gap", after_s=1.0, duration_s=0.5),))
-    schedule.update(5.0, (0.5, 0.0, 0.0))  # hovering: no cruise yet
+    schedule.update(5.0, (0.0, 0.0, 1.5), (0.5, 0.0, 0.0))  # hovering: no cruise yet
     assert not schedule.active("imu_gap", 7.0)
-    schedule.update(10.0, (0.0, 1.5, 0.0))  # cruising from t = 10
+    schedule.update(10.0, (0.0, 0.0, 1.5), (0.0, 1.5, 0.0))  # cruising from t = 10
     assert not schedule.active("imu_gap", 10.9)
     assert schedule.active("imu_gap", 11.0)
     assert schedule.active("imu_gap", 11.4)
     assert not schedule.active("imu_gap", 11.5)
     assert not schedule.active("link_cut", 11.2)
+
+
+def test_each_moment_comes_when_the_true_flight_reaches_it():
+    """Take-off: 0.3 m above where it stood; cruise: over 1 m/s; near an obstacle: within
+    2 m of one, in cruise; landing: PX4 landing after cruise (not the take-off's descent)."""
+    wall_x = 10.0
+    schedule = FaultSchedule(tuple(Fault("imu_gap", 0.0, 0.1, moment) for moment in
+                                   ("takeoff", "cruise", "obstacle", "landing")),
+                             clearance=lambda points: wall_x - points[:, 0])
+    flight = [(0.0, (0, 0, 0.0), (0, 0, 0), True),    # on the ground, Land mode: not yet
+              (1.0, (0, 0, 0.2), (0, 0, 1), False),
+              (1.5, (0, 0, 0.4), (0, 0, 1), False),   # take-off
+              (3.0, (0, 0, 1.5), (1.5, 0, 0), False),  # cruise
+              (7.0, (7.5, 0, 1.5), (1.5, 0, 0), False),
+              (8.5, (8.5, 0, 1.5), (1.5, 0, 0), False),  # 1.5 m from the wall
+              (9.0, (9.0, 0, 1.5), (0, 0, 0), True)]   # landing
+    for t, position, velocity, landing in flight:
+        schedule.update(t, np.array(position, dtype=float), velocity, landing)
+    assert schedule.moment_since == {"takeoff": 1.5, "cruise": 3.0, "obstacle": 8.5,
+                                     "landing": 9.0}
+
+
+def test_a_lossy_link_loses_about_the_share_asked_each_way():
+    class Wire:
+        def __init__(self):
+            self.sent = []
+
+        def send(self, message):
+            self.sent.append(message)
+
+        def receive_pending(self):
+            return list(range(1000))
+
+    wire = Wire()
+    link = FaultyLink(wire, np.random.default_rng(1))
+    link.loss = 0.5
+    received = link.receive_pending()
+    for k in range(1000):
+        link.send(k)
+    assert 430 < len(received) < 570 and 430 < len(wire.sent) < 570
+    assert received == sorted(received)  # lost, never reordered
+    link.loss = 0.0
+    assert len(link.receive_pending()) == 1000
 
 
 def _received(link, seconds=0.5) -> list[str]:
@@ -66,7 +113,7 @@ def test_a_cut_link_neither_sends_nor_delivers():
     port = free_udp_port()
     with open_link(f"udpin://127.0.0.1:{port}") as server_raw, \
             open_link(f"udpout://127.0.0.1:{port}") as client:
-        server = CuttableLink(server_raw)
+        server = FaultyLink(server_raw)
         client.mav.heartbeat_send(6, 8, 0, 0, 0)
         assert "HEARTBEAT" in _received(server)
         server.send(server.mav.heartbeat_encode(6, 8, 0, 0, 0))
@@ -182,13 +229,18 @@ def test_yaw_alignment_maps_the_body_pose_from_vins_world_to_px4_local():
 
 # ---------------------------------------------------------------- odometry to PX4
 
-@pytest.mark.parametrize("state, blind, quality", [
-    (HealthState.OK, False, 100), (HealthState.DEGRADED, False, 50),
-    (HealthState.LOST, False, -1), (HealthState.INITIALISING, False, 0),
+@pytest.mark.parametrize("state, settling, blind, quality", [
+    (HealthState.OK, False, False, 100), (HealthState.DEGRADED, False, False, 50),
+    (HealthState.LOST, False, False, -1), (HealthState.INITIALISING, False, False, 0),
+    # just reset: the new smoother's state is its prior, not for PX4 to fuse
+    (HealthState.DEGRADED, True, False, 0), (HealthState.LOST, True, False, -1),
     # blind past the timeout: PX4 (EKF2_EV_QMIN >= 1) must not hold position on its drift
-    (HealthState.OK, True, -1), (HealthState.DEGRADED, True, -1)])
-def test_odometry_quality_tells_px4_when_not_to_fuse_the_vins(state, blind, quality):
-    assert odometry_quality(state, blind) == quality
+    (HealthState.OK, False, True, -1), (HealthState.DEGRADED, False, True, -1)])
+def test_odometry_quality_tells_px4_when_not_to_fuse_the_vins(state, settling, blind, quality):
+    from autonomy.vins.health import Health
+
+    assert odometry_quality(Health(state, "", settling=settling), blind) == quality
+    assert odometry_quality(None, False) == -1  # no VINS update yet
 
 
 # ---------------------------------------------------------------- the summary
@@ -219,12 +271,10 @@ def test_the_summary_ends_with_the_estimated_time_offset_and_how_to_start_from_i
 # ---------------------------------------------------------------- simulated camera
 
 class _Vehicle:
-    def __init__(self):
+    def __init__(self, faults):
         from drivers.sim.quadrotor import Quadrotor
         self.vehicle = Quadrotor(position=(0.0, 0.0, 1.5))
-        self.faults = FaultSchedule((Fault("camera_freeze", 0.0, 0.2),
-                                     Fault("camera_stale", 0.3, 0.1),
-                                     Fault("camera_blackout", 0.4, 0.1)))
+        self.faults = FaultSchedule(faults)
         self.time = 0.0
 
     def turn_to(self, t: float) -> None:
@@ -234,7 +284,9 @@ class _Vehicle:
         self.vehicle = Quadrotor(position=(0.0, 0.0, 1.5), yaw=t)
 
 
-def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_blackout():
+def _sim_camera_frames(faults, count: int):
+    """``count`` frames of a 20 Hz simulated camera yawing at 1 rad/s, cruising (the faults'
+    clock running) from t = 0."""
     from drivers.sim.camera import CameraHead, SimCamera
     from drivers.sim.render import Renderer
     from drivers.sim.world import build_world
@@ -242,7 +294,7 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_bla
 
     options = CameraOptions(width=64, height=48, rate_hz=20.0)
     world = build_world("dome", 0)
-    sim = _Vehicle()
+    sim = _Vehicle(faults)
     clock = SimClock(0.0)
 
     async def main():
@@ -250,7 +302,7 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_bla
         with Renderer(world, options.pinhole()) as renderer:
             camera = SimCamera(sim, renderer, clock, CameraHead(options.pinhole(),
                                                                 options.rate_hz))
-            sim.faults.update(0.0, (2.0, 0.0, 0.0))  # cruise from t = 0: faults on schedule
+            sim.faults.update(0.0, (0.0, 0.0, 1.5), (2.0, 0.0, 0.0))
 
             async def advance():
                 for k in range(1, 141):
@@ -258,12 +310,18 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_bla
                     clock.advance_to(sim.time)
                     await asyncio.sleep(0)
             runner = asyncio.create_task(advance())
-            for _ in range(8):
+            for _ in range(count):
                 frames.append(await camera.next_frame())
             await runner
         return frames, camera
 
-    frames, camera = asyncio.run(main())
+    return asyncio.run(main())
+
+
+def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_blackout():
+    frames, camera = _sim_camera_frames((Fault("camera_freeze", 0.0, 0.2),
+                                         Fault("camera_stale", 0.3, 0.1),
+                                         Fault("camera_blackout", 0.4, 0.1)), 8)
     times = np.array([f.t for f in frames])
     grid = np.arange(0.2, 0.56, 0.05)  # nothing while frozen, before 0.2 s
     # each frame is stamped when it is rendered: at its grid time, or a tick later when the
@@ -280,6 +338,17 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_bla
                 and np.array_equal(f.truth_depth, before.truth_depth, equal_nan=True)
                 for before, f in zip(frames, frames[1:])]
     assert repeated == [0.3 <= t < 0.4 for t in times[1:]], times
+
+
+def test_sim_camera_delivers_frames_twice_or_in_swapped_pairs_under_those_faults():
+    """Repeated from 0 to 0.1 s (each frame, same stamp and image, twice), swapped pairs from
+    0.2 to 0.3 s; in order, once each, before and after."""
+    frames, _ = _sim_camera_frames((Fault("frame_repeat", 0.0, 0.1),
+                                    Fault("frame_reorder", 0.2, 0.1)), 11)
+    times = [round(round(f.t / 0.05) * 0.05, 2) for f in frames]  # on the grid, a tick late
+    assert times == [0.0, 0.0, 0.05, 0.05, 0.1, 0.15, 0.25, 0.2, 0.3, 0.35, 0.4], times
+    assert frames[1].image is frames[0].image
+    assert not np.array_equal(frames[6].image, frames[7].image)
 
 
 # ---------------------------------------------------------------- the real vehicle's wiring

@@ -182,3 +182,23 @@ def test_the_simulator_refuses_a_missing_key_file_in_one_line(command, table, no
     status = main([*command, "--set", f"{table}.signing_key_file=mavlink-signing.key"])
     assert status == 1
     assert capsys.readouterr().err.splitlines()[-1] == f"{command[0]} {command[1]}: {MISSING}"
+
+
+def test_a_flight_controller_signing_with_another_key_is_never_armed():
+    """The fault matrix's key mismatch (docs/reliability.md): PX4 refuses a new key while
+    armed, so a mismatch is met before the flight. Every PX4 message fails the companion's
+    signature check, so there is no link: the preflight ends in ABORTED, naming the cause and
+    the fix, and nothing was armed."""
+    from companion.launch import simulated
+    from companion.tools.fault_matrix import MATRIX_GOAL
+
+    config = load_config(None, [f'mavlink.signing_key="{"a1" * 32}"',
+                                f'px4.signing_key="{"b2" * 32}"'])
+    summary = simulated.run(config, simulated.SimMission(world="dome", goal=MATRIX_GOAL))
+    assert summary["final_state"] == "aborted" and summary["flight_time_s"] == 0.0
+    [transition] = summary["transitions"]
+    assert transition["from"] == "preflight"
+    assert "signs with another key" in transition["reason"]
+    assert "companion signing provision" in transition["reason"]
+    assert summary["mavlink_signing"]["bad_signature"] > 0
+    assert summary["path_length_m"] == 0.0

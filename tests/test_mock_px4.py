@@ -420,6 +420,11 @@ def test_timesync_is_answered_and_the_mock_uses_answers_to_its_own():
                     bench.client.mav.timesync_send(int(bench.time * 1e9) + offset_ns, m.ts1)
         bench.run(1.1, answer)
         assert bench.px4.timesync_offset_ns == pytest.approx(offset_ns, abs=0.01e9)
+
+        # the timesync_stop fault: neither answers nor requests
+        bench.px4.suppressed_streams.add(mavlink.MAVLINK_MSG_ID_TIMESYNC)
+        bench.client.mav.timesync_send(0, 987654321)
+        assert not bench.all("TIMESYNC", bench.run(1.0))
     finally:
         bench.close()
 
@@ -527,3 +532,49 @@ def test_serve_starts_the_vehicle_at_the_worlds_first_route():
                                 on_ready=served.append))
     assert summary.collision is None
     assert served[0].vehicle.state.position[:2] == pytest.approx(world.routes[0].start[:2])
+
+
+def test_a_reboot_stops_the_motors_goes_silent_then_boots_from_zero_keeping_its_parameters(
+        bench):
+    """A brown-out in the air: the motors stop at once, nothing is read or sent while the
+    board boots (BOOT_DURATION_S), then PX4 streams again disarmed in Hold, its boot time
+    from zero, at its default rates (the companion's IMU rate request is gone), its
+    parameters kept."""
+    from drivers.sim.mock_px4 import BOOT_DURATION_S
+
+    bench.arm()
+    bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
+    bench.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_HIGHRES_IMU,
+                  5000)
+    bench.client.mav.param_set_send(1, 1, b"COM_OF_LOSS_T", 0.7, mavlink.MAV_PARAM_TYPE_REAL32)
+    bench.run(3.0)
+    height = bench.vehicle.state.position[2]
+    assert height > 1.0
+    bench.px4.reboot()
+    assert not bench.vehicle.armed
+    silent = bench.run(BOOT_DURATION_S - 0.1)
+    assert silent == [] and bench.vehicle.state.position[2] < height  # falling
+    assert bench.arm() is None  # a booting board answers nothing
+    messages = bench.run(1.2)
+    heartbeat = bench.all("HEARTBEAT", messages)[-1]
+    assert not heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert bench.px4.mode == px4_protocol.AUTO_LOITER
+    stamps = [m.time_usec * 1e-6 for m in bench.all("HIGHRES_IMU", messages)]
+    assert 0.0 <= stamps[0] < 0.1 and stamps[-1] < 1.3  # from zero again
+    assert (len(stamps) - 1) / (stamps[-1] - stamps[0]) == pytest.approx(50, rel=0.1)
+    assert bench.px4.parameters["COM_OF_LOSS_T"] == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize("delivery, order", [
+    ("repeat", lambda stamps: all(b - a in (0, 5000) for a, b in zip(stamps, stamps[1:]))),
+    ("reorder", lambda stamps: sorted(stamps) == sorted(set(stamps))
+     and sum(b < a for a, b in zip(stamps, stamps[1:])) >= len(stamps) // 2 - 1),
+])
+def test_imu_delivery_faults_repeat_or_swap_the_stamps_px4_sends(bench, delivery, order):
+    bench.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_HIGHRES_IMU,
+                  5000)
+    bench.px4.imu_delivery = delivery
+    stamps = [m.time_usec for m in bench.all("HIGHRES_IMU", bench.run(0.5))]
+    assert len(stamps) > 50 and order(stamps), stamps[:12]
+    if delivery == "repeat":
+        assert len(stamps) == 2 * len(set(stamps))

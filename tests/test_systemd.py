@@ -131,6 +131,37 @@ def test_hardening_hides_no_device(unit):
     assert {"AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK"} <= families  # sd_notify, UDP, udev
 
 
+def test_no_capability_and_no_system_call_a_flight_never_makes(unit):
+    service = unit["Service"]
+    assert one(unit, "Service", "CapabilityBoundingSet") == ""
+    assert one(unit, "Service", "SystemCallArchitectures") == "native"
+    denied = one(unit, "Service", "SystemCallFilter")
+    assert denied.startswith("~")
+    assert {"@clock", "@debug", "@module", "@mount", "@privileged", "@raw-io", "@reboot",
+            "@swap"} <= set(denied[1:].split())
+    # onnxruntime pins its threads and CUDA sets memory policy: @resources stays allowed
+    assert "@resources" not in denied and "@system-service" not in denied
+    # a call outside the filter fails with an error the code handles, not SIGSYS in flight
+    assert one(unit, "Service", "SystemCallErrorNumber") == "EPERM"
+    for key in ("RestrictRealtime", "RemoveIPC", "PrivateMounts"):
+        assert is_true(one(unit, "Service", key)), key
+    assert one(unit, "Service", "ProtectProc") == "invisible"
+    assert int(one(unit, "Service", "UMask"), 8) & 0o007 == 0o007
+    assert "ProcSubset" not in service  # onnxruntime and OpenCV read /proc/cpuinfo
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None,
+                    reason="systemd-analyze is not installed here")
+def test_systemd_analyze_security_scores_the_unit_as_the_unit_says(tmp_path):
+    stated = re.search(r"scores it (\d+\.\d) \(OK\)", UNIT.read_text(encoding="utf-8"))
+    assert stated, "the unit's comment states its score"
+    result = subprocess.run(["systemd-analyze", "security", "--offline=true", str(UNIT)],
+                            capture_output=True, text=True, timeout=60)
+    score = re.search(r"Overall exposure level for \S+: (\d+\.\d) (\w+)", result.stdout)
+    assert score, result.stdout + result.stderr
+    assert (score[1], score[2]) == (stated[1], "OK")
+
+
 def test_something_writable_under_protect_system_strict(unit):
     service = unit["Service"]
     assert any(k in service for k in ("StateDirectory", "LogsDirectory", "ReadWritePaths"))

@@ -7,6 +7,10 @@
 - ``DEGRADED``: an estimate, but a weak one: few features or landmarks, a recent reset, or a
   slow update.
 - ``OK``: everything in bounds.
+
+``settling``: within ``degraded_after_reset_s`` of a reset, the new smoother's state is its
+prior (an IMU propagation, in flight across whatever lost the old one) more than its
+measurements: an estimate to navigate on carefully, but not one for PX4 to fuse.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ class Health:
     accel_bias: float = 0.0
     resets: int = 0
     update_ms: float | None = None
+    settling: bool = False
 
 
 @dataclass(frozen=True)
@@ -66,23 +71,24 @@ class HealthInputs:
 def assess(inputs: HealthInputs, options: VinsOptions) -> Health:
     """The health of an initialised estimator that has an estimate (module docstring)."""
     o = options
+    settling = inputs.since_reset_s < o.degraded_after_reset_s
     if inputs.starved_s >= o.lost_after_s:
         return _health(HealthState.LOST, f"only {inputs.tracked} features tracked for "
-                       f"{inputs.starved_s:.2f} s", inputs)
+                       f"{inputs.starved_s:.2f} s", inputs, settling)
     problems = []
     if inputs.tracked < o.min_tracked_ok:
         problems.append(f"{inputs.tracked} features tracked (< {o.min_tracked_ok})")
     if inputs.moved and inputs.landmarks < o.min_landmarks_ok:
         problems.append(f"{inputs.landmarks} landmarks (< {o.min_landmarks_ok})")
-    if inputs.since_reset_s < o.degraded_after_reset_s:
+    if settling:
         problems.append(f"reset {inputs.since_reset_s:.2f} s ago")
     if inputs.update_ms is not None and inputs.update_ms > o.max_update_ms:
         problems.append(f"update took {inputs.update_ms:.0f} ms (> {o.max_update_ms:g})")
     if problems:
-        return _health(HealthState.DEGRADED, "; ".join(problems), inputs)
-    return _health(HealthState.OK, "", inputs)
+        return _health(HealthState.DEGRADED, "; ".join(problems), inputs, settling)
+    return _health(HealthState.OK, "", inputs, settling)
 
 
-def _health(state: HealthState, reason: str, i: HealthInputs) -> Health:
+def _health(state: HealthState, reason: str, i: HealthInputs, settling: bool) -> Health:
     return Health(state, reason, i.tracked, i.landmarks, i.parallax_px, i.speed, i.gyro_bias,
-                  i.accel_bias, i.resets, i.update_ms)
+                  i.accel_bias, i.resets, i.update_ms, settling)

@@ -18,7 +18,8 @@ DEFAULT_PLOT = Path("sim-fly.png")
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
-    from drivers.sim.faults import FAULT_KINDS
+    from companion.tools.fault_matrix import MATRIX_FAULTS
+    from drivers.sim.faults import FAULT_KINDS, MOMENTS
     from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
     from drivers.sim.serve import LINKS
 
@@ -94,8 +95,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "serial:///dev/pts/N:921600, the code a flight controller on a UART "
                           "goes through) (default: %(default)s)")
     fly.add_argument("--fault", dest="faults", action="append", default=[],
-                     metavar="KIND[@AFTER[+DURATION]]",
-                     help="inject a fault AFTER seconds into cruise for DURATION seconds "
+                     metavar="KIND[@[MOMENT:]AFTER[+DURATION]]",
+                     help="inject a fault AFTER seconds after MOMENT (one of "
+                          f"{', '.join(MOMENTS)}; default cruise) for DURATION seconds "
                           f"(default: 1 s, for good): {', '.join(FAULT_KINDS)}; repeatable")
     fly.add_argument("--plot", type=common.png_path, metavar="PNG",
                      help=f"where to draw the top view of the flight (default: {DEFAULT_PLOT}, "
@@ -123,6 +125,27 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                       help="realtime, as on the vehicle, or lockstep (default: %(default)s)")
     common.add_json_flag(soak, instead_of="the verdict's lines")
     soak.set_defaults(command=_sim_soak)
+
+    faults = actions.add_parser(
+        "faults", parents=[configured],
+        help="fly the fault matrix: every fault at each moment of a flight",
+        description="Fly a short lockstep mission in the dome once per fault and moment "
+                    "(take-off, cruise, near an obstacle, landing) and judge each outcome "
+                    "against the behaviour docs/reliability.md documents for the fault. "
+                    "Prints the matrix as a markdown table; exits 1 if any row failed.")
+    faults.add_argument("--fault", dest="kinds", action="append", choices=MATRIX_FAULTS,
+                        metavar="KIND", help="only this fault (repeatable; default: all of "
+                                             f"{', '.join(MATRIX_FAULTS)})")
+    faults.add_argument("--moment", dest="moments", action="append", choices=MOMENTS,
+                        help="only this moment (repeatable; default: all)")
+    faults.add_argument("--quick", action="store_true",
+                        help="each fault once, the moments taken in turn (CI's reduced form)")
+    faults.add_argument("--seed", type=common.non_negative_int, default=0,
+                        help="seed of the world and the noise (default: %(default)s)")
+    faults.add_argument("--workers", type=common.positive_int,
+                        help="worker processes (default: the CPU count)")
+    common.add_json_flag(faults, instead_of="the table")
+    faults.set_defaults(command=_sim_faults)
 
 
 def _sim_options(args: argparse.Namespace, config: Config):
@@ -255,4 +278,33 @@ def _sim_soak(args: argparse.Namespace, config: Config) -> int:
               + ("passed" if result["passed"] else "FAILED"))
         for problem in result["problems"]:
             print(f"  {problem}")
+    return common.EXIT_OK if result["passed"] else common.EXIT_FAILED
+
+
+def _sim_faults(args: argparse.Namespace, config: Config) -> int:
+    from companion.tools import fault_matrix
+    from companion.tools.eval.executor import ExecutorError, open_executor
+
+    faults = fault_matrix.matrix_faults(args.kinds or fault_matrix.MATRIX_FAULTS,
+                                        args.moments or fault_matrix.MOMENTS, quick=args.quick)
+
+    def report(row: dict) -> None:
+        print(f"{row['injected']}: {row['outcome']}"
+              + ("" if row["passed"] else f" FAILED (allowed: {', '.join(row['allowed'])})"),
+              file=sys.stderr, flush=True)
+
+    try:
+        executor = open_executor(None, args.workers, len(faults))
+        result = fault_matrix.run_matrix(config, faults, seed=args.seed, executor=executor,
+                                         progress=report)
+    except ExecutorError as error:
+        print(f"sim faults: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(fault_matrix.markdown_table(result))
+        for row in result["rows"]:
+            if not row["passed"]:
+                print(f"failed: {fault_matrix.rerun_command(row, args.seed)}")
     return common.EXIT_OK if result["passed"] else common.EXIT_FAILED

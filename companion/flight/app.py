@@ -185,6 +185,7 @@ class FlightApp:
                               if s.takeoff_t is not None else 0.0),
             "navigation_time_s": navigation,
             "frames": s.frames,
+            "frames_out_of_order": s.frames_out_of_order,
             # the VINS takes every frame; the depth stage the newest when its network is free
             "vins_frames": c.channels.vins.published,
             "depth_frames": c.channels.depth.published,
@@ -203,6 +204,8 @@ class FlightApp:
             "navigation_end": s.navigation_end_L,
             # on, and the messages it refused: unsigned, bad_signature
             "mavlink_signing": c.autopilot.signing,
+            # what the autopilot driver dropped and why: IMU samples, TIMESYNC samples, ...
+            "autopilot_counters": c.autopilot.stats(),
         }
 
 

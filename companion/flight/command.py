@@ -20,7 +20,7 @@ from autonomy.messages import Odometry
 from autonomy.navigation.behaviours import turn_rate
 from autonomy.navigation.mission import OFFBOARD_STATES, FlightState
 from autonomy.planning.planner import Setpoint
-from autonomy.vins.health import HealthState
+from autonomy.vins.health import Health, HealthState
 from companion.flight.context import FlightContext
 from companion.flight.navigation import Navigation
 from companion.flight.perception import Perception
@@ -62,14 +62,19 @@ def tracked(setpoint: Setpoint, odometry: Odometry | None, now: float, options) 
 FAILED_QUALITY = -1
 
 
-def odometry_quality(state: HealthState, blind: bool) -> int:
+def odometry_quality(health: Health | None, blind: bool) -> int:
     """ODOMETRY.quality from the VINS health: 100 OK, 50 DEGRADED, 0 (unknown) while it
-    initialises, and -1 (failed) when LOST or once blind past ``blind_timeout_s``: its pose
-    is then IMU propagation that drifts without bound, and PX4 (``EKF2_EV_QMIN`` >= 1) must
-    not hold position on it after the failsafe (docs/operations.md)."""
-    if blind or state == HealthState.LOST:
+    initialises or settles after a reset, and -1 (failed) without a health, when LOST or
+    once blind past ``blind_timeout_s``: its pose is then IMU propagation that drifts without
+    bound, and PX4 (``EKF2_EV_QMIN`` >= 1) must not hold position on it after the failsafe
+    (docs/operations.md). Settling: a smoother restarted in the air from the IMU's propagation
+    across an IMU gap ran away, resetting again and again at tens of m/s while DEGRADED, and
+    PX4 fusing it flew the vehicle 8 m past its goal (the fault matrix, docs/reliability.md)."""
+    if blind or health is None or health.state == HealthState.LOST:
         return FAILED_QUALITY
-    return {HealthState.OK: 100, HealthState.DEGRADED: 50}.get(state, 0)
+    if health.settling:
+        return 0
+    return {HealthState.OK: 100, HealthState.DEGRADED: 50}.get(health.state, 0)
 
 
 class Command:
@@ -146,5 +151,4 @@ class Command:
             odometry.t, T_L_B[:3, 3], rot_to_quat(T_L_B[:3, :3]),
             T_L_W[:3, :3] @ odometry.velocity_W, odometry.angular_velocity_B,
             odometry.pose_covariance, reset_counter=self.perception.vins.resets,
-            quality=odometry_quality(update.health.state if update else HealthState.LOST,
-                                     c.vins_blind))
+            quality=odometry_quality(update.health if update else None, c.vins_blind))

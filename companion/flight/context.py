@@ -41,11 +41,16 @@ class Channels:
         self.transitions: Latest[Transition] = Latest("transitions")  # the mission's
 
 
+#: The reason given when PX4 reports the motors off while the companion commands the flight.
+DISARMED_IN_THE_AIR = "PX4 disarmed the vehicle in the air"
+
+
 @dataclass
 class FlightStats:
     """What the run measured, for the summary."""
 
     frames: int = 0
+    frames_out_of_order: int = 0  # dropped: not after the last frame taken
     depth_ok: int = 0
     depth_reasons: dict = field(default_factory=dict)
     planning_rounds: int = 0
@@ -103,6 +108,13 @@ class FlightContext:
 
     def abort(self, reason: str) -> None:
         self.go(FlightState.ABORTED, reason)
+
+    def motors_stopped(self) -> None:
+        """PX4 stopped the motors while the companion flew the vehicle. Nothing the companion
+        sends can fly it, and it must never re-arm one on its own: the mission ends here."""
+        self.mission.failsafe(self.clock.now(), DISARMED_IN_THE_AIR)
+        self.abort(f"{DISARMED_IN_THE_AIR} (a crash, a kill switch, a ground station's forced "
+                   "disarm or a reboot); nothing more is commanded")
 
     async def wait(self, condition, timeout_s: float, poll_s: float) -> bool:
         """Until ``condition()`` (True), ``timeout_s`` or the mission's end (False)."""

@@ -17,9 +17,6 @@ from drivers.mavlink.autopilot import CompanionStatus
 
 log = logging.getLogger(__name__)
 
-#: The reason given when PX4 reports the motors off while the companion commands the flight.
-DISARMED_IN_THE_AIR = "PX4 disarmed the vehicle in the air"
-
 
 def companion_status(state: FlightState, failsafes) -> CompanionStatus:
     """What the companion's HEARTBEAT tells PX4 and the ground station."""
@@ -66,11 +63,7 @@ class Health:
             c.go(FlightState.LINK_LOST, "no heartbeat from the flight controller")
             return
         if in_the_air and not c.autopilot.armed:
-            # Nothing the companion sends can fly a vehicle whose motors are off, and it must
-            # never re-arm one on its own: the mission ends here.
-            c.mission.failsafe(now, DISARMED_IN_THE_AIR)
-            c.abort(f"{DISARMED_IN_THE_AIR} (a crash, a kill switch or a ground station's "
-                    "forced disarm); nothing more is commanded")
+            c.motors_stopped()
             return
         update = c.channels.vins.value
         c.blind.update(now, None if update is None else update.health.landmarks,

@@ -125,6 +125,8 @@ class Perception:
         c = self.context
         while True:
             frame = await self.camera.next_frame()
+            if not self._in_order(frame):
+                continue
             c.channels.frames.publish(frame)
             c.stats.frames += 1
             update = asyncio.get_running_loop().create_future()
@@ -134,6 +136,16 @@ class Perception:
             result = await c.workers["vins"].compute(self._track, frame)
             self._after_vins(result)
             update.set_result(result)
+
+    def _in_order(self, frame: Frame) -> bool:
+        """Whether ``frame`` comes after the last one taken. One delivered twice or late (a
+        driver re-queueing or reordering its buffers) is dropped and counted: the VINS and the
+        depth history only run forward in time."""
+        last = self.last_frame_t
+        if last is not None and not frame.t > last:
+            self.context.stats.frames_out_of_order += 1
+            return False
+        return True
 
     async def _depth_loop(self, for_depth: NewestSlot[tuple[Frame, asyncio.Future]]) -> None:
         network = self.context.workers["network"]

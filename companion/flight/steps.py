@@ -114,15 +114,23 @@ class MissionSteps:
             c.go(FlightState.LANDING, "take-off denied")
             return
         home_z = c.channels.alignment.value.home_z
+        seen_armed = False
 
-        def up() -> bool:
+        def up_or_stopped() -> bool:
+            nonlocal seen_armed
+            seen_armed = seen_armed or autopilot.armed
+            if seen_armed and not autopilot.armed:
+                return True  # PX4 stopped the motors during the climb
             state = autopilot.state
             return (state is not None and autopilot.in_air
                     and autopilot.mode == px4_protocol.AUTO_LOITER
                     and state.position_L[2] >= home_z + o.takeoff_altitude
                     - TAKEOFF_HEIGHT_MARGIN)
-        if not await self._wait(up, o.takeoff_timeout_s):
+        if not await self._wait(up_or_stopped, o.takeoff_timeout_s):
             c.go(FlightState.LANDING, "take-off did not reach its height")
+            return
+        if not autopilot.armed:
+            c.motors_stopped()
             return
         c.go(FlightState.ENTERING_OFFBOARD, "at take-off height")
 
@@ -183,6 +191,8 @@ class MissionSteps:
             if c.mission.done:
                 return
             c.go(FlightState.LANDING, "hold time over")
+        if c.mission.done:  # PX4 disarmed the vehicle during the hold command (Health)
+            return
         if not await autopilot.land():
             log.warning("land command not acknowledged; waiting for PX4 anyway")
         if await self._wait(lambda: not autopilot.armed, o.land_timeout_s):

@@ -43,8 +43,9 @@ from drivers.mavlink.autopilot import Autopilot
 from drivers.mavlink.signing import load_key
 from drivers.sim.faults import FaultSchedule
 from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMission,
-                              ThreadedSimulator, TruthDepth, TruthTrack, mission_waypoints,
-                              simulated_network, stall_when_due)
+                              ThreadedSimulator, TruthDepth, TruthTrack, empty_disk,
+                              fill_disk_when_due, mission_waypoints, simulated_network,
+                              stall_when_due)
 from drivers.sim.serve import LINKS
 from drivers.sim.world import World, build_world
 
@@ -101,10 +102,13 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     # realistic profile's) are the flight's to see and avoid, not the route's
     start, waypoints, start_yaw = mission_waypoints(build_world(mission.world, mission.seed),
                                                     mission, config.flight.takeoff_altitude)
-    faults = FaultSchedule(mission.faults)
+    faults = FaultSchedule(mission.faults, world.obstacle_clearance)
     if faults.has("loop_stall") and mission.clock != "realtime":
         raise SimError("a loop_stall fault needs --clock realtime: in lockstep the simulator "
                        "shares the stalled loop, so simulated time stalls with it")
+    if faults.has("disk_full") and not record:
+        raise SimError("a disk_full fault fills the recording's disk: it needs a recorded "
+                       "flight (drop --no-record, or set [recorder] enabled = true)")
     side = (LockstepSimulator if mission.clock == "lockstep" else ThreadedSimulator)(
         config, world, mission, (start, start_yaw), faults, waypoints[-1], progress)
     sim, camera, clock = await side.start()
@@ -121,7 +125,13 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
                                           mission=json.dumps(dataclasses.asdict(mission)))
             recording = open_recording(config.recorder, clock=clock, to_file=record, live=live,
                                        metadata=metadata)
-            summary = await recorded(app, recording)
+            disk = asyncio.create_task(fill_disk_when_due(faults, sim, recording and
+                                                          recording.path))
+            try:
+                summary = await recorded(app, recording)
+            finally:
+                disk.cancel()
+                empty_disk(disk.result() if disk.done() and not disk.cancelled() else None)
             summary["mavlink"] = _link_load(app.autopilot.link, sim)
         finally:
             app.autopilot.close()
@@ -129,6 +139,9 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         stall.cancel()
         await side.stop()
     summary.update(_truth_summary(config, world, mission, sim, side.track, waypoints, summary))
+    # when each moment a fault can start at came (simulated seconds): a fault whose moment
+    # never came was never injected
+    summary["fault_moments"] = {moment: round(t, 3) for moment, t in faults.moment_since.items()}
     if plot is not None:
         _plot(world, mission, side.track, (start, waypoints), sim, plot, summary)
         summary["plot"] = str(plot)

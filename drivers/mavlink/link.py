@@ -74,6 +74,10 @@ from drivers.mavlink.signing import REFUSED_REASON, SECRET_KEY_LENGTH, Refusals 
 mavutil.set_dialect("common")
 
 log = logging.getLogger(__name__)
+# pymavlink logs every frame whose signature fails at INFO ("sig mismatch"): 300 lines a
+# second from a flight controller with another key. The link counts them by sender and warns
+# once per burst (drivers/mavlink/signing.py), so pymavlink's logger keeps its warnings only.
+logging.getLogger(mavlink.__name__).setLevel(logging.WARNING)
 
 DEFAULT_SERIAL_BAUD = 57600
 #: The rates PX4 can set a serial port to: the values of its ``SER_xxx_BAUD`` parameters

@@ -90,9 +90,14 @@ class SimCamera:
         self.dropped = 0
         self.lost = 0
         self._last: Frame | None = None  # what a stale camera repeats
+        self._held: Frame | None = None  # a frame_reorder fault's frame, until the next one
+        self._again: list[Frame] = []  # frames delivered again or late, next in line
 
     async def next_frame(self) -> Frame:
-        """The next frame whose exposure is at or after now (waiting for its stamp)."""
+        """The next frame whose exposure is at or after now (waiting for its stamp); under a
+        ``frame_repeat`` or ``frame_reorder`` fault, frames come twice or in swapped pairs."""
+        if self._again:
+            return self._again.pop(0)
         while True:
             due = self._next_index * self.period
             await self.clock.sleep(due - self.clock.now())
@@ -109,10 +114,31 @@ class SimCamera:
             if capture.stamp > self.clock.now():  # a late stamp: the frame arrives then
                 await self.clock.sleep(capture.stamp - self.clock.now())
             self.delivered += 1
-            faults, t = self.sim.faults, self.sim.time
-            if faults.active("camera_stale", t) and self._last is not None:
-                return Frame(capture.stamp, self._last.image, self._last.truth_depth)
-            self._last = Frame(capture.stamp, capture.image, capture.depth)
-            if faults.active("camera_blackout", t):
-                return Frame(capture.stamp, np.zeros_like(capture.image), capture.depth)
-            return self._last
+            frame = self._deliver(self._picture(capture))
+            if frame is not None:
+                return frame
+
+    def _picture(self, capture) -> Frame:
+        """The capture as the image faults leave it: stale (the last image again) or black."""
+        faults, t = self.sim.faults, self.sim.time
+        if faults.active("camera_stale", t) and self._last is not None:
+            return Frame(capture.stamp, self._last.image, self._last.truth_depth)
+        self._last = Frame(capture.stamp, capture.image, capture.depth)
+        if faults.active("camera_blackout", t):
+            return Frame(capture.stamp, np.zeros_like(capture.image), capture.depth)
+        return self._last
+
+    def _deliver(self, frame: Frame) -> Frame | None:
+        """``frame`` now, or None while a ``frame_reorder`` fault holds it back to follow the
+        next; a held frame comes after the one that overtook it, and under ``frame_repeat``
+        every frame comes twice."""
+        faults, t = self.sim.faults, self.sim.time
+        if faults.active("frame_reorder", t) and self._held is None:
+            self._held = frame
+            return None
+        if self._held is not None:
+            self._again.append(self._held)
+            self._held = None
+        if faults.active("frame_repeat", t):
+            self._again.append(frame)
+        return frame

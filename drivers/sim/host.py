@@ -20,6 +20,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
+import resource
+import signal
 import socket
 import threading
 import time
@@ -123,7 +126,8 @@ def free_udp_port() -> int:
 def simulated_network(config, seed: int, faults: FaultSchedule, sim_time: Callable[[], float]):
     """The network the application runs: the user's ONNX model on the image, else the
     synthetic stand-in on the rendered depth; NaN everywhere while a ``network_nan`` fault is
-    on (what a broken engine outputs)."""
+    on, one value everywhere (the frame's median, so of a plausible size) while a
+    ``network_const`` fault is: what broken engines output."""
     if config.depth_network.model:
         model = DepthNetwork.open(config.depth_network,
                                   (config.camera.height, config.camera.width))
@@ -137,6 +141,8 @@ def simulated_network(config, seed: int, faults: FaultSchedule, sim_time: Callab
         disparity = infer(frame)
         if faults.active("network_nan", sim_time()):
             return np.full_like(disparity, np.nan)
+        if faults.active("network_const", sim_time()):
+            return np.full_like(disparity, np.nanmedian(disparity))
         return disparity
     return source
 
@@ -231,6 +237,32 @@ async def stall_when_due(faults: FaultSchedule, sim) -> None:
         await asyncio.sleep(0.01)
     log.warning("injecting an event-loop stall of %.1f s", min(stall.duration_s, MAX_STALL_S))
     time.sleep(min(stall.duration_s, MAX_STALL_S))
+
+
+async def fill_disk_when_due(faults: FaultSchedule, sim, recording_path) -> None:
+    """The ``disk_full`` fault: from its start, no file of this process may grow past the size
+    the recording has then (``RLIMIT_FSIZE``; SIGXFSZ ignored, so a write fails with EFBIG
+    rather than killing the process). Returns the limits to restore (:func:`empty_disk`),
+    or None when the fault never started."""
+    fault = next((f for f in faults.faults if f.kind == "disk_full"), None)
+    if fault is None or recording_path is None:
+        return None
+    while not faults.active("disk_full", sim.time):
+        await asyncio.sleep(0.01)
+    size = os.path.getsize(recording_path)
+    log.warning("injecting a full disk: no file grows past %d bytes", size)
+    before = (resource.getrlimit(resource.RLIMIT_FSIZE),
+              signal.signal(signal.SIGXFSZ, signal.SIG_IGN))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, before[0][1]))
+    return before
+
+
+def empty_disk(before) -> None:
+    """Undo :func:`fill_disk_when_due` (``before``: what it returned)."""
+    if before is not None:
+        limits, handler = before
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, handler)
 
 
 class Simulator:

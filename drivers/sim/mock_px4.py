@@ -66,6 +66,10 @@ DEFAULT_STREAM_RATES_HZ = {
     mavlink.MAVLINK_MSG_ID_TIMESYNC: 10.0,
 }
 
+#: Seconds a rebooting flight controller is silent before it streams again: about what a
+#: Pixracer (STM32F4) takes from reset through NuttX and PX4's start scripts to MAVLink.
+BOOT_DURATION_S = 3.0
+
 #: HIGHRES_IMU.fields_updated: xacc..zgyro (bits 0-5) and temperature (bit 12).
 HIGHRES_IMU_FIELDS = 0b111111 | (1 << 12)
 
@@ -293,30 +297,42 @@ class MockPx4:
         #: The signing key PX4 has now (None: none, signing off).
         self.signing_key: bytes | None = None
         self._use_key(load_key(self.options))
-        self.mode = px4_protocol.AUTO_LOITER
         self.time = float(vehicle.state.time)
+        self._rc_pulses_us = [RC_CHANNEL_CENTRE_US] * RC_CHANNEL_COUNT
+        self._collision_reported = False
+        self._statustext_id = 0
+        self._builders: dict | None = None
+        #: Streams held back (a fault injected by the simulator: e.g. an IMU gap); TIMESYNC
+        #: held back stops its answers too.
+        self.suppressed_streams: set[int] = set()
+        #: How HIGHRES_IMU reaches the link (a fault injected by the simulator): None in
+        #: order, once; "repeat" each twice; "reorder" in swapped pairs.
+        self.imu_delivery: str | None = None
+        self._held_imu = None
+        self._imu = (np.zeros(3), np.array([0.0, 0.0, GRAVITY]))
+        self._boot_at = 0.0
+        self._booting_until: float | None = None
+        self._power_on()
+
+    def _power_on(self) -> None:
+        """The state PX4 boots into: disarmed in Hold, its default stream rates, no offboard
+        setpoint, no TIMESYNC estimate, home where the vehicle stands."""
+        self.mode = px4_protocol.AUTO_LOITER
         self._intervals: dict[int, float | None] = {}
         self._next_due = {}
         for message_id, rate in DEFAULT_STREAM_RATES_HZ.items():
             self._set_rate(message_id, rate)
         self._set_rate(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, self.options.imu_rate_hz)
         self._setpoint: OffboardSetpoint | None = None
-        self._rc_pulses_us = [RC_CHANNEL_CENTRE_US] * RC_CHANNEL_COUNT
         self._hold_position: np.ndarray | None = None
         self._hold_yaw = 0.0
         self._takeoff_height = self.parameters["MIS_TAKEOFF_ALT"]
         self._landed_since: float | None = None
-        self._collision_reported = False
-        self._statustext_id = 0
-        self._builders: dict | None = None
         self._ev_offset = np.zeros(3)
         self._ev_time: float | None = None
         self._timesync_sent_ns: int | None = None
         self.timesync_offset_ns: int | None = None
-        self._home = np.array(vehicle.state.position, dtype=float)
-        #: Streams held back (a fault injected by the simulator: e.g. an IMU gap).
-        self.suppressed_streams: set[int] = set()
-        self._imu = (np.zeros(3), np.array([0.0, 0.0, GRAVITY]))
+        self._home = np.array(self.vehicle.state.position, dtype=float)
         self.estimate = self._estimate()
         self._enter_hold()
 
@@ -348,12 +364,36 @@ class MockPx4:
         self.time = float(t)
         if gyro_B is not None and accel_B is not None:
             self._imu = (np.asarray(gyro_B, dtype=float), np.asarray(accel_B, dtype=float))
+        if self._booting_until is not None and not self._booted():
+            return
         self.estimate = self._estimate()
         for message in self.link.receive_pending():
             self._handle(message)
         self._check_collision()
         self._fly()
         self._send_due_streams()
+
+    # ---------------------------------------------------------------- reboot
+
+    def reboot(self, boot_duration_s: float = BOOT_DURATION_S) -> None:
+        """Restart, as after a brown-out or a watchdog reset: the motors stop at once (in the
+        air, the vehicle falls), nothing is read or sent for ``boot_duration_s``, then PX4
+        comes up as at power-on (:meth:`_power_on`) with its boot time from zero. Parameters
+        and the signing key survive, as PX4 keeps them in flash or on its SD card."""
+        if self.vehicle.armed:
+            self.vehicle.disarm()
+        self._booting_until = self.time + boot_duration_s
+        self._held_imu = None
+        log.warning("PX4 rebooting at t=%.3f", self.time)
+
+    def _booted(self) -> bool:
+        """While booting, whatever reaches the board is lost; when done, power on."""
+        self.link.receive_pending()
+        if self.time < self._booting_until:
+            return False
+        self._booting_until, self._boot_at = None, self.time
+        self._power_on()
+        return True
 
     # ---------------------------------------------------------------- estimator
 
@@ -661,6 +701,8 @@ class MockPx4:
 
     def _handle_timesync(self, message) -> None:
         """Answer requests (tc1 == 0) with our boot time; use answers to our own requests."""
+        if mavlink.MAVLINK_MSG_ID_TIMESYNC in self.suppressed_streams:
+            return
         now_ns = self._boot_ns()
         if message.tc1 == 0:
             self.link.send(self.link.mav.timesync_encode(now_ns, message.ts1))
@@ -883,10 +925,10 @@ class MockPx4:
     # ---------------------------------------------------------------- outgoing
 
     def _boot_ns(self) -> int:
-        return int(round(self.time * 1e9))
+        return int(round((self.time - self._boot_at) * 1e9))
 
     def _boot_ms(self) -> int:
-        return int(round(self.time * 1e3))
+        return int(round((self.time - self._boot_at) * 1e3))
 
     def _send_due_streams(self) -> None:
         for message_id, interval in self._intervals.items():
@@ -929,8 +971,25 @@ class MockPx4:
 
     def _send_message(self, message_id: int) -> None:
         builder = self._message_builders().get(message_id)
-        if builder is not None:
+        if builder is None:
+            return
+        if message_id == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU:
+            self._send_imu(builder())
+        else:
             self.link.send(builder())
+
+    def _send_imu(self, message) -> None:
+        """HIGHRES_IMU as :attr:`imu_delivery` says: each twice, or held back to follow the
+        next (a swapped pair), or in order."""
+        if self.imu_delivery == "reorder" and self._held_imu is None:
+            self._held_imu = message
+            return
+        self.link.send(message)
+        if self.imu_delivery == "repeat":
+            self.link.send(message)
+        if self._held_imu is not None:
+            self.link.send(self._held_imu)
+            self._held_imu = None
 
     def _send_message_interval(self, message_id: int) -> None:
         interval = self._intervals.get(message_id)

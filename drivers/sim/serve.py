@@ -21,8 +21,9 @@ from typing import Protocol
 import numpy as np
 
 from drivers.clock import MonotonicClock, SimClock
+from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
-from drivers.sim.faults import CuttableLink, FaultSchedule
+from drivers.sim.faults import PACKET_LOSS, FaultSchedule, FaultyLink
 from drivers.sim.imu import ImuModel, ImuOptions
 from drivers.sim.options import CLOCK_MODES
 from drivers.sim.mock_px4 import MockPx4, Px4Options
@@ -65,7 +66,8 @@ class SimulatedVehicle:
     """The vehicle, its IMU and the mock PX4 on one link, stepped together.
 
     ``faults`` injects the link and flight-controller faults of :mod:`drivers.sim.faults`
-    (link cut, IMU gap, a forced disarm). The vehicle stands at ``start`` (x, y, z in the
+    (link cut or lossy, IMU gap, repeated or reordered, TIMESYNC silent, a forced disarm, a
+    reboot). The vehicle stands at ``start`` (x, y, z in the
     world frame; default :func:`start_position`) heading ``start_yaw``, radians.
     """
 
@@ -76,13 +78,14 @@ class SimulatedVehicle:
         self.imu_options = imu_options or ImuOptions().for_profile("ideal")
         self.dt = 1.0 / self.imu_options.rate_hz
         clearance = getattr(world, "obstacle_clearance", None) if world is not None else None
-        imu_seed, estimator_seed = np.random.SeedSequence(seed).spawn(2)
+        imu_seed, estimator_seed, link_seed = np.random.SeedSequence(seed).spawn(3)
         self.vehicle = Quadrotor(vehicle_options or VehicleOptions(), clearance,
                                  position=start_position(world) if start is None else start,
                                  yaw=start_yaw)
         self.imu = ImuModel(self.imu_options, np.random.default_rng(imu_seed))
-        self.link = CuttableLink(link)
+        self.link = FaultyLink(link, np.random.default_rng(link_seed))
         self.faults = faults or FaultSchedule()
+        self._rebooted = False
         self.px4 = MockPx4(self.link, self.vehicle, px4_options or Px4Options(),
                            rng=np.random.default_rng(estimator_seed),
                            physics_rate_hz=self.imu_options.rate_hz)
@@ -101,16 +104,25 @@ class SimulatedVehicle:
         self.px4.update(self.vehicle.state.time, gyro, accel)
 
     def _apply_faults(self) -> None:
-        state = self.vehicle.state
-        self.faults.update(state.time, state.velocity)
-        self.link.cut = self.faults.active("link_cut", state.time)
-        if self.faults.active("disarm", state.time) and self.vehicle.armed:
-            self.px4.force_disarm("a ground station's forced disarm (fault)")
-        imu = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
-        if self.faults.active("imu_gap", state.time):
-            self.px4.suppressed_streams.add(imu)
-        else:
-            self.px4.suppressed_streams.discard(imu)
+        state, faults, px4 = self.vehicle.state, self.faults, self.px4
+        faults.update(state.time, state.position, state.velocity,
+                      landing=px4.mode == px4_protocol.AUTO_LAND)
+        active = lambda kind: faults.active(kind, state.time)  # noqa: E731
+        self.link.cut = active("link_cut")
+        self.link.loss = PACKET_LOSS if active("packet_loss") else 0.0
+        if active("disarm") and self.vehicle.armed:
+            px4.force_disarm("a ground station's forced disarm (fault)")
+        if active("px4_reboot") and not self._rebooted:
+            self._rebooted = True
+            px4.reboot()
+        px4.imu_delivery = "repeat" if active("imu_repeat") else \
+            "reorder" if active("imu_reorder") else None
+        for stream, kind in ((mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, "imu_gap"),
+                             (mavlink.MAVLINK_MSG_ID_TIMESYNC, "timesync_stop")):
+            if active(kind):
+                px4.suppressed_streams.add(stream)
+            else:
+                px4.suppressed_streams.discard(stream)
 
 
 async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realtime",
