@@ -738,3 +738,24 @@ def test_garbage_and_other_systems_are_ignored():
         assert autopilot.connected and autopilot.link_losses == 0
         assert autopilot.take_imu()
     fly(body)
+
+
+def test_a_statustext_in_chunks_is_joined_and_an_endless_one_is_cut():
+    """A text in MAVLink 2 chunks (``id``, ``chunk_seq``) is one text once its short last
+    chunk comes; a sender that never ends one (full chunks of one id, again and again) gets
+    texts cut at PX4's longest, 3 chunks, instead of a list of chunks that only grows (seen
+    in the fuzzing review)."""
+    async def body(flight):
+        autopilot = flight.autopilot
+        assert await flight.connected()
+        px4 = flight.sim.px4.link.mav
+        warning = mavlink.MAV_SEVERITY_WARNING
+        for seq in range(30):  # more would overflow the socket's receive buffer
+            px4.statustext_send(warning, b"x" * 50, 9, seq)
+        for seq, chunk in enumerate((b"a" * 50, b"b" * 50, b"end")):
+            px4.statustext_send(warning, chunk, 7, seq)
+        await flight.clock.sleep(0.5)
+        texts = [status.text for status in autopilot.statustexts]
+        assert texts[-1] == "a" * 50 + "b" * 50 + "end"
+        assert texts[:-1] == ["x" * 150 + " [cut]"] * 10
+    fly(body)

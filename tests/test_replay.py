@@ -101,3 +101,25 @@ def test_replay_reports_a_bad_override_as_a_config_error(recording, capsys):
     assert cli.main(["replay", recording["recording"]["path"], "--set",
                      "rescale.method=magic"]) == 2
     assert "rescale.method" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("mission, words", [
+    ({"world": "mars", "faults": []}, "unknown world 'mars'"),
+    ({"world": "dome", "seed": "x", "faults": []}, "seed must be a non-negative integer"),
+    ({"world": "dome", "pair": 99, "faults": []}, "dome has start/goal pairs 0..5"),
+    ({"world": "dome", "faults": [{"kind": "gremlins"}]}, "unknown fault 'gremlins'"),
+    ({"world": "dome", "faults": [{"when": 1}]}, "not a simulated mission"),
+    ({"world": "dome", "planet": "mars"}, "not a simulated mission"),
+    ({"world": "dome", "faults": 3}, "not a simulated mission"),
+])
+def test_a_top_view_of_a_damaged_mission_record_says_what_is_wrong(recording, mission, words,
+                                                                   tmp_path):
+    """The recording's mission record drives the top view's world and route: one that is
+    not a mission (the fuzzing review's finding) is a ReplayError naming it, never a
+    TypeError from the simulator's constructors."""
+    from companion.recording.replay import ReplayError, plot
+
+    with pytest.raises(ReplayError, match=words):
+        plot(recording["recording"]["path"], mission, load_config(None),
+             tmp_path / "top.png")
+    assert not (tmp_path / "top.png").exists()

@@ -526,8 +526,7 @@ def plot(path: Path, mission: dict | None, config, out: Path) -> None:
     top_view`); only a simulated flight has a world to draw it on."""
     from companion.tools.eval.provenance import code_revision
     from companion.tools.plot import flight_caption, top_view
-    from drivers.sim.faults import Fault
-    from drivers.sim.host import SimMission, mission_waypoints
+    from drivers.sim.host import SimError, mission_waypoints
     from drivers.sim.world import build_world
 
     if mission is None:
@@ -536,17 +535,35 @@ def plot(path: Path, mission: dict | None, config, out: Path) -> None:
     T_L_W, times, positions_W = _estimated_path(path)
     if T_L_W is None or not positions_W:
         raise ReplayError(f"{path} has no VINS path tied to PX4's local frame to draw")
-    sim_mission = SimMission(**{**mission, "faults": tuple(
-        Fault(**fault) for fault in mission["faults"])})
-    world = build_world(sim_mission.world, sim_mission.seed, config.sim.profile)
-    start, waypoints, _ = mission_waypoints(build_world(sim_mission.world, sim_mission.seed),
-                                            sim_mission, config.flight.takeoff_altitude)
+    sim_mission = simulated_mission(mission)
+    try:
+        world = build_world(sim_mission.world, sim_mission.seed, config.sim.profile)
+        start, waypoints, _ = mission_waypoints(build_world(sim_mission.world,
+                                                            sim_mission.seed),
+                                                sim_mission, config.flight.takeoff_altitude)
+    except (SimError, ValueError, TypeError) as error:
+        raise ReplayError(f"the recorded mission cannot be drawn: {error}") from None
     positions_L = np.asarray(positions_W) @ T_L_W[:3, :3].T + T_L_W[:3, 3]
     top_view(world, positions_L, times=times, start=start, goal=waypoints[-1],
              waypoints=waypoints[:-1], out=out,
              title=f"{world.name} pair {sim_mission.pair}: recorded VINS path",
              caption=f"Recording {Path(path).name}, flown: {flight_caption(sim_mission)}; "
                      f"drawn by code revision {code_revision()}.")
+
+
+def simulated_mission(mission: dict):
+    """The recording's ``mission`` record (a ``SimMission`` as a dict, its faults as dicts) as
+    the :class:`~drivers.sim.host.SimMission` it was; ReplayError naming what is wrong with
+    it (a damaged or foreign file must not raise anything else)."""
+    from drivers.sim.faults import Fault
+    from drivers.sim.host import SimMission
+
+    try:
+        faults = tuple(Fault(**fault) for fault in mission.get("faults", ()))
+        return SimMission(**{**mission, "faults": faults})
+    except (TypeError, ValueError, AttributeError) as error:
+        raise ReplayError(f"the recording's mission record is not a simulated mission: "
+                          f"{error}") from None
 
 
 def _estimated_path(path: Path) -> tuple[np.ndarray | None, list, list]:

@@ -74,6 +74,9 @@ TIMESYNC_PENDING = 16
 DEAF_POLL_GAP_S = 0.1
 #: STATUSTEXT chunk length: a shorter chunk ends a multi-chunk text (MAVLink 2).
 STATUSTEXT_CHUNK = 50
+#: The most chunks one text is kept for: PX4's texts are at most 126 characters, 3 chunks
+#: (msg/MavlinkLog.msg, ``char[127] text``). A longer one is cut there, marked, not held.
+STATUSTEXT_MAX_CHUNKS = 3
 #: Seconds between two tries to reopen a device that went away (a USB adapter unplugged: it
 #: comes back under its name when plugged in again).
 REOPEN_INTERVAL_S = 1.0
@@ -731,6 +734,8 @@ class Autopilot:
             return text
         chunks = self._chunks.setdefault(chunk_id, [])
         chunks.append(text)
+        if len(chunks) >= STATUSTEXT_MAX_CHUNKS and len(text) >= STATUSTEXT_CHUNK:
+            return "".join(self._chunks.pop(chunk_id)) + " [cut]"
         if len(text) >= STATUSTEXT_CHUNK:
             if len(self._chunks) > 4:  # abandoned texts: keep the newest only
                 self._chunks = {chunk_id: chunks}
