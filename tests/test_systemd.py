@@ -12,6 +12,7 @@ import pytest
 SYSTEMD = Path(__file__).resolve().parent.parent / "systemd"
 UNIT = SYSTEMD / "companion.service"
 RULES = SYSTEMD / "99-companion.rules"
+DEVICE_ALLOWLIST = SYSTEMD / "device-allowlist.conf"
 
 
 def parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
@@ -160,6 +161,37 @@ def test_systemd_analyze_security_scores_the_unit_as_the_unit_says(tmp_path):
     score = re.search(r"Overall exposure level for \S+: (\d+\.\d) (\w+)", result.stdout)
     assert score, result.stdout + result.stderr
     assert (score[1], score[2]) == (stated[1], "OK")
+
+
+def test_the_opt_in_device_allowlist_opens_the_serial_ports_and_cameras_and_nothing_by_default():
+    """The drop-in closes every device but those the flight needs; the serial ports and the
+    cameras the udev rules name must be among them, read-write, or the link or the camera
+    vanishes the day an operator installs it."""
+    service = parse_unit(DEVICE_ALLOWLIST.read_text(encoding="utf-8"))["Service"]
+    assert service["DevicePolicy"] == ["closed"]
+    allowed = dict(entry.split() for entry in service["DeviceAllow"])
+    for group in ("char-ttyTHS", "char-ttyACM", "char-ttyUSB", "char-video4linux",
+                  "char-usb_device"):
+        assert allowed.get(group) == "rw", group
+    assert all(set(mode) <= set("rw") for mode in allowed.values())  # no mknod
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None,
+                    reason="systemd-analyze is not installed here")
+def test_the_unit_with_the_device_allowlist_installed_verifies(tmp_path):
+    installed = tmp_path / "companion.service"
+    installed.write_text(re.sub(r"^ExecStart=\S+", "ExecStart=/bin/true",
+                                UNIT.read_text(encoding="utf-8"), flags=re.MULTILINE),
+                         encoding="utf-8")
+    (tmp_path / "companion.service.d").mkdir()
+    shutil.copy(DEVICE_ALLOWLIST, tmp_path / "companion.service.d" / DEVICE_ALLOWLIST.name)
+    verify = subprocess.run(["systemd-analyze", "verify", str(installed)],
+                            capture_output=True, text=True, timeout=60)
+    assert verify.returncode == 0 and not (verify.stdout + verify.stderr).strip(), \
+        verify.stdout + verify.stderr
+    security = subprocess.run(["systemd-analyze", "security", "--offline=true", str(installed)],
+                              capture_output=True, text=True, timeout=60)
+    assert "Service has a device ACL" in security.stdout  # the drop-in was read
 
 
 def test_something_writable_under_protect_system_strict(unit):
