@@ -30,7 +30,8 @@ def test_fault_parse_reads_kind_start_and_duration():
     assert Fault.parse("link_cut@2.5") == Fault("link_cut", 2.5, math.inf)
     assert Fault.parse("camera_freeze@1+0.5") == Fault("camera_freeze", 1.0, 0.5)
     assert Fault.parse("px4_reboot@landing:0.5") == Fault("px4_reboot", 0.5, math.inf, "landing")
-    for fault in (Fault("imu_gap", 2.0, 0.5, "takeoff"), Fault("link_cut", 0.0)):
+    for fault in (Fault("imu_gap", 2.0, 0.5, "takeoff"), Fault("link_cut", 0.0),
+                  Fault("disarm", 0.1 + 0.2, 1 / 3, "obstacle")):
         assert Fault.parse(str(fault)) == fault
 
 

@@ -116,8 +116,8 @@ class Fault:
 
     def __str__(self) -> str:
         """The text :meth:`parse` reads back."""
-        duration = "" if math.isinf(self.duration_s) else f"+{self.duration_s:g}"
-        return f"{self.kind}@{self.moment}:{self.after_s:g}{duration}"
+        duration = "" if math.isinf(self.duration_s) else f"+{self.duration_s!r}"
+        return f"{self.kind}@{self.moment}:{self.after_s!r}{duration}"
 
 
 class FaultSchedule:
