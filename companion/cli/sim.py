@@ -261,7 +261,8 @@ def _sim_soak(args: argparse.Namespace, config: Config) -> int:
     def report(record: dict) -> None:
         print(f"mission {record['mission']}: {record['final_state']}, "
               f"{'goal reached' if record['reached_goal'] else 'goal not reached'}, "
-              f"{record['rss_mb']:.0f} MB, {record['threads']} threads, "
+              f"{record['rss_mb']:.0f} MB ({record['python_blocks']} Python blocks), "
+              f"{record['threads']} threads, "
               f"{record['open_files']} files, loop lag p99 {record['loop_lag_ms_p99']:.1f} ms",
               file=sys.stderr, flush=True)
 

@@ -27,6 +27,7 @@ by about 110 MB over its first three missions and then held, docs/reliability.md
 from __future__ import annotations
 
 import os
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -136,7 +137,10 @@ def mission_record(index: int, summary: dict, after: ProcessSample) -> dict:
             "watchdog_setpoints": summary["watchdog_setpoints"],
             "loop_lag_ms_p99": round(summary["loop_lag_ms_p99"], 2),
             "t_s": after.t_s, "rss_mb": round(after.rss_mb, 1), "threads": after.threads,
-            "open_files": after.open_files}
+            "open_files": after.open_files,
+            # memory blocks the interpreter holds: a leak of Python objects (numpy arrays
+            # included) grows it, the C allocator's fragmentation, which moves RSS, does not
+            "python_blocks": sys.getallocatedblocks()}
 
 
 def verdict(missions: list[dict], options: SoakOptions) -> list[str]:
