@@ -121,3 +121,12 @@ def test_the_quick_matrix_ends_every_fault_in_its_documented_safe_behaviour(caps
     assert rows["px4_reboot"]["failsafes"][-1] == "PX4 disarmed the vehicle in the air"
     # the full disk stopped the recording, not the flight
     assert rows["disk_full"]["recording_error"].startswith("File too large")
+
+
+def test_a_failed_rows_command_flies_that_row_again():
+    fault = Fault("imu_gap", 0.5, 2.0, "obstacle")
+    command = fault_matrix.rerun_command({"injected": str(fault)}, seed=3).split()
+    assert command[:3] == ["companion", "sim", "fly"]
+    assert command[command.index("--world") + 1] == fault_matrix.MATRIX_WORLD
+    assert command[command.index("--seed") + 1] == "3"
+    assert Fault.parse(command[command.index("--fault") + 1]) == fault

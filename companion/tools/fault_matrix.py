@@ -35,6 +35,7 @@ from typing import Callable, Iterable
 from drivers.sim.faults import FAULT_KINDS, MOMENTS, Fault
 
 #: The matrix's flight: from the dome's pair 0 start (-23, -15) to 12 m east, at 1.5 m.
+MATRIX_WORLD = "dome"
 MATRIX_GOAL = (-11.0, -15.0, 1.5)
 #: Seconds after its moment that a fault starts.
 FAULT_DELAY_S = 0.5
@@ -114,13 +115,15 @@ def fly_row(shared: tuple, fault: Fault) -> dict:
     from companion.launch import simulated
 
     config, seed = shared
-    mission = simulated.SimMission(world="dome", seed=seed, goal=MATRIX_GOAL, faults=(fault,))
+    mission = simulated.SimMission(world=MATRIX_WORLD, seed=seed, goal=MATRIX_GOAL,
+                                   faults=(fault,))
     row = {"fault": fault.kind, "moment": fault.moment, "injected": str(fault),
            "allowed": sorted(allowed(fault.kind, fault.moment))}
+    recorded = fault.kind == "disk_full"
     try:
         with tempfile.TemporaryDirectory(prefix="companion-faults-") as scratch:
-            summary = simulated.run(*_recorded_if_needed(config, fault, scratch), mission,
-                                    record=fault.kind == "disk_full")
+            summary = simulated.run(_recording_into(config, scratch) if recorded else config,
+                                    mission, record=recorded)
     except Exception:  # noqa: BLE001 - the row records it: the matrix is there to find these
         return {**row, "outcome": "error", "passed": False, "error": traceback.format_exc()}
     result = outcome(summary, fault)
@@ -137,13 +140,11 @@ def fly_row(shared: tuple, fault: Fault) -> dict:
             "recording_error": (summary.get("recording") or {}).get("error")}
 
 
-def _recorded_if_needed(config, fault: Fault, scratch: str) -> tuple:
-    """``(config,)``, recording into ``scratch`` for the fault that needs a recorded flight
+def _recording_into(config, directory: str):
+    """``config`` recording into ``directory``: for the one fault that needs a recorded flight
     (``disk_full``); the other rows fly unrecorded, as the recorder costs CPU."""
-    if fault.kind != "disk_full":
-        return (config,)
-    return (dataclasses.replace(config, recorder=dataclasses.replace(config.recorder,
-                                                                     directory=scratch)),)
+    return dataclasses.replace(config, recorder=dataclasses.replace(config.recorder,
+                                                                    directory=directory))
 
 
 def run_matrix(config, faults: list[Fault], *, seed: int = 0, executor,
@@ -155,7 +156,7 @@ def run_matrix(config, faults: list[Fault], *, seed: int = 0, executor,
         rows[index] = row
         if progress is not None:
             progress(row)
-    return {"goal": list(MATRIX_GOAL), "world": "dome", "seed": seed, "rows": rows,
+    return {"goal": list(MATRIX_GOAL), "world": MATRIX_WORLD, "seed": seed, "rows": rows,
             "passed": all(row["passed"] for row in rows)}
 
 
@@ -181,4 +182,5 @@ def markdown_table(result: dict) -> str:
 def rerun_command(row: dict, seed: int) -> str:
     """The ``sim fly`` command that flies ``row`` again, to look at it."""
     goal = ",".join(f"{v:g}" for v in MATRIX_GOAL)
-    return f"companion sim fly --seed {seed} --goal={goal} --fault {row['injected']}"
+    return (f"companion sim fly --world {MATRIX_WORLD} --seed {seed} --goal={goal} "
+            f"--fault {row['injected']}")

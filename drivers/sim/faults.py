@@ -126,22 +126,22 @@ class FaultSchedule:
     :meth:`update` is called every physics tick with the time, the true position and velocity
     and whether PX4 is landing; ``active`` then answers for any kind. ``clearance`` is the
     world's distance to its obstacles for an (N, 3) array of points (the ``obstacle`` moment;
-    without it that moment never comes).
+    without it that moment never comes). Without faults nothing is tracked, and the world is
+    queried only while a fault waits for the ``obstacle`` moment.
     """
 
     def __init__(self, faults: tuple[Fault, ...] = (), clearance=None):
         self.faults = tuple(faults)
-        self._clearance = clearance
+        self._clearance = clearance if any(f.moment == "obstacle" for f in self.faults) \
+            else None
         self._ground_z: float | None = None
         self._next_clearance_check = -math.inf
         #: When each moment came (simulated seconds), once it has.
         self.moment_since: dict[str, float] = {}
 
-    @property
-    def cruise_since(self) -> float | None:
-        return self.moment_since.get("cruise")
-
     def update(self, t: float, position, velocity, landing: bool = False) -> None:
+        if not self.faults:
+            return
         if self._ground_z is None:
             self._ground_z = float(position[2])
         reached = self.moment_since.setdefault

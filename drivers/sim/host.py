@@ -239,7 +239,7 @@ async def stall_when_due(faults: FaultSchedule, sim) -> None:
     time.sleep(min(stall.duration_s, MAX_STALL_S))
 
 
-async def fill_disk_when_due(faults: FaultSchedule, sim, recording_path) -> None:
+async def fill_disk_when_due(faults: FaultSchedule, sim, recording_path) -> tuple | None:
     """The ``disk_full`` fault: from its start, no file of this process may grow past the size
     the recording has then (``RLIMIT_FSIZE``; SIGXFSZ ignored, so a write fails with EFBIG
     rather than killing the process). Returns the limits to restore (:func:`empty_disk`),
