@@ -13,7 +13,7 @@ import threading
 import pytest
 
 from companion.cli import main
-from companion.tools.soak import SoakOptions, rss_slope_mb_per_h, sample_process, verdict
+from companion.tools.soak import Sampler, SoakOptions, rss_slope_mb_per_h, sample_process, verdict
 
 #: A short dome mission: 5 m along the first pair's first leg, clear of the trunks by 2.2 m.
 SHORT_GOAL = "-19.14,-11.82,1.5"
@@ -99,6 +99,17 @@ def test_the_sampler_sees_a_new_thread_and_a_new_file(tmp_path):
         release.set()
         worker.join()
         handle.close()
+
+
+def test_the_sampler_thread_never_counts_its_own_reads_as_the_process_files():
+    # the soak's sampler reads /proc/self every few seconds while the main thread samples at
+    # each mission's end; without one sample at a time, about one main-thread sample in ten
+    # here counted the sampler's open status file as a leaked descriptor
+    steady = sample_process(0.0).open_files
+    with Sampler(0.0, period_s=1e-4) as sampler:
+        counts = {sample_process(0.0).open_files for _ in range(2000)}
+    assert len(sampler.samples) > 100
+    assert counts == {steady}
 
 
 @pytest.mark.parametrize("options", [{"minutes": 0.0}, {"sample_period_s": -1.0},

@@ -71,16 +71,25 @@ class ProcessSample:
     open_files: int
 
 
+#: Held while a sample reads ``/proc/self``: a sample taken in one thread while another
+#: thread's sample had ``status`` or the ``fd`` directory open counted that descriptor as the
+#: process's (the 30-minute soak's "extra open file" after one mission, docs/reliability.md).
+_SAMPLING = threading.Lock()
+
+
 def sample_process(t0: float) -> ProcessSample:
     """Read this process's resident memory and threads from ``/proc/self/status`` and count
-    ``/proc/self/fd``; Linux, as the vehicle."""
+    ``/proc/self/fd``; Linux, as the vehicle. One sample at a time (:data:`_SAMPLING`), so
+    the count holds the descriptor of this sample's own listing and nothing of another's."""
     fields = {}
-    with open("/proc/self/status", encoding="ascii") as status:
-        for line in status:
-            key, _, value = line.partition(":")
-            fields[key] = value.split()
+    with _SAMPLING:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                key, _, value = line.partition(":")
+                fields[key] = value.split()
+        open_files = len(os.listdir("/proc/self/fd"))
     return ProcessSample(round(time.monotonic() - t0, 3), int(fields["VmRSS"][0]) / 1024.0,
-                         int(fields["Threads"][0]), len(os.listdir("/proc/self/fd")))
+                         int(fields["Threads"][0]), open_files)
 
 
 class Sampler:
