@@ -21,7 +21,10 @@ Initialisation is static (:mod:`autonomy.vins.static_init`): the first frame aft
 window becomes keyframe 0 with gravity-aligned attitude, zero position and velocity, and the
 window's mean gyro as bias; the take-off's acceleration then makes the scale metric. When the
 estimate is LOST, the estimator keeps propagating the IMU and, as soon as tracking is back,
-re-initialises in flight from the propagated state with a wide velocity prior (a reset).
+re-initialises in flight from the propagated state with a wide velocity prior (a reset). When
+it was LOST because the IMU fell silent, it gives no odometry until it re-initialises from
+what the camera and the IMU observe once the IMU is back: relocalised on the map, propagated
+across a short gap, or standing still (:mod:`autonomy.vins.imu_gap`).
 
 Frame times: a frame's stamp ``t`` may be late by the camera-IMU time offset ``td`` (an
 unsynchronised camera). Everything above runs at the frame's exposure time on the IMU's clock,
@@ -38,12 +41,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from autonomy.geometry import PinholeCamera, distort_points, invert_pose, make_pose
+from autonomy.geometry import PinholeCamera, distort_points, invert_pose, make_pose, yaw_of
 from autonomy.messages import ImuSample, Odometry, SparseMap
 from autonomy.vins.backend import BackendError, KeyframeState, PriorSigmas, SlidingWindowSmoother
 from autonomy.vins.frontend import FeatureTracker, FrontendOptions, Tracks
 from autonomy.vins.health import Health, HealthInputs, HealthState, assess
 from autonomy.vins.imu_buffer import ImuBuffer, NavState, Propagator
+from autonomy.vins.imu_gap import ImuGap, Restart
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import NotStill, StaticInit, StaticInitOptions, static_initialise
@@ -132,6 +136,7 @@ class Vins:
                                                       self.options)
                                   if self.options.estimate_time_offset else None)
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self._gap: ImuGap | None = None
 
     # ------------------------------------------------------------------ inputs
 
@@ -208,21 +213,25 @@ class Vins:
         """:meth:`add_frame` at the frame's exposure time ``t`` on the IMU's clock."""
         if self.static_init is None:
             return self._try_static_init(t, tracks)
-        gap = self._imu_gap(t)
-        if gap:
-            return self._lost(t, tracks, gap)
+        silent = self._imu_gap(t)
+        if silent:
+            self._observe_gap(t, tracks)
+            return self._lost(t, tracks, silent)
         self._update_starvation(t, tracks)
         if self._lost_reason:
             if len(tracks) < self.options.min_tracked_ok:
                 return self._lost(t, tracks, self._lost_reason)
-            self._reinitialise(t, tracks)
+            waiting = self._reinitialise(t, tracks)
+            if waiting:
+                return self._lost(t, tracks, waiting)
         return self._track_frame(t, tracks)
 
     # ------------------------------------------------------------------ outputs
 
     def odometry(self) -> Odometry | None:
-        """The body state at the newest IMU sample (None until initialised)."""
-        if self._anchor is None or self._imu.last_time is None:
+        """The body state at the newest IMU sample (None until initialised, and from an IMU
+        gap until the re-initialisation after it: nothing carries the state across)."""
+        if self._anchor is None or self._imu.last_time is None or self._gap is not None:
             return None
         t = max(self._imu.last_time, self._anchor.state.t)
         state = self._propagate_to(t)
@@ -264,18 +273,72 @@ class Vins:
         self._keyframe_tracks = tracks
         self._set_anchor_from_backend()
 
-    def _reinitialise(self, t: float, tracks: Tracks) -> None:
-        """Start a new smoother at the IMU-propagated state (in flight: wide velocity prior)."""
-        state = self._propagate_to(t)
+    def _reinitialise(self, t: float, tracks: Tracks) -> str:
+        """Start a new smoother in flight at the IMU-propagated state with a wide velocity
+        prior, or after a long IMU gap where :class:`~autonomy.vins.imu_gap.ImuGap` says;
+        returns why it waits instead ("" when it started)."""
+        o = self.options
+        restart = self._restart_after_gap(t, tracks) if self._gap is not None else None
+        if isinstance(restart, str):
+            return restart
+        if restart is None:
+            state, sigmas = self._propagate_to(t), self._start_sigmas(o.reinit_velocity_sigma)
+        else:
+            tilt = restart.tilt_sigma
+            state = restart.state
+            sigmas = PriorSigmas.with_bias_priors(o, (tilt, tilt, o.gauge_yaw_sigma),
+                                                  o.gauge_position_sigma, restart.velocity_sigma)
         a = self._anchor
         keyframe = KeyframeState(self.backend.latest.index + 1, t,
                                  make_pose(state.R_W_B, state.position), state.velocity,
                                  a.bias_g, a.bias_a)
-        self._start(keyframe, self._start_sigmas(self.options.reinit_velocity_sigma), tracks)
+        self._start(keyframe, sigmas, tracks)
         self.reinitialisations += 1
+        self._gap = None
         self._last_reset_t = t
         self._lost_reason = ""
         self._starved_since = None
+        return ""
+
+    def _observe_gap(self, t: float, tracks: Tracks) -> None:
+        """A frame while the IMU is silent or just back: to the gap's observations."""
+        if self._gap is None:
+            a = self._anchor
+            self._gap = ImuGap(self._imu.last_time, a.state.position, yaw_of(a.state.R_W_B),
+                               a.bias_a, self.options, math.sqrt(self.camera.fx * self.camera.fy))
+        landmarks = self.backend.landmarks
+        self._gap.observe(t, tracks, landmarks.ids, landmarks.points_W, self._T_C_B)
+
+    def _restart_after_gap(self, t: float, tracks: Tracks) -> Restart | str | None:
+        """Where to restart after an IMU gap (:mod:`autonomy.vins.imu_gap`): None to
+        propagate across it, when the map confirms the propagation or, without the map, when
+        the gap lasted up to ``max_propagated_gap_s``; relocalised on the map; standing
+        still; or why it waits."""
+        o, gap = self.options, self._gap
+        self._observe_gap(t, tracks)
+        relocalised = gap.relocalised(t)
+        if relocalised is not None:
+            return None if self._propagation_agrees(t, relocalised) else relocalised
+        imu_t, gyro, accel = self._imu.window(math.nextafter(gap.last_sample_t, math.inf), t)
+        if len(imu_t) == 0:  # the samples after the gap are all later than this frame
+            return "IMU back after a gap, not yet up to this frame"
+        if imu_t[0] - gap.last_sample_t <= o.max_propagated_gap_s:
+            return None
+        # no propagation across this gap is used now: the samples held while it waits are
+        # bounded
+        self._imu.discard_before(t - o.reinit_imu_window_s)
+        return gap.standing_still(t, imu_t, gyro - self._anchor.bias_g, accel)
+
+    def _propagation_agrees(self, t: float, relocalised: Restart) -> bool:
+        """The IMU's propagation to ``t`` (while its samples are held) is within
+        ``max_propagation_disagreement_m`` of the relocalised position: the samples held
+        across the gap did not mislead it, and it is the more precise of the two."""
+        first = self._imu.first_time
+        if first is None or first > self._anchor.state.t:
+            return False
+        propagated = self._propagate_to(t)
+        return bool(np.linalg.norm(propagated.position - relocalised.state.position)
+                    <= self.options.max_propagation_disagreement_m)
 
     def _track_frame(self, t: float, tracks: Tracks) -> FrameUpdate:
         keyframe = self.backend.latest.t < t and self._is_keyframe(t, tracks)
@@ -347,10 +410,11 @@ class Vins:
                                  f"{t - self._starved_since:.2f} s")
 
     def _lost(self, t: float, tracks: Tracks, reason: str) -> FrameUpdate:
-        """LOST: keep the state propagated (when the IMU reaches ``t``), no map."""
+        """LOST: keep the state propagated (when the IMU reaches ``t`` and no gap lies
+        between), no map."""
         self._lost_reason = reason
         pose = velocity = None
-        if not self._imu_gap(t):
+        if self._gap is None and not self._imu_gap(t):
             state = self._propagate_to(t)
             self._anchor = _Anchor(state, self._anchor.bias_g, self._anchor.bias_a)
             self._imu.discard_before(t)

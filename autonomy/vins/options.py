@@ -66,6 +66,35 @@ class VinsOptions:
                                            "initialisation assumes zero), m/s^2")
     reinit_velocity_sigma: float = option(0.5, gt=0.0, doc="velocity after an in-flight "
                                           "re-initialisation from IMU propagation, m/s")
+    max_propagated_gap_s: float = option(0.5, ge=0.0, doc="an IMU gap up to this long is "
+                                         "bridged by holding the last sample when the VINS "
+                                         "re-initialises; after a longer one it re-initialises "
+                                         "from what it observes (autonomy/vins/imu_gap.py), "
+                                         "seconds")
+    max_propagation_disagreement_m: float = option(0.1, gt=0.0, doc="a propagation across "
+                                                   "a short IMU gap farther than this from "
+                                                   "the pose relocalised on the map is not "
+                                                   "restarted from, metres")
+    reinit_imu_window_s: float = option(0.2, gt=0.0, doc="IMU samples after a longer gap "
+                                        "before the VINS re-initialises, seconds")
+    reinit_tilt_sigma_deg: float = option(5.0, gt=0.0, le=30.0, doc="roll/pitch after an "
+                                          "IMU gap from the mean specific force, degrees (a "
+                                          "vehicle accelerating at 0.9 m/s^2 tilts it by 5)")
+    relocalise_min_landmarks: int = option(6, ge=4, doc="landmarks a frame must track, "
+                                           "agreeing within max_reprojection_px, to be "
+                                           "relocalised on the map after an IMU gap")
+    relocalise_window_s: float = option(0.5, gt=0.0, doc="the relocalised poses whose "
+                                        "velocity the re-initialisation after an IMU gap "
+                                        "starts with, the last this many seconds")
+    relocalise_min_poses: int = option(3, ge=2, doc="relocalised poses within "
+                                       "relocalise_window_s needed for that velocity")
+    still_flow_px: float = option(1.0, gt=0.0, doc="standing still after an IMU gap: the "
+                                  "features' median motion over reinit_imu_window_s at most "
+                                  "this, pixels")
+    still_rate: float = option(0.05, gt=0.0, doc="standing still after an IMU gap: the mean "
+                               "gyro rate at most this, rad/s")
+    still_velocity_sigma: float = option(0.1, gt=0.0, doc="velocity when re-initialised "
+                                         "standing still after an IMU gap, m/s")
     # --- landmark gate
     min_observations: int = option(3, ge=2, le=100, doc="keyframes a track must be seen in "
                                    "before it becomes a landmark")
