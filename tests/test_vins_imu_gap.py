@@ -40,7 +40,8 @@ def seen_from(T_W_B: np.ndarray, ids: np.ndarray, points_W: np.ndarray, *, frame
 
 
 def body_pose(x: float, yaw_deg: float = 10.0) -> np.ndarray:
-    return make_pose(rot_z(math.radians(yaw_deg)) @ so3_exp(np.array([0.05, 0.0, 0.0])), np.array([x, 0.3, 1.5]))
+    R_W_B = rot_z(math.radians(yaw_deg)) @ so3_exp(np.array([0.05, 0.0, 0.0]))
+    return make_pose(R_W_B, np.array([x, 0.3, 1.5]))
 
 
 def test_a_frame_tracking_the_map_is_relocalised_exactly_despite_outliers():
