@@ -62,6 +62,13 @@ def test_too_few_landmarks_tracked_or_agreeing_is_no_relocalisation(tracked, min
                                     3.0 / FOCAL_PX) is None
 
 
+def test_landmarks_all_on_one_line_are_no_relocalisation_and_no_error():
+    ids = np.arange(100, 110)
+    points = np.c_[np.linspace(4.0, 8.0, 10), np.zeros(10), np.full(10, 1.5)]
+    tracks = seen_from(body_pose(0.0, yaw_deg=20.0), ids, points)
+    assert body_pose_from_landmarks(ids, points, tracks, T_C_B, 6, 3.0 / FOCAL_PX) is None
+
+
 def test_the_velocity_is_the_least_squares_slope_of_the_positions():
     rng = np.random.default_rng(1)
     times = np.linspace(10.0, 10.5, 11)

@@ -62,14 +62,17 @@ def body_pose_from_landmarks(landmark_ids: np.ndarray, points_W: np.ndarray, tra
         return None
     world = np.ascontiguousarray(points_W[rows], dtype=np.float64)
     image = np.ascontiguousarray(tracks.normalised[cols], dtype=np.float64)
-    found, rvec, tvec, inliers = cv2.solvePnPRansac(
-        world, image, np.eye(3), None, iterationsCount=PNP_ITERATIONS,
-        reprojectionError=max_error, confidence=PNP_CONFIDENCE, flags=cv2.SOLVEPNP_AP3P)
-    if not found or inliers is None or len(inliers) < min_inliers:
+    try:
+        found, rvec, tvec, inliers = cv2.solvePnPRansac(
+            world, image, np.eye(3), None, iterationsCount=PNP_ITERATIONS,
+            reprojectionError=max_error, confidence=PNP_CONFIDENCE, flags=cv2.SOLVEPNP_AP3P)
+        if not found or inliers is None or len(inliers) < min_inliers:
+            return None
+        inliers = inliers.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(world[inliers], image[inliers], np.eye(3), None,
+                                          rvec, tvec)
+    except cv2.error:  # a degenerate point set (all on one line, say): not relocalised
         return None
-    inliers = inliers.ravel()
-    rvec, tvec = cv2.solvePnPRefineLM(world[inliers], image[inliers], np.eye(3), None, rvec,
-                                      tvec)
     T_W_B = invert_pose(make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel())) @ T_C_B
     return T_W_B if np.isfinite(T_W_B).all() else None
 
@@ -123,6 +126,7 @@ class ImuGap:
             self.poses.append((t, T_W_B))
         self.frames.append((t, tracks))
         keep_from = t - 2.0 * max(o.reinit_imu_window_s, o.relocalise_window_s)
+        self.poses = [(s, T) for s, T in self.poses if s >= keep_from]
         self.frames = [(s, f) for s, f in self.frames if s >= keep_from]
 
     def relocalised(self, t: float) -> Restart | None:
