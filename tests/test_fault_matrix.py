@@ -17,12 +17,12 @@ from companion.tools.fault_matrix import (MATRIX_FAULTS, allowed, markdown_table
 from drivers.sim.faults import MOMENTS, Fault
 
 #: What the first failsafe may name, for the faults that stop the flight: the fault itself, or
-#: what it did first (the IMU silent behind a cut link; a VINS reset during the climb, where
-#: the failsafes wait for the flight to be guarded; a stale camera's depth losing its anchors
-#: before the VINS goes blind).
+#: what it did first (the IMU silent behind a cut link; during the climb, where the failsafes
+#: wait for the flight to be guarded, a VINS reset, or after an IMU gap the VINS lost until it
+#: can restart; a stale camera's depth losing its anchors before the VINS goes blind).
 FAILSAFE_NAMES = {"camera_freeze": ("camera silent",), "camera_blackout": ("VINS",),
                   "camera_stale": ("VINS blind", "no metric depth"),
-                  "imu_gap": ("IMU silent", "VINS reset in flight"),
+                  "imu_gap": ("IMU silent", "VINS lost (IMU back after a gap"),
                   "link_cut": ("MAVLink link lost", "IMU silent", "VINS reset in flight"),
                   "network_nan": ("no metric depth",), "network_const": ("no metric depth",),
                   "packet_loss": ("MAVLink link lost", "IMU silent", "VINS")}
