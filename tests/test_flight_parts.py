@@ -8,6 +8,7 @@ import math
 import re
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,8 +16,10 @@ import pytest
 from autonomy.geometry import make_pose, rot_z, yaw_alignment
 from autonomy.vins.health import HealthState
 from companion.flight.command import odometry_quality
+from companion.flight.steps import ClimbWatch
 from companion.flight.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
+from drivers.mavlink import px4_protocol
 from drivers.sim.host import TruthDepth, TruthTrack, free_udp_port
 from drivers.mavlink.link import open_link
 from drivers.sim.faults import FaultyLink, Fault, FaultSchedule
@@ -399,3 +402,25 @@ def test_the_real_vehicles_app_runs_the_users_network_and_rescales_with_the_fram
         for worker in app.context.workers.values():
             worker.close()
         autopilot.close()
+
+
+def reported(armed: bool, mode, in_air: bool, z: float):
+    """What the autopilot driver holds from PX4's last messages."""
+    return SimpleNamespace(armed=armed, mode=mode, in_air=in_air,
+                           state=SimpleNamespace(position_L=np.array([0.0, 0.0, z])))
+
+
+def test_the_climb_is_over_only_on_what_px4_reports_after_the_arm():
+    """Until a HEARTBEAT says armed (1 Hz), the driver still holds the state from before the
+    arm: Hold, and here a position that drifted up on the ground. That is neither a finished
+    climb nor a disarm in the air (it read as both: the take-off ended at once)."""
+    watch = ClimbWatch(target_z=1.5)
+    assert not watch.over(reported(False, px4_protocol.AUTO_LOITER, True, 1.6))
+    assert not watch.over(reported(True, px4_protocol.AUTO_TAKEOFF, True, 0.8))
+    assert watch.over(reported(True, px4_protocol.AUTO_LOITER, True, 1.3))
+
+
+def test_motors_stopped_after_the_arm_end_the_climb():
+    watch = ClimbWatch(target_z=1.5)
+    assert not watch.over(reported(True, px4_protocol.AUTO_TAKEOFF, True, 0.4))
+    assert watch.over(reported(False, px4_protocol.AUTO_TAKEOFF, True, 0.4))

@@ -30,6 +30,30 @@ NAVIGATION_PHASE = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
                               FlightState.STOPPING, FlightState.FAILSAFE_STOP})
 
 
+class ClimbWatch:
+    """PX4's take-off to ``target_z`` (local frame, metres) as its messages report it."""
+
+    def __init__(self, target_z: float):
+        self.target_z = target_z
+        self.seen_armed = False
+
+    def over(self, autopilot) -> bool:
+        """The climb is over: PX4 stopped the motors during it, or it is in the air, holding
+        (AUTO_LOITER, where its take-off ends) within ``TAKEOFF_HEIGHT_MARGIN`` of the
+        target. Either only once a HEARTBEAT has said armed: until then (they come at 1 Hz)
+        the mode and landed state read are those from before the arm, Hold, and a local
+        position that drifted up on the ground read as a finished climb. A take-off 15 s
+        after the VINS initialised then ended at once, as "disarmed in the air"."""
+        self.seen_armed = self.seen_armed or autopilot.armed
+        if not self.seen_armed:
+            return False
+        state = autopilot.state
+        return not autopilot.armed or (
+            state is not None and autopilot.in_air
+            and autopilot.mode == px4_protocol.AUTO_LOITER
+            and state.position_L[2] >= self.target_z - TAKEOFF_HEIGHT_MARGIN)
+
+
 class MissionSteps:
     """The steps (module docstring); ``gate`` gives the operator's go; ``notifier`` is
     systemd's (READY=1 after preflight)."""
@@ -113,20 +137,8 @@ class MissionSteps:
         if not await autopilot.takeoff(o.takeoff_altitude):
             c.go(FlightState.LANDING, "take-off denied")
             return
-        home_z = c.channels.alignment.value.home_z
-        seen_armed = False
-
-        def up_or_stopped() -> bool:
-            nonlocal seen_armed
-            seen_armed = seen_armed or autopilot.armed
-            if seen_armed and not autopilot.armed:
-                return True  # PX4 stopped the motors during the climb
-            state = autopilot.state
-            return (state is not None and autopilot.in_air
-                    and autopilot.mode == px4_protocol.AUTO_LOITER
-                    and state.position_L[2] >= home_z + o.takeoff_altitude
-                    - TAKEOFF_HEIGHT_MARGIN)
-        if not await self._wait(up_or_stopped, o.takeoff_timeout_s):
+        watch = ClimbWatch(c.channels.alignment.value.home_z + o.takeoff_altitude)
+        if not await self._wait(lambda: watch.over(autopilot), o.takeoff_timeout_s):
             c.go(FlightState.LANDING, "take-off did not reach its height")
             return
         if not autopilot.armed:
