@@ -9,8 +9,17 @@ so one flown for several tests is flown once (:func:`flights.fly`).
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
+import time
+
 import numpy as np
 import pytest
+
+from companion.config import Config
+from companion.launch import simulated
+from drivers.mavlink.autopilot import MavlinkOptions
+from drivers.sim.mock_px4 import Px4Options
 
 from drivers.sim.faults import Fault
 from drivers.sim.world import build_world
@@ -44,6 +53,30 @@ def test_after_an_imu_gap_near_an_obstacle_the_vins_restarts_where_the_vehicle_i
     assert summary["failsafes"] == ["IMU silent"], summary["failsafes"]
     assert summary["vins_resets"] <= 4, summary["vins_resets"]
     assert summary["position_error_m"] < 0.5, summary["position_error_m"]
+
+
+def test_the_wall_clock_stepping_an_hour_back_and_forth_mid_flight_changes_nothing(monkeypatch):
+    """The companion's clock jumping (issue 27): NTP stepping the host's clock, or an Orin
+    without an RTC battery setting it late. The application times everything on the
+    monotonic clock; the wall clock is read for log records, file names and MAVLink
+    signing's first timestamp (pymavlink counts up from it). Here every 500 reads of
+    ``time.time`` in the process step it an hour forward or back (about 60 steps in the
+    flight); the signed flight is the same to the bit as with a steady clock."""
+    key = bytes(range(32)).hex()
+    config = dataclasses.replace(Config(), mavlink=MavlinkOptions(signing_key=key),
+                                 px4=Px4Options(signing_key=key))
+    mission = simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5))
+    steady = simulated.run(config, mission)
+    wall, reads = time.time, itertools.count()
+    monkeypatch.setattr(time, "time",
+                        lambda: wall() + (-3600.0 if next(reads) // 500 % 2 else 3600.0))
+    stepped = simulated.run(config, mission)
+    monkeypatch.undo()
+    assert next(reads) > 10_000  # the clock was read, and stepped, throughout the flight
+    assert steady["final_state"] == "landed" and steady["reached_goal"]
+    for field in ("final_state", "failsafes", "collisions", "mavlink_signing", "flight_time_s",
+                "position_error_m", "vins_resets", "transitions"):
+        assert stepped[field] == steady[field], field
 
 
 def test_a_camera_repeating_its_last_image_leaves_the_vins_blind_and_stops_the_flight():
