@@ -260,11 +260,11 @@ class Vins:
         self._start(state, self._start_sigmas(self.options.prior_velocity_sigma), tracks)
         return self._result(t, tracks, True, self._anchor.state)
 
-    def _start_sigmas(self, velocity_sigma: float) -> PriorSigmas:
-        """Priors of a (re)start: the options' tilt, the world's gauge fixed in yaw and
-        position."""
+    def _start_sigmas(self, velocity_sigma: float, tilt: float | None = None) -> PriorSigmas:
+        """Priors of a (re)start: ``tilt`` (radians; default the options' tilt), the world's
+        gauge fixed in yaw and position."""
         o = self.options
-        tilt = math.radians(o.prior_tilt_sigma_deg)
+        tilt = math.radians(o.prior_tilt_sigma_deg) if tilt is None else tilt
         return PriorSigmas.with_bias_priors(o, (tilt, tilt, o.gauge_yaw_sigma),
                                             o.gauge_position_sigma, velocity_sigma)
 
@@ -277,17 +277,15 @@ class Vins:
         """Start a new smoother in flight at the IMU-propagated state with a wide velocity
         prior, or after a long IMU gap where :class:`~autonomy.vins.imu_gap.ImuGap` says;
         returns why it waits instead ("" when it started)."""
-        o = self.options
         restart = self._restart_after_gap(t, tracks) if self._gap is not None else None
         if isinstance(restart, str):
             return restart
         if restart is None:
-            state, sigmas = self._propagate_to(t), self._start_sigmas(o.reinit_velocity_sigma)
+            state = self._propagate_to(t)
+            sigmas = self._start_sigmas(self.options.reinit_velocity_sigma)
         else:
-            tilt = restart.tilt_sigma
             state = restart.state
-            sigmas = PriorSigmas.with_bias_priors(o, (tilt, tilt, o.gauge_yaw_sigma),
-                                                  o.gauge_position_sigma, restart.velocity_sigma)
+            sigmas = self._start_sigmas(restart.velocity_sigma, restart.tilt_sigma)
         a = self._anchor
         keyframe = KeyframeState(self.backend.latest.index + 1, t,
                                  make_pose(state.R_W_B, state.position), state.velocity,
