@@ -21,7 +21,7 @@ from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot as RealAutopilot
 from drivers.mavlink.autopilot import MavlinkOptions
 from drivers.mavlink.link import mavlink, open_link
-from drivers.sim.host import free_udp_port
+from drivers.sim.host import SimMission, free_udp_port
 from drivers.sim.mock_px4 import Px4Options
 
 WAIT_WALL_S = 4.0
@@ -65,6 +65,29 @@ def test_a_simulated_vehicle_waits_disarmed_for_companion_go_then_flies(tmp_path
     assert summary["mavlink_signing"] == {"on": True, "unsigned": 0, "bad_signature": 0}
     assert "MAVLink signing   on: 0 unsigned and 0 badly signed messages ignored" in \
         format_flight(summary)
+
+
+def test_a_vehicle_standing_for_a_late_go_flies_with_its_vins_at_rest_meanwhile():
+    """`sim fly --go-after 8`: the vehicle stands 8 simulated seconds for the go. Before the
+    zero-velocity prior (autonomy/vins/stillness.py) the VINS rebuilt its smoother while it
+    stood (2 rebuilds with a 10 s wait, 9 and a failsafe with 20 s; docs/vins.md)."""
+    config = Config()
+    mission = SimMission(world="dome", goal=(4.0, 0.0, 1.5), go_after_s=8.0)
+    summary = asyncio.run(simulated.fly(config, mission))
+    waiting, taking_off = summary["transitions"][1:3]
+    assert (waiting["to"], taking_off["to"]) == ("awaiting_go", "taking_off")
+    assert taking_off["t"] - waiting["t"] == pytest.approx(8.0, abs=0.1)
+    assert taking_off["reason"] == "go from sim fly --go-after 8"
+    assert summary["vins_resets"] == 0 and summary["vins_still_keyframes"] >= 60
+    assert summary["reached_goal"] and summary["collisions"] == 0
+
+
+def test_a_negative_go_after_is_refused_before_anything_starts(capsys):
+    mission = SimMission(world="dome", goal=(4.0, 0.0, 1.5), go_after_s=-1.0)
+    with pytest.raises(simulated.SimError, match="--go-after must be 0 seconds or more"):
+        asyncio.run(simulated.fly(Config(), mission))
+    assert main(["sim", "fly", "--go-after", "-1"]) == 2
+    assert "--go-after: expected a non-negative number, got '-1'" in capsys.readouterr().err
 
 
 class Autopilot:

@@ -11,6 +11,8 @@ Factors:
   mounting ``T_B_C``;
 - priors on the first keyframe (from static initialisation) or, after a rebuild, on the last
   good estimate;
+- on a keyframe taken standing still, a prior ``V(k) = 0`` (``zero_velocity_sigma``;
+  :mod:`autonomy.vins.stillness`);
 - with ``keyframe_prior_position_sigma`` above 0 (off by default: docs/vins.md, the resets,
   for what it costs), a loose prior on every new keyframe's pose at its IMU prediction.
   Position and yaw are unobservable: all the window knows of them is the marginal of the
@@ -221,6 +223,7 @@ class SlidingWindowSmoother:
         self._keyframe_prior = None if options.keyframe_prior_position_sigma == 0.0 else \
             gtsam.noiseModel.Diagonal.Sigmas(np.r_[[options.keyframe_prior_rotation_sigma] * 3,
                                                    [options.keyframe_prior_position_sigma] * 3])
+        self._zero_velocity = gtsam.noiseModel.Isotropic.Sigma(3, options.zero_velocity_sigma)
         focal = math.sqrt(camera.fx * camera.fy)
         self.gate = Gate(options.min_observations, math.radians(options.min_parallax_deg),
                          options.min_depth, options.max_depth, options.max_reprojection_px, focal)
@@ -287,9 +290,10 @@ class SlidingWindowSmoother:
         self._landmarks = Landmarks.empty()
 
     def add_keyframe(self, t: float, pim: gtsam.PreintegratedCombinedMeasurements, ids,
-                     normalised) -> bool:
+                     normalised, still: bool = False) -> bool:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
-        features it sees. Returns True when the update was used, False when it failed and the
+        features it sees; ``still``: it stands still, and gets a zero-velocity prior
+        (:mod:`autonomy.vins.stillness`). Returns True when the update was used, False when it failed and the
         smoother was rebuilt (a reset; ``last_failure`` says why). Raises
         :class:`BackendError` when even the rebuilt smoother refuses the keyframe."""
         good, good_keyframe = self.latest, self._window[-1]
@@ -299,18 +303,19 @@ class SlidingWindowSmoother:
         good_covariance = self._known_pose_covariance
         keyframe = self._keyframe(good.index + 1, t, ids, normalised)
         try:
-            self._update_with_vision(keyframe, pim)
+            self._update_with_vision(keyframe, pim, still)
             self._check_sane(self.latest)
             return True
         except (RuntimeError, ValueError) as error:
             self.resets += 1
             self.last_failure = f"keyframe {keyframe.index} at t={keyframe.t:.3f}: {error}"
             self._rebuild(good, good_keyframe, GaugeAnchor.at(good, good_covariance), keyframe,
-                          pim)
+                          pim, still)
             return False
 
     def _rebuild(self, good: KeyframeState, good_keyframe: _Keyframe, anchor: GaugeAnchor,
-                 keyframe: _Keyframe, pim: gtsam.PreintegratedCombinedMeasurements) -> None:
+                 keyframe: _Keyframe, pim: gtsam.PreintegratedCombinedMeasurements,
+                 still: bool) -> None:
         """Start over from ``good`` with its uncertainty widened (its position and yaw carried
         by ``anchor``), then add ``keyframe`` with its IMU factor only (the observations of
         both are kept for later landmarks)."""
@@ -318,7 +323,7 @@ class SlidingWindowSmoother:
                                               REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
         try:
             self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
-            graph, values, stamps = self._imu_step(keyframe, pim)
+            graph, values, stamps = self._imu_step(keyframe, pim, still)
             self._smoother.update(graph, values, stamps,
                                   eliminate_last=_variables(keyframe.index))
             self._read_estimate(keyframe, self._window + [keyframe])
@@ -386,7 +391,7 @@ class SlidingWindowSmoother:
         order = np.argsort(ids)
         return _Keyframe(index, float(t), ids[order], normalised[order])
 
-    def _imu_step(self, keyframe: _Keyframe, pim):
+    def _imu_step(self, keyframe: _Keyframe, pim, still: bool):
         good = self.latest
         k, i = keyframe.index, good.index
         predicted = pim.predict(gtsam.NavState(gtsam.Pose3(good.T_W_B), good.velocity),
@@ -398,11 +403,13 @@ class SlidingWindowSmoother:
         graph.add(gtsam.CombinedImuFactor(X(i), V(i), X(k), V(k), B(i), B(k), pim))
         if self._keyframe_prior is not None:
             graph.add(gtsam.PriorFactorPose3(X(k), predicted.pose(), self._keyframe_prior))
+        if still:
+            graph.add(gtsam.PriorFactorVector(V(k), np.zeros(3), self._zero_velocity))
         self._poses[k] = predicted.pose().matrix()
         return graph, values, {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
 
-    def _update_with_vision(self, keyframe: _Keyframe, pim) -> None:
-        graph, values, stamps = self._imu_step(keyframe, pim)
+    def _update_with_vision(self, keyframe: _Keyframe, pim, still: bool) -> None:
+        graph, values, stamps = self._imu_step(keyframe, pim, still)
         window = self._window + [keyframe]
         seen = np.isin(keyframe.ids, self._landmarks.ids)
         tracks, xy = self._consistent_observations(keyframe, seen)

@@ -12,7 +12,8 @@ Per frame, once initialised:
 2. the frame becomes a keyframe when ``keyframe_interval_s`` has passed since the last one, or
    sooner (not before ``keyframe_min_interval_s``) when the features have moved by
    ``keyframe_parallax_px`` on average; a keyframe goes to the smoother with the IMU
-   preintegrated since the last;
+   preintegrated since the last, and with a zero-velocity prior when the vehicle stands still
+   (:mod:`autonomy.vins.stillness`: waiting on the ground for the go);
 3. the sparse map is the window's landmarks carried into this frame's camera through the
    paper's chain (Yang et al., Section III-A): ``p_C = T_C_B T_B_W(t) p_W``, with
    ``T_W_B(t)`` from step 1 (or the smoothed keyframe itself) and ``T_B_C`` the camera mounting.
@@ -51,6 +52,7 @@ from autonomy.vins.imu_gap import ImuGap, Restart
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import NotStill, StaticInit, StaticInitOptions, static_initialise
+from autonomy.vins.stillness import ZeroVelocityDetector
 from autonomy.vins.time_offset import TimeOffset, TimeOffsetEstimator
 
 #: The time-offset estimator's work on a frame waits for a frame that is not a keyframe, so
@@ -137,6 +139,8 @@ class Vins:
                                   if self.options.estimate_time_offset else None)
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._gap: ImuGap | None = None
+        self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
+        self.zero_velocity_keyframes = 0
 
     # ------------------------------------------------------------------ inputs
 
@@ -272,6 +276,8 @@ class Vins:
         self.backend.start(state, sigmas, tracks.ids, tracks.normalised)
         self._keyframe_tracks = tracks
         self._set_anchor_from_backend()
+        self._stillness.clear()
+        self._stillness.add(state.t, state.T_W_B[:3, :3], tracks)
 
     def _reinitialise(self, t: float, tracks: Tracks) -> str:
         """Start a new smoother in flight at the IMU-propagated state with a wide velocity
@@ -344,7 +350,7 @@ class Vins:
         if keyframe:
             before, predicted = self._anchor, self._propagate_to(t)
             try:
-                self._add_keyframe(t, tracks)
+                self._add_keyframe(t, tracks, predicted)
             except BackendError as error:
                 return self._lost(t, tracks, str(error))
             state = self._anchor.state
@@ -369,16 +375,22 @@ class Vins:
         return (since >= self.options.keyframe_interval_s
                 or self._parallax_px(tracks) >= self.options.keyframe_parallax_px)
 
-    def _add_keyframe(self, t: float, tracks: Tracks) -> None:
+    def _add_keyframe(self, t: float, tracks: Tracks, predicted: NavState) -> None:
+        """The frame at ``t`` to the smoother, with a zero-velocity prior when it stands still
+        (:mod:`autonomy.vins.stillness`) by the IMU's ``predicted`` state and its tracks."""
         latest = self.backend.latest
         pim = self.backend.preintegration()
         pieces = self._imu.pieces(latest.t, t)
         for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
             pim.integrateMeasurement(accel, gyro, dt)
-        if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised):
+        still = self._stillness.still(t, predicted.R_W_B,
+                                      float(np.linalg.norm(predicted.velocity)), tracks)
+        self.zero_velocity_keyframes += still
+        if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still):
             self._last_reset_t = t
         self._keyframe_tracks = tracks
         self._set_anchor_from_backend()
+        self._stillness.add(t, self._anchor.state.R_W_B, tracks)
 
     def _set_anchor_from_backend(self) -> None:
         s = self.backend.latest

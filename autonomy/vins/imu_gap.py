@@ -21,9 +21,9 @@ estimator (:meth:`autonomy.vins.estimator.Vins._restart_after_gap`) restarts fro
    instead (it is the more precise).
 2. **the propagation**, when no frame is relocalised, across a gap of up to
    ``max_propagated_gap_s``: a held sample errs little over a fraction of a second.
-3. **standing still**, after ``reinit_imu_window_s`` of samples: the features moved by at most
-   ``still_flow_px`` (median) over that window and the gyro turned at most ``still_rate``
-   (the vehicle holds, as the application's failsafe makes it). Velocity zero within
+3. **standing still**, after ``reinit_imu_window_s`` of samples: standing still over that
+   window by :func:`autonomy.vins.stillness.is_still` (the vehicle holds, as the
+   application's failsafe makes it). Velocity zero within
    ``still_velocity_sigma``; position and yaw the last estimate before the gap (the gap's
    motion is unobserved: the restart moves the world's origin, as any reset does); roll and
    pitch those of the window's mean specific force (the static initialisation's gravity
@@ -45,6 +45,7 @@ from autonomy.vins.frontend import Tracks
 from autonomy.vins.imu_buffer import NavState
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import gravity_aligned_rotation
+from autonomy.vins.stillness import is_still, median_flow_px
 
 #: RANSAC's iterations and confidence for the P3P hypotheses.
 PNP_ITERATIONS = 100
@@ -166,15 +167,12 @@ class ImuGap:
                        math.radians(o.reinit_tilt_sigma_deg), "standing still")
 
     def _still(self, t: float, gyro: np.ndarray) -> bool:
-        """The features moved by at most ``still_flow_px`` (median) since the frame
-        ``reinit_imu_window_s`` ago, and the gyro's mean rate is at most ``still_rate``."""
+        """Standing still (:func:`autonomy.vins.stillness.is_still`) since the frame
+        ``reinit_imu_window_s`` ago, the gyro's mean rate over that time standing for the
+        body's."""
         o = self.options
         earlier = [f for s, f in self.frames if s <= t - o.reinit_imu_window_s]
-        if not earlier or np.linalg.norm(gyro.mean(axis=0)) > o.still_rate:
+        if not earlier:
             return False
-        now = self.frames[-1][1]
-        _, here, there = np.intersect1d(now.ids, earlier[-1].ids, return_indices=True)
-        if len(here) < o.min_tracked_ok:
-            return False
-        flow = np.linalg.norm(now.pixels[here] - earlier[-1].pixels[there], axis=1)
-        return float(np.median(flow)) <= o.still_flow_px
+        flow = median_flow_px(self.frames[-1][1], earlier[-1], self.focal_px, o.min_tracked_ok)
+        return is_still(flow, float(np.linalg.norm(gyro.mean(axis=0))), o)

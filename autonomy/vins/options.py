@@ -88,13 +88,22 @@ class VinsOptions:
                                         "starts with, the last this many seconds")
     relocalise_min_poses: int = option(3, ge=2, doc="relocalised poses within "
                                        "relocalise_window_s needed for that velocity")
-    still_flow_px: float = option(1.0, gt=0.0, doc="standing still after an IMU gap: the "
-                                  "features' median motion over reinit_imu_window_s at most "
-                                  "this, pixels")
-    still_rate: float = option(0.05, gt=0.0, doc="standing still after an IMU gap: the mean "
-                               "gyro rate at most this, rad/s")
+    still_flow_px: float = option(1.0, gt=0.0, doc="standing still (after an IMU gap, or for "
+                                  "a zero-velocity update): the features' median motion over "
+                                  "the stretch judged at most this, undistorted pixels")
+    still_rate: float = option(0.05, gt=0.0, doc="standing still: the body's mean rate over "
+                               "the stretch judged at most this, rad/s")
     still_velocity_sigma: float = option(0.1, gt=0.0, doc="velocity when re-initialised "
                                          "standing still after an IMU gap, m/s")
+    # --- zero-velocity update (autonomy.vins.stillness)
+    zero_velocity_update: bool = option(True, doc="a keyframe standing still gets a "
+                                        "zero-velocity prior")
+    zero_velocity_window_s: float = option(0.5, gt=0.0, le=10.0, doc="standing still is judged "
+                                           "over this long before the keyframe, seconds")
+    zero_velocity_max_speed: float = option(0.1, gt=0.0, doc="no zero-velocity prior while the "
+                                            "estimate is faster than this, m/s")
+    zero_velocity_sigma: float = option(0.01, gt=0.0, le=1.0, doc="the zero-velocity prior's "
+                                        "width, m/s")
     # --- landmark gate
     min_observations: int = option(3, ge=2, le=100, doc="keyframes a track must be seen in "
                                    "before it becomes a landmark")

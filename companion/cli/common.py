@@ -133,14 +133,22 @@ def png_path(text: str) -> Path:
     return path
 
 
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0.0):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return value
+def float_above(minimum: float, wording: str, *, inclusive: bool):
+    """An argparse type: a finite number above ``minimum`` (or equal to it, ``inclusive``),
+    else a usage error in ``wording``."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (value >= minimum if inclusive else value > minimum)):
+            raise argparse.ArgumentTypeError(f"expected a {wording} number, got {text!r}")
+        return value
+    return parse
+
+
+positive_float = float_above(0.0, "positive", inclusive=False)
+non_negative_float = float_above(0.0, "non-negative", inclusive=True)
 
 
 def integer_at_least(minimum: int, wording: str):

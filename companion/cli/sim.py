@@ -86,6 +86,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     fly.add_argument("--start-yaw", type=float, metavar="DEG",
                      help="heading the vehicle stands at before take-off, degrees "
                           "counter-clockwise from east (default: facing the first leg)")
+    fly.add_argument("--go-after", type=common.non_negative_float, metavar="SECONDS",
+                     help="the operator's go that many simulated seconds after the vehicle "
+                          "is ready and waits for it, standing on the ground (default: the "
+                          "command line is the go)")
     fly.add_argument("--clock", choices=CLOCK_MODES, default="lockstep",
                      help="lockstep: deterministic, as fast as the CPU allows; realtime: the "
                           "simulator in its own thread on the wall clock (default: %(default)s)")
@@ -216,7 +220,8 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
         mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
                                        goal=args.goal, start_yaw_deg=args.start_yaw,
                                        clock=args.clock, depth=args.depth, link=args.link,
-                                       faults=tuple(Fault.parse(f) for f in args.faults))
+                                       faults=tuple(Fault.parse(f) for f in args.faults),
+                                       go_after_s=args.go_after)
         summary = simulated.run(config, mission, plot=plot,
                                 progress=None if args.json else common.print_progress,
                                 record=common.recording_wanted(args, config), live=args.live)

@@ -196,6 +196,8 @@ class FlightApp:
             "stop_rounds": s.stop_rounds,
             "backoffs": s.backoffs,
             "vins_resets": self.perception.vins.resets,
+            # keyframes given a zero-velocity prior (standing still: autonomy/vins/stillness.py)
+            "vins_still_keyframes": self.perception.vins.zero_velocity_keyframes,
             "vins_time_offset": time_offset_summary(self.perception.vins.time_offset),
             "vins_correction_m": correction_summary(s.vins_corrections_m),
             "watchdog_setpoints": self.command.watchdog.fired,
@@ -250,10 +252,16 @@ def _flight_lines(summary: dict) -> list[str]:
         f"  loop lag p99      {show(summary.get('loop_lag_ms_p99'), '.1f', ' ms')}",
         f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops, "
         f"{summary['backoffs']} backings-off)",
-        f"  VINS resets       {summary['vins_resets']}",
+        f"  VINS resets       {summary['vins_resets']}{_still_keyframes(summary)}",
         *_time_offset_lines(summary.get("vins_time_offset")),
         *_signing_lines(summary.get("mavlink_signing")),
     ]
+
+
+def _still_keyframes(summary: dict) -> str:
+    """The keyframes given a zero-velocity prior (absent from recordings made before it)."""
+    still = summary.get("vins_still_keyframes")
+    return "" if still is None else f" ({still} keyframes standing still)"
 
 
 def _signing_lines(signing: dict | None) -> list[str]:

@@ -55,6 +55,9 @@ log = logging.getLogger(__name__)
 #: application says it reached the goal: the VINS's drift over a flight, metres.
 GOAL_DRIFT_ALLOWANCE = 1.0
 
+#: How often ``--go-after`` looks whether the mission waits for the go yet, seconds.
+WAITING_POLL_S = 0.05
+
 __all__ = ["DEPTH_SOURCES", "SimError", "SimMission", "run", "fly", "format_summary"]
 
 
@@ -97,6 +100,12 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     """Fly ``mission`` on the running loop and return the summary (module docstring). The
     command line is the operator's go (``go_given_by``); "" waits for one as ``[go]`` says.
     ``record`` and ``live``: as :func:`run`."""
+    if mission.go_after_s is not None:  # the go comes later, as a ground station's would
+        if not (mission.go_after_s >= 0.0):
+            raise SimError(f"--go-after must be 0 seconds or more, got {mission.go_after_s}")
+        config = dataclasses.replace(config, go=dataclasses.replace(
+            config.go, required=True, socket="", rc_channel=0))
+        go_given_by = ""
     world = build_world(mission.world, mission.seed, config.sim.profile)
     # the route's corners are planned in the ideal world, so that its thin obstacles (the
     # realistic profile's) are the flight's to see and avoid, not the route's
@@ -120,6 +129,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
                          config.rescale, config.depth)
         app = build_app(config, clock, side.companion_url(), camera, depth, waypoints,
                         lockstep=mission.clock == "lockstep", go_given_by=go_given_by)
+        go_later = asyncio.create_task(give_go_after(app.gate, clock, mission.go_after_s))
         try:
             metadata = recording_metadata(config,
                                           mission=json.dumps(dataclasses.asdict(mission)))
@@ -134,6 +144,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
                 empty_disk(disk.result() if disk.done() and not disk.cancelled() else None)
             summary["mavlink"] = _link_load(app.autopilot.link, sim)
         finally:
+            go_later.cancel()
             app.autopilot.close()
     finally:
         stall.cancel()
@@ -146,6 +157,18 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         _plot(world, mission, side.track, (start, waypoints), sim, plot, summary)
         summary["plot"] = str(plot)
     return summary
+
+
+async def give_go_after(gate, clock, seconds: float | None) -> None:
+    """The operator's go ``seconds`` of the flight's clock after the mission starts waiting
+    for it (``sim fly --go-after``; nothing when None): the vehicle stands on the ground
+    meanwhile, as one does while its operator checks the field."""
+    if seconds is None:
+        return
+    while not gate.waiting:
+        await clock.sleep(WAITING_POLL_S)
+    await clock.sleep(seconds)
+    gate.command(f"sim fly --go-after {seconds:g}")
 
 
 def build_app(config, clock, url: str, camera, depth, waypoints, *,

@@ -68,7 +68,9 @@ class SimMission:
     """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z);
     ``depth`` one of :data:`DEPTH_SOURCES`; ``start_yaw_deg`` the heading the vehicle stands at
     on the ground (degrees counter-clockwise from east; default: facing the first leg);
-    ``link`` one of :data:`drivers.sim.serve.LINKS`."""
+    ``link`` one of :data:`drivers.sim.serve.LINKS`; ``go_after_s``: the operator's go comes
+    that many simulated seconds after the mission starts waiting for it (None: the command
+    line gave it)."""
 
     world: str = "dome"
     seed: int = 0
@@ -79,6 +81,7 @@ class SimMission:
     depth: str = "estimated"
     start_yaw_deg: float | None = None
     link: str = "udp"
+    go_after_s: float | None = None
 
 
 def mission_waypoints(world: World, mission: SimMission, height: float
