@@ -427,9 +427,10 @@ def test_a_keyframe_moved_past_the_divergence_limit_is_lost_at_the_imus_propagat
 STILL_S = 1.9  # the recording's first seconds, before the take-off at 2 s
 
 
-def stand(flight: Flight, vins: Vins, seconds: float) -> list:
+def stand(flight: Flight, vins: Vins, seconds: float, on_ground: bool = True) -> list:
     """Feed the recording's still start over and over (frames and IMU samples shifted by
-    whole repeats) for ``seconds``: a vehicle waiting on the ground for its go."""
+    whole repeats) for ``seconds``: a vehicle waiting on the ground for its go, the caller
+    saying so (``on_ground``) as the application does while it is disarmed."""
     frames = np.flatnonzero(flight.frame_t < flight.frame_t[0] + STILL_S)
     period = len(frames) * float(np.median(np.diff(flight.frame_t)))
     samples = np.flatnonzero(flight.imu_t < flight.imu_t[0] + period)
@@ -445,7 +446,8 @@ def stand(flight: Flight, vins: Vins, seconds: float) -> list:
                     break
                 vins.add_imu(ImuSample(float(sample_t), flight.gyro[i], flight.accel[i]))
                 fed += 1
-            updates.append(vins.add_frame(float(t), vins.track(flight.images[k])))
+            updates.append(vins.add_frame(float(t), vins.track(flight.images[k]),
+                                          on_ground=on_ground))
     return updates
 
 
@@ -463,9 +465,14 @@ def test_standing_on_the_ground_for_the_go_keeps_the_smoother_at_rest(flight):
     assert np.linalg.norm(odometry.T_W_B[:3, 3]) < 0.01
 
 
-def test_without_the_zero_velocity_prior_the_window_standing_still_is_rebuilt(flight):
+@pytest.mark.parametrize("why, options, on_ground", [
+    ("switched off", VinsOptions(zero_velocity_update=False), True),
+    ("the caller does not say it is on the ground", None, False),
+])
+def test_without_the_zero_velocity_prior_the_window_standing_still_is_rebuilt(
+        flight, why, options, on_ground):
     """The cause the prior removes: measured, 4 rebuilds in the 20 s and 0.29 m of drift."""
-    vins = flight.vins(VinsOptions(zero_velocity_update=False))
-    stand(flight, vins, 20.0)
-    assert vins.resets >= 1
+    vins = flight.vins(options)
+    stand(flight, vins, 20.0, on_ground)
+    assert vins.resets >= 1, why
     assert vins.zero_velocity_keyframes == 0

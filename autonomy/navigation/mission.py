@@ -162,6 +162,8 @@ class FlightState(enum.Enum):
 #: States before arming: an operator's stop ends the mission here.
 GROUND_STATES = frozenset({FlightState.PREFLIGHT, FlightState.INITIALISING,
                            FlightState.AWAITING_GO})
+#: States on the ground, disarmed: before arming, and after the landing.
+DISARMED_STATES = GROUND_STATES | {FlightState.LANDED}
 #: States in which the application commands the vehicle with offboard setpoints.
 OFFBOARD_STATES = frozenset({FlightState.ENTERING_OFFBOARD, FlightState.ALIGNING,
                              FlightState.NAVIGATING, FlightState.STOPPING,

@@ -12,8 +12,9 @@ Per frame, once initialised:
 2. the frame becomes a keyframe when ``keyframe_interval_s`` has passed since the last one, or
    sooner (not before ``keyframe_min_interval_s``) when the features have moved by
    ``keyframe_parallax_px`` on average; a keyframe goes to the smoother with the IMU
-   preintegrated since the last, and with a zero-velocity prior when the vehicle stands still
-   (:mod:`autonomy.vins.stillness`: waiting on the ground for the go);
+   preintegrated since the last, and with a zero-velocity prior when the caller says the
+   vehicle is on the ground and it stands still (:mod:`autonomy.vins.stillness`: waiting for
+   the go);
 3. the sparse map is the window's landmarks carried into this frame's camera through the
    paper's chain (Yang et al., Section III-A): ``p_C = T_C_B T_B_W(t) p_W``, with
    ``T_W_B(t)`` from step 1 (or the smoothed keyframe itself) and ``T_B_C`` the camera mounting.
@@ -140,6 +141,7 @@ class Vins:
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._gap: ImuGap | None = None
         self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
+        self._on_ground = False
         self.zero_velocity_keyframes = 0
 
     # ------------------------------------------------------------------ inputs
@@ -177,8 +179,10 @@ class Vins:
         """The caller's measurement of the last :meth:`add_frame`, judged by the health."""
         self._update_ms = float(milliseconds)
 
-    def add_frame(self, t: float, tracks: Tracks) -> FrameUpdate:
-        """Everything after the front-end for the frame stamped ``t`` (module docstring)."""
+    def add_frame(self, t: float, tracks: Tracks, *, on_ground: bool = False) -> FrameUpdate:
+        """Everything after the front-end for the frame stamped ``t`` (module docstring);
+        ``on_ground``: the caller knows the vehicle is on the ground, disarmed (a keyframe
+        standing still then gets a zero-velocity prior: :mod:`autonomy.vins.stillness`)."""
         t = float(t)
         if not math.isfinite(t):
             raise ValueError(f"frame time must be a finite number of seconds, got {t}")
@@ -186,6 +190,7 @@ class Vins:
             raise ValueError(f"frame time {t} is not after the previous frame "
                              f"({self._last_frame_t})")
         self._last_frame_t = t
+        self._on_ground = bool(on_ground)
         offset = self.time_offset
         exposure = t - offset.seconds
         if exposure <= self._last_exposure_t:  # the estimate moved by more than the frame gap
@@ -377,17 +382,17 @@ class Vins:
 
     def _add_keyframe(self, t: float, tracks: Tracks, predicted: NavState) -> None:
         """The frame at ``t`` to the smoother, with a zero-velocity prior when it stands still
-        (:mod:`autonomy.vins.stillness`) by the IMU's ``predicted`` state and its tracks."""
+        on the ground (:mod:`autonomy.vins.stillness`), by its tracks and the IMU's
+        ``predicted`` attitude."""
         latest = self.backend.latest
         pim = self.backend.preintegration()
         pieces = self._imu.pieces(latest.t, t)
         for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
             pim.integrateMeasurement(accel, gyro, dt)
-        still = self._stillness.still(t, predicted.R_W_B,
-                                      float(np.linalg.norm(predicted.velocity)), tracks)
-        self.zero_velocity_keyframes += still
+        still = self._on_ground and self._stillness.still(t, predicted.R_W_B, tracks)
         if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still):
             self._last_reset_t = t
+        self.zero_velocity_keyframes += still
         self._keyframe_tracks = tracks
         self._set_anchor_from_backend()
         self._stillness.add(t, self._anchor.state.R_W_B, tracks)

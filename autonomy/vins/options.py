@@ -96,12 +96,10 @@ class VinsOptions:
     still_velocity_sigma: float = option(0.1, gt=0.0, doc="velocity when re-initialised "
                                          "standing still after an IMU gap, m/s")
     # --- zero-velocity update (autonomy.vins.stillness)
-    zero_velocity_update: bool = option(True, doc="a keyframe standing still gets a "
-                                        "zero-velocity prior")
+    zero_velocity_update: bool = option(True, doc="a keyframe standing still on the ground "
+                                        "gets a zero-velocity prior")
     zero_velocity_window_s: float = option(0.5, gt=0.0, le=10.0, doc="standing still is judged "
                                            "over this long before the keyframe, seconds")
-    zero_velocity_max_speed: float = option(0.1, gt=0.0, doc="no zero-velocity prior while the "
-                                            "estimate is faster than this, m/s")
     zero_velocity_sigma: float = option(0.01, gt=0.0, le=1.0, doc="the zero-velocity prior's "
                                         "width, m/s")
     # --- landmark gate

@@ -9,17 +9,19 @@ not turned (mean rate at most ``still_rate``). Both the restart after an IMU gap
 window keyframes with no parallax: no landmark can be triangulated, and the window knows its
 velocity only through the IMU factors' chain back to the last prior, whose information fades
 as the window slides. Within a few seconds GTSAM's Cholesky calls the window indeterminate and
-the smoother is rebuilt, again and again (a go 20 s after the initialisation: 4 rebuilds on
-the ground, 9 in the flight, and a "diverging" failsafe; docs/vins.md, "Standing on the
-ground"). A keyframe taken while standing still therefore gets a prior ``V(k) = 0`` with width
+the smoother is rebuilt, again and again (docs/vins.md, "Standing on the ground"). A keyframe
+taken on the ground and standing still therefore gets a prior ``V(k) = 0`` with width
 ``zero_velocity_sigma``: velocity, and through the IMU factor the tilt and the accelerometer
 bias, are observed again. It is the "zero velocity prior" Kimera-VIO adds on low disparity
 (Rosinol et al., ICRA 2020, ``VioBackend::addZeroVelocityPrior``) and Astrobee's standstill
-factor (Soussan et al., ICRA 2022). The test runs over the last ``zero_velocity_window_s``
-(a pixel over half a second resolves a few centimetres a second at the depths we fly by), and
-only while the estimate itself says at most ``zero_velocity_max_speed``, as OpenVINS's
-``zupt_max_velocity`` does: far features barely move under a slow flight, and such a flight
-must not be stopped by a prior.
+factor (Soussan et al., ICRA 2022).
+
+Only where the caller says the vehicle is on the ground (disarmed: the application knows,
+the estimator cannot): in the air a hover is never at rest, and features far away barely move
+under a slow flight (a pixel over half a second is depth / 160 m/s at a 320 px focal length),
+so the test alone would put a wrong prior on a slow flight or a hover. On the ground it still
+must pass, against every keyframe of the last ``zero_velocity_window_s`` (a vehicle carried
+and put back is not still): the largest median flow and the largest turn against any of them.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ import numpy as np
 from autonomy.geometry import so3_log
 from autonomy.vins.frontend import Tracks
 from autonomy.vins.options import VinsOptions
+
+#: Keyframe times compared to a window's length are equal within this, seconds.
+STAMP_TOLERANCE_S = 1e-6
 
 
 def median_flow_px(now: Tracks, earlier: Tracks, focal_px: float, min_common: int) -> float:
@@ -51,33 +56,44 @@ def is_still(flow_px: float, rate: float, options: VinsOptions) -> bool:
 
 @dataclass
 class ZeroVelocityDetector:
-    """Keeps the last ``zero_velocity_window_s`` of keyframes (time, attitude ``R_W_B``,
-    tracks) and says whether a new keyframe stands still since the one that long before it."""
+    """Keeps the keyframes (time, attitude ``R_W_B``, tracks) of the last
+    ``zero_velocity_window_s`` and says whether a new one stands still over that stretch."""
 
     options: VinsOptions
     focal_px: float
     keyframes: list[tuple[float, np.ndarray, Tracks]] = field(default_factory=list)
 
-    def still(self, t: float, R_W_B: np.ndarray, speed: float, tracks: Tracks) -> bool:
-        """Whether the keyframe at ``t`` (IMU-predicted attitude ``R_W_B`` and ``speed``,
-        m/s) gets a zero-velocity prior (module docstring)."""
+    def still(self, t: float, R_W_B: np.ndarray, tracks: Tracks) -> bool:
+        """Whether the keyframe at ``t`` (IMU-predicted attitude ``R_W_B``) stood still since
+        the keyframe a window before it, judged against every keyframe since (module
+        docstring); False until the keyframes span the window."""
         o = self.options
-        earlier = [k for k in self.keyframes if k[0] <= t - o.zero_velocity_window_s]
-        if not o.zero_velocity_update or not earlier or speed > o.zero_velocity_max_speed:
+        stretch = self._stretch(t)
+        if not o.zero_velocity_update or not stretch:
             return False
-        t0, R0, tracks0 = earlier[-1]
-        rate = float(np.linalg.norm(so3_log(R0.T @ R_W_B))) / (t - t0)
-        flow = median_flow_px(tracks, tracks0, self.focal_px, o.min_tracked_ok)
-        return is_still(flow, rate, o)
+        flow = max(median_flow_px(tracks, k_tracks, self.focal_px, o.min_tracked_ok)
+                   for _, _, k_tracks in stretch)
+        turn = max(float(np.linalg.norm(so3_log(R.T @ R_W_B))) for _, R, _ in stretch)
+        return is_still(flow, turn / (t - stretch[0][0]), o)
 
     def add(self, t: float, R_W_B: np.ndarray, tracks: Tracks) -> None:
-        """The keyframe at ``t`` as the smoother estimated it; older ones than the window
-        needs are dropped."""
+        """The keyframe at ``t`` as the smoother estimated it; those older than the next
+        keyframe's stretch can need are dropped."""
         self.keyframes.append((t, np.asarray(R_W_B, float), tracks))
-        keep_from = t - self.options.zero_velocity_window_s
-        while len(self.keyframes) > 1 and self.keyframes[1][0] <= keep_from:
+        while len(self.keyframes) > 1 and self._reaches_back(self.keyframes[1][0], t):
             self.keyframes.pop(0)
 
     def clear(self) -> None:
         """Forget the keyframes (a restart: their attitudes are of another smoother)."""
         self.keyframes.clear()
+
+    def _stretch(self, t: float) -> list[tuple[float, np.ndarray, Tracks]]:
+        """The keyframes from the newest one at least a window before ``t`` on; empty when
+        none is that old."""
+        first = [i for i, k in enumerate(self.keyframes) if self._reaches_back(k[0], t)]
+        return self.keyframes[first[-1]:] if first else []
+
+    def _reaches_back(self, earlier: float, t: float) -> bool:
+        """``earlier`` is a window or more before ``t`` (to a microsecond: keyframe times are
+        sums of frame periods)."""
+        return t - earlier >= self.options.zero_velocity_window_s - STAMP_TOLERANCE_S

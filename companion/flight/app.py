@@ -196,8 +196,11 @@ class FlightApp:
             "stop_rounds": s.stop_rounds,
             "backoffs": s.backoffs,
             "vins_resets": self.perception.vins.resets,
-            # keyframes given a zero-velocity prior (standing still: autonomy/vins/stillness.py)
-            "vins_still_keyframes": self.perception.vins.zero_velocity_keyframes,
+            # keyframes given a zero-velocity prior on the ground before the take-off (all of
+            # them when there was none; autonomy/vins/stillness.py)
+            "vins_still_keyframes": (self.perception.vins.zero_velocity_keyframes
+                                     if s.vins_still_keyframes_at_takeoff is None
+                                     else s.vins_still_keyframes_at_takeoff),
             "vins_time_offset": time_offset_summary(self.perception.vins.time_offset),
             "vins_correction_m": correction_summary(s.vins_corrections_m),
             "watchdog_setpoints": self.command.watchdog.fired,
@@ -261,7 +264,7 @@ def _flight_lines(summary: dict) -> list[str]:
 def _still_keyframes(summary: dict) -> str:
     """The keyframes given a zero-velocity prior (absent from recordings made before it)."""
     still = summary.get("vins_still_keyframes")
-    return "" if still is None else f" ({still} keyframes standing still)"
+    return "" if still is None else f" ({still} keyframes standing still before the take-off)"
 
 
 def _signing_lines(signing: dict | None) -> list[str]:

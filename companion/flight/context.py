@@ -63,6 +63,7 @@ class FlightStats:
     takeoff_t: float | None = None
     landed_t: float | None = None
     vins_reinitialisations_at_takeoff: int = 0
+    vins_still_keyframes_at_takeoff: int | None = None  # given the zero-velocity prior
     vins_rebuilds_seen: int = 0
     vins_corrections_m: list = field(default_factory=list)  # keyframes' while navigating
 

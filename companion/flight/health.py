@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 
 from autonomy.navigation.failsafes import Vitals, age, failsafe_reason, vins_problem
-from autonomy.navigation.mission import (GROUND_STATES, GUARDED_STATES, OFFBOARD_STATES,
+from autonomy.navigation.mission import (DISARMED_STATES, GUARDED_STATES, OFFBOARD_STATES,
                                          FlightState)
 from companion.flight.context import FlightContext
 from companion.flight.navigation import Navigation
@@ -24,7 +24,7 @@ def companion_status(state: FlightState, failsafes) -> CompanionStatus:
         return CompanionStatus.CRITICAL
     if state == FlightState.ABORTED:
         return CompanionStatus.EMERGENCY
-    if state in GROUND_STATES | {FlightState.LANDED}:
+    if state in DISARMED_STATES:
         return CompanionStatus.STANDBY
     return CompanionStatus.ACTIVE
 

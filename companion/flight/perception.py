@@ -30,6 +30,7 @@ from autonomy.depth.options import RescaleOptions
 from autonomy.depth.stage import DepthStageOptions, MetricDepthStage
 from autonomy.geometry import yaw_alignment
 from autonomy.messages import Frame, MetricDepth, Odometry, RelativeDepth, SparseMap
+from autonomy.navigation.mission import DISARMED_STATES
 from autonomy.planning.planner import Planner
 from autonomy.vins.estimator import FrameUpdate, Vins
 from companion.flight.context import Alignment, FlightContext
@@ -187,9 +188,11 @@ class Perception:
                 log.debug("IMU sample refused: %s", error)
 
     def _track(self, frame: Frame) -> FrameUpdate:
-        """The VINS on one frame, with the IMU up to it (on the VINS worker)."""
+        """The VINS on one frame, with the IMU up to it (on the VINS worker); on the ground
+        while the mission is in a state before arming or after the landing."""
         self._feed_imu()
-        return self.vins.add_frame(frame.t, self.vins.track(frame.image))
+        return self.vins.add_frame(frame.t, self.vins.track(frame.image),
+                                   on_ground=self.context.state in DISARMED_STATES)
 
     def _after_vins(self, update: FrameUpdate) -> None:
         c = self.context

@@ -134,6 +134,7 @@ class MissionSteps:
             return
         c.stats.takeoff_t = c.clock.now()
         c.stats.vins_reinitialisations_at_takeoff = self.perception.vins.reinitialisations
+        c.stats.vins_still_keyframes_at_takeoff = self.perception.vins.zero_velocity_keyframes
         if not await autopilot.takeoff(o.takeoff_altitude):
             c.go(FlightState.LANDING, "take-off denied")
             return

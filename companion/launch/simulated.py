@@ -168,7 +168,8 @@ async def give_go_after(gate, clock, seconds: float | None) -> None:
     while not gate.waiting:
         await clock.sleep(WAITING_POLL_S)
     await clock.sleep(seconds)
-    gate.command(f"sim fly --go-after {seconds:g}")
+    if not gate.command(f"sim fly --go-after {seconds:g}"):
+        log.warning("--go-after: the mission no longer waited for the go when it came")
 
 
 def build_app(config, clock, url: str, camera, depth, waypoints, *,
