@@ -45,7 +45,7 @@ from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import BACKOFF_REASON, PARALLAX_REASON
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
-from autonomy.navigation.mission import GUARDED_STATES, FlightState
+from autonomy.navigation.mission import DISARMED_STATES, GUARDED_STATES, FlightState
 from autonomy.planning.planner import Planner
 from autonomy.vins.estimator import Vins
 from autonomy.vins.health import HealthState
@@ -67,6 +67,9 @@ _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
 #: place), where depth may lapse (autonomy.navigation.mission.GUARDED_STATES).
 _GUARDED = {state.value for state in GUARDED_STATES}
 _ALIGNING = FlightState.ALIGNING.value
+#: Recorded states on the ground, disarmed, where the VINS was told so (its zero-velocity
+#: prior: autonomy/vins/stillness.py); "" is the flight's start, before any transition.
+_ON_GROUND = {state.value for state in DISARMED_STATES} | {""}
 #: Recorded failsafes: the transitions into these states.
 _FAILSAFE_STATES = {FlightState.FAILSAFE_STOP.value, FlightState.LINK_LOST.value}
 #: A recorded rotation further than this from a unit quaternion is not one (the recorder
@@ -421,7 +424,8 @@ class _Replayer:
         self._check_frame(frame)
         self.report.frames += 1
         started = time.perf_counter()
-        update = self.vins.add_frame(frame.t, self.vins.track(frame.image))
+        update = self.vins.add_frame(frame.t, self.vins.track(frame.image),
+                                     on_ground=self.state in _ON_GROUND)
         self.timings["vins"].append(time.perf_counter() - started)
         self.vins_health = update.health
         if update.health.state == HealthState.LOST:
