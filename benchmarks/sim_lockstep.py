@@ -2,12 +2,15 @@
 
     python benchmarks/sim_lockstep.py [--duration 60] [--repeats 3] [--worlds mine sewer dome]
 
-Three loops over the same simulated minute, each timed ``--repeats`` times per world,
+Four loops over the same simulated minute, each timed ``--repeats`` times per world,
 interleaved, medians reported:
 
 - ``flight``: the recording flight (quadrotor dynamics and controller, IMU model at 200 Hz)
   with the camera rendered and read back at 20 Hz (RGB + depth, 640x480), samples discarded
   instead of written to disk;
+- ``realistic``: the same flight on the realistic profile: the realistic world (the mine's
+  dust, thin obstacles), the IMU's error sources, and the camera sensor of ``[sim_camera]``'s
+  defaults (a wider render for the lens, motion blur, noise, auto-exposure);
 - ``physics``: the same flight without the camera, the baseline in the same run;
 - ``serve``: the MAVLink vehicle in lockstep (dynamics, IMU, mock PX4 streaming HIGHRES_IMU at
   200 Hz and its other telemetry to a UDP peer on loopback), no camera.
@@ -25,11 +28,13 @@ import numpy as np
 
 from drivers.camera.options import CameraOptions
 from drivers.sim import record
+from drivers.sim.camera import CameraHead
 from drivers.sim.imu import ImuOptions
 from drivers.sim.mock_px4 import Px4Options
 from drivers.sim.render import Renderer
 from drivers.sim.serve import serve
 from drivers.sim.quadrotor import VehicleOptions
+from drivers.sim.sensor import SensorOptions
 from drivers.sim.world import WORLD_NAMES, build_world
 
 
@@ -52,13 +57,22 @@ class NoCamera:
         return self.rgb, self.depth
 
 
-def time_flight(world, renderer, duration: float) -> float:
+def time_flight(world, renderer, duration: float, profile: str = "ideal") -> float:
+    """Wall seconds of ``duration`` simulated seconds of the recording flight in ``profile``
+    (``renderer`` draws the camera head's render camera: :func:`realistic_renderer`)."""
     start = time.perf_counter()
     record.fly(world, world.routes[0], Discard(), duration=duration, seed=0,
                camera=CameraOptions(), vehicle=VehicleOptions(),
-               imu=ImuOptions().for_profile("ideal"),
-               renderer=renderer)
+               imu=ImuOptions().for_profile(profile),
+               sensor=SensorOptions().for_profile(profile), renderer=renderer)
     return time.perf_counter() - start
+
+
+def realistic_renderer(name: str) -> Renderer:
+    """The realistic world ``name``, drawn wide enough for the realistic camera's lens."""
+    camera = CameraOptions()
+    head = CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), SensorOptions(), name)
+    return Renderer(build_world(name, 0, "realistic"), head.render_camera)
 
 
 def time_serve(world, duration: float) -> float:
@@ -79,11 +93,16 @@ def main() -> None:
               "imu_hz": ImuOptions().rate_hz, "image": [camera.height, camera.width]}
     for name in args.worlds:
         world = build_world(name, 0)
-        walls = {"flight": [], "physics": [], "serve": []}
-        with Renderer(world, camera.pinhole()) as renderer:
-            time_flight(world, renderer, 1.0)  # warm-up: shader compilation, first uploads
+        walls = {"flight": [], "realistic": [], "physics": [], "serve": []}
+        with Renderer(world, camera.pinhole()) as renderer, \
+                realistic_renderer(name) as wide_renderer:
+            # warm-up: shader compilation, first uploads
+            time_flight(world, renderer, 1.0)
+            time_flight(wide_renderer.world, wide_renderer, 1.0, "realistic")
             for _ in range(args.repeats):
                 walls["flight"].append(time_flight(world, renderer, args.duration))
+                walls["realistic"].append(time_flight(wide_renderer.world, wide_renderer,
+                                                      args.duration, "realistic"))
                 walls["physics"].append(time_flight(world, NoCamera(camera), args.duration))
                 walls["serve"].append(time_serve(world, args.duration))
         result[name] = {f"{loop}_speed": round(args.duration / statistics.median(times), 2)

@@ -232,6 +232,16 @@ def test_rendering_is_repeatable_and_rows_start_at_the_top(renderer):
     assert np.nanmedian(depth[-20:]) < np.nanmedian(depth[220:260])
 
 
+def test_the_four_channel_read_is_the_same_colour_with_an_opaque_alpha(renderer):
+    T_W_C = route_views(renderer.world)[0]
+    rgb, depth = renderer.render(T_W_C)
+    rgba, depth4 = renderer.render(T_W_C, alpha=True)
+    assert rgba.shape == (480, 640, 4)
+    np.testing.assert_array_equal(rgba[..., :3], rgb)
+    assert (rgba[..., 3] == 255).all()
+    np.testing.assert_array_equal(depth4, depth)
+
+
 @pytest.mark.parametrize("pose, message", [
     (np.full((4, 4), np.nan), "finite"),
     (np.eye(3), "4x4"),

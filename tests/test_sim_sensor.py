@@ -141,6 +141,44 @@ def test_noise_is_shot_and_read_noise_amplified_by_the_gain():
     assert image.mean() == pytest.approx(round(level * 255), abs=0.5)
 
 
+def moving_scene(s: CameraSensor, seed: int):
+    """A random-textured render of the sensor's render camera, the depth sloping from 2 to
+    8 m across it (so the blur's streaks differ pixel to pixel)."""
+    wide = s.render_camera
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 256, (wide.height, wide.width, 3), dtype=np.uint8)
+    depth = np.tile(np.linspace(2.0, 8.0, wide.width, dtype=np.float32), (wide.height, 1))
+    return rgb, depth
+
+
+def test_a_four_channel_render_gives_the_frame_its_colour_channels_give():
+    """The camera head hands the sensor the renderer's RGBA read (no conversion): the same
+    frame, bit for bit, as the RGB render, blurred, through the lens, with noise."""
+    options = SensorOptions(time_offset_ms=0.0, distortion=(-0.28, 0.07, 0.0, 0.0))
+    twist = np.array([1.5, 0.2, 0.5]), np.array([0.1, 0.4, 0.2])
+    rgb, depth = moving_scene(sensor(options), 0)
+    from_rgb = sensor(options).capture(0.0, rgb, depth, *twist)
+    rgba = cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA)
+    from_rgba = sensor(options).capture(0.0, rgba, depth, *twist)
+    assert from_rgb.exposure.time_s > 0.0
+    np.testing.assert_array_equal(from_rgba.image, from_rgb.image)
+    np.testing.assert_array_equal(from_rgba.depth, from_rgb.depth)
+
+
+def test_a_frame_is_not_changed_by_the_next_capture():
+    """The sensor reuses its working buffers frame to frame; what it delivers is the frame's
+    own."""
+    options = SensorOptions(time_offset_ms=0.0)
+    s = sensor(options)
+    twist = np.array([2.0, 0.0, 1.0]), np.array([0.0, 0.3, 0.0])
+    first = s.capture(0.0, *moving_scene(s, 1), *twist)
+    image, depth = first.image.copy(), first.depth.copy()
+    second = s.capture(0.05, *moving_scene(s, 2), *twist)
+    assert not np.array_equal(second.image, image)
+    np.testing.assert_array_equal(first.image, image)
+    np.testing.assert_array_equal(first.depth, depth)
+
+
 def test_auto_exposure_recovers_from_a_darkening_after_its_delay_then_raises_gain():
     options = SensorOptions(time_offset_ms=0.0, timestamp_jitter_ms=0.0, drop_probability=0.0,
                             distortion=(), corner_illumination=1.0, read_noise_electrons=0.0,
@@ -306,9 +344,10 @@ def _deliveries(head: CameraHead, frames: int) -> list[tuple[float, float]]:
     class Renderer:
         camera = head.render_camera
 
-        def render(self, T_W_C):
+        def render(self, T_W_C, alpha=False):
             shape = (self.camera.height, self.camera.width)
-            return np.full((*shape, 3), 60, np.uint8), np.full(shape, 4.0, np.float32)
+            return (np.full((*shape, 4 if alpha else 3), 60, np.uint8),
+                    np.full(shape, 4.0, np.float32))
 
     clock = SimClock(0.0)
     camera = SimCamera(Vehicle(), Renderer(), clock, head)

@@ -72,10 +72,11 @@ class CameraHead:
         """The frame exposed around ``t_mid`` by a vehicle in ``state`` (a ``VehicleState`` at
         ``t_mid``), drawn by ``renderer`` (of :attr:`render_camera`)."""
         T_W_C = make_pose(quat_to_rot(state.q_W_B), state.position) @ self.T_B_C
-        rgb, depth = renderer.render(T_W_C)
         if self.sensor is None:
+            rgb, depth = renderer.render(T_W_C)
             return Capture(t_mid, rgb, depth, INSTANT)
-        return self.sensor.capture(t_mid, rgb, depth, *camera_twist(state, self.T_B_C))
+        rgba, depth = renderer.render(T_W_C, alpha=True)
+        return self.sensor.capture(t_mid, rgba, depth, *camera_twist(state, self.T_B_C))
 
 
 class SimCamera:

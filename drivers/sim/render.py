@@ -332,15 +332,17 @@ class Renderer:
             ctx.release()
             raise
 
-    def render(self, T_W_C) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, T_W_C, alpha: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """``(rgb (H, W, 3) uint8, depth (H, W) float32)`` seen from ``T_W_C``: depth is the
         z-coordinate in the optical frame, metres, NaN where no surface lies within ``far``.
-        Row 0 is the top of the image."""
+        Row 0 is the top of the image. With ``alpha`` the colour is ``(H, W, 4)``, alpha
+        opaque (255): the framebuffer's own layout, read without a conversion, for a consumer
+        that works on four channels."""
         T_W_C = _checked_pose(T_W_C)
         with self._ctx:  # this renderer's context current, whichever other one was made last
-            return self._render(T_W_C)
+            return self._render(T_W_C, 4 if alpha else 3)
 
-    def _render(self, T_W_C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _render(self, T_W_C: np.ndarray, channels: int) -> tuple[np.ndarray, np.ndarray]:
         T_C_W = invert_pose(T_W_C)
         self._program["camera_from_world"].write(T_C_W.T.astype("f4").tobytes())
         self._program["clip_from_world"].write((self._projection @ T_C_W).T.astype("f4")
@@ -356,9 +358,9 @@ class Renderer:
         self._textures.use(0)
         self._vao.render()
         h, w = self.camera.height, self.camera.width
-        rgb = np.empty((h, w, 3), np.uint8)
+        rgb = np.empty((h, w, channels), np.uint8)
         depth = np.empty((h, w), np.float32)
-        self._fbo.read_into(rgb, components=3, attachment=0)
+        self._fbo.read_into(rgb, components=channels, attachment=0)
         self._fbo.read_into(depth, components=1, attachment=1, dtype="f4")
         return rgb, depth
 

@@ -187,10 +187,11 @@ class Lens:
         r = np.hypot((grid[:, 0] - camera.cx) / camera.fx, (grid[:, 1] - camera.cy) / camera.fy)
         self.radius = (r / r.max()).reshape(shape).astype(np.float32)
 
-    def image(self, wide: np.ndarray, map_u=None, map_v=None) -> np.ndarray:
-        """The image of a wide render (bilinear), through the lens or the maps given."""
+    def image(self, wide: np.ndarray, map_u=None, map_v=None, out=None) -> np.ndarray:
+        """The image of a wide render (bilinear), through the lens or the maps given, into
+        ``out`` if given."""
         return cv2.remap(wide, self.map_u if map_u is None else map_u,
-                         self.map_v if map_v is None else map_v, cv2.INTER_LINEAR,
+                         self.map_v if map_v is None else map_v, cv2.INTER_LINEAR, dst=out,
                          borderMode=cv2.BORDER_REPLICATE)
 
     def depth(self, wide: np.ndarray) -> np.ndarray:
@@ -242,7 +243,9 @@ class CameraSensor:
     Cost: one remap from the render straight into the image per blur sample (the lens and
     the motion in one map), the flow on a grid :data:`FLOW_STRIDE` times coarser (it is smooth
     but at depth edges, where the warp is approximate anyway), and the noise drawn from a bank
-    made once, at a random offset per frame.
+    made once, at a random offset per frame. Every full-frame intermediate lives in a buffer
+    made once: a fresh megabyte-sized array per step would be fresh pages from the kernel,
+    whose faults cost more than the arithmetic.
     """
 
     def __init__(self, options: SensorOptions, camera: PinholeCamera, world: str,
@@ -256,7 +259,8 @@ class CameraSensor:
         self.exposure = AutoExposure(options)
         self._rng = rng
         c = options.corner_illumination
-        self._vignette = (1.0 - (1.0 - c) * self.lens.radius ** 2)[..., None]
+        # one factor per channel, so that the products need no broadcasting (numpy's is slow)
+        self._vignette = np.repeat((1.0 - (1.0 - c) * self.lens.radius ** 2)[..., None], 3, 2)
         wide = self.render_camera
         coarse_u = self.lens.map_u[::FLOW_STRIDE, ::FLOW_STRIDE]
         coarse_v = self.lens.map_v[::FLOW_STRIDE, ::FLOW_STRIDE]
@@ -266,6 +270,12 @@ class CameraSensor:
         self._row_offset = (self.lens.map_v - wide.cy) / camera.height
         self._noise = rng.standard_normal(2 * camera.height * camera.width * 3,
                                           dtype=np.float32)
+        shape = (camera.height, camera.width)
+        self._map_u, self._map_v = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        self._sample = np.empty((*shape, 4), np.uint8)  # one warped copy of the render
+        self._total = np.empty((*shape, 4), np.float32)  # the copies' sum
+        self._radiance = np.empty((*shape, 3), np.float32)
+        self._scratch = np.empty((*shape, 3), np.float32)
 
     @property
     def render_camera(self) -> PinholeCamera:
@@ -282,12 +292,16 @@ class CameraSensor:
                          direction * o.mount_translation_error_mm * 1e-3)
 
     def capture(self, t_mid: float, rgb: np.ndarray, depth: np.ndarray, v_C, w_C) -> Capture:
-        """The frame exposed around ``t_mid`` of a render (``rgb`` uint8, ``depth``) of
+        """The frame exposed around ``t_mid`` of a render (``rgb`` uint8, three channels or
+        four with an opaque alpha, as :meth:`Renderer.render
+        <drivers.sim.render.Renderer.render>` gives with ``alpha``; ``depth``) of
         :attr:`render_camera` at the pose of ``t_mid``, the camera moving with ``(v_C, w_C)``
         (optical frame, :func:`camera_twist`)."""
         o = self.options
-        exposure = self.exposure.current(mean_level(rgb), self.scene_scale)
-        image = self._expose(self._through_lens(rgb, depth, v_C, w_C, exposure.time_s),
+        # OpenCV remaps four channels fastest
+        rgba = rgb if rgb.shape[2] == 4 else cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA)
+        exposure = self.exposure.current(mean_level(rgba[..., :3]), self.scene_scale)
+        image = self._expose(self._through_lens(rgba, depth, v_C, w_C, exposure.time_s),
                              exposure)
         self.exposure.update(mean_level(image))
         jitter = float(np.clip(self._rng.normal(0.0, o.timestamp_jitter_ms * 1e-3),
@@ -296,14 +310,15 @@ class CameraSensor:
         stamp = None if dropped else t_mid + o.time_offset_ms * 1e-3 + jitter
         return Capture(stamp, image, self.lens.depth(depth), exposure)
 
-    def _through_lens(self, rgb, depth, v_C, w_C, exposure_s: float) -> np.ndarray:
-        """The image (float32, 0..1) of the render seen through the lens, each pixel the mean
-        over the instants it integrated light (module docstring, steps 1 and 2)."""
+    def _through_lens(self, rgba, depth, v_C, w_C, exposure_s: float) -> np.ndarray:
+        """The image (float32, 0..1, a buffer reused by the next frame) of the render seen
+        through the lens, each pixel the mean over the instants it integrated light (module
+        docstring, steps 1 and 2)."""
         o = self.options
         readout = o.rolling_shutter_ms * 1e-3
         span = exposure_s if o.motion_blur else 0.0
         if not (span or readout):
-            return self.lens.image(rgb).astype(np.float32) * (1.0 / 255.0)
+            return self._radiance_of(self.lens.image(rgba, out=self._sample), 1.0 / 255.0)
         coarse_du, coarse_dv = self._flow(depth, v_C, w_C)
         longest = float(np.sqrt(coarse_du ** 2 + coarse_dv ** 2).max()) * span
         samples = int(np.clip(math.ceil(longest / BLUR_SAMPLE_SPACING), 1, MAX_BLUR_SAMPLES))
@@ -314,13 +329,22 @@ class CameraSensor:
         if readout:  # the maps at each row's readout instant
             base_u = base_u - du * (self._row_offset * readout)
             base_v = base_v - dv * (self._row_offset * readout)
-        rgba = cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA)  # OpenCV remaps four channels fastest
-        total = np.zeros((self.camera.height, self.camera.width, 4), np.float32)
+        total = self._total
+        total.fill(0.0)
         for k in range(samples):
             step = span * ((k + 0.5) / samples - 0.5)
-            cv2.accumulate(self.lens.image(rgba, cv2.scaleAdd(du, -step, base_u),
-                                           cv2.scaleAdd(dv, -step, base_v)), total)
-        return total[..., :3] * (1.0 / (255.0 * samples))
+            cv2.scaleAdd(du, -step, base_u, dst=self._map_u)
+            cv2.scaleAdd(dv, -step, base_v, dst=self._map_v)
+            cv2.accumulate(self.lens.image(rgba, self._map_u, self._map_v, out=self._sample),
+                           total)
+        return self._radiance_of(total, 1.0 / (255.0 * samples))
+
+    def _radiance_of(self, rgba: np.ndarray, scale: float) -> np.ndarray:
+        """The colour channels of ``rgba`` times ``scale``, into the radiance buffer (a
+        contiguous copy first: numpy is several times slower on the strided view)."""
+        colour = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB,
+                              dst=self._radiance if rgba.dtype == np.float32 else None)
+        return np.multiply(colour, np.float32(scale), out=self._radiance)
 
     def _flow(self, depth: np.ndarray, v_C, w_C) -> tuple[np.ndarray, np.ndarray]:
         """The image's velocity in render pixels per second on the coarse grid."""
@@ -332,15 +356,20 @@ class CameraSensor:
         return dx * np.float32(wide.fx), dy * np.float32(wide.fy)
 
     def _expose(self, radiance: np.ndarray, exposure: Exposure) -> np.ndarray:
-        """8-bit values of the image's radiance (module docstring, steps 3 and 4)."""
+        """8-bit values of the image's radiance (module docstring, steps 3 and 4); works in
+        ``radiance``'s buffer."""
         o = self.options
-        electrons = radiance * (self._vignette * (self.scene_scale * exposure.time_s
-                                                  / REFERENCE_EXPOSURE_S
-                                                  * o.full_well_electrons))
+        electrons_at_unity = (self.scene_scale * exposure.time_s / REFERENCE_EXPOSURE_S
+                              * o.full_well_electrons)
+        gain = np.multiply(self._vignette, np.float32(electrons_at_unity), out=self._scratch)
+        electrons = np.multiply(radiance, gain, out=radiance)
         start = int(self._rng.integers(0, self._noise.size - radiance.size + 1))
         noise = self._noise[start:start + radiance.size].reshape(radiance.shape)
-        electrons += np.sqrt(electrons + o.read_noise_electrons ** 2) * noise
-        return cv2.convertScaleAbs(np.maximum(electrons, 0.0),
+        deviation = np.add(electrons, np.float32(o.read_noise_electrons ** 2),
+                           out=self._scratch)
+        np.sqrt(deviation, out=deviation)
+        electrons += np.multiply(deviation, noise, out=deviation)
+        return cv2.convertScaleAbs(np.maximum(electrons, 0.0, out=electrons),
                                    alpha=255.0 * exposure.gain / o.full_well_electrons)
 
 
