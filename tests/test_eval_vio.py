@@ -33,9 +33,11 @@ def _position(t: float) -> np.ndarray:
     return np.array([3.0 * math.cos(t), 3.0 * math.sin(t), 0.5 * t])
 
 
-def _write_dataset(root, seconds: float = 4.0, image_size: tuple[int, int] = (24, 32)):
+def _write_dataset(root, seconds: float = 4.0, image_size: tuple[int, int] = (24, 32),
+                   late_frame: bool = False):
     """IMU and ground truth at 200 Hz, frames with a 2 m depth image (NaN on the left 4
-    columns) at 20 Hz."""
+    columns) at 20 Hz; ``late_frame``: one more frame 15 ms after the last sample, as a camera
+    stamping late delivers."""
     rng = np.random.default_rng(0)
     depth = np.full((24, 32), 2.0, dtype=np.float32)
     depth[:, :4] = np.nan
@@ -48,6 +50,9 @@ def _write_dataset(root, seconds: float = 4.0, image_size: tuple[int, int] = (24
             if k % 10 == 0:
                 writer.add_frame(t_ns, rng.integers(0, 256, (*image_size, 3), dtype=np.uint8),
                                  depth)
+        if late_frame:
+            writer.add_frame(t_ns + 15_000_000,
+                             rng.integers(0, 256, (*image_size, 3), dtype=np.uint8), depth)
 
 
 def _landmark_errors(data) -> np.ndarray:
@@ -224,6 +229,14 @@ def test_each_frame_comes_after_every_imu_sample_up_to_its_time_and_its_exposure
         assert fed == pytest.approx([0.005 * i for i in range(len(fed))])  # each once, in order
 
 
+def test_a_frame_stamped_after_the_ground_truth_ends_is_run(tmp_path):
+    """A late-stamping camera's last frame can pass the last ground-truth sample: the VINS
+    takes it, and the track error, which needs the true pose, skips it."""
+    _write_dataset(tmp_path, seconds=1.0, late_frame=True)
+    result = evaluate_vio(tmp_path, VinsOptions(), consistency=False)
+    assert result["frames"] == 22
+
+
 def test_an_image_of_the_wrong_size_is_named(tmp_path):
     _write_dataset(tmp_path, seconds=0.1, image_size=(12, 16))
     with pytest.raises(EvaluationError, match=r"\.png: image is 16x12, the camera's "
@@ -298,7 +311,7 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
                "depth_rel_err_median", "frontend_ms_median", "backend_ms_median",
                "backend_ms_p95", "correction_m_median", "correction_m_max",
                "nees_pose_mean", "nees_pose_median", "nees_velocity_mean",
-               "nees_velocity_median")
+               "nees_velocity_median", "track_error_px_median", "track_error_px_p90")
     assert set(result) >= {"dataset", "frames", "keyframes", "depth_points", "resets",
                            "health", "init", *numbers}
     assert result["frames"] == 161 and 0 < result["keyframes"] <= 161
@@ -307,6 +320,10 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
     assert result["nees_keyframes"] == result["keyframes"] - result["nees_refused"]
     assert result["depth_points"] > 0 and result["resets"] >= len(result["rebuilds"])
     assert result["init"]["gravity_err_deg"] < 1.0
+    # Lucas-Kanade on the rendered mine: sub-pixel, the oldest tracks strayed furthest
+    assert result["track_error_px_median"] < 1.0
+    by_age = [b["median_px"] for b in result["track_error_by_age"] if b["observations"]]
+    assert len(by_age) == len(result["track_error_by_age"]) and by_age[-1] == max(by_age)
 
 
 def test_without_consistency_the_same_run_is_scored_without_the_nees(simulated):

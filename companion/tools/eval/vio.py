@@ -29,6 +29,7 @@ from autonomy.trajectory import (
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.time_offset import TimeOffset
 from companion.report import finite_or_none, median_or_none, show
+from companion.tools.eval.tracks import TrackErrors, track_error_summary
 from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
     read_groundtruth, read_imu, read_imu_noise,
@@ -148,6 +149,8 @@ class VioTrace:
     corrections_m: list[float] = field(default_factory=list)
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
+    track_errors_px: list[float] = field(default_factory=list)
+    track_ages: list[int] = field(default_factory=list)
 
 
 def read_vio_dataset(root: Path) -> VioDataset:
@@ -193,6 +196,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     vins = build_vins(data, options, frontend=frontend, static=static)
     trace = VioTrace()
     imu = ImuFeed(data)
+    tracking = TrackErrors(stream.camera, stream.distortion, stream.T_B_C)
+    truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     for frame in vio_frames(data, max_frames):
         imu.before_frame(vins, frame.t)
         start = time.perf_counter()
@@ -206,11 +211,16 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
                                           trace.keyframes[-1] if trace.keyframes else None))
         if update.keyframe:
             trace.keyframes.append(_newest_keyframe(vins, consistency))
-        if update.sparse_map is not None and frame.depth_path is not None:
-            depth = read_frame_depth(frame.depth_path, stream.camera)
+        born = bool((np.asarray(tracks.ages) == 1).any())
+        depth = read_frame_depth(frame.depth_path, stream.camera) \
+            if frame.depth_path is not None and (born or update.sparse_map is not None) else None
+        if truth_t[0] <= frame.t <= truth_t[-1]:  # a late stamp can pass the truth's end
+            tracking.observe(tracks, _true_pose(frame.t, truth_t, data.truth), depth)
+        if update.sparse_map is not None and depth is not None:
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
     trace.time_offset = vins.time_offset
+    trace.track_errors_px, trace.track_ages = tracking.errors_px, tracking.ages
     return trace
 
 
@@ -247,7 +257,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     truth, and ``scale`` its signed ``1 / s``, the estimate's size over the truth's (above 1:
     the VINS overestimates distances, and depths with them);
     ``distance_m``: ground-truth path length over those frames. ``depth_rel_err_median``:
-    median of the traced depth errors (None when the dataset has no ``depth0``). Back-end times
+    median of the traced depth errors (None when the dataset has no ``depth0``);
+    ``track_error_*``: the front-end's tracks against the truth
+    (:mod:`companion.tools.eval.tracks`; None without ``depth0``). Back-end times
     are over the keyframes (where the smoother ran), as are ``correction_m_median`` and
     ``correction_m_max`` (how far the smoother moved a keyframe from the IMU's propagation,
     metres). ``nees_pose_*``/``nees_velocity_*``: mean and median NEES of the newest
@@ -268,6 +280,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "rebuilds": [_rebuild_report(rebuild, truth_t, data.truth) for rebuild in trace.rebuilds],
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
+        **track_error_summary(trace.track_errors_px, trace.track_ages),
         "resets": int(trace.resets),
         "correction_m_median": median_or_none(trace.corrections_m),
         "correction_m_max": max(trace.corrections_m, default=None),
@@ -443,6 +456,12 @@ def _rebuild_report(rebuild: Rebuild, truth_t: np.ndarray, truth: GroundTruthTab
             "accel_bias_error_m_s2": float(np.linalg.norm(before.accel_bias - true_bias))}
 
 
+def _true_pose(t: float, truth_t: np.ndarray, truth: GroundTruthTable) -> np.ndarray:
+    """The true body pose ``T_W_B`` (4x4) at time ``t``, interpolated."""
+    positions, quaternions = interpolate_poses([t], truth_t, truth.position, truth.q_W_B)
+    return make_pose(quat_to_rot(quaternions[0]), positions[0])
+
+
 def _truth_at(t: float, truth_t: np.ndarray, table: np.ndarray) -> np.ndarray:
     """A ground-truth vector table (N, k) interpolated at time ``t``, column by column."""
     return np.array([np.interp(t, truth_t, column) for column in table.T])
@@ -507,6 +526,10 @@ def format_vio_report(result: dict) -> str:
         f"{result['nees_keyframes']} keyframes",
         f"depth: median relative error {show(result['depth_rel_err_median'], '.1%')} over "
         f"{result['depth_points']} landmarks",
+        f"tracks: {show(result['track_error_px_median'], '.2f', ' px')} median error against "
+        "the truth ("
+        + ", ".join(f"{bin_['ages']} frames old {show(bin_['median_px'], '.2f', ' px')}"
+                    for bin_ in result["track_error_by_age"]) + ")",
         "init: none" if init is None else
         f"init at t={init['t']:.2f} s: gravity error "
         f"{show(init['gravity_err_deg'], '.2f', ' deg')}, gyro bias error "

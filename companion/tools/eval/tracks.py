@@ -1,0 +1,92 @@
+"""How far the front-end's tracks stray from the points they were born on: ``eval vio``'s
+track error.
+
+A track born on a pixel of a frame whose ground-truth depth is known names a 3-D point: the
+pixel's undistorted ray ``(x, y, 1)`` times the true z-depth ``z`` there, carried into the
+world by that frame's true camera pose, ``P_W = T_W_C (x z, y z, z)``. In every later frame of
+the track, its error is the tracked pixel minus ``P_W`` projected through that frame's true
+pose and the lens. This is Lucas-Kanade's drift and noise alone, before RANSAC's and the
+smoother's judgement, where the VINS's own reprojection residuals cannot tell a tracker that
+slides from a map that bends to follow it.
+
+The true pose is the body's ground truth at the frame's stamp with the configured mounting.
+A realistic recording's hidden calibration errors (the mounting, the camera's clock) move a
+track's birth point and its later projections alike, so measured from its own start they
+cancel to first order, and the error is the tracker's. Tracks born where the depth is
+unknown (sky, a frame without a depth image) are not scored.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from autonomy.geometry import PinholeCamera, distort_points
+
+#: Track ages (frames seen, the birth frame being 1) over which errors are summarised:
+#: ``[low, high)``; ``None`` is no upper bound.
+AGE_BINS = ((2, 5), (5, 10), (10, 20), (20, None))
+
+
+class TrackErrors:
+    """The track error of every frame of a run, gathered frame by frame (module docstring);
+    ``camera``, ``distortion`` and ``T_B_C`` are the dataset's calibration."""
+
+    def __init__(self, camera: PinholeCamera, distortion, T_B_C: np.ndarray):
+        self.camera, self.distortion = camera, tuple(distortion)
+        self.T_B_C = np.asarray(T_B_C, dtype=float)
+        self._births: dict[int, np.ndarray] = {}  # track id -> world point
+        self.errors_px: list[float] = []
+        self.ages: list[int] = []
+
+    def observe(self, tracks, T_W_B: np.ndarray, depth: np.ndarray | None) -> None:
+        """Score one frame's ``tracks`` (:class:`~autonomy.vins.frontend.Tracks`) at the true
+        body pose ``T_W_B``; ``depth``, the frame's true z-depth image (NaN unknown) or None,
+        names the points of the tracks born in it."""
+        T_W_C = np.asarray(T_W_B, dtype=float) @ self.T_B_C
+        ids = np.asarray(tracks.ids)
+        alive = set(ids.tolist())
+        self._births = {i: p for i, p in self._births.items() if i in alive}
+        born = np.asarray(tracks.ages) == 1
+        if depth is not None and born.any():
+            self._name_points(ids[born], np.asarray(tracks.pixels)[born],
+                              np.asarray(tracks.normalised)[born], T_W_C, depth)
+        scored = np.array([not b and i in self._births for i, b in zip(ids.tolist(), born)],
+                          dtype=bool)
+        if scored.any():
+            points_W = np.array([self._births[i] for i in ids[scored].tolist()])
+            points_C = (points_W - T_W_C[:3, 3]) @ T_W_C[:3, :3]
+            ahead = points_C[:, 2] > 0.0
+            projected = distort_points(self.camera, self.distortion,
+                                       points_C[ahead, :2] / points_C[ahead, 2:])
+            error = np.linalg.norm(np.asarray(tracks.pixels)[scored][ahead] - projected, axis=1)
+            self.errors_px.extend(error.tolist())
+            self.ages.extend(np.asarray(tracks.ages)[scored][ahead].tolist())
+
+    def _name_points(self, ids, pixels, normalised, T_W_C, depth) -> None:
+        height, width = depth.shape
+        columns = np.clip(np.rint(pixels[:, 0]).astype(int), 0, width - 1)
+        rows = np.clip(np.rint(pixels[:, 1]).astype(int), 0, height - 1)
+        z = depth[rows, columns]
+        known = np.isfinite(z) & (z > 0.0) & np.isfinite(normalised).all(axis=1)
+        points_C = np.column_stack([normalised[known] * z[known, None], z[known]])
+        points_W = points_C @ T_W_C[:3, :3].T + T_W_C[:3, 3]
+        self._births.update(zip(ids[known].tolist(), points_W))
+
+
+def track_error_summary(errors_px, ages) -> dict:
+    """``track_error_px_median`` and ``_p90`` over the scored observations (``errors_px``,
+    pixels, of tracks ``ages`` frames old; None when there are none) and
+    ``track_error_by_age``: for each of :data:`AGE_BINS`, the ages, the count and the
+    median."""
+    errors, ages = np.asarray(errors_px, dtype=float), np.asarray(ages)
+    by_age = []
+    for low, high in AGE_BINS:
+        chosen = (ages >= low) & (ages < (np.inf if high is None else high))
+        by_age.append({"ages": f"{low}+" if high is None else f"{low}-{high - 1}",
+                       "observations": int(chosen.sum()),
+                       "median_px": float(np.median(errors[chosen])) if chosen.any() else None})
+    return {
+        "track_error_px_median": float(np.median(errors)) if len(errors) else None,
+        "track_error_px_p90": float(np.percentile(errors, 90)) if len(errors) else None,
+        "track_error_by_age": by_age,
+    }

@@ -1,0 +1,121 @@
+"""`eval vio`'s track error (companion/tools/eval/tracks.py): the front-end's tracks against
+the truth, through a real lens model, on a camera flying past a wall at a known depth."""
+
+import math
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import PinholeCamera, distort_points, make_pose, rot_z, undistort_points
+from autonomy.vins.frontend import Tracks
+from companion.tools.eval.tracks import AGE_BINS, TrackErrors, track_error_summary
+
+CAMERA = PinholeCamera.from_hfov(160, 120, math.radians(90.0))
+RADTAN = (-0.28, 0.07, 2e-4, 2e-5)
+#: Optical frame looking along body x (z forward, x right, y down).
+T_B_C = np.array([[0.0, 0.0, 1.0, 0.1], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.05],
+                  [0.0, 0.0, 0.0, 1.0]])
+WALL_X = 6.0  # a wall across the way, in the world, 6 m ahead of the start
+
+
+def body_pose(k: int) -> np.ndarray:
+    """Flying forward 5 cm a frame, turning 0.01 rad a frame."""
+    return make_pose(rot_z(0.01 * k), np.array([0.05 * k, 0.02 * k, 1.5]))
+
+
+def wall_depth(T_W_B: np.ndarray) -> np.ndarray:
+    """The true z-depth image of :data:`WALL_X` seen through the radtan lens."""
+    T_W_C = T_W_B @ T_B_C
+    grid = np.stack(np.meshgrid(np.arange(CAMERA.width, dtype=float),
+                                np.arange(CAMERA.height, dtype=float)), -1).reshape(-1, 2)
+    rays_C = np.column_stack([undistort_points(CAMERA, RADTAN, grid), np.ones(len(grid))])
+    rays_W = rays_C @ T_W_C[:3, :3].T
+    scale = (WALL_X - T_W_C[0, 3]) / rays_W[:, 0]  # z-depth: the ray's length along z is 1
+    return scale.reshape(CAMERA.height, CAMERA.width).astype(np.float32)
+
+
+def wall_point(pixel, T_W_B) -> np.ndarray:
+    T_W_C = T_W_B @ T_B_C
+    ray_W = T_W_C[:3, :3] @ np.r_[undistort_points(CAMERA, RADTAN, [pixel])[0], 1.0]
+    return T_W_C[:3, 3] + ray_W * (WALL_X - T_W_C[0, 3]) / ray_W[0]
+
+
+def tracks_of(points_W, T_W_B, ages, ids, shift=(0.0, 0.0)) -> Tracks:
+    """The tracks of world points seen from ``T_W_B`` through the lens, the pixels moved by
+    ``shift`` on every track older than its birth frame."""
+    T_C_W = np.linalg.inv(T_W_B @ T_B_C)
+    points_C = points_W @ T_C_W[:3, :3].T + T_C_W[:3, 3]
+    normalised_true = points_C[:, :2] / points_C[:, 2:]
+    pixels = distort_points(CAMERA, RADTAN, normalised_true)
+    pixels = pixels + np.where(np.asarray(ages)[:, None] > 1, shift, 0.0)
+    return Tracks(0, np.asarray(ids), pixels, undistort_points(CAMERA, RADTAN, pixels),
+                  np.asarray(ages))
+
+
+BIRTH_PIXELS = np.array([[40.0, 30.0], [80.0, 60.0], [120.0, 90.0], [20.0, 100.0]])
+
+
+def fly(frames: int, shift=(0.0, 0.0)) -> TrackErrors:
+    """Four tracks born in frame 0 on the wall, followed for ``frames`` frames."""
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    points_W = np.array([wall_point(p, body_pose(0)) for p in BIRTH_PIXELS])
+    for k in range(frames):
+        ages = np.full(len(points_W), k + 1)
+        pose = body_pose(k)
+        errors.observe(tracks_of(points_W, pose, ages, np.arange(4), shift), pose,
+                       wall_depth(pose) if k == 0 else None)
+    return errors
+
+
+def test_exact_tracks_through_a_lens_have_no_error():
+    errors = fly(12)
+    assert len(errors.errors_px) == 4 * 11
+    # the birth depth is read at the nearest pixel, so the points are named to a few
+    # hundredths of a pixel
+    assert max(errors.errors_px) < 0.05
+
+
+def test_a_tracker_that_slides_half_a_pixel_is_measured_at_half_a_pixel():
+    errors = fly(25, shift=(0.3, -0.4))
+    summary = track_error_summary(errors.errors_px, errors.ages)
+    assert summary["track_error_px_median"] == pytest.approx(0.5, abs=0.05)
+    counts = {b["ages"]: b["observations"] for b in summary["track_error_by_age"]}
+    assert counts == {"2-4": 12, "5-9": 20, "10-19": 40, "20+": 24}
+    assert all(b["median_px"] == pytest.approx(0.5, abs=0.05)
+               for b in summary["track_error_by_age"])
+
+
+def test_tracks_born_on_unknown_depth_or_without_a_depth_image_are_not_scored():
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    pose0, pose1 = body_pose(0), body_pose(1)
+    points_W = np.array([wall_point(p, pose0) for p in BIRTH_PIXELS])
+    depth = wall_depth(pose0)
+    depth[:, :70] = np.nan  # the first and last birth pixels are on unknown depth
+    errors.observe(tracks_of(points_W, pose0, [1, 1, 1, 1], [0, 1, 2, 3]), pose0, depth)
+    # a track born in a frame without a depth image is never scored either
+    later = np.vstack([points_W, wall_point([60.0, 60.0], pose1)])
+    errors.observe(tracks_of(later, pose1, [2, 2, 2, 2, 1], [0, 1, 2, 3, 4]), pose1, None)
+    errors.observe(tracks_of(later, body_pose(2), [3, 3, 3, 3, 2], [0, 1, 2, 3, 4]),
+                   body_pose(2), wall_depth(body_pose(2)))
+    assert errors.ages == [2, 2, 3, 3]
+
+
+def test_an_ended_track_is_forgotten_and_a_point_behind_the_camera_is_skipped():
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    pose = body_pose(0)
+    points_W = np.array([wall_point(p, pose) for p in BIRTH_PIXELS])
+    errors.observe(tracks_of(points_W, pose, [1, 1, 1, 1], [0, 1, 2, 3]), pose, wall_depth(pose))
+    errors.observe(tracks_of(points_W[:2], pose, [2, 2], [0, 1]), pose, None)  # 2 and 3 end
+    assert sorted(errors._births) == [0, 1]
+    turned = pose @ make_pose(rot_z(math.pi), np.zeros(3))  # the wall now behind
+    pixels = Tracks(0, np.array([0, 1]), BIRTH_PIXELS[:2], undistort_points(
+        CAMERA, RADTAN, BIRTH_PIXELS[:2]), np.array([3, 3]))
+    errors.observe(pixels, turned, None)
+    assert errors.ages == [2, 2]
+
+
+def test_no_scored_track_gives_none_and_empty_bins():
+    summary = track_error_summary([], [])
+    assert summary["track_error_px_median"] is None and summary["track_error_px_p90"] is None
+    assert [b["observations"] for b in summary["track_error_by_age"]] == [0] * len(AGE_BINS)
+    assert all(b["median_px"] is None for b in summary["track_error_by_age"])
