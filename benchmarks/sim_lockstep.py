@@ -28,13 +28,12 @@ import numpy as np
 
 from drivers.camera.options import CameraOptions
 from drivers.sim import record
-from drivers.sim.camera import CameraHead
 from drivers.sim.imu import ImuOptions
 from drivers.sim.mock_px4 import Px4Options
 from drivers.sim.render import Renderer
 from drivers.sim.serve import serve
 from drivers.sim.quadrotor import VehicleOptions
-from drivers.sim.sensor import SensorOptions
+from drivers.sim.sensor import Lens, SensorOptions
 from drivers.sim.world import WORLD_NAMES, build_world
 
 
@@ -70,9 +69,8 @@ def time_flight(world, renderer, duration: float, profile: str = "ideal") -> flo
 
 def realistic_renderer(name: str) -> Renderer:
     """The realistic world ``name``, drawn wide enough for the realistic camera's lens."""
-    camera = CameraOptions()
-    head = CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), SensorOptions(), name)
-    return Renderer(build_world(name, 0, "realistic"), head.render_camera)
+    lens = Lens(CameraOptions().pinhole(), SensorOptions().distortion)
+    return Renderer(build_world(name, 0, "realistic"), lens.render_camera)
 
 
 def time_serve(world, duration: float) -> float:

@@ -100,6 +100,28 @@ def test_tracks_born_on_unknown_depth_or_without_a_depth_image_are_not_scored():
     assert errors.ages == [2, 2, 3, 3]
 
 
+def test_a_track_born_on_a_depth_edge_is_not_scored():
+    """A corner on the edge of a near surface may read the far one's depth: not named."""
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    pose = body_pose(0)
+    depth = wall_depth(pose)
+    depth[:, 81:] *= 3.0  # a step in depth between columns 80 and 81
+    pixels = np.array([[80.4, 60.0], [40.0, 60.0], [120.0, 60.0]])  # on the edge, off it
+    points_W = np.array([wall_point(p, pose) for p in pixels])
+    errors.observe(tracks_of(points_W, pose, [1, 1, 1], [0, 1, 2]), pose, depth)
+    errors.observe(tracks_of(points_W, body_pose(1), [2, 2, 2], [0, 1, 2]), body_pose(1), None)
+    assert len(errors.errors_px) == 2  # tracks 1 and 2, named on either side of the edge
+
+
+def test_a_depth_image_of_another_size_is_refused():
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    pose = body_pose(0)
+    points_W = np.array([wall_point(p, pose) for p in BIRTH_PIXELS])
+    with pytest.raises(ValueError, match="depth image of 80x60 for a 160x120 camera"):
+        errors.observe(tracks_of(points_W, pose, [1, 1, 1, 1], [0, 1, 2, 3]), pose,
+                       np.ones((60, 80), np.float32))
+
+
 def test_an_ended_track_is_forgotten_and_a_point_behind_the_camera_is_skipped():
     errors = TrackErrors(CAMERA, RADTAN, T_B_C)
     pose = body_pose(0)

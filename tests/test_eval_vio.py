@@ -235,6 +235,7 @@ def test_a_frame_stamped_after_the_ground_truth_ends_is_run(tmp_path):
     _write_dataset(tmp_path, seconds=1.0, late_frame=True)
     result = evaluate_vio(tmp_path, VinsOptions(), consistency=False)
     assert result["frames"] == 22
+    assert {"track_error_px_median", "track_error_px_p90", "track_error_by_age"} <= set(result)
 
 
 def test_an_image_of_the_wrong_size_is_named(tmp_path):
@@ -320,10 +321,10 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
     assert result["nees_keyframes"] == result["keyframes"] - result["nees_refused"]
     assert result["depth_points"] > 0 and result["resets"] >= len(result["rebuilds"])
     assert result["init"]["gravity_err_deg"] < 1.0
-    # Lucas-Kanade on the rendered mine: sub-pixel, the oldest tracks strayed furthest
+    # Lucas-Kanade on the rendered mine: sub-pixel, and drifting as a track ages
     assert result["track_error_px_median"] < 1.0
-    by_age = [b["median_px"] for b in result["track_error_by_age"] if b["observations"]]
-    assert len(by_age) == len(result["track_error_by_age"]) and by_age[-1] == max(by_age)
+    by_age = [b["median_px"] for b in result["track_error_by_age"]]
+    assert None not in by_age and by_age[0] < by_age[-1]
 
 
 def test_without_consistency_the_same_run_is_scored_without_the_nees(simulated):

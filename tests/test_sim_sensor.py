@@ -151,20 +151,6 @@ def moving_scene(s: CameraSensor, seed: int):
     return rgb, depth
 
 
-def test_a_four_channel_render_gives_the_frame_its_colour_channels_give():
-    """The camera head hands the sensor the renderer's RGBA read (no conversion): the same
-    frame, bit for bit, as the RGB render, blurred, through the lens, with noise."""
-    options = SensorOptions(time_offset_ms=0.0, distortion=(-0.28, 0.07, 0.0, 0.0))
-    twist = np.array([1.5, 0.2, 0.5]), np.array([0.1, 0.4, 0.2])
-    rgb, depth = moving_scene(sensor(options), 0)
-    from_rgb = sensor(options).capture(0.0, rgb, depth, *twist)
-    rgba = cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA)
-    from_rgba = sensor(options).capture(0.0, rgba, depth, *twist)
-    assert from_rgb.exposure.time_s > 0.0
-    np.testing.assert_array_equal(from_rgba.image, from_rgb.image)
-    np.testing.assert_array_equal(from_rgba.depth, from_rgb.depth)
-
-
 def test_a_frame_is_not_changed_by_the_next_capture():
     """The sensor reuses its working buffers frame to frame; what it delivers is the frame's
     own."""

@@ -211,10 +211,12 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
                                           trace.keyframes[-1] if trace.keyframes else None))
         if update.keyframe:
             trace.keyframes.append(_newest_keyframe(vins, consistency))
-        born = bool((np.asarray(tracks.ages) == 1).any())
-        depth = read_frame_depth(frame.depth_path, stream.camera) \
-            if frame.depth_path is not None and (born or update.sparse_map is not None) else None
-        if truth_t[0] <= frame.t <= truth_t[-1]:  # a late stamp can pass the truth's end
+        truth_known = truth_t[0] <= frame.t <= truth_t[-1]  # a late stamp can pass its end
+        born = truth_known and bool((np.asarray(tracks.ages) == 1).any())
+        depth = None
+        if frame.depth_path is not None and (born or update.sparse_map is not None):
+            depth = read_frame_depth(frame.depth_path, stream.camera)
+        if truth_known:
             tracking.observe(tracks, _true_pose(frame.t, truth_t, data.truth), depth)
         if update.sparse_map is not None and depth is not None:
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
