@@ -317,8 +317,10 @@ class CameraSensor:
         o = self.options
         readout = o.rolling_shutter_ms * 1e-3
         span = exposure_s if o.motion_blur else 0.0
+        self._total.fill(0.0)
         if not (span or readout):
-            return self._radiance_of(self.lens.image(rgba, out=self._sample), 1.0 / 255.0)
+            self._add_copy(rgba, self.lens.map_u, self.lens.map_v)
+            return self._radiance_of(1)
         coarse_du, coarse_dv = self._flow(depth, v_C, w_C)
         longest = float(np.sqrt(coarse_du ** 2 + coarse_dv ** 2).max()) * span
         samples = int(np.clip(math.ceil(longest / BLUR_SAMPLE_SPACING), 1, MAX_BLUR_SAMPLES))
@@ -329,22 +331,23 @@ class CameraSensor:
         if readout:  # the maps at each row's readout instant
             base_u = base_u - du * (self._row_offset * readout)
             base_v = base_v - dv * (self._row_offset * readout)
-        total = self._total
-        total.fill(0.0)
         for k in range(samples):
             step = span * ((k + 0.5) / samples - 0.5)
             cv2.scaleAdd(du, -step, base_u, dst=self._map_u)
             cv2.scaleAdd(dv, -step, base_v, dst=self._map_v)
-            cv2.accumulate(self.lens.image(rgba, self._map_u, self._map_v, out=self._sample),
-                           total)
-        return self._radiance_of(total, 1.0 / (255.0 * samples))
+            self._add_copy(rgba, self._map_u, self._map_v)
+        return self._radiance_of(samples)
 
-    def _radiance_of(self, rgba: np.ndarray, scale: float) -> np.ndarray:
-        """The colour channels of ``rgba`` times ``scale``, into the radiance buffer (a
-        contiguous copy first: numpy is several times slower on the strided view)."""
-        colour = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB,
-                              dst=self._radiance if rgba.dtype == np.float32 else None)
-        return np.multiply(colour, np.float32(scale), out=self._radiance)
+    def _add_copy(self, rgba: np.ndarray, map_u: np.ndarray, map_v: np.ndarray) -> None:
+        """Add the render warped by the maps to the copies' sum."""
+        cv2.accumulate(self.lens.image(rgba, map_u, map_v, out=self._sample), self._total)
+
+    def _radiance_of(self, samples: int) -> np.ndarray:
+        """The mean of the ``samples`` copies summed, colour channels only, 0..1, into the
+        radiance buffer (a contiguous copy first: numpy is several times slower on the
+        strided view)."""
+        colour = cv2.cvtColor(self._total, cv2.COLOR_RGBA2RGB, dst=self._radiance)
+        return np.multiply(colour, np.float32(1.0 / (255.0 * samples)), out=self._radiance)
 
     def _flow(self, depth: np.ndarray, v_C, w_C) -> tuple[np.ndarray, np.ndarray]:
         """The image's velocity in render pixels per second on the coarse grid."""
