@@ -314,7 +314,7 @@ def test_the_vins_on_a_simulated_flight_reports_every_metric(simulated, capsys):
                "nees_pose_mean", "nees_pose_median", "nees_velocity_mean",
                "nees_velocity_median", "track_error_px_median", "track_error_px_p90")
     assert set(result) >= {"dataset", "frames", "keyframes", "depth_points", "resets",
-                           "health", "init", *numbers}
+                           "health", "init", "drag_fit", *numbers}
     assert result["frames"] == 161 and 0 < result["keyframes"] <= 161
     assert all(isinstance(result[key], float) and result[key] >= 0.0 for key in numbers)
     assert sum(result["health"].values()) == 161
@@ -337,3 +337,21 @@ def test_without_consistency_the_same_run_is_scored_without_the_nees(simulated):
         {k: v for k, v in full.items() if k not in nees | timing}
     assert quick["nees_keyframes"] == 0 and quick["nees_pose_median"] is None
     assert full["nees_keyframes"] > 0
+
+
+def test_a_scale_that_grows_through_the_flight_shows_window_by_window(tmp_path):
+    """A trajectory whose size grows from the truth's at the start to 6 % over it at the end
+    (as the mine's shrinks) scores a scale that rises window by window."""
+    _write_dataset(tmp_path, seconds=20.0)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 401)
+    known = [k for k, p in enumerate(trace.positions) if p is not None]
+    start, end = trace.t[known[0]], trace.t[known[-1]]
+    growth = lambda t: 1.0 + 0.06 * (t - start) / (end - start)  # noqa: E731
+    origin = np.asarray(trace.positions[known[0]])
+    trace.positions = [None if p is None else origin + growth(t) * (np.asarray(p) - origin)
+                       for t, p in zip(trace.t, trace.positions)]
+    windows = score_vio(trace, data)["scale_by_time"]
+    assert len(windows) >= 2
+    scales = [w["scale"] for w in windows]
+    assert scales == sorted(scales) and scales[0] < 1.03 < scales[-1]

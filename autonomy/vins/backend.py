@@ -13,6 +13,8 @@ Factors:
   good estimate;
 - on a keyframe taken standing still, a prior ``V(k) = 0`` (``zero_velocity_sigma``;
   :mod:`autonomy.vins.stillness`);
+- with ``drag_coefficient`` above 0 (off by default: docs/vins.md), on every keyframe interval
+  not standing still, the rotor drag's reading of the speed (:mod:`autonomy.vins.drag`);
 - with ``keyframe_prior_position_sigma`` above 0 (off by default: docs/vins.md, the resets,
   for what it costs), a loose prior on every new keyframe's pose at its IMU prediction.
   Position and yaw are unobservable: all the window knows of them is the marginal of the
@@ -44,6 +46,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
+from autonomy.vins.drag import drag_factor
 from autonomy.vins.fixed_lag import FixedLagSmoother
 from autonomy.vins.landmarks import (
     Gate, depth_sigma, gate_candidates, spread_choice, widest_ray_angle,
@@ -405,6 +408,9 @@ class SlidingWindowSmoother:
             graph.add(gtsam.PriorFactorPose3(X(k), predicted.pose(), self._keyframe_prior))
         if still:
             graph.add(gtsam.PriorFactorVector(V(k), np.zeros(3), self._zero_velocity))
+        elif self.options.drag_coefficient > 0.0:
+            graph.add(drag_factor((X(i), V(i), V(k), B(i)), pim, self.options.drag_coefficient,
+                                  self.options.drag_noise, self.options.huber_k))
         self._poses[k] = predicted.pose().matrix()
         return graph, values, {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
 

@@ -30,8 +30,8 @@ class VinsOptions:
                                         "of keyframe time (iSAM2's marginal costs about twice "
                                         "its update; 0: at every keyframe)")
     # --- keyframes
-    keyframe_interval_s: float = option(0.1, gt=0.0, le=5.0, doc="a frame this long after the "
-                                        "last keyframe becomes one, seconds")
+    keyframe_interval_s: float = option(0.15, gt=0.0, le=5.0, doc="the frame nearest this long "
+                                        "after the last keyframe becomes one, seconds")
     keyframe_min_interval_s: float = option(0.045, ge=0.0, le=5.0, doc="no keyframe sooner "
                                             "than this after the last, seconds")
     keyframe_parallax_px: float = option(10.0, gt=0.0, doc="mean feature displacement since "
@@ -44,6 +44,14 @@ class VinsOptions:
     imu_noise_scale: float = option(2.0, ge=1.0, le=100.0, doc="multiplies the IMU's white-noise"
                                     " and random-walk densities (datasheet values are "
                                     "optimistic on a vehicle with rotors)")
+    drag_coefficient: float = option(0.0, ge=0.0, le=5.0, doc="the vehicle's rotor drag "
+                                     "per unit mass, 1/s (PX4's EKF2_MCOEF; the simulator's "
+                                     "[vehicle] drag): the horizontal specific force then "
+                                     "measures the speed, in still air (autonomy/vins/drag.py; "
+                                     "0: not used)")
+    drag_noise: float = option(0.02, gt=0.0, le=10.0, doc="the drag factor's noise, m/s^2 "
+                               "sqrt(s): its sigma over a keyframe interval dt is this over "
+                               "sqrt(dt) (the rotors' vibration, averaged)")
     keyframe_prior_position_sigma: float = option(0.0, ge=0.0, le=100.0, doc="loose prior "
                                                   "on each new keyframe's position at its IMU "
                                                   "prediction, metres (0: none; 0.1 keeps the "

@@ -29,6 +29,7 @@ from autonomy.trajectory import (
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.time_offset import TimeOffset
 from companion.report import finite_or_none, median_or_none, show
+from companion.tools.eval.drag_fit import fit_drag
 from companion.tools.eval.tracks import TrackErrors, track_error_summary
 from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
@@ -269,6 +270,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     (:func:`_consistency_metrics`); 6 and 3 when the covariance is honest. ``init`` compares
     the static initialisation with the ground truth at its end: the angle between the
     estimated and true up-vectors in the body, and the relative gyro-bias error.
+    ``scale_by_time``: the scale again, over each 8 s of the flight (:func:`_scale_by_time`).
+    ``drag_fit``: the rotor drag coefficient fitted on the estimate
+    (:mod:`companion.tools.eval.drag_fit`; None when the flight is too short).
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
@@ -294,7 +298,19 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "time_offset_ms": 1e3 * trace.time_offset.seconds,
         "time_offset_sigma_ms": None if trace.time_offset.sigma is None
         else 1e3 * trace.time_offset.sigma,
+        "drag_fit": _drag_fit(trace.keyframes, data),
     }
+
+
+def _drag_fit(keyframes: list[KeyframeEstimate], data: VioDataset) -> dict | None:
+    """The rotor drag coefficient fitted on the VINS's own keyframes
+    (:mod:`companion.tools.eval.drag_fit`); None when too few are in flight."""
+    if len(keyframes) < 2:
+        return None
+    fit = fit_drag([k.t for k in keyframes], [k.T_W_B[:3, :3] for k in keyframes],
+                   [k.velocity_W for k in keyframes], _seconds(data.imu.t_ns, data.imu.t_ns[0]),
+                   data.imu.accel)
+    return None if fit is None else fit.as_dict()
 
 
 def _seconds(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
@@ -369,6 +385,13 @@ def depth_relative_errors(sparse_map: SparseMap, depth: np.ndarray) -> np.ndarra
     return np.abs(z[inside][known] - z_gt[known]) / z_gt[known]
 
 
+#: ``scale_by_time``'s windows and the displacement steps within them, seconds, and the least
+#: true distance a window must cover to be scored, metres.
+SCALE_WINDOW_S = 8.0
+SCALE_STEP_S = 1.0
+SCALE_MIN_DISTANCE_M = 2.0
+
+
 def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruthTable) -> dict:
     """ATE (SE(3)), scale error (Sim(3)) and distance over the frames with a pose inside the
     ground truth's time span."""
@@ -383,12 +406,33 @@ def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruth
         scale = align_umeyama(estimated, true_positions, with_scale=True).s
     except ValueError as error:
         return {"ate_rmse_m": None, "distance_m": distance, "ate_over_distance": None,
-                "scale_error": None, "scale": None,
+                "scale_error": None, "scale": None, "scale_by_time": [],
                 "note": f"no trajectory error from {len(chosen)} poses: {error}"}
     return {"ate_rmse_m": ate, "distance_m": distance,
             "ate_over_distance": ate / distance if distance > 0.0 else None,
             "scale_error": finite_or_none(abs(scale - 1.0)),
-            "scale": finite_or_none(1.0 / scale) if scale > 0.0 else None}
+            "scale": finite_or_none(1.0 / scale) if scale > 0.0 else None,
+            "scale_by_time": _scale_by_time(np.array([trace.t[k] for k in chosen]), estimated,
+                                            true_positions)}
+
+
+def _scale_by_time(t: np.ndarray, estimated: np.ndarray, true: np.ndarray) -> list[dict]:
+    """How the estimate's size over the truth's changes through the flight: for each
+    :data:`SCALE_WINDOW_S` of it (``t`` its start), the length of the estimated path sampled
+    every :data:`SCALE_STEP_S` over the true one's (lengths need no alignment). Windows where
+    the truth moved under :data:`SCALE_MIN_DISTANCE_M` are left out."""
+    if len(t) < 2:
+        return []
+    steps = np.searchsorted(t, np.arange(t[0], t[-1], SCALE_STEP_S))
+    per_window = int(round(SCALE_WINDOW_S / SCALE_STEP_S))
+    windows = []
+    for first in range(0, len(steps) - 1, per_window):
+        chosen = steps[first:first + per_window + 1]
+        true_length = path_length(true[chosen])
+        if true_length >= SCALE_MIN_DISTANCE_M:
+            windows.append({"t": float(t[chosen[0]]),
+                            "scale": float(path_length(estimated[chosen]) / true_length)})
+    return windows
 
 
 def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
@@ -521,6 +565,8 @@ def format_vio_report(result: dict) -> str:
         f"{show(result['distance_m'], '.1f', ' m')} "
         f"({show(result['ate_over_distance'], '.2%')}), scale error "
         f"{show(result['scale_error'], '.2%')}{note}",
+        "scale through the flight: " + (", ".join(
+            f"{w['scale']:.3f} from {w['t']:.0f} s" for w in result["scale_by_time"]) or "none"),
         f"consistency: NEES of pose {show(result['nees_pose_mean'], '.1f')} mean, "
         f"{show(result['nees_pose_median'], '.1f')} median (6 if the covariance is honest), of "
         f"velocity {show(result['nees_velocity_mean'], '.1f')} mean, "
@@ -543,6 +589,11 @@ def format_vio_report(result: dict) -> str:
         f"camera-IMU time offset: {result['time_offset_ms']:.2f} ms"
         + ("" if result["time_offset_sigma_ms"] is None
            else f" (sigma {result['time_offset_sigma_ms']:.2f} ms)"),
+        "rotor drag fitted on the estimate: " + (
+            "too few keyframes in flight" if result["drag_fit"] is None else
+            f"{result['drag_fit']['coefficient_per_s']:.3f} 1/s over "
+            f"{result['drag_fit']['intervals']} keyframe intervals (residual "
+            f"{result['drag_fit']['residual_std']:.3f} m/s^2; [vins] drag_coefficient)"),
         *(f"rebuild at t={r['t']:.2f} s near {r['variable'] or '?'}: before it "
           f"{show(r['landmarks'], 'd')} landmarks, position sigma "
           f"{show(r['position_sigma_m'], '.3f', ' m')}, speed error "
