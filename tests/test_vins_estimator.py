@@ -124,27 +124,6 @@ def run(flight) -> Run:
 # ------------------------------------------------------------------ a normal flight
 
 
-def test_stamps_summed_from_simulator_steps_keyframe_like_whole_nanoseconds(flight, run):
-    """A simulator's frame stamps are sums of its 5 ms steps, a hair short of whole frame
-    periods (two 50 ms periods come to 0.09999999999999787 s): the keyframes are still the
-    frames nearest ``keyframe_interval_s`` on, as with a dataset's whole-nanosecond stamps,
-    not one frame later."""
-    summed, stamp, steps = [], 0.0, np.rint(flight.frame_t / 0.005).astype(int)
-    for k in range(steps[-1] + 1):
-        if k in set(steps.tolist()):
-            summed.append(stamp)
-        stamp += 0.005
-    vins, fed, keyframes = flight.vins(), 0, []
-    for k, t in enumerate(summed):
-        fed = flight.feed_imu(vins, fed, flight.frame_t[k])
-        keyframes.append(vins.add_frame(t, run.tracks[k]).keyframe)
-    assert keyframes == [u.keyframe for u in run.updates]
-    taken = np.flatnonzero(keyframes)
-    assert np.median(np.diff(flight.frame_t[taken])) == pytest.approx(
-        VinsOptions().keyframe_interval_s, abs=1e-6)
-
-
-
 def test_nothing_is_estimated_before_the_static_window_is_complete(flight, run):
     window = run.vins.static_options.window_s
     first = next(k for k, u in enumerate(run.updates) if u.T_W_B is not None)
@@ -182,7 +161,7 @@ def test_the_flight_is_tracked_without_loss_or_reset(run):
     assert all(u.health.state in (HealthState.OK, HealthState.DEGRADED) for u in posed)
     assert run.updates[-1].health.state is HealthState.OK
     assert run.vins.resets == 0
-    assert sum(u.keyframe for u in posed) >= 40  # about every 0.15 s
+    assert sum(u.keyframe for u in posed) >= 40  # about every 0.1 s
 
 
 def test_the_position_follows_the_ground_truth(flight, run):
@@ -398,8 +377,7 @@ def keyframe_corrections(updates, after: float = 0.0) -> list[float]:
 def test_the_smoother_moves_keyframes_little_from_the_imu_while_they_agree(run):
     """The keyframe correction (the smoother's position less the IMU's propagation of the
     last keyframe) is the VINS's disagreement with itself: only keyframes carry it, and in
-    a healthy flight it is about a millimetre (measured: median 0.5 mm, largest 3.5 mm, with
-    a keyframe every 0.15 s)."""
+    a healthy flight it is about a millimetre (measured: median 0.3 mm, largest 2.5 mm)."""
     corrections = keyframe_corrections(run.updates)
     assert all(u.correction_m is None for u in run.updates if not u.keyframe)
     assert len(corrections) > 20
@@ -409,24 +387,21 @@ def test_the_smoother_moves_keyframes_little_from_the_imu_while_they_agree(run):
 @pytest.mark.parametrize("step", [1.0, 3.0])
 def test_an_accelerometer_that_shifts_in_flight_shows_as_keyframe_corrections(flight, step):
     """The accelerometer's x reads ``step`` m/s^2 more from 5 s on (a bias shift): the
-    landmarks pull the smoother away from the IMU's propagation, by more than 2 cm and five
-    times the largest correction before (measured with a keyframe every 0.15 s: 3.5 mm
-    before, then up to 29 mm at 1 m/s^2 and 208 mm at 3 m/s^2; every 0.1 s they were 2.5,
-    33 and 144 mm: the IMU carries each keyframe further, so the quiet corrections are
-    larger)."""
+    landmarks pull the smoother away from the IMU's propagation, by more than ten times the
+    largest correction before (measured: 2.5 to 33 mm at 1 m/s^2, to 144 mm at 3 m/s^2)."""
     shifted = dataclasses.replace(
         flight, accel=flight.accel + np.where(flight.imu_t[:, None] > 5.0, [step, 0.0, 0.0], 0.0))
     updates = fly(shifted, shifted.vins(), 8.0)
     before = keyframe_corrections([u for u in updates if u.t <= 5.0])
     after = keyframe_corrections(updates, after=5.0)
-    assert max(after) > max(0.02, 5.0 * max(before)), (before, after)
+    assert max(after) > max(0.02, 10.0 * max(before)), (before, after)
     # Far below the divergence limit (1 m): never LOST.
     assert all(u.health.state is not HealthState.LOST for u in updates)
 
 
 def test_a_keyframe_moved_past_the_divergence_limit_is_lost_at_the_imus_propagation(flight):
     """The divergence check: the same accelerometer shift (3 m/s^2 from 5 s, corrections up
-    to 208 mm) against a 5 cm limit. The first keyframe past it is dropped: LOST with the
+    to 144 mm) against a 5 cm limit. The first keyframe past it is dropped: LOST with the
     correction in the reason, the pose where the IMU's propagation put it, not the jump;
     the VINS then re-initialises there and tracks again. (With the default limit, 1 m, the
     same flight is never LOST: the test above.)"""

@@ -9,9 +9,7 @@ Per frame, once initialised:
 
 1. the body state at the frame time is the last keyframe's smoothed estimate carried forward
    through the IMU (:class:`autonomy.vins.imu_buffer.Propagator`);
-2. the frame becomes a keyframe when it is the frame nearest ``keyframe_interval_s`` after the
-   last keyframe (at least the interval less half the last frame period has passed: a
-   simulator's stamps, sums of its steps, fall a hair short of whole periods), or
+2. the frame becomes a keyframe when ``keyframe_interval_s`` has passed since the last one, or
    sooner (not before ``keyframe_min_interval_s``) when the features have moved by
    ``keyframe_parallax_px`` on average; a keyframe goes to the smoother with the IMU
    preintegrated since the last, and with a zero-velocity prior when the caller says the
@@ -135,7 +133,6 @@ class Vins:
         self._moved = False
         self._update_ms: float | None = None
         self._last_exposure_t = -math.inf
-        self._frame_period = 0.0  # since the previous frame's exposure, seconds
         self._last_offset_s = self.options.time_offset_s
         self._fixed_offset = TimeOffset(self.options.time_offset_s)
         self._offset_estimator = (TimeOffsetEstimator(self.T_B_C, math.sqrt(camera.fx * camera.fy),
@@ -199,8 +196,6 @@ class Vins:
         if exposure <= self._last_exposure_t:  # the estimate moved by more than the frame gap
             offset = replace(offset, seconds=self._last_offset_s)
             exposure = t - offset.seconds
-        self._frame_period = (exposure - self._last_exposure_t
-                              if math.isfinite(self._last_exposure_t) else 0.0)
         self._last_exposure_t, self._last_offset_s = exposure, offset.seconds
         update = self._add_frame_at(exposure, tracks)
         if self._offset_estimator is not None:
@@ -382,7 +377,7 @@ class Vins:
         since = t - self.backend.latest.t
         if since < self.options.keyframe_min_interval_s:
             return False
-        return (since >= self.options.keyframe_interval_s - 0.5 * self._frame_period
+        return (since >= self.options.keyframe_interval_s
                 or self._parallax_px(tracks) >= self.options.keyframe_parallax_px)
 
     def _add_keyframe(self, t: float, tracks: Tracks, predicted: NavState) -> None:

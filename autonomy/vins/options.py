@@ -30,8 +30,8 @@ class VinsOptions:
                                         "of keyframe time (iSAM2's marginal costs about twice "
                                         "its update; 0: at every keyframe)")
     # --- keyframes
-    keyframe_interval_s: float = option(0.15, gt=0.0, le=5.0, doc="the frame nearest this long "
-                                        "after the last keyframe becomes one, seconds")
+    keyframe_interval_s: float = option(0.1, gt=0.0, le=5.0, doc="a frame this long after the "
+                                        "last keyframe becomes one, seconds")
     keyframe_min_interval_s: float = option(0.045, ge=0.0, le=5.0, doc="no keyframe sooner "
                                             "than this after the last, seconds")
     keyframe_parallax_px: float = option(10.0, gt=0.0, doc="mean feature displacement since "
