@@ -40,3 +40,19 @@ def test_a_hover_gives_no_fit():
 
 def test_too_short_a_flight_gives_no_fit():
     assert fit_drag(*flight(seconds=1.0)) is None
+
+
+def test_a_cruise_at_one_speed_gives_no_fit():
+    """At one speed along x and none sideways, ``k`` and the offsets cannot be told apart."""
+    keyframe_t, R_W_B, velocity_W, imu_t, accel = flight()
+    velocity_W[:] = [1.5, 0.0, 0.0]
+    assert fit_drag(keyframe_t, np.broadcast_to(np.eye(3), R_W_B.shape), velocity_W, imu_t,
+                    accel) is None
+
+
+def test_a_sample_that_is_not_finite_costs_its_interval_only():
+    keyframe_t, R_W_B, velocity_W, imu_t, accel = flight()
+    accel[1000] = np.nan
+    fit = fit_drag(keyframe_t, R_W_B, velocity_W, imu_t, accel)
+    assert fit.coefficient == pytest.approx(0.3, rel=0.02)
+    assert fit.intervals == fit_drag(*flight()).intervals - 1

@@ -14,7 +14,8 @@ Factors:
 - on a keyframe taken standing still, a prior ``V(k) = 0`` (``zero_velocity_sigma``;
   :mod:`autonomy.vins.stillness`);
 - with ``drag_coefficient`` above 0 (off by default: docs/vins.md), on every keyframe interval
-  not standing still, the rotor drag's reading of the speed (:mod:`autonomy.vins.drag`);
+  the estimator calls airborne, the rotor drag's reading of the speed
+  (:mod:`autonomy.vins.drag`);
 - with ``keyframe_prior_position_sigma`` above 0 (off by default: docs/vins.md, the resets,
   for what it costs), a loose prior on every new keyframe's pose at its IMU prediction.
   Position and yaw are unobservable: all the window knows of them is the marginal of the
@@ -46,7 +47,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
-from autonomy.vins.drag import drag_factor
+from autonomy.vins.drag import MAX_INTERVAL_S, drag_factor
 from autonomy.vins.fixed_lag import FixedLagSmoother
 from autonomy.vins.landmarks import (
     Gate, depth_sigma, gate_candidates, spread_choice, widest_ray_angle,
@@ -293,10 +294,11 @@ class SlidingWindowSmoother:
         self._landmarks = Landmarks.empty()
 
     def add_keyframe(self, t: float, pim: gtsam.PreintegratedCombinedMeasurements, ids,
-                     normalised, still: bool = False) -> bool:
+                     normalised, still: bool = False, airborne: bool = False) -> bool:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
         features it sees; ``still``: it stands still, and gets a zero-velocity prior
-        (:mod:`autonomy.vins.stillness`). Returns True when the update was used, False when
+        (:mod:`autonomy.vins.stillness`); ``airborne``: it flies, and the interval gets the
+        rotor drag's factor (with ``drag_coefficient``; :mod:`autonomy.vins.drag`). Returns True when the update was used, False when
         it failed and the smoother was rebuilt (a reset; ``last_failure`` says why). Raises
         :class:`BackendError` when even the rebuilt smoother refuses the keyframe."""
         good, good_keyframe = self.latest, self._window[-1]
@@ -306,19 +308,19 @@ class SlidingWindowSmoother:
         good_covariance = self._known_pose_covariance
         keyframe = self._keyframe(good.index + 1, t, ids, normalised)
         try:
-            self._update_with_vision(keyframe, pim, still)
+            self._update_with_vision(keyframe, pim, still, airborne)
             self._check_sane(self.latest)
             return True
         except (RuntimeError, ValueError) as error:
             self.resets += 1
             self.last_failure = f"keyframe {keyframe.index} at t={keyframe.t:.3f}: {error}"
             self._rebuild(good, good_keyframe, GaugeAnchor.at(good, good_covariance), keyframe,
-                          pim, still)
+                          pim, still, airborne)
             return False
 
     def _rebuild(self, good: KeyframeState, good_keyframe: _Keyframe, anchor: GaugeAnchor,
                  keyframe: _Keyframe, pim: gtsam.PreintegratedCombinedMeasurements,
-                 still: bool) -> None:
+                 still: bool, airborne: bool) -> None:
         """Start over from ``good`` with its uncertainty widened (its position and yaw carried
         by ``anchor``), then add ``keyframe`` with its IMU factor only (the observations of
         both are kept for later landmarks)."""
@@ -326,7 +328,7 @@ class SlidingWindowSmoother:
                                               REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
         try:
             self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
-            graph, values, stamps = self._imu_step(keyframe, pim, still)
+            graph, values, stamps = self._imu_step(keyframe, pim, still, airborne)
             self._smoother.update(graph, values, stamps,
                                   eliminate_last=_variables(keyframe.index))
             self._read_estimate(keyframe, self._window + [keyframe])
@@ -394,7 +396,7 @@ class SlidingWindowSmoother:
         order = np.argsort(ids)
         return _Keyframe(index, float(t), ids[order], normalised[order])
 
-    def _imu_step(self, keyframe: _Keyframe, pim, still: bool):
+    def _imu_step(self, keyframe: _Keyframe, pim, still: bool, airborne: bool):
         good = self.latest
         k, i = keyframe.index, good.index
         predicted = pim.predict(gtsam.NavState(gtsam.Pose3(good.T_W_B), good.velocity),
@@ -408,14 +410,16 @@ class SlidingWindowSmoother:
             graph.add(gtsam.PriorFactorPose3(X(k), predicted.pose(), self._keyframe_prior))
         if still:
             graph.add(gtsam.PriorFactorVector(V(k), np.zeros(3), self._zero_velocity))
-        elif self.options.drag_coefficient > 0.0:
+        elif airborne and self.options.drag_coefficient > 0.0 and \
+                pim.deltaTij() <= MAX_INTERVAL_S:
             graph.add(drag_factor((X(i), V(i), V(k), B(i)), pim, self.options.drag_coefficient,
                                   self.options.drag_noise, self.options.huber_k))
         self._poses[k] = predicted.pose().matrix()
         return graph, values, {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
 
-    def _update_with_vision(self, keyframe: _Keyframe, pim, still: bool) -> None:
-        graph, values, stamps = self._imu_step(keyframe, pim, still)
+    def _update_with_vision(self, keyframe: _Keyframe, pim, still: bool,
+                            airborne: bool) -> None:
+        graph, values, stamps = self._imu_step(keyframe, pim, still, airborne)
         window = self._window + [keyframe]
         seen = np.isin(keyframe.ids, self._landmarks.ids)
         tracks, xy = self._consistent_observations(keyframe, seen)

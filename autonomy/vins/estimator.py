@@ -390,7 +390,11 @@ class Vins:
         for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
             pim.integrateMeasurement(accel, gyro, dt)
         still = self._on_ground and self._stillness.still(t, predicted.R_W_B, tracks)
-        if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still):
+        # the drag factor's free flight: off the ground (by the caller) and moved since the
+        # start, so not waiting for the take-off (an armed vehicle just landed still counts)
+        airborne = not self._on_ground and self._moved and not still
+        if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still,
+                                         airborne):
             self._last_reset_t = t
         self.zero_velocity_keyframes += still
         self._keyframe_tracks = tracks

@@ -272,7 +272,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     estimated and true up-vectors in the body, and the relative gyro-bias error.
     ``scale_by_time``: the scale again, over each 8 s of the flight (:func:`_scale_by_time`).
     ``drag_fit``: the rotor drag coefficient fitted on the estimate
-    (:mod:`companion.tools.eval.drag_fit`; None when the flight is too short).
+    (:mod:`companion.tools.eval.drag_fit`; None when the flight is too short or too even).
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
@@ -304,9 +304,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
 
 def _drag_fit(keyframes: list[KeyframeEstimate], data: VioDataset) -> dict | None:
     """The rotor drag coefficient fitted on the VINS's own keyframes
-    (:mod:`companion.tools.eval.drag_fit`); None when too few are in flight."""
-    if len(keyframes) < 2:
-        return None
+    (:mod:`companion.tools.eval.drag_fit`); None when too few flew, or at too even a speed."""
     fit = fit_drag([k.t for k in keyframes], [k.T_W_B[:3, :3] for k in keyframes],
                    [k.velocity_W for k in keyframes], _seconds(data.imu.t_ns, data.imu.t_ns[0]),
                    data.imu.accel)
@@ -417,16 +415,17 @@ def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruth
 
 
 def _scale_by_time(t: np.ndarray, estimated: np.ndarray, true: np.ndarray) -> list[dict]:
-    """How the estimate's size over the truth's changes through the flight: for each
-    :data:`SCALE_WINDOW_S` of it (``t`` its start), the length of the estimated path sampled
-    every :data:`SCALE_STEP_S` over the true one's (lengths need no alignment). Windows where
-    the truth moved under :data:`SCALE_MIN_DISTANCE_M` are left out."""
+    """How the estimate's size over the truth's changes through the flight: for each whole
+    :data:`SCALE_WINDOW_S` of it (``t`` its start; the remainder at the end is left out), the
+    length of the estimated path sampled every :data:`SCALE_STEP_S` over the true one's
+    (lengths need no alignment). Windows where the truth moved under
+    :data:`SCALE_MIN_DISTANCE_M` are left out."""
     if len(t) < 2:
         return []
     steps = np.searchsorted(t, np.arange(t[0], t[-1], SCALE_STEP_S))
     per_window = int(round(SCALE_WINDOW_S / SCALE_STEP_S))
     windows = []
-    for first in range(0, len(steps) - 1, per_window):
+    for first in range(0, len(steps) - per_window, per_window):
         chosen = steps[first:first + per_window + 1]
         true_length = path_length(true[chosen])
         if true_length >= SCALE_MIN_DISTANCE_M:
@@ -593,7 +592,8 @@ def format_vio_report(result: dict) -> str:
             "too few keyframes in flight" if result["drag_fit"] is None else
             f"{result['drag_fit']['coefficient_per_s']:.3f} 1/s over "
             f"{result['drag_fit']['intervals']} keyframe intervals (residual "
-            f"{result['drag_fit']['residual_std']:.3f} m/s^2; [vins] drag_coefficient)"),
+            f"{result['drag_fit']['residual_std']:.3f} m/s^2, speeds spread "
+            f"{result['drag_fit']['speed_spread']:.2f} m/s; [vins] drag_coefficient)"),
         *(f"rebuild at t={r['t']:.2f} s near {r['variable'] or '?'}: before it "
           f"{show(r['landmarks'], 'd')} landmarks, position sigma "
           f"{show(r['position_sigma_m'], '.3f', ' m')}, speed error "
