@@ -298,9 +298,10 @@ class SlidingWindowSmoother:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
         features it sees; ``still``: it stands still, and gets a zero-velocity prior
         (:mod:`autonomy.vins.stillness`); ``airborne``: it flies, and the interval gets the
-        rotor drag's factor (with ``drag_coefficient``; :mod:`autonomy.vins.drag`). Returns True when the update was used, False when
-        it failed and the smoother was rebuilt (a reset; ``last_failure`` says why). Raises
-        :class:`BackendError` when even the rebuilt smoother refuses the keyframe."""
+        rotor drag's factor (with ``drag_coefficient``; :mod:`autonomy.vins.drag`). Returns
+        True when the update was used, False when it failed and the smoother was rebuilt (a
+        reset; ``last_failure`` says why). Raises :class:`BackendError` when even the rebuilt
+        smoother refuses the keyframe."""
         good, good_keyframe = self.latest, self._window[-1]
         # the last covariance asked for (the odometry's, at most covariance_period_s old),
         # taken before the update, which may leave the smoother unusable; not computed here
