@@ -1,23 +1,31 @@
 """Speed of the VINS back-end on one core: milliseconds per keyframe on simulated flights.
 
     python benchmarks/vins_backend.py [--duration 20] [--worlds mine sewer dome] [--dataset DIR]
+        [--set KEY=VALUE ...]
 
 Records a simulated flight per world (seed 0; or uses the EuRoC/ASL dataset given), pins the
 process to one CPU (and OpenCV to one thread), and runs the whole VINS over it with the
 default options, exactly as ``companion eval vio`` does. The back-end time is
 ``Vins.add_frame`` on keyframe frames (the smoother update, landmark gate, map); the front-end
 time on the same frames is the baseline of the same run. Keyframes come at 10 Hz on these
-flights (``keyframe_interval_s``), with 150 tracks. Prints one JSON object.
+flights (``keyframe_interval_s``), with 150 tracks. With ``--set`` (``[vins]`` keys, TOML
+values: ``--set drag_coefficient=0.3``) each flight is also run with those options, default and
+variant twice in turn (A B A B) so that the host's load falls on both alike, and both are
+reported. Prints one JSON object.
 """
 
 import argparse
+import dataclasses
 import json
 import os
+import statistics
 import tempfile
+import tomllib
 from pathlib import Path
 
 import cv2
 
+from autonomy.options import OptionError
 from autonomy.vins import VinsOptions
 from companion.tools.eval.vio import read_vio_dataset, run_vins, score_vio
 from drivers.camera.options import CameraOptions
@@ -27,15 +35,51 @@ from drivers.sim.record import record_dataset
 from drivers.sim.quadrotor import VehicleOptions
 
 
-def measure(root: Path) -> dict:
+TIMINGS = ("backend_ms_median", "backend_ms_p95", "frontend_ms_median")
+
+
+def measure(root: Path, options: VinsOptions) -> dict:
     data = read_vio_dataset(root)
-    trace = run_vins(data, VinsOptions())
+    trace = run_vins(data, options)
     score = score_vio(trace, data)
-    timing = {key: round(score[key], 2)
-              for key in ("backend_ms_median", "backend_ms_p95", "frontend_ms_median")}
+    timing = {key: round(score[key], 2) for key in TIMINGS}
     return {"dataset": str(root), "keyframes": score["keyframes"],
             "keyframe_rate_hz": round(score["keyframes"] / (trace.t[-1] - trace.t[0]), 2),
             **timing, "resets": score["resets"]}
+
+
+def measure_pair(root: Path, variant: VinsOptions | None) -> dict:
+    """The default options' run; with a ``variant``, both twice in turn (A B A B), each timing
+    the mean of its two runs."""
+    if variant is None:
+        return measure(root, VinsOptions())
+    runs = {"default": [], "variant": []}
+    for _ in range(2):
+        runs["default"].append(measure(root, VinsOptions()))
+        runs["variant"].append(measure(root, variant))
+    result = {}
+    for name, pair in runs.items():
+        result[name] = {**pair[0], **{key: round(statistics.fmean(r[key] for r in pair), 2)
+                                      for key in TIMINGS}}
+    return result
+
+
+def parse_variant(settings: list[str]) -> VinsOptions | None:
+    """``VinsOptions`` with the ``KEY=VALUE`` settings (TOML values), or None for none;
+    ValueError naming the setting that is not one."""
+    if not settings:
+        return None
+    changes = {}
+    for setting in settings:
+        key, _, value = setting.partition("=")
+        try:
+            changes[key] = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError as error:
+            raise ValueError(f"--set {setting}: {value!r} is not a TOML value ({error})") from None
+    try:
+        return dataclasses.replace(VinsOptions(), **changes)
+    except (TypeError, OptionError) as error:
+        raise ValueError(f"--set {' '.join(settings)}: {error}") from None
 
 
 def main() -> None:
@@ -43,11 +87,18 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=20.0)
     parser.add_argument("--worlds", nargs="+", default=list(WORLD_NAMES), choices=WORLD_NAMES)
     parser.add_argument("--dataset", type=Path, help="a recorded dataset instead of new flights")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a [vins] option of a variant timed beside the defaults")
     args = parser.parse_args()
+    try:
+        variant = parse_variant(args.set)
+    except ValueError as error:
+        parser.error(str(error))
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     cv2.setNumThreads(1)
     if args.dataset is not None:
-        print(json.dumps({"cpus": 1, "runs": [measure(args.dataset)]}))
+        print(json.dumps({"cpus": 1, "variant": args.set,
+                          "runs": [measure_pair(args.dataset, variant)]}))
         return
     runs = []
     with tempfile.TemporaryDirectory() as scratch:
@@ -55,8 +106,9 @@ def main() -> None:
             root = Path(scratch) / world
             record_dataset(root, SimOptions(world=world, seed=0), CameraOptions(),
                            VehicleOptions(), ImuOptions(), duration=args.duration)
-            runs.append({"world": world, **measure(root)})
-    print(json.dumps({"cpus": 1, "duration_s": args.duration, "runs": runs}))
+            runs.append({"world": world, **measure_pair(root, variant)})
+    print(json.dumps({"cpus": 1, "duration_s": args.duration, "variant": args.set,
+                      "runs": runs}))
 
 
 if __name__ == "__main__":

@@ -119,12 +119,14 @@ def test_too_few_points_give_no_rotation():
 # ------------------------------------------------------------------ the estimator, synthetic
 
 
-def _synthetic_flight(td, options, *, turn_at=3.0, duration=6.5, yaw_rate=0.6, seed=1):
+def _synthetic_flight(td, options, *, turn_at=3.0, duration=6.5, yaw_rate=0.6, seed=1,
+                      gyro_matrix=np.eye(3), on_frame=None):
     """A camera (mounted as the simulator's, looking along body x) flying forward at 1 m/s
     through random points; its body starts to yaw and pitch at ``turn_at``. The gyro holds
-    each 200 Hz sample over its interval, as the estimator assumes; 20 Hz frames are stamped
-    ``td`` late, their bearings 0.3 px noisy. Returns the estimator and, per frame, its
-    offset."""
+    each 200 Hz sample over its interval, as the estimator assumes, and reads ``gyro_matrix``
+    times the true rate; 20 Hz frames are stamped ``td`` late, their bearings 0.3 px noisy.
+    ``on_frame(estimator)`` is called after each frame. Returns the estimator and, per frame,
+    its offset."""
     rng = np.random.default_rng(seed)
     T_B_C = make_pose(R_BODY_CAMERA, np.array([0.1, 0.0, 0.05]))
     estimator = TimeOffsetEstimator(T_B_C, 320.0, options)
@@ -152,9 +154,11 @@ def _synthetic_flight(td, options, *, turn_at=3.0, duration=6.5, yaw_rate=0.6, s
         ids = np.flatnonzero(seen)
         xy = p_C[seen, :2] / p_C[seen, 2:] + rng.normal(0, 0.3 / 320, (len(ids), 2))
         while fed <= n and imu_t[fed] <= stamp:
-            estimator.add_imu(imu_t[fed], omega[fed], np.zeros(3))
+            estimator.add_imu(imu_t[fed], gyro_matrix @ omega[fed], np.zeros(3))
             fed += 1
         estimator.add_frame(stamp, ids, xy)
+        if on_frame is not None:
+            on_frame(estimator)
         offsets.append(estimator.offset)
     return estimator, offsets
 

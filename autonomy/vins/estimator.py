@@ -34,6 +34,10 @@ unsynchronised camera). Everything above runs at the frame's exposure time on th
 :mod:`autonomy.vins.time_offset` (the camera's rotation between frames against the gyro's) and
 applied from the next frame on. The caller keeps using its stamps: :class:`FrameUpdate` and its
 sparse map carry ``t``, with the offset that was subtracted.
+
+Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate is
+estimated on the time offset's frame pairs and every sample is corrected by it before use
+(:mod:`autonomy.vins.gyro_alignment`); the time-offset estimator keeps the raw samples.
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from autonomy.geometry import PinholeCamera, distort_points, invert_pose, make_p
 from autonomy.messages import ImuSample, Odometry, SparseMap
 from autonomy.vins.backend import BackendError, KeyframeState, PriorSigmas, SlidingWindowSmoother
 from autonomy.vins.frontend import FeatureTracker, FrontendOptions, Tracks
+from autonomy.vins.gyro_alignment import GyroAlignment, GyroAlignmentEstimate
 from autonomy.vins.health import Health, HealthInputs, HealthState, assess
 from autonomy.vins.imu_buffer import ImuBuffer, NavState, Propagator
 from autonomy.vins.imu_gap import ImuGap, Restart
@@ -138,6 +143,9 @@ class Vins:
         self._offset_estimator = (TimeOffsetEstimator(self.T_B_C, math.sqrt(camera.fx * camera.fy),
                                                       self.options)
                                   if self.options.estimate_time_offset else None)
+        self._alignment = (GyroAlignment(self.options.gyro_cross_axis_sigma,
+                                         self.options.gyro_scale_sigma)
+                           if self.options.estimate_gyro_alignment else None)
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._gap: ImuGap | None = None
         self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
@@ -164,12 +172,25 @@ class Vins:
         (and ``t``) before :meth:`add_frame`."""
         return float(t) - self.time_offset.seconds
 
+    @property
+    def gyro_alignment(self) -> GyroAlignmentEstimate | None:
+        """The gyro's estimated response to the yaw rate (None unless
+        ``estimate_gyro_alignment``): :mod:`autonomy.vins.gyro_alignment`."""
+        return None if self._alignment is None else self._alignment.estimate
+
     def add_imu(self, sample: ImuSample) -> None:
-        """One IMU sample, in time order; ValueError for a bad one (the sample is not used)."""
+        """One IMU sample, in time order; ValueError for a bad one (the sample is not used).
+        With ``estimate_gyro_alignment`` its gyro is corrected before use; the time-offset
+        estimator gets it raw."""
+        raw_gyro = np.asarray(sample.gyro, dtype=float).reshape(-1)
+        if self._alignment is not None and raw_gyro.shape == (3,):
+            sample = replace(sample, gyro=self._alignment.correct(raw_gyro))
         self._imu.add(sample)
         if self._offset_estimator is not None:
             bias = self._anchor.bias_g if self._anchor is not None else np.zeros(3)
-            self._offset_estimator.add_imu(self._imu.last_time, self._imu.last_gyro, bias)
+            if self._alignment is not None:
+                bias = self._alignment.uncorrect(bias)
+            self._offset_estimator.add_imu(self._imu.last_time, raw_gyro, bias)
 
     def track(self, image) -> Tracks:
         """The front-end on one image (uint8 grey or RGB, the camera's size)."""
@@ -216,6 +237,8 @@ class Vins:
             return
         for frame in backlog[:OFFSET_PER_FRAME]:
             self._offset_estimator.add_frame(*frame)
+            if self._alignment is not None and self._offset_estimator.latest_pair is not None:
+                self._alignment.add_pair(self._offset_estimator.latest_pair)
         del backlog[:OFFSET_PER_FRAME]
 
     def _add_frame_at(self, t: float, tracks: Tracks) -> FrameUpdate:

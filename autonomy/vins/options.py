@@ -149,6 +149,17 @@ class VinsOptions:
                                             "(enough rotational excitation), seconds")
     time_offset_max_step_s: float = option(0.002, gt=0.0, le=0.05, doc="largest change of the "
                                            "estimate per frame, seconds")
+    # --- the gyro's response to yaw (autonomy/vins/gyro_alignment.py, docs/vins.md)
+    estimate_gyro_alignment: bool = option(False, doc="estimate the gyro's response to the "
+                                           "yaw rate against the camera's rotation online and "
+                                           "correct the gyro by it (needs "
+                                           "estimate_time_offset: its frame pairs)")
+    gyro_cross_axis_sigma: float = option(0.014, gt=0.0, le=0.2, doc="the estimate's prior: "
+                                          "sigma of the x and y axes' response to the z rate "
+                                          "(cross-axis sensitivity with the mounting's error), "
+                                          "fraction")
+    gyro_scale_sigma: float = option(0.005, gt=0.0, le=0.2, doc="the estimate's prior: sigma "
+                                     "of the z axis' scale error, fraction")
     # --- health
     min_tracked_ok: int = option(40, ge=0, doc="fewer tracked features than this is DEGRADED")
     min_tracked_lost: int = option(10, ge=0, doc="fewer tracked features than this for "
@@ -189,6 +200,9 @@ class VinsOptions:
         if self.time_offset_pair_s >= self.time_offset_window_s:
             raise OptionError("time_offset_pair_s", "must be shorter than time_offset_window_s"
                               f" ({self.time_offset_window_s}), got {self.time_offset_pair_s}")
+        if self.estimate_gyro_alignment and not self.estimate_time_offset:
+            raise OptionError("estimate_gyro_alignment", "needs estimate_time_offset = true "
+                              "(the gyro is aligned on the time-offset estimator's frame pairs)")
         if self.min_tracked_lost > self.min_tracked_ok:
             raise OptionError("min_tracked_lost", "must not exceed min_tracked_ok "
                               f"({self.min_tracked_ok}), got {self.min_tracked_lost}")

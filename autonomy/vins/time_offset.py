@@ -144,6 +144,18 @@ class _Pair:
     information: np.ndarray
 
 
+@dataclass(frozen=True)
+class PairRotations:
+    """A frame pair in the body frame (the camera's through its configured mounting): the
+    body's rotation over the pair by the gyro (``R_gyro``, at the offset in use when the pair
+    was made) and by the camera (``R_camera``), and the camera rotation's ``information``
+    (3x3, 1/rad^2). :mod:`autonomy.vins.gyro_alignment` fits the gyro's misalignment to them."""
+
+    R_gyro: np.ndarray
+    R_camera: np.ndarray
+    information: np.ndarray
+
+
 # ---------------------------------------------------------------------- small vector algebra
 
 
@@ -385,6 +397,8 @@ class TimeOffsetEstimator:
         self._updates = 0
         self.window_offset: float | None = None  # the last window's own solution
         self.window_sigma: float | None = None
+        #: The pair the last :meth:`add_frame` made, in the body frame (None if none).
+        self.latest_pair: PairRotations | None = None
 
     @property
     def offset(self) -> TimeOffset:
@@ -423,8 +437,10 @@ class TimeOffsetEstimator:
             self._frames.popleft()
         pair = self._pair(frame)
         self._frames.append(frame)
+        self.latest_pair = None
         if pair is not None:
             self._pairs.append(pair)
+            self.latest_pair = self._in_body_frame(pair)
         while self._pairs and self._pairs[0].s_i < stamp - o.time_offset_window_s:
             self._pairs.popleft()
         if pair is not None:
@@ -456,6 +472,12 @@ class TimeOffsetEstimator:
             overlap = min(1.0, (stamp - self._frames[-1][0]) / (stamp - s_i))
             return _Pair(s_i, stamp, fit.R, overlap * np.linalg.inv(covariance))
         return None
+
+    def _in_body_frame(self, pair: _Pair) -> PairRotations:
+        """``pair`` in the body frame, with the gyro's rotation at the offset in use."""
+        (R_a, R_b), _ = self._gyro.at(np.array([pair.s_i - self._td, pair.s_j - self._td]))
+        return PairRotations(R_a.T @ R_b, self._R_B_C @ pair.R @ self._R_C_B,
+                             self._R_B_C @ pair.information @ self._R_C_B)
 
     def solve(self, td: float) -> tuple[float, float]:
         """The window's offset and its sigma by Gauss-Newton from ``td`` (module docstring)."""

@@ -39,6 +39,7 @@ from drivers.dataset.euroc import (
 if TYPE_CHECKING:
     from autonomy.vins.estimator import FrameUpdate, Vins
     from autonomy.vins.frontend import FrontendOptions
+    from autonomy.vins.gyro_alignment import GyroAlignmentEstimate
     from autonomy.vins.options import VinsOptions
     from autonomy.vins.static_init import StaticInit, StaticInitOptions
 
@@ -131,7 +132,8 @@ class VioTrace:
     :func:`depth_relative_errors` per frame with both a sparse map and a depth image (so not
     one per frame). ``static_init``: the estimator's static initialisation (None if it never
     initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
-    offset at the end; ``corrections_m``: each keyframe's correction
+    offset at the end; ``gyro_alignment``: the gyro's response to the yaw rate at the end
+    (None unless estimated); ``corrections_m``: each keyframe's correction
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
     keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
     each rebuild of the smoother.
@@ -147,6 +149,7 @@ class VioTrace:
     static_init: StaticInit | None = None
     resets: int = 0
     time_offset: TimeOffset = field(default_factory=TimeOffset)
+    gyro_alignment: GyroAlignmentEstimate | None = None
     corrections_m: list[float] = field(default_factory=list)
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
@@ -223,6 +226,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
     trace.time_offset = vins.time_offset
+    trace.gyro_alignment = vins.gyro_alignment
     trace.track_errors_px, trace.track_ages = tracking.errors_px, tracking.ages
     return trace
 
@@ -273,6 +277,8 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``scale_by_time``: the scale again, over each 8 s of the flight (:func:`_scale_by_time`).
     ``drag_fit``: the rotor drag coefficient fitted on the estimate
     (:mod:`companion.tools.eval.drag_fit`; None when the flight is too short or too even).
+    ``gyro_alignment``: the gyro's response to the yaw rate at the end (``column``, ``sigma``,
+    ``pairs``; None unless ``estimate_gyro_alignment``).
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
@@ -299,6 +305,11 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "time_offset_sigma_ms": None if trace.time_offset.sigma is None
         else 1e3 * trace.time_offset.sigma,
         "drag_fit": _drag_fit(trace.keyframes, data),
+        "gyro_alignment": None if trace.gyro_alignment is None else {
+            "column": list(trace.gyro_alignment.column),
+            "sigma": None if trace.gyro_alignment.sigma is None
+            else list(trace.gyro_alignment.sigma),
+            "pairs": trace.gyro_alignment.pairs},
     }
 
 
@@ -588,6 +599,10 @@ def format_vio_report(result: dict) -> str:
         f"camera-IMU time offset: {result['time_offset_ms']:.2f} ms"
         + ("" if result["time_offset_sigma_ms"] is None
            else f" (sigma {result['time_offset_sigma_ms']:.2f} ms)"),
+        "gyro's response to the yaw rate (x, y, z): " + (
+            "not estimated" if result["gyro_alignment"] is None else
+            " ".join(f"{c:+.4f}" for c in result["gyro_alignment"]["column"])
+            + f" over {result['gyro_alignment']['pairs']} frame pairs"),
         "rotor drag fitted on the estimate: " + (
             "too few keyframes in flight" if result["drag_fit"] is None else
             f"{result['drag_fit']['coefficient_per_s']:.3f} 1/s over "

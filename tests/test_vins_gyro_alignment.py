@@ -1,0 +1,171 @@
+"""Issue 24: the gyro's response to the yaw rate, estimated online against the camera's
+rotation and corrected (autonomy/vins/gyro_alignment.py, docs/vins.md).
+
+A gyro whose x and y axes respond to the z rate integrates false tilt in every corner, which
+the smoother takes for an accelerometer bias. First the estimator on the synthetic flight of
+tests/test_vins_time_offset.py (exact geometry, a gyro with a known misalignment); then the
+correction's algebra; then the options and the whole VINS on a simulated flight.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from autonomy.geometry import so3_exp
+from autonomy.options import OptionError
+from autonomy.vins import VinsOptions
+from autonomy.vins.gyro_alignment import GyroAlignment
+from autonomy.vins.time_offset import PairRotations
+from tests.test_vins_time_offset import _synthetic_flight
+
+#: A misalignment of the size the realistic profile draws: x and y respond to the z rate by
+#: 2 % and -1.5 %, z reads 0.4 % high.
+COLUMN = np.array([0.02, -0.015, 0.004])
+
+
+def _gyro_matrix(column):
+    matrix = np.eye(3)
+    matrix[:, 2] += column
+    return matrix
+
+
+def _aligned_on_synthetic_flight(column, **flight):
+    """The alignment fed the time-offset estimator's pairs over the synthetic flight."""
+    alignment = GyroAlignment(0.014, 0.005)
+    history = []
+
+    def feed(estimator):
+        if estimator.latest_pair is not None:
+            alignment.add_pair(estimator.latest_pair)
+        history.append(alignment.column)
+
+    _synthetic_flight(0.0, VinsOptions(estimate_time_offset=True),
+                      gyro_matrix=_gyro_matrix(column), on_frame=feed, **flight)
+    return alignment, np.array(history)
+
+
+def test_a_hidden_yaw_response_is_found_once_the_vehicle_turns():
+    alignment, history = _aligned_on_synthetic_flight(COLUMN)
+    straight = history[: int(2.9 / 0.05)]
+    # flying straight the pairs say nothing about a yaw response: the estimate stays at zero
+    assert np.abs(straight).max() < 1e-3
+    estimate = alignment.estimate
+    error = np.asarray(estimate.column) - COLUMN
+    assert np.abs(error).max() < 0.002, estimate
+    assert np.all(np.abs(error) < 3 * np.asarray(estimate.sigma) + 2e-4)  # the sigma is honest
+    assert estimate.pairs > 50
+
+
+def test_an_exact_gyro_gives_no_correction():
+    alignment, _ = _aligned_on_synthetic_flight(np.zeros(3))
+    assert np.abs(alignment.column).max() < 0.002
+
+
+def test_the_correction_inverts_the_misalignment_exactly():
+    alignment = GyroAlignment(0.014, 0.005)
+    alignment._column = COLUMN.copy()  # as if estimated
+    rate = np.array([0.1, -0.3, 0.8])
+    measured = _gyro_matrix(COLUMN) @ rate
+    np.testing.assert_allclose(alignment.correct(measured), rate, atol=1e-15)
+    np.testing.assert_allclose(alignment.uncorrect(rate), measured, atol=1e-15)
+
+
+def test_a_wild_pair_moves_the_estimate_only_boundedly():
+    """A pair whose camera rotation is badly wrong (a mismatched frame) has a Huber weight."""
+    good, wild = GyroAlignment(0.014, 0.005), GyroAlignment(0.014, 0.005)
+    rng = np.random.default_rng(3)
+    information = np.eye(3) / 3e-4 ** 2
+    for _ in range(200):
+        theta = np.array([0.0, 0.0, rng.uniform(-0.2, 0.2)])
+        pair = PairRotations(so3_exp(_gyro_matrix(COLUMN) @ theta), so3_exp(theta), information)
+        good.add_pair(pair)
+        wild.add_pair(pair)
+    wild.add_pair(PairRotations(np.eye(3), so3_exp(np.array([0.2, -0.1, 0.3])), information))
+    assert np.abs(good.column - COLUMN).max() < 0.001
+    assert np.abs(wild.column - good.column).max() < 0.002
+
+
+def test_a_non_finite_pair_is_ignored():
+    alignment = GyroAlignment(0.014, 0.005)
+    bad = np.full((3, 3), np.nan)
+    alignment.add_pair(PairRotations(bad, np.eye(3), np.eye(3)))
+    alignment.add_pair(PairRotations(np.eye(3), np.eye(3), bad))
+    assert alignment.estimate.pairs == 0 and alignment.estimate.sigma is None
+    assert np.all(alignment.column == 0.0)
+
+
+@pytest.mark.parametrize("sigmas", [(0.0, 0.005), (0.014, -1.0), (math.nan, 0.005)])
+def test_a_prior_without_a_positive_sigma_is_refused(sigmas):
+    with pytest.raises(ValueError, match="sigmas must be positive"):
+        GyroAlignment(*sigmas)
+
+
+# ------------------------------------------------------------------ options and the VINS
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"estimate_gyro_alignment": True}, "estimate_gyro_alignment"),  # without the pairs
+    ({"gyro_cross_axis_sigma": 0.0}, "gyro_cross_axis_sigma"),
+    ({"gyro_scale_sigma": math.inf}, "gyro_scale_sigma"),
+    ({"estimate_gyro_alignment": "yes"}, "estimate_gyro_alignment"),
+])
+def test_bad_alignment_options_are_refused_with_their_name(changes, key):
+    with pytest.raises(OptionError) as error:
+        VinsOptions(**changes)
+    assert error.value.key == key
+
+
+def test_the_alignment_is_off_by_default():
+    assert VinsOptions().estimate_gyro_alignment is False
+
+
+# ------------------------------------------------------------------ the VINS through a corner
+
+CORNER_FLIGHT_S = 22.0  # mine, seed 0: the route's first corner, a 90 deg yaw, at 16-20 s
+
+
+def _misalign_gyro(source, target, column):
+    """``target``: the recording ``source`` with its gyro reading ``(I + column z^T)`` times
+    the rate (everything else shared through symbolic links)."""
+    for name in ("cam0", "depth0", "state_groundtruth_estimate0"):
+        if (source / "mav0" / name).is_dir():
+            (target / "mav0").mkdir(parents=True, exist_ok=True)
+            (target / "mav0" / name).symlink_to((source / "mav0" / name).resolve())
+    imu = target / "mav0" / "imu0"
+    imu.mkdir(parents=True)
+    (imu / "sensor.yaml").symlink_to((source / "mav0" / "imu0" / "sensor.yaml").resolve())
+    lines = (source / "mav0" / "imu0" / "data.csv").read_text().splitlines()
+    rows = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    rows[:, 1:4] = rows[:, 1:4] @ _gyro_matrix(column).T
+    body = "\n".join(f"{int(r[0])}," + ",".join(f"{v:.9g}" for v in r[1:]) for r in rows)
+    (imu / "data.csv").write_text(lines[0] + "\n" + body + "\n")
+    return target
+
+
+@pytest.fixture(scope="module")
+def corner_runs(record_flight, tmp_path_factory):
+    """The VINS over the corner flight with a hidden yaw response, without and with the
+    alignment: their ``eval vio`` scores."""
+    from companion.tools.eval import vio
+
+    source = record_flight("mine", CORNER_FLIGHT_S)
+    root = _misalign_gyro(source, tmp_path_factory.mktemp("misaligned"), COLUMN)
+    return {aligned: vio.evaluate_vio(root, VinsOptions(estimate_time_offset=True,
+                                                        estimate_gyro_alignment=aligned),
+                                      consistency=False)
+            for aligned in (False, True)}
+
+
+def test_the_vins_finds_a_hidden_yaw_response_in_a_corner(corner_runs):
+    alignment = corner_runs[True]["gyro_alignment"]
+    assert corner_runs[False]["gyro_alignment"] is None
+    error = np.asarray(alignment["column"]) - COLUMN
+    assert np.abs(error).max() < 0.003, alignment
+    assert alignment["pairs"] > 200
+
+
+def test_correcting_the_yaw_response_makes_the_flight_more_accurate(corner_runs):
+    off, on = corner_runs[False], corner_runs[True]
+    assert on["resets"] == 0
+    assert on["ate_over_distance"] < off["ate_over_distance"], (on, off)
