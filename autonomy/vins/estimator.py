@@ -59,7 +59,7 @@ from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.static_init import NotStill, StaticInit, StaticInitOptions, static_initialise
 from autonomy.vins.stillness import ZeroVelocityDetector
-from autonomy.vins.time_offset import TimeOffset, TimeOffsetEstimator
+from autonomy.vins.time_offset import PairRotations, TimeOffset, TimeOffsetEstimator
 
 #: The time-offset estimator's work on a frame waits for a frame that is not a keyframe, so
 #: that it never adds to the smoother's update: such a frame takes on up to
@@ -237,9 +237,17 @@ class Vins:
             return
         for frame in backlog[:OFFSET_PER_FRAME]:
             self._offset_estimator.add_frame(*frame)
-            if self._alignment is not None and self._offset_estimator.latest_pair is not None:
-                self._alignment.add_pair(self._offset_estimator.latest_pair)
+            self._align_gyro(self._offset_estimator.latest_pair)
         del backlog[:OFFSET_PER_FRAME]
+
+    def _align_gyro(self, pair: PairRotations | None) -> None:
+        """The time offset's new frame pair to the gyro alignment, once the offset is known
+        to ``time_offset_max_sigma_s`` (a pair made at a wrong offset is biased)."""
+        if self._alignment is None or pair is None:
+            return
+        sigma = self._offset_estimator.offset.sigma
+        if sigma is not None and sigma <= self.options.time_offset_max_sigma_s:
+            self._alignment.add_pair(pair)
 
     def _add_frame_at(self, t: float, tracks: Tracks) -> FrameUpdate:
         """:meth:`add_frame` at the frame's exposure time ``t`` on the IMU's clock."""

@@ -24,23 +24,34 @@ smoother estimates anyway.
 
 **The measurement.** The time-offset estimator's frame pairs (:mod:`autonomy.vins.time_offset`)
 give, over each pair, the camera's rotation ``theta_v`` (in the body frame, information
-``Lambda``) and the gyro's ``R_g``; to first order the residual ``r = Log(R_g^T R_v)`` is
-``-e theta_v,z``. The estimate is the least-squares fit over every pair of the flight with a
-Gaussian prior (:class:`GyroAlignment`):
+``Lambda``) and the gyro's ``R_g = Exp(theta_v + e theta_v,z)``; with
+``Exp(a + d) ~ Exp(a) Exp(J_r(a) d)`` (``J_r`` the right Jacobian of SO(3)) the residual is
 
-    (P + sum_k w_k theta_z,k^2 Lambda_k) e = -sum_k w_k theta_z,k Lambda_k r_k,
+    r = Log(R_g^T R_v) = A e,    A = -theta_v,z J_r(theta_v)
+
+(to first order in ``e``; taking ``A = -theta_v,z I`` instead turns the fitted x and y
+responses by half the pair's yaw, which corners one way round do not average out). The
+estimate is the least-squares fit over the pairs with a Gaussian prior
+(:class:`GyroAlignment`):
+
+    (P + sum_k w_k A_k^T W_k A_k) e = sum_k w_k A_k^T W_k r_k,
 
 ``P`` the prior's information (datasheet sigmas), ``w_k`` a Huber weight on the pair's
-Mahalanobis residual. The camera's rotation is the regressor, not the gyro's: the gyro's
-carries the rotors' vibration, which the camera does not see, and a regression on a noisy
-regressor is biased towards zero (errors in variables; measured, docs/vins.md). Each pair's
-covariance gets :data:`GYRO_PAIR_SIGMA` for that vibration.
+Mahalanobis residual (against the estimate when the pair arrives). The camera's rotation is the
+regressor, not the gyro's: the gyro's carries the rotors' vibration, which the camera does not
+see, and a regression on a noisy regressor is biased towards zero (errors in variables;
+measured, docs/vins.md). ``W_k`` is the camera rotation's information with
+:data:`GYRO_PAIR_SIGMA` added to its covariance for that vibration, counted once per stretch of
+time as the pair's own information is (the time-offset estimator scales it by the pairs'
+overlap). A pair is used only once the time offset is known (a pair made at a wrong offset
+reads the offset's error in every change of the turn rate).
 
 **The correction.** Every gyro sample is corrected before the VINS uses it:
-``omega = (I + e z^T)^-1 (omega_m - b_m)``, i.e. ``omega_z = omega_m,z / (1 + e_z)`` and
-``omega_xy = omega_m,xy - e_xy omega_z`` (the bias, estimated by the smoother on corrected
-samples, is subtracted after). The time-offset estimator keeps the raw samples, so that its
-pairs measure the whole ``e`` whatever the correction in use.
+``omega = (I + e z^T)^-1 omega_m``, i.e. ``omega_z = omega_m,z / (1 + e_z)`` and
+``omega_xy = omega_m,xy - e_xy omega_z``, and the smoother estimates its bias on the corrected
+samples. The time-offset estimator keeps the raw samples (and gets that bias as the raw gyro
+reads it, ``(I + e z^T) b``), so that its pairs measure the whole ``e`` whatever the
+correction in use.
 """
 
 from __future__ import annotations
@@ -50,6 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from autonomy.geometry import skew
 from autonomy.vins.time_offset import PairRotations, log_so3
 
 #: The gyro's own scatter over a frame pair, radians, added to the camera rotation's covariance:
@@ -103,18 +115,22 @@ class GyroAlignment:
         return GyroAlignmentEstimate(tuple(float(c) for c in self._column), sigma, self._pairs)
 
     def add_pair(self, pair: PairRotations) -> None:
-        """One frame pair, its gyro side from the raw gyro. A non-finite pair is ignored."""
-        if not all(np.isfinite(m).all() for m in (pair.R_gyro, pair.R_camera, pair.information)):
+        """One frame pair, its gyro side from the raw gyro. A non-finite pair, or one whose
+        overlap is not in (0, 1], is ignored."""
+        if not (all(np.isfinite(m).all() for m in (pair.R_gyro, pair.R_camera, pair.information))
+                and 0.0 < pair.overlap <= 1.0):
             return
-        theta_z = float(log_so3(pair.R_camera)[2])
+        theta = log_so3(pair.R_camera)
+        A = -theta[2] * right_jacobian(theta)
         residual = log_so3(pair.R_gyro.T @ pair.R_camera)
-        covariance = np.linalg.pinv(pair.information) + GYRO_PAIR_SIGMA ** 2 * np.eye(3)
-        weight_matrix = np.linalg.inv(covariance)
-        left = residual + self._column * theta_z  # what the estimate leaves unexplained
-        chi = math.sqrt(max(float(left @ weight_matrix @ left), 0.0))
+        # W = (Lambda^-1 + s^2 I)^-1 written so that a singular Lambda (no information) is 0
+        spread = GYRO_PAIR_SIGMA ** 2 / pair.overlap
+        W = np.linalg.solve(np.eye(3) + spread * pair.information, pair.information)
+        left = residual - A @ self._column  # what the estimate leaves unexplained
+        chi = math.sqrt(max(float(left @ W @ left), 0.0))
         weight = 1.0 if chi <= HUBER_K else HUBER_K / chi
-        self._normal += weight * theta_z ** 2 * weight_matrix
-        self._rhs -= weight * theta_z * (weight_matrix @ residual)
+        self._normal += weight * (A.T @ W @ A)
+        self._rhs += weight * (A.T @ W @ residual)
         self._column = np.linalg.solve(self._normal, self._rhs)
         self._pairs += 1
 
@@ -130,3 +146,13 @@ class GyroAlignment:
         """``(I + e z^T) rate``: a corrected rate (or bias) as the raw gyro reads it."""
         rate = np.asarray(rate, dtype=float)
         return rate + self._column * rate[2]
+
+
+def right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3)'s right Jacobian ``J_r(phi)``: ``Exp(phi + d) ~ Exp(phi) Exp(J_r(phi) d)``."""
+    angle = float(np.linalg.norm(phi))
+    K = skew(phi)
+    if angle < 1e-6:
+        return np.eye(3) - 0.5 * K + K @ K / 6.0
+    return (np.eye(3) - (1.0 - math.cos(angle)) / angle ** 2 * K
+            + (angle - math.sin(angle)) / angle ** 3 * (K @ K))

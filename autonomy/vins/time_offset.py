@@ -142,6 +142,7 @@ class _Pair:
     s_j: float
     R: np.ndarray
     information: np.ndarray
+    overlap: float
 
 
 @dataclass(frozen=True)
@@ -149,11 +150,13 @@ class PairRotations:
     """A frame pair in the body frame (the camera's through its configured mounting): the
     body's rotation over the pair by the gyro (``R_gyro``, at the offset in use when the pair
     was made) and by the camera (``R_camera``), and the camera rotation's ``information``
-    (3x3, 1/rad^2). :mod:`autonomy.vins.gyro_alignment` fits the gyro's misalignment to them."""
+    (3x3, 1/rad^2), already scaled by ``overlap``: the share of the pair's interval no earlier
+    pair covered. :mod:`autonomy.vins.gyro_alignment` fits the gyro's misalignment to them."""
 
     R_gyro: np.ndarray
     R_camera: np.ndarray
     information: np.ndarray
+    overlap: float
 
 
 # ---------------------------------------------------------------------- small vector algebra
@@ -470,14 +473,14 @@ class TimeOffsetEstimator:
             covariance = np.linalg.pinv(fit.information) + ROTATION_SIGMA_FLOOR ** 2 * np.eye(3)
             # consecutive pairs overlap: count each stretch of time once
             overlap = min(1.0, (stamp - self._frames[-1][0]) / (stamp - s_i))
-            return _Pair(s_i, stamp, fit.R, overlap * np.linalg.inv(covariance))
+            return _Pair(s_i, stamp, fit.R, overlap * np.linalg.inv(covariance), overlap)
         return None
 
     def _in_body_frame(self, pair: _Pair) -> PairRotations:
         """``pair`` in the body frame, with the gyro's rotation at the offset in use."""
         (R_a, R_b), _ = self._gyro.at(np.array([pair.s_i - self._td, pair.s_j - self._td]))
         return PairRotations(R_a.T @ R_b, self._R_B_C @ pair.R @ self._R_C_B,
-                             self._R_B_C @ pair.information @ self._R_C_B)
+                             self._R_B_C @ pair.information @ self._R_C_B, pair.overlap)
 
     def solve(self, td: float) -> tuple[float, float]:
         """The window's offset and its sigma by Gauss-Newton from ``td`` (module docstring)."""
