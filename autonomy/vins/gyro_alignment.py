@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from autonomy.geometry import skew
+from autonomy.vins.preintegration import exp_and_right_jacobian
 from autonomy.vins.time_offset import PairRotations, log_so3
 
 #: The gyro's own scatter over a frame pair, radians, added to the camera rotation's covariance:
@@ -94,9 +94,8 @@ class GyroAlignment:
         if not (cross_axis_sigma > 0.0 and scale_sigma > 0.0):
             raise ValueError("the prior's sigmas must be positive, got "
                              f"{cross_axis_sigma} and {scale_sigma}")
-        self._prior = np.diag(1.0 / np.array([cross_axis_sigma, cross_axis_sigma,
-                                              scale_sigma]) ** 2)
-        self._normal = self._prior.copy()
+        self._normal = np.diag(1.0 / np.array([cross_axis_sigma, cross_axis_sigma,
+                                               scale_sigma]) ** 2)  # the prior's information
         self._rhs = np.zeros(3)
         self._column = np.zeros(3)
         self._pairs = 0
@@ -121,7 +120,7 @@ class GyroAlignment:
                 and 0.0 < pair.overlap <= 1.0):
             return
         theta = log_so3(pair.R_camera)
-        A = -theta[2] * right_jacobian(theta)
+        A = -theta[2] * exp_and_right_jacobian(theta[None])[1][0]
         residual = log_so3(pair.R_gyro.T @ pair.R_camera)
         # W = (Lambda^-1 + s^2 I)^-1 written so that a singular Lambda (no information) is 0
         spread = GYRO_PAIR_SIGMA ** 2 / pair.overlap
@@ -147,12 +146,3 @@ class GyroAlignment:
         rate = np.asarray(rate, dtype=float)
         return rate + self._column * rate[2]
 
-
-def right_jacobian(phi: np.ndarray) -> np.ndarray:
-    """SO(3)'s right Jacobian ``J_r(phi)``: ``Exp(phi + d) ~ Exp(phi) Exp(J_r(phi) d)``."""
-    angle = float(np.linalg.norm(phi))
-    K = skew(phi)
-    if angle < 1e-6:
-        return np.eye(3) - 0.5 * K + K @ K / 6.0
-    return (np.eye(3) - (1.0 - math.cos(angle)) / angle ** 2 * K
-            + (angle - math.sin(angle)) / angle ** 3 * (K @ K))

@@ -93,8 +93,9 @@ class Preintegrated:
     d_p_d_ba: np.ndarray
 
 
-def _exp_and_right_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``Exp(phi_k)`` and ``J_r(phi_k)`` for every row of ``phi`` (N, 3), vectorised."""
+def exp_and_right_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``Exp(phi_k)`` and ``J_r(phi_k)`` for every row of ``phi`` (N, 3), vectorised
+    (``Exp(phi + d) ~ Exp(phi) Exp(J_r(phi) d)``)."""
     n = phi.shape[0]
     theta = np.linalg.norm(phi, axis=1)
     K = np.zeros((n, 3, 3))
@@ -170,7 +171,7 @@ def preintegrate(gyro, accel, dt, bias_g, bias_a, noise: ImuNoise | None = None,
     swg2 = noise.gyro_random_walk**2 if bias_random_walk else 0.0
     swa2 = noise.accel_random_walk**2 if bias_random_walk else 0.0
     A = np.eye(15)
-    steps, jacobians = _exp_and_right_jacobian((gyro - bg) * dts[:, None])
+    steps, jacobians = exp_and_right_jacobian((gyro - bg) * dts[:, None])
     acc = accel - ba
     for k in range(n):
         h = dts[k]

@@ -143,6 +143,7 @@ class _Pair:
     R: np.ndarray
     information: np.ndarray
     overlap: float
+    R_gyro: np.ndarray  # the body's rotation by the gyro, at the offset in use when paired
 
 
 @dataclass(frozen=True)
@@ -466,20 +467,21 @@ class TimeOffsetEstimator:
             if not self._gyro.covers(a - o.max_time_offset_s, b):
                 return None
             (R_a, R_b), _ = self._gyro.at(np.array([a, b]))
-            R0 = self._R_C_B @ R_a.T @ R_b @ self._R_B_C
+            R_gyro = R_a.T @ R_b
+            R0 = self._R_C_B @ R_gyro @ self._R_B_C
             fit = fit_rotation(bearings_i[there], bearings[here], R0, self.focal_px)
             if fit is None:
                 return None
             covariance = np.linalg.pinv(fit.information) + ROTATION_SIGMA_FLOOR ** 2 * np.eye(3)
             # consecutive pairs overlap: count each stretch of time once
             overlap = min(1.0, (stamp - self._frames[-1][0]) / (stamp - s_i))
-            return _Pair(s_i, stamp, fit.R, overlap * np.linalg.inv(covariance), overlap)
+            return _Pair(s_i, stamp, fit.R, overlap * np.linalg.inv(covariance), overlap,
+                         R_gyro)
         return None
 
     def _in_body_frame(self, pair: _Pair) -> PairRotations:
-        """``pair`` in the body frame, with the gyro's rotation at the offset in use."""
-        (R_a, R_b), _ = self._gyro.at(np.array([pair.s_i - self._td, pair.s_j - self._td]))
-        return PairRotations(R_a.T @ R_b, self._R_B_C @ pair.R @ self._R_C_B,
+        """``pair``'s camera side in the body frame."""
+        return PairRotations(pair.R_gyro, self._R_B_C @ pair.R @ self._R_C_B,
                              self._R_B_C @ pair.information @ self._R_C_B, pair.overlap)
 
     def solve(self, td: float) -> tuple[float, float]:
