@@ -272,6 +272,31 @@ def test_the_summary_ends_with_the_estimated_time_offset_and_how_to_start_from_i
     assert offset_line(TimeOffset(seconds=0.0, estimating=True)) == []
 
 
+def test_the_summary_ends_with_the_estimated_gyro_alignment_and_how_to_start_from_it():
+    from autonomy.vins.gyro_alignment import GyroAlignmentEstimate
+    from companion.flight.app import format_flight, gyro_alignment_summary
+
+    flight = {"final_state": "landed", "failsafes": [], "flight_time_s": 60.0,
+              "depth_rate_hz": 14.0, "loop_lag_ms_p99": 3.0, "planning_rounds": 600,
+              "stop_rounds": 9, "backoffs": 0, "vins_resets": 0}
+
+    def alignment_lines(estimate) -> list[str]:
+        summary = {**flight, "vins_gyro_alignment": gyro_alignment_summary(estimate)}
+        return [line for line in format_flight(summary).splitlines() if "gyro" in line]
+
+    estimated = GyroAlignmentEstimate((0.0197, 0.0193, -0.0018), (0.0026, 0.0030, 0.0012), 670)
+    assert gyro_alignment_summary(estimated) == {"column": [0.0197, 0.0193, -0.0018],
+                                                 "sigma": [0.0026, 0.0030, 0.0012],
+                                                 "pairs": 670}
+    assert alignment_lines(estimated) == [
+        "  gyro yaw response [0.0197, 0.0193, -0.0018] (sigma at most 0.0030, 670 frame "
+        "pairs); to start the next flight from it: "
+        "--set 'vins.gyro_alignment=[0.0197, 0.0193, -0.0018]'"]
+    # nothing to tell: no alignment, a calibration given and not estimated, no pair yet
+    assert gyro_alignment_summary(None) is None and alignment_lines(None) == []
+    assert alignment_lines(GyroAlignmentEstimate((0.02, 0.0, 0.0))) == []
+
+
 # ---------------------------------------------------------------- simulated camera
 
 class _Vehicle:

@@ -175,6 +175,23 @@ def test_the_same_seed_gives_the_same_noise():
     assert not np.array_equal(a, c)
 
 
+def test_a_vehicle_keeps_its_matrices_from_flight_to_flight():
+    """A vehicle generator seeded as the flight's changes nothing; another flight of the same
+    vehicle has its matrices and a noise of its own."""
+    alone = ImuModel(ImuOptions(), np.random.default_rng([7, 1]))
+    same = ImuModel(ImuOptions(), np.random.default_rng([7, 1]), np.random.default_rng([7, 1]))
+    np.testing.assert_array_equal(samples(alone, 50, 0.005), samples(same, 50, 0.005))
+    other_flight = ImuModel(ImuOptions(), np.random.default_rng([8, 1]),
+                            np.random.default_rng([7, 1]))
+    np.testing.assert_array_equal(other_flight.gyro_matrix, alone.gyro_matrix)
+    np.testing.assert_array_equal(other_flight.accel_matrix, alone.accel_matrix)
+    other_vehicle = ImuModel(ImuOptions(), np.random.default_rng([8, 1]))
+    assert not np.array_equal(other_vehicle.gyro_matrix, alone.gyro_matrix)
+    # the turn-on bias comes with the power-up, so with the flight
+    np.testing.assert_array_equal(other_flight.gyro_bias, other_vehicle.gyro_bias)
+    assert not np.array_equal(other_flight.gyro_bias, alone.gyro_bias)
+
+
 def run_of(options, count=400, thrust=None):
     """Per sample of seed 9 at TRUTH: the output, and the bias it carried (gyro then accel)."""
     model = ImuModel(options, np.random.default_rng(9))

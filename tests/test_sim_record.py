@@ -114,6 +114,21 @@ def test_the_same_seed_records_the_same_flight(tmp_path):
     assert digests[0][0] != digests[2][0]  # another seed: other noise (and another world)
 
 
+def test_a_vehicle_seed_equal_to_the_seed_records_the_same_realistic_flight(tmp_path):
+    """[sim] vehicle_seed flies another seed's vehicle; by default (-1), and set to the seed,
+    the recording is the one it always was."""
+    assert SimOptions(seed=5).vehicle == 5 and SimOptions(seed=5, vehicle_seed=2).vehicle == 2
+    digests = []
+    for name, vehicle_seed in (("a", -1), ("b", 5)):
+        record_dataset(tmp_path / name, SimOptions(world="dome", seed=5, profile="realistic",
+                                                   vehicle_seed=vehicle_seed),
+                       CameraOptions(), VehicleOptions(), ImuOptions(), duration=0.5)
+        files = ["imu0/data.csv", "cam0/data.csv"]
+        digests.append([hashlib.sha256((tmp_path / name / "mav0" / f).read_bytes()).hexdigest()
+                        for f in files])
+    assert digests[0] == digests[1]
+
+
 def test_recording_refuses_a_folder_in_use_and_a_bad_duration(tmp_path):
     (tmp_path / "keep.txt").write_text("mine")
     with pytest.raises(RecordError, match="not empty"):

@@ -219,6 +219,41 @@ def test_the_true_mounting_is_off_by_the_configured_calibration_error():
     assert np.array_equal(ideal.T_B_C, ideal.T_B_C_configured)
 
 
+def test_a_vehicle_keeps_its_mounting_from_flight_to_flight():
+    """The mounting error comes from the vehicle's generator; the noise and stamps from the
+    flight's, as they would without one."""
+    options = SensorOptions(distortion=(), motion_blur=False)
+
+    def head(flight, vehicle=None):
+        return CameraHead(CAMERA, 20.0, sensor=options, world="dome",
+                          rng=np.random.default_rng(flight),
+                          vehicle_rng=None if vehicle is None else np.random.default_rng(vehicle))
+
+    def stamps(h):
+        scene = wide_scene(h.sensor)
+        return [h.sensor.capture(k * PERIOD, *scene, np.zeros(3), np.zeros(3)).stamp
+                for k in range(20)]
+
+    alone, other_vehicle = head(1), head(2)
+    assert np.array_equal(head(1, vehicle=1).T_B_C, alone.T_B_C)
+    other_flight = head(2, vehicle=1)
+    assert np.array_equal(other_flight.T_B_C, alone.T_B_C)
+    assert not np.array_equal(other_vehicle.T_B_C, alone.T_B_C)
+    assert stamps(other_flight) == stamps(other_vehicle) != stamps(alone)
+
+
+def test_a_simulated_flight_mounts_the_camera_of_the_configured_vehicle():
+    from companion.config import load_config
+    from drivers.sim.host import camera_head
+
+    def mounting(seed, *overrides):
+        config = load_config(None, ["sim.profile=realistic", *overrides])
+        return camera_head(config, "dome", seed).T_B_C
+
+    assert np.array_equal(mounting(4, "sim.vehicle_seed=9"), mounting(9))
+    assert not np.array_equal(mounting(4), mounting(9))
+
+
 def test_camera_twist_of_a_yawing_vehicle_includes_the_lever_arm():
     from drivers.sim.camera import T_BODY_CAMERA
     from drivers.sim.quadrotor import VehicleState

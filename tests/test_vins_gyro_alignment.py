@@ -32,11 +32,12 @@ def _gyro_matrix(column):
     return matrix
 
 
-def _aligned_on_synthetic_flight(column, td=0.0):
-    """The alignment fed the time-offset estimator's pairs over the synthetic flight (a camera
-    stamped ``td`` late), once the offset is known, as the VINS feeds it."""
+def _aligned_on_synthetic_flight(column, td=0.0, prior=(0.0, 0.0, 0.0)):
+    """The alignment (its prior's mean ``prior``) fed the time-offset estimator's pairs over
+    the synthetic flight (a camera stamped ``td`` late), once the offset is known, as the VINS
+    feeds it."""
     options = VinsOptions(estimate_time_offset=True)
-    alignment = GyroAlignment(0.014, 0.005)
+    alignment = GyroAlignment(0.014, 0.005, prior)
     history = []
 
     def feed(estimator):
@@ -61,6 +62,22 @@ def test_a_hidden_yaw_response_is_found_once_the_vehicle_turns(td):
     assert np.abs(error).max() < 0.001, estimate
     assert np.all(np.abs(error) < 3 * np.asarray(estimate.sigma))  # the sigma is honest
     assert estimate.pairs > 50
+
+
+def test_a_carried_calibration_holds_from_the_start_and_the_flight_refines_it():
+    """An earlier flight's column, off by about its sigma there: flying straight it is the
+    correction as given, and the corners bring it to this flight's."""
+    carried = COLUMN + np.array([0.004, -0.004, 0.001])
+    alignment, history = _aligned_on_synthetic_flight(COLUMN, prior=carried)
+    straight = history[: int(2.9 / 0.05)]
+    np.testing.assert_allclose(straight, np.tile(carried, (len(straight), 1)), atol=1e-3)
+    assert np.abs(alignment.column - COLUMN).max() < 0.001, alignment.estimate
+
+
+@pytest.mark.parametrize("prior", [(0.01, 0.02), (0.0, math.nan, 0.0), (0.0, 0.0, -1.0)])
+def test_a_prior_mean_that_is_not_a_column_is_refused(prior):
+    with pytest.raises(ValueError, match="prior's mean"):
+        GyroAlignment(0.014, 0.005, prior)
 
 
 def test_an_exact_gyro_gives_no_correction():
@@ -89,8 +106,7 @@ def test_the_right_jacobian_is_the_first_order_of_exp():
 
 
 def test_the_correction_inverts_the_misalignment_exactly():
-    alignment = GyroAlignment(0.014, 0.005)
-    alignment._column = COLUMN.copy()  # as if estimated
+    alignment = GyroAlignment(0.014, 0.005, COLUMN)
     rate = np.array([0.1, -0.3, 0.8])
     measured = _gyro_matrix(COLUMN) @ rate
     np.testing.assert_allclose(alignment.correct(measured), rate, atol=1e-15)
@@ -148,6 +164,9 @@ def test_a_prior_without_a_positive_sigma_is_refused(sigmas):
     ({"gyro_cross_axis_sigma": 0.0}, "gyro_cross_axis_sigma"),
     ({"gyro_scale_sigma": math.inf}, "gyro_scale_sigma"),
     ({"estimate_gyro_alignment": "yes"}, "estimate_gyro_alignment"),
+    ({"gyro_alignment": (0.01, 0.02)}, "gyro_alignment"),
+    ({"gyro_alignment": (0.01, math.nan, 0.0)}, "gyro_alignment"),
+    ({"gyro_alignment": (0.5, 0.0, 0.0)}, "gyro_alignment"),
 ])
 def test_bad_alignment_options_are_refused_with_their_name(changes, key):
     with pytest.raises(OptionError) as error:
@@ -157,6 +176,7 @@ def test_bad_alignment_options_are_refused_with_their_name(changes, key):
 
 def test_the_alignment_is_off_by_default():
     assert VinsOptions().estimate_gyro_alignment is False
+    assert VinsOptions().gyro_alignment == (0.0, 0.0, 0.0)
 
 
 def test_with_the_alignment_on_a_bad_imu_sample_is_refused_and_the_estimator_goes_on():
@@ -197,15 +217,17 @@ def _misalign_gyro(source, target, column):
 @pytest.fixture(scope="module")
 def corner_runs(record_flight, tmp_path_factory):
     """The VINS over the corner flight with a hidden yaw response, without and with the
-    alignment: their ``eval vio`` scores."""
+    alignment, and with the column as a calibration carried over (a fixed correction): their
+    ``eval vio`` scores."""
     from companion.tools.eval import vio
 
     source = record_flight("mine", CORNER_FLIGHT_S)
     root = _misalign_gyro(source, tmp_path_factory.mktemp("misaligned"), COLUMN)
-    return {aligned: vio.evaluate_vio(root, VinsOptions(estimate_time_offset=True,
-                                                        estimate_gyro_alignment=aligned),
-                                      consistency=False)
-            for aligned in (False, True)}
+    arms = {False: {}, True: {"estimate_gyro_alignment": True},
+            "carried": {"gyro_alignment": tuple(COLUMN)}}
+    return {arm: vio.evaluate_vio(root, VinsOptions(estimate_time_offset=True, **changes),
+                                  consistency=False)
+            for arm, changes in arms.items()}
 
 
 def test_the_vins_finds_a_hidden_yaw_response_in_a_corner(corner_runs):
@@ -223,3 +245,14 @@ def test_correcting_the_yaw_response_makes_the_flight_more_accurate(corner_runs)
     off, on = corner_runs[False], corner_runs[True]
     assert on["resets"] == 0
     assert on["ate_over_distance"] < off["ate_over_distance"], (on, off)
+
+
+def test_a_carried_calibration_corrects_the_corner_without_estimating(corner_runs):
+    from companion.tools.eval.vio import format_vio_report
+
+    off, carried = corner_runs[False], corner_runs["carried"]
+    assert carried["gyro_alignment"] == {"column": list(COLUMN), "sigma": None, "pairs": 0}
+    assert "+0.0200 -0.0150 +0.0040 as given" in format_vio_report(carried)
+    assert "yaw rate (x, y, z): not corrected" in format_vio_report(off)
+    assert carried["resets"] == 0
+    assert carried["ate_over_distance"] < off["ate_over_distance"], (carried, off)

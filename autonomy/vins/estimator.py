@@ -37,7 +37,9 @@ sparse map carry ``t``, with the offset that was subtracted.
 
 Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate is
 estimated on the time offset's frame pairs and every sample is corrected by it before use
-(:mod:`autonomy.vins.gyro_alignment`); the time-offset estimator keeps the raw samples.
+(:mod:`autonomy.vins.gyro_alignment`), starting from ``gyro_alignment``, a calibration carried
+over from an earlier flight (which alone is a fixed correction); the time-offset estimator
+keeps the raw samples.
 """
 
 from __future__ import annotations
@@ -143,9 +145,10 @@ class Vins:
         self._offset_estimator = (TimeOffsetEstimator(self.T_B_C, math.sqrt(camera.fx * camera.fy),
                                                       self.options)
                                   if self.options.estimate_time_offset else None)
-        self._alignment = (GyroAlignment(self.options.gyro_cross_axis_sigma,
-                                         self.options.gyro_scale_sigma)
-                           if self.options.estimate_gyro_alignment else None)
+        o = self.options
+        self._alignment = (GyroAlignment(o.gyro_cross_axis_sigma, o.gyro_scale_sigma,
+                                         o.gyro_alignment)
+                           if o.estimate_gyro_alignment or any(o.gyro_alignment) else None)
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._gap: ImuGap | None = None
         self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
@@ -174,14 +177,15 @@ class Vins:
 
     @property
     def gyro_alignment(self) -> GyroAlignmentEstimate | None:
-        """The gyro's estimated response to the yaw rate (None unless
-        ``estimate_gyro_alignment``): :mod:`autonomy.vins.gyro_alignment`."""
+        """The gyro's response to the yaw rate it is corrected by (None when neither
+        ``estimate_gyro_alignment`` nor a calibrated ``gyro_alignment`` is given; without the
+        estimate, the calibration with no pairs): :mod:`autonomy.vins.gyro_alignment`."""
         return None if self._alignment is None else self._alignment.estimate
 
     def add_imu(self, sample: ImuSample) -> None:
         """One IMU sample, in time order; ValueError for a bad one (the sample is not used).
-        With ``estimate_gyro_alignment`` its gyro is corrected before use; the time-offset
-        estimator gets it raw."""
+        With ``estimate_gyro_alignment`` or a calibrated ``gyro_alignment`` its gyro is
+        corrected before use; the time-offset estimator gets it raw."""
         raw_gyro = np.asarray(sample.gyro, dtype=float).reshape(-1)
         if self._alignment is not None and raw_gyro.shape == (3,):
             sample = replace(sample, gyro=self._alignment.correct(raw_gyro))
@@ -243,7 +247,7 @@ class Vins:
     def _align_gyro(self, pair: PairRotations | None) -> None:
         """The time offset's new frame pair to the gyro alignment, once the offset is known
         to ``time_offset_max_sigma_s`` (a pair made at a wrong offset is biased)."""
-        if self._alignment is None or pair is None:
+        if not self.options.estimate_gyro_alignment or pair is None:
             return
         sigma = self._offset_estimator.offset.sigma
         if sigma is not None and sigma <= self.options.time_offset_max_sigma_s:

@@ -87,17 +87,23 @@ class GyroAlignment:
     """Least-squares estimate of the gyro's z-rate response from frame pairs (module docstring).
 
     ``cross_axis_sigma`` is the prior's sigma of the x and y responses, ``scale_sigma`` of the z
-    response (fractions).
+    response (fractions); ``prior`` its mean (a calibration carried over from an earlier flight
+    of the vehicle; default none), which is also the correction until the first pair.
     """
 
-    def __init__(self, cross_axis_sigma: float, scale_sigma: float):
+    def __init__(self, cross_axis_sigma: float, scale_sigma: float,
+                 prior: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         if not (cross_axis_sigma > 0.0 and scale_sigma > 0.0):
             raise ValueError("the prior's sigmas must be positive, got "
                              f"{cross_axis_sigma} and {scale_sigma}")
+        prior = np.asarray(prior, dtype=float)
+        if prior.shape != (3,) or not np.isfinite(prior).all() or prior[2] <= -1.0:
+            raise ValueError(f"the prior's mean must be three finite responses with the z axis "
+                             f"above -1, got {prior.tolist()}")
         self._normal = np.diag(1.0 / np.array([cross_axis_sigma, cross_axis_sigma,
                                                scale_sigma]) ** 2)  # the prior's information
-        self._rhs = np.zeros(3)
-        self._column = np.zeros(3)
+        self._rhs = self._normal @ prior
+        self._column = prior
         self._pairs = 0
 
     @property

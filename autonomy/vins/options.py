@@ -6,9 +6,14 @@ initialisation keep their own (``[vins_frontend]``, ``[vins_init]``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from autonomy.options import OptionError, option, validate
+
+#: Largest gyro response to the yaw rate a calibration may give, per axis (fraction): ten times
+#: the datasheet's cross-axis tolerance; more is a wrong column, not a gyro.
+MAX_GYRO_ALIGNMENT = 0.2
 
 
 @dataclass(frozen=True)
@@ -160,6 +165,11 @@ class VinsOptions:
                                           "fraction")
     gyro_scale_sigma: float = option(0.005, gt=0.0, le=0.2, doc="the estimate's prior: sigma "
                                      "of the z axis' scale error, fraction")
+    gyro_alignment: tuple[float, ...] = option(
+        (0.0, 0.0, 0.0), doc="the gyro's response to the yaw rate (x, y and z axes, fractions) "
+        "calibrated on an earlier flight of this vehicle (eval vio's gyro_alignment column): "
+        "the gyro is corrected by it from the first sample, and with estimate_gyro_alignment "
+        "it is the estimate's prior mean")
     # --- health
     min_tracked_ok: int = option(40, ge=0, doc="fewer tracked features than this is DEGRADED")
     min_tracked_lost: int = option(10, ge=0, doc="fewer tracked features than this for "
@@ -203,6 +213,11 @@ class VinsOptions:
         if self.estimate_gyro_alignment and not self.estimate_time_offset:
             raise OptionError("estimate_gyro_alignment", "needs estimate_time_offset = true "
                               "(the gyro is aligned on the time-offset estimator's frame pairs)")
+        if len(self.gyro_alignment) != 3 or not all(
+                math.isfinite(c) and abs(c) <= MAX_GYRO_ALIGNMENT for c in self.gyro_alignment):
+            raise OptionError("gyro_alignment", "takes the x, y and z axes' responses to the "
+                              f"yaw rate, each within +-{MAX_GYRO_ALIGNMENT}, "
+                              f"got {list(self.gyro_alignment)}")
         if self.min_tracked_lost > self.min_tracked_ok:
             raise OptionError("min_tracked_lost", "must not exceed min_tracked_ok "
                               f"({self.min_tracked_ok}), got {self.min_tracked_lost}")

@@ -202,6 +202,7 @@ class FlightApp:
                                      if s.vins_still_keyframes_at_takeoff is None
                                      else s.vins_still_keyframes_at_takeoff),
             "vins_time_offset": time_offset_summary(self.perception.vins.time_offset),
+            "vins_gyro_alignment": gyro_alignment_summary(self.perception.vins.gyro_alignment),
             "vins_correction_m": correction_summary(s.vins_corrections_m),
             "watchdog_setpoints": self.command.watchdog.fired,
             "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
@@ -232,6 +233,18 @@ def time_offset_summary(offset) -> dict:
     return {"seconds": offset.seconds, "sigma_s": offset.sigma, "estimated": offset.estimating}
 
 
+def gyro_alignment_summary(estimate) -> dict | None:
+    """The gyro's response to the yaw rate the VINS ended on (a
+    :class:`~autonomy.vins.gyro_alignment.GyroAlignmentEstimate`, None when it corrects none):
+    ``column`` (x, y, z), ``sigma`` (None without frame pairs: a calibration given, not
+    estimated), ``pairs``."""
+    if estimate is None:
+        return None
+    return {"column": list(estimate.column),
+            "sigma": None if estimate.sigma is None else list(estimate.sigma),
+            "pairs": estimate.pairs}
+
+
 def format_flight(summary: dict) -> str:
     """The application's own summary (real or simulated flight) as a few lines."""
     return "\n".join([*_flight_lines(summary), *_recording_lines(summary.get("recording"))])
@@ -257,6 +270,7 @@ def _flight_lines(summary: dict) -> list[str]:
         f"{summary['backoffs']} backings-off)",
         f"  VINS resets       {summary['vins_resets']}{_still_keyframes(summary)}",
         *_time_offset_lines(summary.get("vins_time_offset")),
+        *_gyro_alignment_lines(summary.get("vins_gyro_alignment")),
         *_signing_lines(summary.get("mavlink_signing")),
     ]
 
@@ -274,6 +288,19 @@ def _signing_lines(signing: dict | None) -> list[str]:
         return ["  MAVLink signing   off"]
     return [f"  MAVLink signing   on: {signing['unsigned']} unsigned and "
             f"{signing['bad_signature']} badly signed messages ignored"]
+
+
+def _gyro_alignment_lines(alignment: dict | None) -> list[str]:
+    """The gyro's response to the yaw rate the VINS estimated, and how to start the next flight
+    of this vehicle from it: the estimate learns it in the first corner, too late for that
+    corner (docs/vins.md, "The gyro's response to yaw")."""
+    if alignment is None or not alignment["pairs"]:
+        return []
+    column = ", ".join(f"{c:.4f}" for c in alignment["column"])
+    sigma = max(alignment["sigma"])
+    return [f"  gyro yaw response [{column}] (sigma at most {sigma:.4f}, "
+            f"{alignment['pairs']} frame pairs); to start the next flight from it: "
+            f"--set 'vins.gyro_alignment=[{column}]'"]
 
 
 def _time_offset_lines(offset: dict | None) -> list[str]:

@@ -42,18 +42,20 @@ class CameraHead:
     """The camera of ``pinhole`` intrinsics at ``rate_hz``, configured at mounting ``T_B_C``;
     ``sensor`` (the realistic profile's ``[sim_camera]``) or None for an ideal camera: exact
     pose, instant exposure, exact stamps. A sensor needs the ``world`` it flies in (its light)
-    and ``rng``, which draws its noise, lost frames and mounting error."""
+    and ``rng``, which draws its noise, lost frames and (unless ``vehicle_rng`` does) mounting
+    error."""
 
     def __init__(self, pinhole: PinholeCamera, rate_hz: float, T_B_C=T_BODY_CAMERA,
                  sensor: SensorOptions | None = None, world: str = "",
-                 rng: np.random.Generator | None = None):
+                 rng: np.random.Generator | None = None,
+                 vehicle_rng: np.random.Generator | None = None):
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"camera rate must be a positive number of Hz, got {rate_hz}")
         self.pinhole, self.period = pinhole, 1.0 / rate_hz
         self.T_B_C_configured = np.asarray(T_B_C, dtype=float)
         self.sensor = None if sensor is None else CameraSensor(
             sensor, pinhole, world, self.period,
-            rng if rng is not None else np.random.default_rng())
+            rng if rng is not None else np.random.default_rng(), vehicle_rng)
         #: Where the camera truly is: the configured mounting, off by a calibration error.
         self.T_B_C = self.T_B_C_configured if self.sensor is None else \
             self.T_B_C_configured @ self.sensor.mount_error()

@@ -250,10 +250,14 @@ class ImuModel:
     """Turns IMU truth into measurements with the error sources of :class:`ImuOptions`.
 
     The same ``rng`` state gives the same output, so a seeded generator makes a run repeatable.
-    The model keeps its own clock, the sum of the ``dt`` it was given (:attr:`time`).
+    ``vehicle_rng`` (default ``rng``) draws what a vehicle keeps from flight to flight, the
+    matrices ``M_g`` and ``M_a``, from the child ``rng`` would draw them from, so that a
+    vehicle generator seeded as ``rng`` gives ``rng``'s. The model keeps its own clock, the sum
+    of the ``dt`` it was given (:attr:`time`).
     """
 
-    def __init__(self, options: ImuOptions | None = None, rng: np.random.Generator | None = None):
+    def __init__(self, options: ImuOptions | None = None, rng: np.random.Generator | None = None,
+                 vehicle_rng: np.random.Generator | None = None):
         self.options = options if options is not None else ImuOptions().for_profile("ideal")
         if not isinstance(self.options, ImuOptions):
             raise TypeError(f"options must be ImuOptions, got {type(options).__name__}")
@@ -274,6 +278,8 @@ class ImuModel:
         )
         # One stream per error source (module docstring), each drawn only when it is on.
         matrix_rng, bias_rng, self._vibration_rng = rng.spawn(3)
+        if vehicle_rng is not None:
+            matrix_rng = vehicle_rng.spawn(1)[0]  # a fresh generator's first child, as rng's
         self._gyro_matrix: np.ndarray | None = None
         self._accel_matrix: np.ndarray | None = None
         if o.enabled and (o.gyro_scale_error or o.gyro_cross_axis

@@ -21,10 +21,17 @@ PROFILES = ("ideal", "realistic")
 
 @dataclass(frozen=True)
 class SimOptions:
-    """The simulated run. The same seed gives the same world, sensor noise and path."""
+    """The simulated run. The same seed gives the same world, sensor noise and path; the
+    vehicle seed, the same vehicle."""
 
     world: str = option("dome", choices=WORLD_NAMES, doc="the world flown in")
     seed: int = option(0, ge=0, doc="seed of the world, the sensor noise and the recorded path")
+    vehicle_seed: int = option(
+        -1, ge=-1,
+        doc="seed of the errors a vehicle keeps from flight to flight (the IMU's scale and "
+        "misalignment, the camera's mounting error), so that two seeds can fly one vehicle; "
+        "-1: the run's seed",
+    )
     clock: str = option(
         "realtime",
         choices=CLOCK_MODES,
@@ -41,6 +48,11 @@ class SimOptions:
 
     def __post_init__(self) -> None:
         validate(self)
+
+    @property
+    def vehicle(self) -> int:
+        """The seed of the vehicle's own errors (``vehicle_seed``, or the run's seed)."""
+        return self.seed if self.vehicle_seed < 0 else self.vehicle_seed
 
 
 @dataclass(frozen=True)

@@ -167,8 +167,11 @@ def route_path(world: World, route: Route) -> np.ndarray:
 
 def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
-        sensor: SensorOptions | None = None, renderer: Renderer | None = None) -> RecordSummary:
+        sensor: SensorOptions | None = None, renderer: Renderer | None = None,
+        vehicle_seed: int | None = None) -> RecordSummary:
     """Fly ``route`` for ``duration`` simulated seconds, sending every sample to ``sink``.
+    ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the errors the
+    vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`).
 
     Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
     after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
@@ -181,9 +184,10 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     quad = Quadrotor(vehicle, world.obstacle_clearance,
                      position=np.array([route.start[0], route.start[1], 0.0]),
                      yaw=_heading(path))
-    imu_model = ImuModel(imu, np.random.default_rng([seed, 1]))
+    unit = seed if vehicle_seed is None else vehicle_seed
+    imu_model = ImuModel(imu, np.random.default_rng([seed, 1]), np.random.default_rng([unit, 1]))
     head = CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), sensor, world.name,
-                      np.random.default_rng([seed, 3]))
+                      np.random.default_rng([seed, 3]), np.random.default_rng([unit, 3]))
     owned = renderer is None
     renderer = renderer or Renderer(world, head.render_camera)
     climb_seconds = route.cruise_height * CLIMB_SECONDS_PER_METRE + SETTLE_SECONDS
@@ -246,7 +250,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     written is the configured one, not the camera's true one; none when it is switched off),
     or ideal.
 
-    The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset.
+    The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset;
+    ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting).
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
@@ -261,7 +266,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     with EurocWriter(out, camera.pinhole(), camera.T_B_C(), camera.rate_hz,
                      _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.seed,
-                   camera=camera, vehicle=vehicle, imu=imu, sensor=sensor)
+                   camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
+                   vehicle_seed=sim.vehicle)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:

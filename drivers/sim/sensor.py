@@ -246,10 +246,14 @@ class CameraSensor:
     made once, at a random offset per frame. Every full-frame intermediate lives in a buffer
     made once: a fresh megabyte-sized array per step would be fresh pages from the kernel,
     whose faults cost more than the arithmetic.
+
+    ``rng`` draws the noise, the jitter and the lost frames; ``vehicle_rng`` (default ``rng``)
+    the mounting error, which a vehicle keeps from flight to flight.
     """
 
     def __init__(self, options: SensorOptions, camera: PinholeCamera, world: str,
-                 period: float, rng: np.random.Generator):
+                 period: float, rng: np.random.Generator,
+                 vehicle_rng: np.random.Generator | None = None):
         if options.time_offset_ms * 1e-3 + 3 * options.timestamp_jitter_ms * 1e-3 >= period:
             raise ValueError(f"a camera time offset of {options.time_offset_ms} ms (+3 sigma "
                              f"jitter) must stay under the frame period {period * 1e3:.1f} ms")
@@ -268,8 +272,13 @@ class CameraSensor:
                         (coarse_v - wide.cy) / wide.fy)
         # each pixel's readout instant per second of readout, from the middle row
         self._row_offset = (self.lens.map_v - wide.cy) / camera.height
-        self._noise = rng.standard_normal(2 * camera.height * camera.width * 3,
-                                          dtype=np.float32)
+        bank = 2 * camera.height * camera.width * 3
+        self._noise = rng.standard_normal(bank, dtype=np.float32)
+        if vehicle_rng is not None:
+            # A vehicle's generator is another flight's: past a bank of its own, its draws are
+            # that flight's mounting, so a vehicle seed equal to the run's gives the run's.
+            vehicle_rng.standard_normal(bank, dtype=np.float32)
+        self._vehicle_rng = vehicle_rng
         shape = (camera.height, camera.width)
         self._map_u, self._map_v = np.empty(shape, np.float32), np.empty(shape, np.float32)
         self._sample = np.empty((*shape, 4), np.uint8)  # one warped copy of the render
@@ -286,8 +295,11 @@ class CameraSensor:
         """A 4x4 rigid transform ``T_C_true``: where the camera truly is in the frame of its
         configured mounting, off by the options' rotation and translation errors in random
         directions (drawn once per flight)."""
-        o, rng = self.options, self._rng
-        axis, direction = _unit(rng.standard_normal(3)), _unit(rng.standard_normal(3))
+        o = self.options
+        draws = [self._rng.standard_normal(3) for _ in range(2)]  # the flight's stream moves on
+        if self._vehicle_rng is not None:
+            draws = [self._vehicle_rng.standard_normal(3) for _ in range(2)]
+        axis, direction = _unit(draws[0]), _unit(draws[1])
         return make_pose(so3_exp(axis * math.radians(o.mount_rotation_error_deg)),
                          direction * o.mount_translation_error_mm * 1e-3)
 

@@ -68,10 +68,12 @@ class SimulatedVehicle:
     ``faults`` injects the link and flight-controller faults of :mod:`drivers.sim.faults`
     (link cut or lossy, IMU gap, repeated or reordered, TIMESYNC silent, a forced disarm, a
     reboot). The vehicle stands at ``start`` (x, y, z in the
-    world frame; default :func:`start_position`) heading ``start_yaw``, radians.
+    world frame; default :func:`start_position`) heading ``start_yaw``, radians. ``seed``
+    draws the IMU's noise and the link's losses; ``vehicle_seed`` (default ``seed``) the IMU's
+    scale and misalignment, which a vehicle keeps from flight to flight.
     """
 
-    def __init__(self, link, world, *, seed: int = 0,
+    def __init__(self, link, world, *, seed: int = 0, vehicle_seed: int | None = None,
                  vehicle_options: VehicleOptions | None = None,
                  imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
                  start=None, start_yaw: float = 0.0, faults: FaultSchedule | None = None):
@@ -79,10 +81,13 @@ class SimulatedVehicle:
         self.dt = 1.0 / self.imu_options.rate_hz
         clearance = getattr(world, "obstacle_clearance", None) if world is not None else None
         imu_seed, estimator_seed, link_seed = np.random.SeedSequence(seed).spawn(3)
+        vehicle_imu_seed = np.random.SeedSequence(
+            seed if vehicle_seed is None else vehicle_seed).spawn(1)[0]
         self.vehicle = Quadrotor(vehicle_options or VehicleOptions(), clearance,
                                  position=start_position(world) if start is None else start,
                                  yaw=start_yaw)
-        self.imu = ImuModel(self.imu_options, np.random.default_rng(imu_seed))
+        self.imu = ImuModel(self.imu_options, np.random.default_rng(imu_seed),
+                            np.random.default_rng(vehicle_imu_seed))
         self.link = FaultyLink(link, np.random.default_rng(link_seed))
         self.faults = faults or FaultSchedule()
         self._rebooted = False
@@ -125,7 +130,8 @@ class SimulatedVehicle:
                 px4.suppressed_streams.discard(stream)
 
 
-async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realtime",
+async def serve(url: str, world=None, *, seed: int = 0, vehicle_seed: int | None = None,
+                clock_mode: str = "realtime",
                 vehicle_options: VehicleOptions | None = None,
                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
                 duration: float | None = None, stop: StopSignal | None = None,
@@ -138,8 +144,8 @@ async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realt
     ``world`` is a ``drivers.sim.world.World`` (anything with ``obstacle_clearance`` and
     ``routes``) or None for open space. ``sim_clock`` is advanced in lockstep mode (one is made
     if not given). ``on_ready(sim)`` is called with the :class:`SimulatedVehicle` once the link
-    is open (e.g. to print the pty path). ``start``, ``start_yaw`` and ``faults`` go to the
-    :class:`SimulatedVehicle`.
+    is open (e.g. to print the pty path). ``start``, ``start_yaw``, ``faults``, ``seed`` and
+    ``vehicle_seed`` go to the :class:`SimulatedVehicle`.
     """
     if clock_mode not in CLOCK_MODES:
         raise ValueError(f"clock_mode must be one of {', '.join(CLOCK_MODES)}, got {clock_mode!r}")
@@ -148,7 +154,8 @@ async def serve(url: str, world=None, *, seed: int = 0, clock_mode: str = "realt
     link = open_link(url, source_system=(px4_options or Px4Options()).system_id,
                      source_component=(px4_options or Px4Options()).component_id)
     try:
-        sim = SimulatedVehicle(link, world, seed=seed, vehicle_options=vehicle_options,
+        sim = SimulatedVehicle(link, world, seed=seed, vehicle_seed=vehicle_seed,
+                               vehicle_options=vehicle_options,
                                imu_options=imu_options, px4_options=px4_options,
                                start=start, start_yaw=start_yaw, faults=faults)
         if link.pty_path is not None:

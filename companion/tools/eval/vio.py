@@ -562,6 +562,16 @@ def _angle(a, b) -> float:
 
 
 
+def _alignment_text(alignment: dict | None) -> str:
+    """The gyro alignment's line: none, a calibration given (no pairs), or the estimate."""
+    if alignment is None:
+        return "not corrected"
+    column = " ".join(f"{c:+.4f}" for c in alignment["column"])
+    if not alignment["pairs"]:
+        return f"{column} as given ([vins] gyro_alignment), not estimated"
+    return f"{column} over {alignment['pairs']} frame pairs"
+
+
 def format_vio_report(result: dict) -> str:
     """The evaluation result as a few lines a person reads."""
     init = result["init"]
@@ -599,10 +609,7 @@ def format_vio_report(result: dict) -> str:
         f"camera-IMU time offset: {result['time_offset_ms']:.2f} ms"
         + ("" if result["time_offset_sigma_ms"] is None
            else f" (sigma {result['time_offset_sigma_ms']:.2f} ms)"),
-        "gyro's response to the yaw rate (x, y, z): " + (
-            "not estimated" if result["gyro_alignment"] is None else
-            " ".join(f"{c:+.4f}" for c in result["gyro_alignment"]["column"])
-            + f" over {result['gyro_alignment']['pairs']} frame pairs"),
+        "gyro's response to the yaw rate (x, y, z): " + _alignment_text(result["gyro_alignment"]),
         "rotor drag fitted on the estimate: " + (
             "too few keyframes in flight" if result["drag_fit"] is None else
             f"{result['drag_fit']['coefficient_per_s']:.3f} 1/s over "
