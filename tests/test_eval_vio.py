@@ -96,6 +96,7 @@ def test_a_rigidly_moved_ground_truth_scores_zero_error_and_the_known_offsets(tm
     result = score_vio(_known_trace(data, 81), data)
     assert result["frames"] == 81 and result["keyframes"] == 38 and result["resets"] == 2
     assert result["ate_rmse_m"] < 1e-6 and result["scale_error"] < 1e-6
+    assert result["ate_sim3_rmse_m"] < 1e-6
     tracked = [_position(0.05 * k) for k in range(5, 81)]
     assert result["distance_m"] == pytest.approx(
         np.sum(np.linalg.norm(np.diff(tracked, axis=0), axis=1)))
@@ -147,6 +148,30 @@ def test_the_nees_is_measured_from_the_first_keyframe_not_from_a_best_fit(tmp_pa
     assert result["nees_velocity_mean"] == pytest.approx(9.0, rel=1e-6)
     assert result["nees_pose_by_axis"] == pytest.approx([0, 0, 0, 3.8, 0, 0.95], abs=1e-6)
     assert "5.0 median (6 if the covariance is honest)" in format_vio_report(result)
+
+
+def test_the_heading_drift_is_the_last_keyframes_yaw_error_through_the_gauge(tmp_path):
+    """The first keyframe fixes the gauge (yaw and shift); the yaw error grows to 0.3 deg, and
+    a roll error beside it is not heading."""
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 41)
+    trace.keyframes = _keyframes_in_a_yawed_world(
+        lambda k: np.r_[np.radians([0.2, 0.0, -0.3 * k / 19]), np.zeros(3)], [0.0] * 3)
+    result = score_vio(trace, data)
+    # the error is the body's: estimate = truth Exp(-error), so -0.3 deg about z turns it +0.3
+    assert result["heading_drift_deg"] == pytest.approx(0.3, abs=2e-3)
+    assert "heading drift +0.30 deg" in format_vio_report(result)
+
+
+def test_the_scale_taken_out_leaves_the_paths_shape(tmp_path):
+    """An estimate 3 % short has an ATE but none once the similarity takes the scale out."""
+    _write_dataset(tmp_path)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 81)
+    trace.positions = [None if p is None else 0.97 * p for p in trace.positions]
+    result = score_vio(trace, data)
+    assert result["ate_rmse_m"] > 1e-3 and result["ate_sim3_rmse_m"] < 1e-6
 
 
 def test_a_keyframe_with_an_unusable_covariance_is_counted_not_scored(tmp_path):

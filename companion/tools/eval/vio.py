@@ -263,7 +263,11 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``|s - 1|`` of the best similarity (Sim(3)) alignment of the same positions onto the
     truth, and ``scale`` its signed ``1 / s``, the estimate's size over the truth's (above 1:
     the VINS overestimates distances, and depths with them);
-    ``distance_m``: ground-truth path length over those frames. ``depth_rel_err_median``:
+    ``distance_m``: ground-truth path length over those frames. ``ate_sim3_rmse_m``: the ATE
+    after the similarity alignment instead, so with the scale error taken out (what is left is
+    the heading's drift and the path's shape). ``heading_drift_deg``: the last keyframe's yaw
+    error against the truth aligned at the first keyframe (:func:`_heading_drift`).
+    ``depth_rel_err_median``:
     median of the traced depth errors (None when the dataset has no ``depth0``);
     ``track_error_*``: the front-end's tracks against the truth
     (:mod:`companion.tools.eval.tracks`; None without ``depth0``). Back-end times
@@ -289,6 +293,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "keyframes": sum(trace.keyframe),
         **_trajectory_metrics(trace, truth_t, data.truth),
         **_consistency_metrics(trace.keyframes, truth_t, data.truth),
+        "heading_drift_deg": _heading_drift(trace.keyframes, truth_t, data.truth),
         "rebuilds": [_rebuild_report(rebuild, truth_t, data.truth) for rebuild in trace.rebuilds],
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
@@ -415,14 +420,34 @@ def _trajectory_metrics(trace: VioTrace, truth_t: np.ndarray, truth: GroundTruth
         scale = align_umeyama(estimated, true_positions, with_scale=True).s
     except ValueError as error:
         return {"ate_rmse_m": None, "distance_m": distance, "ate_over_distance": None,
-                "scale_error": None, "scale": None, "scale_by_time": [],
+                "ate_sim3_rmse_m": None, "scale_error": None, "scale": None,
+                "scale_by_time": [],
                 "note": f"no trajectory error from {len(chosen)} poses: {error}"}
     return {"ate_rmse_m": ate, "distance_m": distance,
             "ate_over_distance": ate / distance if distance > 0.0 else None,
+            "ate_sim3_rmse_m": ate_rmse(estimated, true_positions, with_scale=True),
             "scale_error": finite_or_none(abs(scale - 1.0)),
             "scale": finite_or_none(1.0 / scale) if scale > 0.0 else None,
             "scale_by_time": _scale_by_time(np.array([trace.t[k] for k in chosen]), estimated,
                                             true_positions)}
+
+
+def _heading_drift(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
+                   truth: GroundTruthTable) -> float | None:
+    """The heading's drift over the flight, degrees: the yaw of the last keyframe's estimate
+    less the truth's, in the estimator's world (the truth turned onto the first keyframe: yaw
+    is unobservable, so all it has of it is its start); positive is counter-clockwise. None
+    without keyframes."""
+    if not keyframes:
+        return None
+    true_last = _truth_in_world(keyframes, truth_t, truth)[-1][0]
+    error = _yaw(keyframes[-1].T_W_B) - _yaw(true_last)
+    return math.degrees(math.atan2(math.sin(error), math.cos(error)))
+
+
+def _yaw(T_W_B: np.ndarray) -> float:
+    """The heading of the body's x axis in the world's horizontal plane, radians."""
+    return math.atan2(T_W_B[1, 0], T_W_B[0, 0])
 
 
 def _scale_by_time(t: np.ndarray, estimated: np.ndarray, true: np.ndarray) -> list[dict]:
@@ -584,7 +609,9 @@ def format_vio_report(result: dict) -> str:
         f"trajectory: ATE {show(result['ate_rmse_m'], '.3f', ' m')} over "
         f"{show(result['distance_m'], '.1f', ' m')} "
         f"({show(result['ate_over_distance'], '.2%')}), scale error "
-        f"{show(result['scale_error'], '.2%')}{note}",
+        f"{show(result['scale_error'], '.2%')}; without the scale error ATE "
+        f"{show(result['ate_sim3_rmse_m'], '.3f', ' m')}; heading drift "
+        f"{show(result['heading_drift_deg'], '+.2f', ' deg')}{note}",
         "scale through the flight: " + (", ".join(
             f"{w['scale']:.3f} from {w['t']:.0f} s" for w in result["scale_by_time"]) or "none"),
         f"consistency: NEES of pose {show(result['nees_pose_mean'], '.1f')} mean, "
