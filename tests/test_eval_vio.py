@@ -158,6 +158,8 @@ def test_the_heading_drift_is_the_last_keyframes_yaw_error_through_the_gauge(tmp
     trace = _known_trace(data, 41)
     trace.keyframes = _keyframes_in_a_yawed_world(
         lambda k: np.r_[np.radians([0.2, 0.0, -0.3 * k / 19]), np.zeros(3)], [0.0] * 3)
+    late = dataclasses.replace(trace.keyframes[-1], t=99.0)  # a stamp past the truth's end
+    trace.keyframes.append(late)
     result = score_vio(trace, data)
     # the error is the body's: estimate = truth Exp(-error), so -0.3 deg about z turns it +0.3
     assert result["heading_drift_deg"] == pytest.approx(0.3, abs=2e-3)

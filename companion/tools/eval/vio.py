@@ -436,8 +436,9 @@ def _heading_drift(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
                    truth: GroundTruthTable) -> float | None:
     """The heading's drift over the flight, degrees: the yaw of the last keyframe's estimate
     less the truth's, in the estimator's world (the truth turned onto the first keyframe: yaw
-    is unobservable, so all it has of it is its start); positive is counter-clockwise. None
-    without keyframes."""
+    is unobservable, so all it has of it is its start); positive is counter-clockwise; over
+    the keyframes inside the truth's span (None without any)."""
+    keyframes = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
     if not keyframes:
         return None
     true_last = _truth_in_world(keyframes, truth_t, truth)[-1][0]
