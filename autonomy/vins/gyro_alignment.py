@@ -82,6 +82,12 @@ class GyroAlignmentEstimate:
     sigma: tuple[float, float, float] | None = None
     pairs: int = 0
 
+    def as_dict(self) -> dict:
+        """Plain lists and numbers, for JSON: ``column``, ``sigma``, ``pairs``."""
+        return {"column": list(self.column),
+                "sigma": None if self.sigma is None else list(self.sigma),
+                "pairs": self.pairs}
+
 
 class GyroAlignment:
     """Least-squares estimate of the gyro's z-rate response from frame pairs (module docstring).

@@ -238,11 +238,7 @@ def gyro_alignment_summary(estimate) -> dict | None:
     :class:`~autonomy.vins.gyro_alignment.GyroAlignmentEstimate`, None when it corrects none):
     ``column`` (x, y, z), ``sigma`` (None without frame pairs: a calibration given, not
     estimated), ``pairs``."""
-    if estimate is None:
-        return None
-    return {"column": list(estimate.column),
-            "sigma": None if estimate.sigma is None else list(estimate.sigma),
-            "pairs": estimate.pairs}
+    return None if estimate is None else estimate.as_dict()
 
 
 def format_flight(summary: dict) -> str:

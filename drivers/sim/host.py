@@ -221,21 +221,15 @@ class TruthTrack:
         }
 
 
-def vehicle_seed(config, seed: int) -> int:
-    """The seed of the vehicle's own errors on a flight of ``seed``: ``[sim] vehicle_seed``,
-    or the flight's seed when that is -1."""
-    return seed if config.sim.vehicle_seed < 0 else config.sim.vehicle_seed
-
-
 def camera_head(config, world: str, seed: int) -> CameraHead:
     """The simulated camera ``config`` describes in ``world``: ideal, or in the realistic
     profile behind ``[sim_camera]``'s sensor, its errors drawn from ``seed`` (its mounting
-    from :func:`vehicle_seed`)."""
+    from ``[sim] vehicle_seed``'s)."""
     camera = config.camera
     return CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(),
                       config.sim_camera.for_profile(config.sim.profile), world,
                       np.random.default_rng([seed, 3]),
-                      np.random.default_rng([vehicle_seed(config, seed), 3]))
+                      np.random.default_rng([config.sim.vehicle_for(seed), 3]))
 
 
 async def stall_when_due(faults: FaultSchedule, sim) -> None:
@@ -306,7 +300,7 @@ class Simulator:
         c = self.config
         url = "pty" if self.port is None else f"udpin://127.0.0.1:{self.port}"
         return serve(url, self.world, seed=self.mission.seed,
-                     vehicle_seed=vehicle_seed(c, self.mission.seed),
+                     vehicle_seed=c.sim.vehicle_for(self.mission.seed),
                      clock_mode=clock_mode, vehicle_options=c.vehicle,
                      imu_options=c.imu.for_profile(c.sim.profile),
                      px4_options=c.px4, stop=stop, sim_clock=sim_clock, on_ready=on_ready,

@@ -49,10 +49,10 @@ class SimOptions:
     def __post_init__(self) -> None:
         validate(self)
 
-    @property
-    def vehicle(self) -> int:
-        """The seed of the vehicle's own errors (``vehicle_seed``, or the run's seed)."""
-        return self.seed if self.vehicle_seed < 0 else self.vehicle_seed
+    def vehicle_for(self, seed: int) -> int:
+        """The seed of the vehicle's own errors on a flight of ``seed``: ``vehicle_seed``, or
+        ``seed`` when that is -1."""
+        return seed if self.vehicle_seed < 0 else self.vehicle_seed
 
 
 @dataclass(frozen=True)

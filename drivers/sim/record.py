@@ -267,7 +267,7 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
                      _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.seed,
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
-                   vehicle_seed=sim.vehicle)
+                   vehicle_seed=sim.vehicle_for(sim.seed))
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:

@@ -132,8 +132,8 @@ class VioTrace:
     :func:`depth_relative_errors` per frame with both a sparse map and a depth image (so not
     one per frame). ``static_init``: the estimator's static initialisation (None if it never
     initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
-    offset at the end; ``gyro_alignment``: the gyro's response to the yaw rate at the end
-    (None unless estimated); ``corrections_m``: each keyframe's correction
+    offset at the end; ``gyro_alignment``: the gyro's response to the yaw rate it was
+    corrected by at the end (None when none); ``corrections_m``: each keyframe's correction
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
     keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
     each rebuild of the smoother.
@@ -281,8 +281,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``scale_by_time``: the scale again, over each 8 s of the flight (:func:`_scale_by_time`).
     ``drag_fit``: the rotor drag coefficient fitted on the estimate
     (:mod:`companion.tools.eval.drag_fit`; None when the flight is too short or too even).
-    ``gyro_alignment``: the gyro's response to the yaw rate at the end (``column``, ``sigma``,
-    ``pairs``; None unless ``estimate_gyro_alignment``).
+    ``gyro_alignment``: the gyro's response to the yaw rate it was corrected by at the end
+    (``column``, ``sigma``, ``pairs``; None when neither ``estimate_gyro_alignment`` nor a
+    ``gyro_alignment`` calibration is given).
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
@@ -310,11 +311,8 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "time_offset_sigma_ms": None if trace.time_offset.sigma is None
         else 1e3 * trace.time_offset.sigma,
         "drag_fit": _drag_fit(trace.keyframes, data),
-        "gyro_alignment": None if trace.gyro_alignment is None else {
-            "column": list(trace.gyro_alignment.column),
-            "sigma": None if trace.gyro_alignment.sigma is None
-            else list(trace.gyro_alignment.sigma),
-            "pairs": trace.gyro_alignment.pairs},
+        "gyro_alignment": None if trace.gyro_alignment is None
+        else trace.gyro_alignment.as_dict(),
     }
 
 
