@@ -3,8 +3,8 @@
 The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracker.cpp):
 
 1. optional CLAHE on the grey image;
-2. pyramidal Lucas-Kanade from the previous frame's features into this one, then back again;
-   a feature survives when both directions converge, it lands inside the image and the
+2. pyramidal Lucas-Kanade from the previous frame's features into this one, then back again
+   (an 11 px window where VINS-Mono's is 21: ``FrontendOptions.lk_window``); a feature survives when both directions converge, it lands inside the image and the
    round trip returns within ``forward_backward_threshold`` pixels of where it started;
 3. RANSAC on the fundamental matrix between the two frames' *undistorted* positions, expressed
    as pixels of the camera's ideal pinhole (so the threshold means pixels);
@@ -29,14 +29,19 @@ from autonomy.options import OptionError, option, validate
 
 @dataclass(frozen=True)
 class FrontendOptions:
-    """How features are detected, tracked and checked (defaults as VINS-Mono's EuRoC config)."""
+    """How features are detected, tracked and checked (defaults as VINS-Mono's EuRoC config,
+    but for the Lucas-Kanade window)."""
 
     max_features: int = option(150, ge=1, le=10000, doc="most features tracked at once")
     min_distance: int = option(30, ge=1, le=1000, doc="least distance between features, pixels")
     quality_level: float = option(0.01, gt=0.0, lt=1.0, doc="Shi-Tomasi corner threshold as a "
                                   "share of the strongest corner's response")
     block_size: int = option(3, ge=3, le=31, doc="Shi-Tomasi structure-tensor window, pixels")
-    lk_window: int = option(21, ge=3, le=101, doc="Lucas-Kanade window side, pixels (odd)")
+    # Not VINS-Mono's 21: Lucas-Kanade follows the window's mean motion, and in forward flight
+    # the flow grows across a 21 px window, so a track creeps outward frame after frame; the
+    # landmarks come out near and the scale shrinks (docs/vins.md, "The scale's loss was the
+    # tracker's window").
+    lk_window: int = option(11, ge=3, le=101, doc="Lucas-Kanade window side, pixels (odd)")
     pyramid_levels: int = option(3, ge=1, le=8, doc="Lucas-Kanade pyramid levels including "
                                  "full resolution (OpenCV maxLevel = levels - 1)")
     lk_iterations: int = option(30, ge=1, le=1000, doc="most Lucas-Kanade iterations per level")
