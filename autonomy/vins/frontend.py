@@ -4,7 +4,8 @@ The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracke
 
 1. optional CLAHE on the grey image;
 2. pyramidal Lucas-Kanade from the previous frame's features into this one, then back again
-   (an 11 px window where VINS-Mono's is 21: ``FrontendOptions.lk_window``); a feature survives when both directions converge, it lands inside the image and the
+   (an 11 px window on 5 levels where VINS-Mono has 21 px on 4: ``FrontendOptions``); a
+   feature survives when both directions converge, it lands inside the image and the
    round trip returns within ``forward_backward_threshold`` pixels of where it started;
 3. RANSAC on the fundamental matrix between the two frames' *undistorted* positions, expressed
    as pixels of the camera's ideal pinhole (so the threshold means pixels);
@@ -30,19 +31,20 @@ from autonomy.options import OptionError, option, validate
 @dataclass(frozen=True)
 class FrontendOptions:
     """How features are detected, tracked and checked (defaults as VINS-Mono's EuRoC config,
-    but for the Lucas-Kanade window)."""
+    but for Lucas-Kanade's window and pyramid)."""
 
     max_features: int = option(150, ge=1, le=10000, doc="most features tracked at once")
     min_distance: int = option(30, ge=1, le=1000, doc="least distance between features, pixels")
     quality_level: float = option(0.01, gt=0.0, lt=1.0, doc="Shi-Tomasi corner threshold as a "
                                   "share of the strongest corner's response")
     block_size: int = option(3, ge=3, le=31, doc="Shi-Tomasi structure-tensor window, pixels")
-    # Not VINS-Mono's 21: Lucas-Kanade follows the window's mean motion, and in forward flight
-    # the flow grows across a 21 px window, so a track creeps outward frame after frame; the
-    # landmarks come out near and the scale shrinks (docs/vins.md, "The scale's loss was the
-    # tracker's window").
+    # Not VINS-Mono's 21 px and 4 levels: Lucas-Kanade follows the window's mean motion, and in
+    # forward flight the flow grows across a 21 px window, so a track creeps outward frame
+    # after frame; the landmarks come out near and the scale shrinks. The small window reaches
+    # half as far on each level, so the pyramid has one more (docs/vins.md, "The scale's loss
+    # was the tracker's window").
     lk_window: int = option(11, ge=3, le=101, doc="Lucas-Kanade window side, pixels (odd)")
-    pyramid_levels: int = option(3, ge=1, le=8, doc="Lucas-Kanade pyramid levels including "
+    pyramid_levels: int = option(5, ge=1, le=8, doc="Lucas-Kanade pyramid levels including "
                                  "full resolution (OpenCV maxLevel = levels - 1)")
     lk_iterations: int = option(30, ge=1, le=1000, doc="most Lucas-Kanade iterations per level")
     lk_epsilon: float = option(0.01, gt=0.0, doc="Lucas-Kanade stops when a step is below "
