@@ -44,7 +44,10 @@ def pairwise_min(pixels: np.ndarray) -> float:
 
 def test_defaults_are_vins_mono_but_lucas_kanade_and_bad_options_fail_where_made():
     o = FrontendOptions()
-    assert (o.max_features, o.min_distance, o.lk_window, o.pyramid_levels) == (150, 30, 11, 5)
+    assert (o.max_features, o.min_distance, o.lk_window, o.pyramid_levels) == (150, 30, 11, 3)
+    assert o.retry_pyramid_levels == 5
+    with pytest.raises(OptionError, match="retry_pyramid_levels"):
+        FrontendOptions(pyramid_levels=5)
     with pytest.raises(OptionError, match="lk_window"):
         FrontendOptions(lk_window=20)
     with pytest.raises(OptionError, match="max_features"):

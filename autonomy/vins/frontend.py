@@ -4,9 +4,11 @@ The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracke
 
 1. optional CLAHE on the grey image;
 2. pyramidal Lucas-Kanade from the previous frame's features into this one, then back again
-   (an 11 px window on 5 levels where VINS-Mono has 21 px on 4: ``FrontendOptions``); a
-   feature survives when both directions converge, it lands inside the image and the
-   round trip returns within ``forward_backward_threshold`` pixels of where it started;
+   (an 11 px window where VINS-Mono's is 21 px: ``FrontendOptions``); a feature survives
+   when both directions converge, it lands inside the image and the round trip returns
+   within ``forward_backward_threshold`` pixels of where it started; when fewer than half
+   survive this and the RANSAC of step 3, the frame is tracked again on a deeper pyramid
+   (``retry_pyramid_levels``: motion beyond the window's reach);
 3. RANSAC on the fundamental matrix between the two frames' *undistorted* positions, expressed
    as pixels of the camera's ideal pinhole (so the threshold means pixels);
 4. features are ranked by age; walking from the oldest, each one that is not within
@@ -31,21 +33,25 @@ from autonomy.options import OptionError, option, validate
 @dataclass(frozen=True)
 class FrontendOptions:
     """How features are detected, tracked and checked (defaults as VINS-Mono's EuRoC config,
-    but for Lucas-Kanade's window and pyramid)."""
+    but for Lucas-Kanade's window and its second try)."""
 
     max_features: int = option(150, ge=1, le=10000, doc="most features tracked at once")
     min_distance: int = option(30, ge=1, le=1000, doc="least distance between features, pixels")
     quality_level: float = option(0.01, gt=0.0, lt=1.0, doc="Shi-Tomasi corner threshold as a "
                                   "share of the strongest corner's response")
     block_size: int = option(3, ge=3, le=31, doc="Shi-Tomasi structure-tensor window, pixels")
-    # Not VINS-Mono's 21 px and 4 levels: Lucas-Kanade follows the window's mean motion, and in
-    # forward flight the flow grows across a 21 px window, so a track creeps outward frame
-    # after frame; the landmarks come out near and the scale shrinks. The small window reaches
-    # half as far on each level, so the pyramid has one more (docs/vins.md, "The scale's loss
-    # was the tracker's window").
+    # Not VINS-Mono's 21 px: Lucas-Kanade follows the window's mean motion, and in forward
+    # flight the flow grows across a 21 px window, so a track creeps outward frame after
+    # frame; the landmarks come out near and the scale shrinks. The small window reaches half
+    # as far on each level, so a frame where it keeps fewer than half the tracks is tracked
+    # again on a deeper pyramid (docs/vins.md, "The scale's loss was the tracker's window").
     lk_window: int = option(11, ge=3, le=101, doc="Lucas-Kanade window side, pixels (odd)")
-    pyramid_levels: int = option(5, ge=1, le=8, doc="Lucas-Kanade pyramid levels including "
+    pyramid_levels: int = option(3, ge=1, le=8, doc="Lucas-Kanade pyramid levels including "
                                  "full resolution (OpenCV maxLevel = levels - 1)")
+    retry_pyramid_levels: int = option(5, ge=0, le=8, doc="pyramid levels of a second try "
+                                       "on a frame where fewer than half the tracks survive "
+                                       "pyramid_levels and RANSAC (farther reach for fast "
+                                       "motion); 0: none")
     lk_iterations: int = option(30, ge=1, le=1000, doc="most Lucas-Kanade iterations per level")
     lk_epsilon: float = option(0.01, gt=0.0, doc="Lucas-Kanade stops when a step is below "
                                "this, pixels")
@@ -66,6 +72,9 @@ class FrontendOptions:
         validate(self)
         if self.lk_window % 2 == 0:
             raise OptionError("lk_window", f"must be odd, got {self.lk_window}")
+        if 0 < self.retry_pyramid_levels <= self.pyramid_levels:
+            raise OptionError("retry_pyramid_levels", "must be 0 or more than pyramid_levels "
+                              f"({self.pyramid_levels}), got {self.retry_pyramid_levels}")
 
 
 @dataclass(frozen=True)
@@ -75,7 +84,8 @@ class Tracks:
     ``ages[i]`` is how many frames the feature has been seen in, this one included (1 for a
     feature detected in this frame). ``pixels`` are distorted image positions, ``normalised``
     the undistorted ``(X/Z, Y/Z)``. The counters say what happened to the previous frame's
-    features: lost by Lucas-Kanade or the forward-backward check, rejected by RANSAC, dropped
+    features: lost by Lucas-Kanade or the forward-backward check (on the deeper pyramid's try
+    where that was made), rejected by RANSAC, dropped
     for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
     of new features.
     """
@@ -169,11 +179,41 @@ class FeatureTracker:
             self._next_id = 0
             self._frame = -1
 
-    def _lk(self, prev_image, next_image, points: np.ndarray):
+    def _lk(self, prev_image, next_image, points: np.ndarray, levels: int):
         moved, status, _ = cv2.calcOpticalFlowPyrLK(
             prev_image, next_image, points.reshape(-1, 1, 2), None, winSize=self._window,
-            maxLevel=self.options.pyramid_levels - 1, criteria=self._criteria)
+            maxLevel=levels - 1, criteria=self._criteria)
         return moved.reshape(-1, 2), status.ravel().astype(bool)
+
+    def _follow(self, gray: np.ndarray, points: np.ndarray, levels: int):
+        """``points`` of the previous image tracked into ``gray`` on ``levels`` pyramid levels,
+        and whether each is kept: both directions converged, it landed inside the border and
+        its round trip came back within ``forward_backward_threshold``."""
+        o = self.options
+        h, w = gray.shape
+        forward, ok = self._lk(self._previous, gray, points, levels)
+        backward, ok_back = self._lk(gray, self._previous, forward, levels)
+        round_trip = np.linalg.norm(backward - points, axis=1)
+        b = o.border
+        inside = ((forward[:, 0] >= b) & (forward[:, 0] <= w - 1 - b)
+                  & (forward[:, 1] >= b) & (forward[:, 1] <= h - 1 - b))
+        return forward, ok & ok_back & inside & (round_trip <= o.forward_backward_threshold)
+
+    def _epipolar(self, previous_normalised: np.ndarray, pixels: np.ndarray,
+                  keep: np.ndarray) -> np.ndarray:
+        """``keep`` less the tracks RANSAC rejects between the two frames (all of it when
+        RANSAC is off or too few are kept to fit)."""
+        kept = np.flatnonzero(keep)
+        if not self.options.ransac or len(kept) < 8:
+            return keep
+        o = self.options
+        inliers = fundamental_inliers(
+            self.camera, previous_normalised[kept],
+            undistort_points(self.camera, self.distortion, pixels[kept]), o.ransac_threshold,
+            o.ransac_confidence)
+        judged = keep.copy()
+        judged[kept[~inliers]] = False
+        return judged
 
     def track(self, image) -> Tracks:
         """Track the previous frame's features into ``image`` (uint8 grey or RGB, the camera's
@@ -188,13 +228,13 @@ class FeatureTracker:
         normalised_prev = self._normalised
         lost = rejected = 0
         if len(ids) and self._previous is not None:
-            forward, ok = self._lk(self._previous, gray, pixels)
-            backward, ok_back = self._lk(gray, self._previous, forward)
-            round_trip = np.linalg.norm(backward - pixels, axis=1)
-            b = o.border
-            inside = ((forward[:, 0] >= b) & (forward[:, 0] <= w - 1 - b)
-                      & (forward[:, 1] >= b) & (forward[:, 1] <= h - 1 - b))
-            keep = ok & ok_back & inside & (round_trip <= o.forward_backward_threshold)
+            forward, keep = self._follow(gray, pixels, o.pyramid_levels)
+            if (o.retry_pyramid_levels and len(ids) >= 8 and
+                    self._epipolar(normalised_prev, forward, keep).mean() < 0.5):
+                # Motion beyond the small window's reach (a frame after a long gap, a jolt):
+                # most tracks lost, or converged where RANSAC rejects them. Again, all of
+                # them, from a deeper pyramid.
+                forward, keep = self._follow(gray, pixels, o.retry_pyramid_levels)
             lost = int(len(ids) - keep.sum())
             pixels, ids, ages = forward[keep], ids[keep], ages[keep] + 1
             normalised_prev = normalised_prev[keep]

@@ -9,6 +9,14 @@ pose and the lens. This is Lucas-Kanade's drift and noise alone, before RANSAC's
 smoother's judgement, where the VINS's own reprojection residuals cannot tell a tracker that
 slides from a map that bends to follow it.
 
+Each error is also taken along the outward radius, from the principal point through the true
+projection (positive: further out than the point). Flying forward the focus of expansion sits
+near the principal point and the flow points outward, so a tracker that follows its window's
+mean motion creeps outward of the point, frame after frame, and the landmarks come out near:
+the scale's loss of ``docs/vins.md`` ("The scale's loss was the tracker's window"). Its mean,
+by age, is that creep; the median of the error's size cannot show it, as a minority of tracks
+creep by pixels while most stay put.
+
 A corner often lies on a depth edge, where the nearest pixel's depth may be the other
 surface's, metres off; a track is named only where the depth of the 3x3 pixels round its
 birth pixel agrees within :data:`DEPTH_SPREAD`, so those tracks are not scored, nor those
@@ -32,6 +40,10 @@ from autonomy.geometry import PinholeCamera, distort_points
 #: ``[low, high)``; ``None`` is no upper bound.
 AGE_BINS = ((2, 5), (5, 10), (10, 20), (20, None))
 
+#: The outward mean leaves out errors this large, pixels: gross mistracks, a few of which
+#: would outweigh the creep it measures (RANSAC and the smoother's gate reject them).
+OUTWARD_MAX_ERROR_PX = 5.0
+
 #: Largest spread of the true depth round a birth pixel (max - min over the 3x3 pixels, as a
 #: share of the pixel's own) for the track to be named: off a depth edge.
 DEPTH_SPREAD = 0.05
@@ -46,6 +58,7 @@ class TrackErrors:
         self.T_B_C = np.asarray(T_B_C, dtype=float)
         self._births: dict[int, np.ndarray] = {}  # track id -> world point
         self.errors_px: list[float] = []
+        self.outward_px: list[float] = []  # each error along the outward radius (NaN: centre)
         self.ages: list[int] = []
 
     def observe(self, tracks, T_W_B: np.ndarray, depth: np.ndarray | None) -> None:
@@ -91,22 +104,32 @@ class TrackErrors:
         ahead = points_C[:, 2] > 0.0
         projected = distort_points(self.camera, self.distortion,
                                    points_C[ahead, :2] / points_C[ahead, 2:])
-        self.errors_px.extend(np.linalg.norm(pixels[ahead] - projected, axis=1).tolist())
+        error = pixels[ahead] - projected
+        radius = projected - [self.camera.cx, self.camera.cy]
+        length = np.linalg.norm(radius, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            outward = np.where(length > 0.0, np.sum(error * radius, axis=1) / length, np.nan)
+        self.errors_px.extend(np.linalg.norm(error, axis=1).tolist())
+        self.outward_px.extend(outward.tolist())
         self.ages.extend(ages[ahead].tolist())
 
 
-def track_error_summary(errors_px, ages) -> dict:
+def track_error_summary(errors_px, outward_px, ages) -> dict:
     """``track_error_px_median`` and ``_p90`` over the scored observations (``errors_px``,
     pixels, of tracks ``ages`` frames old; None when there are none) and
-    ``track_error_by_age``: for each of :data:`AGE_BINS`, the ages, the count and the
-    median."""
+    ``track_error_by_age``: for each of :data:`AGE_BINS`, the ages, the count, the median and
+    ``outward_mean_px``, the mean of the errors along the outward radius (``outward_px``; the
+    creep, module docstring) over those under :data:`OUTWARD_MAX_ERROR_PX`."""
     errors, ages = np.asarray(errors_px, dtype=float), np.asarray(ages)
+    outward = np.asarray(outward_px, dtype=float)
     by_age = []
     for low, high in AGE_BINS:
         chosen = (ages >= low) & (ages < (np.inf if high is None else high))
+        radial = outward[chosen & np.isfinite(outward) & (errors < OUTWARD_MAX_ERROR_PX)]
         by_age.append({"ages": f"{low}+" if high is None else f"{low}-{high - 1}",
                        "observations": int(chosen.sum()),
-                       "median_px": float(np.median(errors[chosen])) if chosen.any() else None})
+                       "median_px": float(np.median(errors[chosen])) if chosen.any() else None,
+                       "outward_mean_px": float(radial.mean()) if len(radial) else None})
     return {
         "track_error_px_median": float(np.median(errors)) if len(errors) else None,
         "track_error_px_p90": float(np.percentile(errors, 90)) if len(errors) else None,

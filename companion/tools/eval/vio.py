@@ -154,6 +154,7 @@ class VioTrace:
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
     track_errors_px: list[float] = field(default_factory=list)
+    track_outward_px: list[float] = field(default_factory=list)
     track_ages: list[int] = field(default_factory=list)
 
 
@@ -228,6 +229,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     trace.time_offset = vins.time_offset
     trace.gyro_alignment = vins.gyro_alignment
     trace.track_errors_px, trace.track_ages = tracking.errors_px, tracking.ages
+    trace.track_outward_px = tracking.outward_px
     return trace
 
 
@@ -298,7 +300,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "rebuilds": [_rebuild_report(rebuild, truth_t, data.truth) for rebuild in trace.rebuilds],
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
-        **track_error_summary(trace.track_errors_px, trace.track_ages),
+        **track_error_summary(trace.track_errors_px, trace.track_outward_px, trace.track_ages),
         "resets": int(trace.resets),
         "correction_m_median": median_or_none(trace.corrections_m),
         "correction_m_max": max(trace.corrections_m, default=None),
@@ -622,7 +624,8 @@ def format_vio_report(result: dict) -> str:
         f"{result['depth_points']} landmarks",
         f"tracks: {show(result['track_error_px_median'], '.2f', ' px')} median error against "
         "the truth ("
-        + ", ".join(f"{bin_['ages']} frames old {show(bin_['median_px'], '.2f', ' px')}"
+        + ", ".join(f"{bin_['ages']} frames old {show(bin_['median_px'], '.2f', ' px')}, "
+                    f"outward {show(bin_['outward_mean_px'], '+.2f', ' px')} mean"
                     for bin_ in result["track_error_by_age"]) + ")",
         "init: none" if init is None else
         f"init at t={init['t']:.2f} s: gravity error "
