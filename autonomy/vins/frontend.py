@@ -199,20 +199,18 @@ class FeatureTracker:
                   & (forward[:, 1] >= b) & (forward[:, 1] <= h - 1 - b))
         return forward, ok & ok_back & inside & (round_trip <= o.forward_backward_threshold)
 
-    def _epipolar(self, previous_normalised: np.ndarray, pixels: np.ndarray,
+    def _epipolar(self, previous_normalised: np.ndarray, normalised: np.ndarray,
                   keep: np.ndarray) -> np.ndarray:
-        """``keep`` less the tracks RANSAC rejects between the two frames (all of it when
-        RANSAC is off or too few are kept to fit)."""
-        kept = np.flatnonzero(keep)
-        if not self.options.ransac or len(kept) < 8:
-            return keep
-        o = self.options
-        inliers = fundamental_inliers(
-            self.camera, previous_normalised[kept],
-            undistort_points(self.camera, self.distortion, pixels[kept]), o.ransac_threshold,
-            o.ransac_confidence)
-        judged = keep.copy()
-        judged[kept[~inliers]] = False
+        """``keep`` less the tracks RANSAC rejects between the two frames (without RANSAC,
+        less those whose undistorted position is not finite)."""
+        o, kept = self.options, np.flatnonzero(keep)
+        if o.ransac:
+            good = fundamental_inliers(self.camera, previous_normalised[kept],
+                                       normalised[kept], o.ransac_threshold, o.ransac_confidence)
+        else:
+            good = np.isfinite(normalised[kept]).all(axis=1)
+        judged = np.zeros_like(keep)
+        judged[kept[good]] = True
         return judged
 
     def track(self, image) -> Tracks:
@@ -229,23 +227,18 @@ class FeatureTracker:
         lost = rejected = 0
         if len(ids) and self._previous is not None:
             forward, keep = self._follow(gray, pixels, o.pyramid_levels)
-            if (o.retry_pyramid_levels and len(ids) >= 8 and
-                    self._epipolar(normalised_prev, forward, keep).mean() < 0.5):
+            normalised = undistort_points(self.camera, self.distortion, forward)
+            judged = self._epipolar(normalised_prev, normalised, keep)
+            if o.retry_pyramid_levels and len(ids) >= 8 and judged.mean() < 0.5:
                 # Motion beyond the small window's reach (a frame after a long gap, a jolt):
                 # most tracks lost, or converged where RANSAC rejects them. Again, all of
                 # them, from a deeper pyramid.
                 forward, keep = self._follow(gray, pixels, o.retry_pyramid_levels)
-            lost = int(len(ids) - keep.sum())
-            pixels, ids, ages = forward[keep], ids[keep], ages[keep] + 1
-            normalised_prev = normalised_prev[keep]
-            normalised = undistort_points(self.camera, self.distortion, pixels)
-            if o.ransac:
-                inl = fundamental_inliers(self.camera, normalised_prev, normalised,
-                                          o.ransac_threshold, o.ransac_confidence)
-            else:
-                inl = np.isfinite(normalised).all(axis=1)
-            rejected = int(len(ids) - inl.sum())
-            pixels, ids, ages, normalised = pixels[inl], ids[inl], ages[inl], normalised[inl]
+                normalised = undistort_points(self.camera, self.distortion, forward)
+                judged = self._epipolar(normalised_prev, normalised, keep)
+            lost, rejected = int((~keep).sum()), int((keep & ~judged).sum())
+            pixels, ids, ages = forward[judged], ids[judged], ages[judged] + 1
+            normalised = normalised[judged]
         else:
             pixels = np.zeros((0, 2), np.float32)
             ids = np.zeros(0, np.int64)
