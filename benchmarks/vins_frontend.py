@@ -4,9 +4,9 @@
 
 Feeds the EuRoC V1_01 cam0 images, cropped to their central 640x480 (principal point moved
 to match), through FeatureTracker.track with cv2.setNumThreads(1). Baseline in the same run:
-goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and a second tracker
-with VINS-Mono's 21 px Lucas-Kanade window (the default is 11 px: docs/vins.md) on the same
-frames, interleaved. Prints one JSON object.
+goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and the tracker of
+before 2026-11-28 (VINS-Mono's 21 px Lucas-Kanade window, no second try on a deeper pyramid;
+the default is 11 px: docs/vins.md) on the same frames, interleaved. Prints one JSON object.
 """
 
 import argparse
@@ -38,7 +38,7 @@ def main() -> None:
     frames = [np.ascontiguousarray(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)[y0:y0 + 480, x0:x0 + 640])
               for p in stream.paths[:args.frames]]
     tracker = FeatureTracker(camera, stream.distortion)
-    wide = FeatureTracker(camera, stream.distortion, FrontendOptions(lk_window=21))
+    wide = FeatureTracker(camera, stream.distortion, FrontendOptions(lk_window=21, retry_pyramid_levels=0))
     tracker.track(frames[0])  # warm-up: first-call allocations
     wide.track(frames[0])
     track_ms, wide_ms, gftt_ms, counts, detected = [], [], [], [], 0

@@ -77,7 +77,7 @@ def test_exact_tracks_through_a_lens_have_no_error():
 
 def test_a_tracker_that_slides_half_a_pixel_is_measured_at_half_a_pixel():
     errors = fly(25, shift=(0.3, -0.4))
-    summary = track_error_summary(errors.errors_px, errors.outward_px, errors.ages)
+    summary = errors.summary()
     assert summary["track_error_px_median"] == pytest.approx(0.5, abs=0.05)
     counts = {b["ages"]: b["observations"] for b in summary["track_error_by_age"]}
     assert counts == {"2-4": 12, "5-9": 20, "10-19": 40, "20+": 24}
@@ -108,18 +108,14 @@ def test_a_track_creeping_outward_shows_in_the_outward_mean_and_one_sliding_acro
     """The tracker's creep (docs/vins.md, "The scale's loss was the tracker's window"): 0.05 px
     a frame outward is +0.05 px per frame of age in the outward mean; the same across the
     radius is as large an error but no outward mean."""
-    out = track_error_summary(*_columns(creeping_errors(25, 0.05)))["track_error_by_age"]
-    across = track_error_summary(*_columns(creeping_errors(25, 0.05j)))["track_error_by_age"]
+    out = creeping_errors(25, 0.05).summary()["track_error_by_age"]
+    across = creeping_errors(25, 0.05j).summary()["track_error_by_age"]
     for bin_out, bin_across in zip(out, across):
         assert bin_out["median_px"] == pytest.approx(bin_across["median_px"], abs=0.01)
         assert abs(bin_across["outward_mean_px"]) < 0.01
     # ages 2-4 have crept 0.05-0.15 px, ages 20-25 0.95-1.2 px
     assert out[0]["outward_mean_px"] == pytest.approx(0.10, abs=0.01)
     assert out[-1]["outward_mean_px"] == pytest.approx(1.075, abs=0.02)
-
-
-def _columns(errors: TrackErrors):
-    return errors.errors_px, errors.outward_px, errors.ages
 
 
 def test_tracks_born_on_unknown_depth_or_without_a_depth_image_are_not_scored():

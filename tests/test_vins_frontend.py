@@ -210,28 +210,23 @@ class Tunnel:
         noise = (noise - noise.min()) / (noise.max() - noise.min())
         blobs = cv2.GaussianBlur((noise > 0.5).astype(np.float32), (0, 0), 1.5)
         self.texture = 0.6 * blobs + 0.3 * noise
-        self.half = half
         c = TUNNEL_CAMERA
         u, v = np.meshgrid(np.arange(c.width, dtype=float), np.arange(c.height, dtype=float))
-        self.rays = ((u - c.cx) / c.fx, (v - c.cy) / c.fy)
-
-    def range_along_axis(self) -> np.ndarray:
-        """Per pixel, the depth ``z`` (camera frame) at which its ray meets a wall."""
-        rx, ry = self.rays
+        rx, ry = (u - c.cx) / c.fx, (v - c.cy) / c.fy
+        # Per pixel, the depth z (camera frame) at which its ray meets a wall: the same from
+        # anywhere down the tunnel.
         with np.errstate(divide="ignore"):
-            return np.minimum(self.half / np.abs(rx), self.half / np.abs(ry))
-
-    def render(self, z_camera: float) -> np.ndarray:
-        rx, ry = self.rays
-        t = self.range_along_axis()
-        x, y = rx * t, ry * t
+            self.depth = np.minimum(half / np.abs(rx), half / np.abs(ry))
+        x, y = rx * self.depth, ry * self.depth
         on_side = np.abs(x) >= np.abs(y) - 1e-12
         # Unroll the walls' perimeter (8 half-widths) into the texture's rows.
         around = np.where(on_side, np.where(x > 0, 1 + y, 5 - y), np.where(y > 0, 3 - x, 7 + x))
-        rows = (around % 8.0) * self.texture.shape[0] / 8.0
-        cols = (z_camera + t) * self.PER_METRE
-        image = cv2.remap(self.texture, cols.astype(np.float32), rows.astype(np.float32),
-                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        self._rows = ((around % 8.0) * self.texture.shape[0] / 8.0).astype(np.float32)
+
+    def render(self, z_camera: float) -> np.ndarray:
+        cols = ((z_camera + self.depth) * self.PER_METRE).astype(np.float32)
+        image = cv2.remap(self.texture, cols, self._rows, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_WRAP)
         return np.clip(255.0 * image, 0, 255).astype(np.uint8)
 
 
@@ -243,12 +238,11 @@ def outward_track_error(options: FrontendOptions, seed: int, frames: int = 60,
     tunnel, c = Tunnel(seed), TUNNEL_CAMERA
     tracker = FeatureTracker(c, options=options)
     points, errors = {}, []
-    depth = tunnel.range_along_axis()
     for k in range(frames):
         tracks = tracker.track(tunnel.render(k * step))
         born = tracks.ages == 1
         at = np.rint(tracks.pixels[born]).astype(int)
-        z = depth[at[:, 1], at[:, 0]]
+        z = tunnel.depth[at[:, 1], at[:, 0]]
         normalised = (tracks.pixels[born] - [c.cx, c.cy]) / [c.fx, c.fy]
         for key, (x, y), zz in zip(tracks.ids[born], normalised, z):
             points[int(key)] = np.array([x * zz, y * zz, zz + k * step])

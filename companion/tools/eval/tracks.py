@@ -113,6 +113,10 @@ class TrackErrors:
         self.outward_px.extend(outward.tolist())
         self.ages.extend(ages[ahead].tolist())
 
+    def summary(self) -> dict:
+        """:func:`track_error_summary` of every observation scored so far."""
+        return track_error_summary(self.errors_px, self.outward_px, self.ages)
+
 
 def track_error_summary(errors_px, outward_px, ages) -> dict:
     """``track_error_px_median`` and ``_p90`` over the scored observations (``errors_px``,

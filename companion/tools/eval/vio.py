@@ -136,7 +136,8 @@ class VioTrace:
     corrected by at the end (None when none); ``corrections_m``: each keyframe's correction
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
     keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
-    each rebuild of the smoother.
+    each rebuild of the smoother; ``track_errors``: the front-end's tracks against the truth
+    (:meth:`~companion.tools.eval.tracks.TrackErrors.summary`).
     """
 
     t: list[float] = field(default_factory=list)
@@ -153,9 +154,7 @@ class VioTrace:
     corrections_m: list[float] = field(default_factory=list)
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
-    track_errors_px: list[float] = field(default_factory=list)
-    track_outward_px: list[float] = field(default_factory=list)
-    track_ages: list[int] = field(default_factory=list)
+    track_errors: dict = field(default_factory=lambda: track_error_summary([], [], []))
 
 
 def read_vio_dataset(root: Path) -> VioDataset:
@@ -228,8 +227,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
     trace.time_offset = vins.time_offset
     trace.gyro_alignment = vins.gyro_alignment
-    trace.track_errors_px, trace.track_ages = tracking.errors_px, tracking.ages
-    trace.track_outward_px = tracking.outward_px
+    trace.track_errors = tracking.summary()
     return trace
 
 
@@ -300,7 +298,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "rebuilds": [_rebuild_report(rebuild, truth_t, data.truth) for rebuild in trace.rebuilds],
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
-        **track_error_summary(trace.track_errors_px, trace.track_outward_px, trace.track_ages),
+        **trace.track_errors,
         "resets": int(trace.resets),
         "correction_m_median": median_or_none(trace.corrections_m),
         "correction_m_max": max(trace.corrections_m, default=None),
