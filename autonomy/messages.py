@@ -31,13 +31,16 @@ class Frame:
 
     ``truth_depth`` is the renderer's ground-truth depth (float32 metres, NaN where nothing
     was hit) in simulation only, for the synthetic stand-in network and for evaluation (the
-    ground-truth-depth baseline, ``companion sim fly --depth truth``); a real camera driver
-    leaves it None and nothing else on the flight path may rely on it.
+    ground-truth-depth baseline, ``companion sim fly --depth truth``); ``truth_pose`` the
+    simulator's true body pose at the exposure, ``T_L_B`` in PX4's local frame (4x4), for the
+    flight recording's VINS error (``companion log vins``). A real camera driver leaves both
+    None and nothing else on the flight path may rely on them.
     """
 
     t: float
     image: np.ndarray
     truth_depth: np.ndarray | None = None
+    truth_pose: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -7,19 +7,21 @@ Each input is a recording's bytes. Every reader of ``companion/recording/`` read
 ``inspect.summarise`` and ``format_summary`` (``companion log info``), ``inspect.recover``
 (``companion log recover``), ``replay.recorded_config`` and ``replay.replay`` (``companion
 replay``, under the recording's own config where it has a good one, else the defaults with a
-simulated mission).
+simulated mission), ``replay.vins_error`` (``companion log vins``).
 
 The invariant: ``summarise`` and ``recover`` either raise
 :class:`~companion.recording.inspect.InspectError` or return their documented dicts, and the
 file ``recover`` wrote is a complete recording with as many messages as it says;
 ``recorded_config`` raises :class:`~companion.recording.replay.ReplayError` or a
 :class:`~companion.config.ConfigError`, or returns a config and a mission that is None or a
-dict; ``replay`` raises ``ReplayError`` or returns a report. Anything else escaping (a
+dict; ``replay`` raises ``ReplayError`` or returns a report; ``vins_error`` raises
+``ReplayError`` or returns samples with finite errors in time order. Anything else escaping (a
 KeyError, a protobuf DecodeError, a JSON error...) is a finding.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -32,7 +34,7 @@ if __name__ == "__main__":
 with harness.instrumented(__name__ == "__main__"):
     from companion.config import Config, ConfigError
     from companion.recording import inspect
-    from companion.recording.replay import ReplayError, recorded_config, replay
+    from companion.recording.replay import ReplayError, recorded_config, replay, vins_error
 
 TARGET = "mcap_reader"
 #: The mission replay is given when the recording's own config or mission is unusable.
@@ -50,6 +52,7 @@ def run(data: bytes) -> list[str]:
     _summarise(_FILE, said)
     _recover(said)
     _replay(said)
+    _vins_error(said)
     return said
 
 
@@ -91,6 +94,18 @@ def _replay(said: list[str]) -> None:
         replay(_FILE, config, mission or DEFAULT_MISSION)
     except ReplayError as error:
         said.append(str(error))
+
+
+def _vins_error(said: list[str]) -> None:
+    try:
+        samples = vins_error(_FILE)
+    except ReplayError as error:
+        said.append(str(error))
+        return
+    times = [sample.t for sample in samples]
+    assert times == sorted(times), times
+    assert all(math.isfinite(sample.error_m) and math.isfinite(sample.heading_deg)
+               for sample in samples), samples
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ network distorts what it did; the recorded metric depth is millimetres, which th
 rounds), and the planner's decisions;
 with the exponential fit, which ``companion eval rescale`` ranks far below the default
 (docs/results.md: dome AbsRel 0.175 against 0.112 with VINS anchors), the depth must be worse.
+The same recording's true poses give ``companion log vins``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import contextlib
 import io
 import json
 
+import mcap.writer
+import numpy as np
 import pytest
 
 from companion import cli
@@ -127,3 +130,40 @@ def test_a_top_view_of_a_damaged_mission_record_says_what_is_wrong(recording, mi
         plot(recording["recording"]["path"], mission, load_config(None),
              tmp_path / "top.png")
     assert not (tmp_path / "top.png").exists()
+
+
+def log_vins(path, *options) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli.main(["log", "vins", str(path), *options])
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(recording):
+    """A simulated flight records the true pose with each frame; `log vins` puts the VINS's
+    estimate beside it, frame by frame, in PX4's local frame."""
+    code, out, _ = log_vins(recording["recording"]["path"], "--json")
+    assert code == 0
+    samples = json.loads(out)
+    times = [sample["t"] for sample in samples]
+    assert len(samples) > 150 and times == sorted(times)
+    # The first true pose is the vehicle on the ground where the simulator started it.
+    assert np.allclose(samples[0]["truth_position"], recording["start"], atol=0.01)
+    errors = np.array([sample["error_m"] for sample in samples])
+    assert np.isfinite(errors).all() and errors.max() < 0.5  # 12 s in the dome
+    assert {sample["state"] for sample in samples} <= {"ok", "degraded", "lost", "initialising"}
+    code, table, _ = log_vins(recording["recording"]["path"], "--every", "4")
+    assert code == 0 and "VINS error at the end" in table
+    assert len(table.splitlines()) >= 2 + 3  # a row at least every 4 s of the flight
+
+
+def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recording, tmp_path):
+    path = tmp_path / "real.mcap"
+    with open(path, "wb") as file:
+        writer = mcap.writer.Writer(file)
+        writer.start()
+        writer.finish()
+    code, _, err = log_vins(path)
+    assert code == 1 and "no true pose" in err and "only simulated flights" in err
+    code, _, err = log_vins(recording["recording"]["path"], "--every", "0")
+    assert code == 1 and "--every must be above 0" in err

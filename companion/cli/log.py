@@ -1,5 +1,6 @@
-"""``companion log``: what a flight recording holds (``info``), and a recording cut short by a
-crash or a power cut made a complete file again (``recover``); docs/recording.md."""
+"""``companion log``: what a flight recording holds (``info``), a simulated flight's VINS
+against its truth (``vins``), and a recording cut short by a crash or a power cut made a
+complete file again (``recover``); docs/recording.md."""
 
 from __future__ import annotations
 
@@ -27,6 +28,19 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     info.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
     common.add_json_flag(info, instead_of="the summary")
     info.set_defaults(command=_info, config_path=None, overrides=[])
+    vins = actions.add_parser(
+        "vins", help="the VINS's error against the truth over a simulated flight",
+        description="Over a simulated flight's recording, the VINS's position error (metres) "
+                    "and heading error (degrees) against where the simulator truly had the "
+                    "vehicle, in PX4's local frame, at every --every seconds and wherever the "
+                    "VINS's state changed (a reset, lost, degraded), with its landmarks: where "
+                    "a drift began and what the VINS said of itself then. Exits 1 with one "
+                    "line when FILE cannot be read or holds no truth (a real flight).")
+    vins.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
+    vins.add_argument("--every", type=float, default=2.0, metavar="SECONDS",
+                      help="seconds between the table's rows (default: 2)")
+    common.add_json_flag(vins, instead_of="the table (every frame)")
+    vins.set_defaults(command=_vins, config_path=None, overrides=[])
     recover = actions.add_parser(
         "recover", help="rewrite a truncated recording as a complete one",
         description="Write every readable message of FILE (a recording cut short by a crash, "
@@ -64,3 +78,44 @@ def _recover(args: argparse.Namespace, config: Config) -> int:
     print(json.dumps(result) if args.json else
           f"{args.out}: {result['messages']} messages from {args.file} ({source})")
     return common.EXIT_OK
+
+
+def _vins(args: argparse.Namespace, config: Config) -> int:
+    from dataclasses import asdict
+
+    from companion.recording.replay import ReplayError, vins_error
+
+    if not args.every > 0:
+        print(f"log vins: --every must be above 0 seconds, got {args.every}", file=sys.stderr)
+        return common.EXIT_FAILED
+    try:
+        samples = vins_error(args.file)
+    except ReplayError as error:
+        print(f"log vins: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    if args.json:
+        print(json.dumps([asdict(sample) for sample in samples]))
+    else:
+        print(_vins_table(args.file, samples, args.every))
+    return common.EXIT_OK
+
+
+def _vins_table(path: Path, samples: list, every: float) -> str:
+    """The rows every ``every`` seconds and at each change of the VINS's state, under a line
+    with the error at the end, the largest and the median."""
+    if not samples:
+        return f"{path}: no frame with both a VINS pose and the truth"
+    errors = [sample.error_m for sample in samples]
+    largest = max(samples, key=lambda sample: sample.error_m)
+    lines = [f"{path}: {len(samples)} frames, {samples[0].t:.1f}-{samples[-1].t:.1f} s; "
+             f"VINS error at the end {samples[-1].error_m:.2f} m, largest {largest.error_m:.2f}"
+             f" m (t {largest.t:.1f} s), median {sorted(errors)[len(errors) // 2]:.2f} m",
+             "      t     error   heading  state        landmarks"]
+    next_row, state = samples[0].t, None
+    for sample in samples:
+        if sample.t >= next_row or sample.state != state or sample is samples[-1]:
+            lines.append(f"{sample.t:7.2f}  {sample.error_m:6.2f} m  {sample.heading_deg:+6.2f}°  "
+                         f"{sample.state:<12} {sample.landmarks:4d}")
+            next_row = max(next_row, sample.t) + every if sample.t >= next_row else next_row
+        state = sample.state
+    return "\n".join(lines)

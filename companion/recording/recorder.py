@@ -78,6 +78,9 @@ class FlightRecorder:
         if frame.truth_depth is not None:
             self.put(topics.TRUTH_DEPTH, frame.t, topics.encode_true_depth, frame.t,
                      frame.truth_depth)
+        if frame.truth_pose is not None:
+            self.put(topics.TRANSFORMS, frame.t, topics.encode_transform, frame.t,
+                     topics.LOCAL, topics.TRUTH, frame.truth_pose)
 
     def _on_imu(self, sample) -> None:
         self.put(topics.IMU, sample.t, topics.encode_imu, sample)

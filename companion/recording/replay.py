@@ -41,7 +41,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from autonomy.depth import metrics
 from autonomy.depth.stage import MetricDepthStage
 from autonomy.depth.synthetic import SyntheticNetwork
-from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot
+from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, yaw_of
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import BACKOFF_REASON, PARALLAX_REASON
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
@@ -582,6 +582,57 @@ def _estimated_path(path: Path) -> tuple[np.ndarray | None, list, list]:
         elif (decoded.parent_frame_id, decoded.child_frame_id) == (topics.LOCAL, topics.WORLD):
             T_L_W = _transform(decoded)
     return T_L_W, times, positions
+
+
+@dataclass(frozen=True)
+class VinsErrorSample:
+    """The VINS against the simulator's truth at one frame: ``error_m`` the distance between
+    the estimated and the true body position, ``heading_deg`` the yaw error (estimate less
+    truth, within +-180), ``truth_position`` where the body truly was (metres), all in PX4's
+    local frame; the VINS's health at that frame."""
+
+    t: float
+    truth_position: tuple[float, float, float]
+    error_m: float
+    heading_deg: float
+    state: str
+    landmarks: int
+
+
+def vins_error(path: Path) -> list[VinsErrorSample]:
+    """The VINS's error at every frame of a simulated flight's recording that has both its
+    pose (``world``->``body`` on ``/tf``, in PX4's local frame through the ``local``->``world``
+    tie) and the truth (``local``->``truth``), in time order. ReplayError when the recording
+    holds no truth (a real flight, or a simulated one recorded before 2026-11-28) or no tie."""
+    T_L_W, estimates, truths, health = None, {}, {}, {}
+    for topic, t, decoded in _read(path, (topics.TRANSFORMS.name, topics.VINS_HEALTH.name)):
+        if topic == topics.VINS_HEALTH.name:
+            _check_record(topic, decoded, _RECORDS[topic])
+            health[t] = decoded
+            continue
+        frames = (decoded.parent_frame_id, decoded.child_frame_id)
+        if frames == (topics.LOCAL, topics.WORLD):
+            T_L_W = _transform(decoded)
+        elif frames == (topics.WORLD, topics.BODY) and T_L_W is not None:
+            estimates[t] = T_L_W @ _transform(decoded)
+        elif frames == (topics.LOCAL, topics.TRUTH):
+            truths[t] = _transform(decoded)
+    if not truths:
+        raise ReplayError(f"{path}: no true pose (local -> truth on {topics.TRANSFORMS.name}): "
+                          "only simulated flights recorded since 2026-11-28 have one")
+    if T_L_W is None:
+        raise ReplayError(f"{path}: the VINS was never tied to PX4's local frame (no local -> "
+                          f"world on {topics.TRANSFORMS.name})")
+    samples = []
+    for t in sorted(set(estimates) & set(truths)):
+        estimate, truth, vitals = estimates[t], truths[t], health.get(t, {})
+        heading = math.degrees(yaw_of(estimate[:3, :3]) - yaw_of(truth[:3, :3]))
+        samples.append(VinsErrorSample(
+            t=t / 1e9, truth_position=tuple(float(v) for v in truth[:3, 3]),
+            error_m=float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3])),
+            heading_deg=(heading + 180.0) % 360.0 - 180.0, state=vitals.get("state", "?"),
+            landmarks=int(vitals.get("landmarks", 0))))
+    return samples
 
 
 def _transform(message) -> np.ndarray:

@@ -6,7 +6,7 @@ as protobuf by foxglove-sdk, so Foxglove's panels show it as it is; the project'
 (IMU samples, TIMESYNC, the depth fit, the planner's decision, setpoints, VINS health) are JSON
 with a JSON schema. Frames: ``world`` is the VINS world ``W`` (z up), ``body`` the body FLU,
 ``camera`` the rectified camera, optical, ``local`` PX4's local frame ``L`` (ENU) (DESIGN.md,
-"Conventions").
+"Conventions"), ``truth`` the body where the simulator truly had it (simulated flights only).
 
 Every ``encode_*`` function turns one message into the bytes of its topic. They run on the
 recorder's writer thread, never on the event loop (:mod:`companion.recording.writer`).
@@ -29,7 +29,7 @@ from autonomy.navigation.mission import FlightState, Transition
 from autonomy.planning.planner import Plan, Setpoint
 from autonomy.vins.estimator import FrameUpdate
 
-WORLD, BODY, CAMERA, LOCAL = "world", "body", "camera", "local"
+WORLD, BODY, CAMERA, LOCAL, TRUTH = "world", "body", "camera", "local", "truth"
 
 #: Every ``*_STRIDE``-th pixel in each direction is recorded, to keep a flight near 2 MB/s: a
 #: 640x480 frame's metric depth is 160x120 millimetres (38 kB), its relative disparity 80x60

@@ -9,7 +9,8 @@ jittery stamp, lost frames). ``sim record`` shoots through it at its own ticks;
 :meth:`SimCamera.next_frame` waits for the next exposure of a ``rate_hz`` camera (mid-exposure
 on the grid ``k / rate_hz``), renders the world at the vehicle's true pose at that instant and
 hands the frame over at its stamp, on the companion's clock, with ``truth_depth`` (the
-renderer's depth, aligned with the image, for the synthetic network and for scoring). A
+renderer's depth, aligned with the image, for the synthetic network and for scoring) and
+``truth_pose`` (that pose, for the flight recording). A
 consumer slower than the camera gets the newest frame and the ones it missed are counted in
 ``dropped`` (as a real driver with a one-frame buffer); frames the camera itself lost are
 counted in ``lost``. In lockstep the render happens while simulated time stands still, so the
@@ -21,6 +22,7 @@ image before it began (with its depth) at each new stamp.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -110,14 +112,16 @@ class SimCamera:
             self._next_index += missed + 1
             if self.sim.faults.active("camera_freeze", self.sim.time):
                 continue
-            capture = self.head.shoot(self.renderer, now, self.sim.vehicle.state)
+            state = self.sim.vehicle.state
+            capture = self.head.shoot(self.renderer, now, state)
             if capture.stamp is None:
                 self.lost += 1
                 continue
             if capture.stamp > self.clock.now():  # a late stamp: the frame arrives then
                 await self.clock.sleep(capture.stamp - self.clock.now())
             self.delivered += 1
-            frame = self._deliver(self._picture(capture))
+            truth = make_pose(quat_to_rot(state.q_W_B), state.position)
+            frame = self._deliver(replace(self._picture(capture), truth_pose=truth))
             if frame is not None:
                 return frame
 
