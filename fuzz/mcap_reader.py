@@ -7,7 +7,7 @@ Each input is a recording's bytes. Every reader of ``companion/recording/`` read
 ``inspect.summarise`` and ``format_summary`` (``companion log info``), ``inspect.recover``
 (``companion log recover``), ``replay.recorded_config`` and ``replay.replay`` (``companion
 replay``, under the recording's own config where it has a good one, else the defaults with a
-simulated mission), ``replay.vins_error`` (``companion log vins``).
+simulated mission), ``replay.vins_error`` with the map scale (``companion log vins --map``).
 
 The invariant: ``summarise`` and ``recover`` either raise
 :class:`~companion.recording.inspect.InspectError` or return their documented dicts, and the
@@ -98,13 +98,14 @@ def _replay(said: list[str]) -> None:
 
 def _vins_error(said: list[str]) -> None:
     try:
-        samples = vins_error(_FILE)
+        samples = vins_error(_FILE, with_map=True)
     except ReplayError as error:
         said.append(str(error))
         return
     times = [sample.t for sample in samples]
     assert times == sorted(times), times
     assert all(math.isfinite(sample.error_m) and math.isfinite(sample.heading_deg)
+               and (sample.map_scale is None or not math.isnan(sample.map_scale))
                for sample in samples), samples
 
 

@@ -157,6 +157,20 @@ def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(re
     assert len(table.splitlines()) >= 2 + 3  # a row at least every 4 s of the flight
 
 
+def test_log_vins_map_scale_is_the_landmarks_depth_over_the_true_depth(recording):
+    """The map scale of each frame: 1 for a map at the true scale (this one, to a percent or
+    two); None before the VINS has landmarks."""
+    code, out, _ = log_vins(recording["recording"]["path"], "--json", "--map")
+    assert code == 0
+    samples = json.loads(out)
+    scales = np.array([s["map_scale"] for s in samples if s["map_scale"] is not None])
+    assert len(scales) > 0.8 * len(samples)
+    assert abs(np.median(scales) - 1.0) < 0.02 and np.abs(scales - 1.0).max() < 0.1
+    assert samples[0]["landmarks"] == 0 and samples[0]["map_scale"] is None
+    code, table, _ = log_vins(recording["recording"]["path"], "--map")
+    assert code == 0 and "map scale" in table.splitlines()[1]
+
+
 def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recording, tmp_path):
     path = tmp_path / "real.mcap"
     with open(path, "wb") as file:

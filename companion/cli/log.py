@@ -34,11 +34,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "and heading error (degrees) against where the simulator truly had the "
                     "vehicle, in PX4's local frame, at every --every seconds and wherever the "
                     "VINS's state changed (a reset, lost, degraded), with its landmarks: where "
-                    "a drift began and what the VINS said of itself then. Exits 1 with one "
-                    "line when FILE cannot be read or holds no truth (a real flight).")
+                    "a drift began and what the VINS said of itself then; with --map, the "
+                    "map's scale too. Exits 1 with one line when FILE cannot be read or holds "
+                    "no truth (a real flight).")
     vins.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
     vins.add_argument("--every", type=float, default=2.0, metavar="SECONDS",
                       help="seconds between the table's rows (default: 2)")
+    vins.add_argument("--map", action="store_true",
+                      help="also each frame's map scale: the median of its tracked landmarks' "
+                           "depth over the true depth there (reads the true depth images)")
     common.add_json_flag(vins, instead_of="the table (every frame)")
     vins.set_defaults(command=_vins, config_path=None, overrides=[])
     recover = actions.add_parser(
@@ -89,20 +93,20 @@ def _vins(args: argparse.Namespace, config: Config) -> int:
         print(f"log vins: --every must be above 0 seconds, got {args.every}", file=sys.stderr)
         return common.EXIT_FAILED
     try:
-        samples = vins_error(args.file)
+        samples = vins_error(args.file, with_map=args.map)
     except ReplayError as error:
         print(f"log vins: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     if args.json:
         print(json.dumps([asdict(sample) for sample in samples]))
     else:
-        print(_vins_table(args.file, samples, args.every))
+        print(_vins_table(args.file, samples, args.every, args.map))
     return common.EXIT_OK
 
 
-def _vins_table(path: Path, samples: list, every: float) -> str:
+def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
     """The rows every ``every`` seconds and at each change of the VINS's state, under a line
-    with the error at the end, the largest and the median."""
+    with the error at the end, the largest and the median; ``with_map``, the map scale too."""
     if not samples:
         return f"{path}: no frame with both a VINS pose and the truth"
     errors = [sample.error_m for sample in samples]
@@ -110,12 +114,15 @@ def _vins_table(path: Path, samples: list, every: float) -> str:
     lines = [f"{path}: {len(samples)} frames, {samples[0].t:.1f}-{samples[-1].t:.1f} s; "
              f"VINS error at the end {samples[-1].error_m:.2f} m, largest {largest.error_m:.2f}"
              f" m (t {largest.t:.1f} s), median {sorted(errors)[len(errors) // 2]:.2f} m",
-             "      t     error   heading  state        landmarks"]
+             "      t     error   heading  state        landmarks"
+             + ("  map scale" if with_map else "")]
     next_row, state = samples[0].t, None
     for sample in samples:
         if sample.t >= next_row or sample.state != state or sample is samples[-1]:
+            scale = ("" if not with_map else "          -" if sample.map_scale is None
+                     else f"      {sample.map_scale:.3f}")
             lines.append(f"{sample.t:7.2f}  {sample.error_m:6.2f} m  {sample.heading_deg:+6.2f}°  "
-                         f"{sample.state:<12} {sample.landmarks:4d}")
+                         f"{sample.state:<12} {sample.landmarks:4d}{scale}")
             next_row = max(next_row, sample.t) + every if sample.t >= next_row else next_row
         state = sample.state
     return "\n".join(lines)

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import cv2
+import foxglove.messages as fm
 import numpy as np
 from mcap.reader import make_reader
 from mcap.records import Schema
@@ -279,14 +280,7 @@ class _Replayer:
     # what the recording holds
 
     def _on_camera_calibration(self, t, message) -> None:
-        K = np.asarray(message.K, dtype=float)
-        try:
-            if K.shape != (9,) or not np.isfinite(K).all():
-                raise ValueError(f"K must be 9 finite numbers, got {message.K}")
-            self.pinhole = PinholeCamera(message.width, message.height, K[0], K[4], K[2], K[5])
-        except ValueError as error:
-            raise ReplayError(f"{topics.CAMERA_CALIBRATION.name}: not a camera model "
-                              f"({error})") from None
+        self.pinhole = _pinhole(message)
 
     def _on_tf(self, t, message) -> None:
         if (message.parent_frame_id, message.child_frame_id) == (topics.BODY, topics.CAMERA):
@@ -584,12 +578,60 @@ def _estimated_path(path: Path) -> tuple[np.ndarray | None, list, list]:
     return T_L_W, times, positions
 
 
+def _pinhole(message) -> PinholeCamera:
+    """The rectified pinhole of a ``/camera/calibration`` message; ReplayError if it is none."""
+    K = np.asarray(message.K, dtype=float)
+    try:
+        if K.shape != (9,) or not np.isfinite(K).all():
+            raise ValueError(f"K must be 9 finite numbers, got {message.K}")
+        return PinholeCamera(message.width, message.height, K[0], K[4], K[2], K[5])
+    except ValueError as error:
+        raise ReplayError(f"{topics.CAMERA_CALIBRATION.name}: not a camera model "
+                          f"({error})") from None
+
+
+def _landmarks(message) -> tuple[np.ndarray, np.ndarray]:
+    """A ``/vins/map`` cloud's points ``(N, 3)`` in the camera and whether this frame tracked
+    each; ReplayError when its layout is not the recorder's (float32 x, y, z first)."""
+    names = [field.name for field in message.fields]
+    float32 = fm.PackedElementFieldNumericType.Float32
+    if (names[:3] != ["x", "y", "z"] or "tracked" not in names
+            or any(field.offset != 4 * i or field.type != float32
+                   for i, field in enumerate(message.fields))
+            or message.point_stride != 4 * len(names) or len(message.data) % (4 * len(names))):
+        raise ReplayError(f"a {topics.VINS_MAP.name} cloud that is not the recorder's: fields "
+                          f"{names}, stride {message.point_stride}, {len(message.data)} bytes")
+    values = np.frombuffer(message.data, np.float32).reshape(-1, len(names)).astype(float)
+    return values[:, :3], values[:, names.index("tracked")] > 0.5
+
+
+#: Tracked landmarks with a true depth a frame needs for its map scale.
+MAP_SCALE_MIN_LANDMARKS = 5
+
+
+def _map_scale(points: np.ndarray, tracked: np.ndarray, pinhole: PinholeCamera,
+               true_depth: np.ndarray) -> float | None:
+    """The median over a frame's tracked landmarks of their depth over the true depth at the
+    pixel each projects to: the VINS map's scale (None with too few)."""
+    points = points[tracked & (points[:, 2] > 0) & np.isfinite(points).all(axis=1)]
+    columns = np.rint(pinhole.fx * points[:, 0] / points[:, 2] + pinhole.cx)
+    rows = np.rint(pinhole.fy * points[:, 1] / points[:, 2] + pinhole.cy)
+    height, width = true_depth.shape
+    inside = (columns >= 0) & (columns < width) & (rows >= 0) & (rows < height)
+    truth = true_depth[rows[inside].astype(int), columns[inside].astype(int)]
+    known = np.isfinite(truth) & (truth > 0)
+    if known.sum() < MAP_SCALE_MIN_LANDMARKS:
+        return None
+    return float(np.median(points[inside][known, 2] / truth[known]))
+
+
 @dataclass(frozen=True)
 class VinsErrorSample:
     """The VINS against the simulator's truth at one frame: ``error_m`` the distance between
     the estimated and the true body position, ``heading_deg`` the yaw error (estimate less
     truth, within +-180), ``truth_position`` where the body truly was (metres), all in PX4's
-    local frame; the VINS's health at that frame."""
+    local frame; the VINS's health at that frame; ``map_scale`` (asked for, and where the true
+    depth was recorded) the median of its tracked landmarks' depth over the true depth."""
 
     t: float
     truth_position: tuple[float, float, float]
@@ -597,18 +639,34 @@ class VinsErrorSample:
     heading_deg: float
     state: str
     landmarks: int
+    map_scale: float | None = None
 
 
-def vins_error(path: Path) -> list[VinsErrorSample]:
+def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
     """The VINS's error at every frame of a simulated flight's recording that has both its
     pose (``world``->``body`` on ``/tf``, in PX4's local frame through the ``local``->``world``
-    tie) and the truth (``local``->``truth``), in time order. ReplayError when the recording
-    holds no truth (a real flight, or a simulated one recorded before 2026-11-28) or no tie."""
-    T_L_W, estimates, truths, health = None, {}, {}, {}
-    for topic, t, decoded in _read(path, (topics.TRANSFORMS.name, topics.VINS_HEALTH.name)):
+    tie) and the truth (``local``->``truth``), in time order; ``with_map``, each frame's map
+    scale too (reads the true depth images: slower). ReplayError when the recording holds no
+    truth (a real flight, or a simulated one recorded before 2026-11-28) or no tie."""
+    T_L_W, estimates, truths, health, scales = None, {}, {}, {}, {}
+    pinhole, true_depths = None, {}
+    read = [topics.TRANSFORMS.name, topics.VINS_HEALTH.name]
+    if with_map:
+        read += [topics.CAMERA_CALIBRATION.name, topics.TRUTH_DEPTH.name, topics.VINS_MAP.name]
+    for topic, t, decoded in _read(path, read):
         if topic == topics.VINS_HEALTH.name:
             _check_record(topic, decoded, _RECORDS[topic])
             health[t] = decoded
+            continue
+        if topic == topics.CAMERA_CALIBRATION.name:
+            pinhole = _pinhole(decoded)
+            continue
+        if topic == topics.TRUTH_DEPTH.name:
+            true_depths = {t: _metres(decoded)}  # its frame's map comes after it
+            continue
+        if topic == topics.VINS_MAP.name:
+            if pinhole is not None and t in true_depths:
+                scales[t] = _map_scale(*_landmarks(decoded), pinhole, true_depths[t])
             continue
         frames = (decoded.parent_frame_id, decoded.child_frame_id)
         if frames == (topics.LOCAL, topics.WORLD):
@@ -631,7 +689,7 @@ def vins_error(path: Path) -> list[VinsErrorSample]:
             t=t / 1e9, truth_position=tuple(float(v) for v in truth[:3, 3]),
             error_m=float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3])),
             heading_deg=(heading + 180.0) % 360.0 - 180.0, state=vitals.get("state", "?"),
-            landmarks=int(vitals.get("landmarks", 0))))
+            landmarks=int(vitals.get("landmarks", 0)), map_scale=scales.get(t)))
     return samples
 
 
