@@ -118,11 +118,13 @@ def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
              + ("  map scale" if with_map else "")]
     next_row, state = samples[0].t, None
     for sample in samples:
-        if sample.t >= next_row or sample.state != state or sample is samples[-1]:
+        due = sample.t >= next_row
+        if due or sample.state != state or sample is samples[-1]:
             scale = ("" if not with_map else "          -" if sample.map_scale is None
                      else f"      {sample.map_scale:.3f}")
             lines.append(f"{sample.t:7.2f}  {sample.error_m:6.2f} m  {sample.heading_deg:+6.2f}°  "
                          f"{sample.state:<12} {sample.landmarks:4d}{scale}")
-            next_row = max(next_row, sample.t) + every if sample.t >= next_row else next_row
+        if due:
+            next_row = sample.t + every
         state = sample.state
     return "\n".join(lines)

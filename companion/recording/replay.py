@@ -649,7 +649,7 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
     scale too (reads the true depth images: slower). ReplayError when the recording holds no
     truth (a real flight, or a simulated one recorded before 2026-11-28) or no tie."""
     T_L_W, estimates, truths, health, scales = None, {}, {}, {}, {}
-    pinhole, true_depths = None, {}
+    pinhole, true_depth, true_depth_t = None, None, None
     read = [topics.TRANSFORMS.name, topics.VINS_HEALTH.name]
     if with_map:
         read += [topics.CAMERA_CALIBRATION.name, topics.TRUTH_DEPTH.name, topics.VINS_MAP.name]
@@ -662,11 +662,11 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
             pinhole = _pinhole(decoded)
             continue
         if topic == topics.TRUTH_DEPTH.name:
-            true_depths = {t: _metres(decoded)}  # its frame's map comes after it
+            true_depth, true_depth_t = _metres(decoded), t  # its frame's map comes after it
             continue
         if topic == topics.VINS_MAP.name:
-            if pinhole is not None and t in true_depths:
-                scales[t] = _map_scale(*_landmarks(decoded), pinhole, true_depths[t])
+            if pinhole is not None and t == true_depth_t:
+                scales[t] = _map_scale(*_landmarks(decoded), pinhole, true_depth)
             continue
         frames = (decoded.parent_frame_id, decoded.child_frame_id)
         if frames == (topics.LOCAL, topics.WORLD):
