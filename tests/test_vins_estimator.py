@@ -348,6 +348,21 @@ def test_a_blind_camera_is_lost_without_a_map_and_reinitialises_when_it_sees(fli
     assert max(position_errors(flight, after)) < MAX_ERROR_AFTER_RESET_M
 
 
+def test_a_reinitialisation_trusts_the_propagated_speed_less_the_longer_it_was_lost(flight):
+    """An in-flight re-initialisation starts from the IMU's propagation of the last smoother
+    state: its velocity prior is that state's error (0.1 m/s: the speed a straight pipe's
+    scale drift leaves, docs/vins.md) widened by an accelerometer bias off by
+    ``prior_accel_bias_sigma`` for the time LOST. At 0.5 m/s, the old prior, the new map
+    started at 0.66 of the true scale after the sewer hallway's divergence."""
+    vins = flight.vins()
+    o = vins.options
+    assert vins.reinit_velocity_prior(0.0) == pytest.approx(o.propagated_velocity_sigma) == 0.1
+    assert vins.reinit_velocity_prior(0.05) < 0.101  # a divergence: re-initialised next frame
+    assert vins.reinit_velocity_prior(3.0) == pytest.approx(
+        math.hypot(0.1, 3.0 * o.prior_accel_bias_sigma))
+    assert vins.reinit_velocity_prior(-1.0) == pytest.approx(0.1)
+
+
 @pytest.mark.parametrize("top_up", [True, False])
 def test_with_the_top_up_the_view_is_restocked_with_landmarks_soon_after_the_tracks_are_lost(
         flight, top_up):

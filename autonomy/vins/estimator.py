@@ -135,6 +135,7 @@ class Vins:
         self._last_frame_t = -math.inf
         self._keyframe_tracks: Tracks | None = None
         self._lost_reason = ""
+        self._lost_since: float | None = None
         self._starved_since: float | None = None
         self._last_reset_t = -math.inf
         self._moved = False
@@ -328,7 +329,8 @@ class Vins:
             return restart
         if restart is None:
             state = self._propagate_to(t)
-            sigmas = self._start_sigmas(self.options.reinit_velocity_sigma)
+            lost_s = 0.0 if self._lost_since is None else t - self._lost_since
+            sigmas = self._start_sigmas(self.reinit_velocity_prior(lost_s))
         else:
             state = restart.state
             sigmas = self._start_sigmas(restart.velocity_sigma, restart.tilt_sigma)
@@ -341,8 +343,21 @@ class Vins:
         self._gap = None
         self._last_reset_t = t
         self._lost_reason = ""
+        self._lost_since = None
         self._starved_since = None
         return ""
+
+    def reinit_velocity_prior(self, lost_s: float) -> float:
+        """The velocity prior of a re-initialisation from the IMU's propagation after
+        ``lost_s`` seconds LOST, m/s: ``hypot(sigma_v, sigma_ba * lost_s)``, the last smoother
+        state's velocity error ``sigma_v`` (``propagated_velocity_sigma``) and what an
+        accelerometer bias off by ``sigma_ba`` (``prior_accel_bias_sigma``) adds while the IMU
+        alone carries the state. Any wider and the new window takes its speed, so its map's
+        scale, from its first images, in a cruise that says little of it (docs/vins.md,
+        "The sewer's hallway")."""
+        o = self.options
+        return math.hypot(o.propagated_velocity_sigma,
+                          o.prior_accel_bias_sigma * max(lost_s, 0.0))
 
     def _observe_gap(self, t: float, tracks: Tracks) -> None:
         """A frame while the IMU is silent or just back: to the gap's observations."""
@@ -467,6 +482,8 @@ class Vins:
         """LOST: keep the state propagated (when the IMU reaches ``t`` and no gap lies
         between), no map."""
         self._lost_reason = reason
+        if self._lost_since is None:
+            self._lost_since = t
         pose = velocity = None
         if self._gap is None and not self._imu_gap(t):
             state = self._propagate_to(t)
