@@ -43,3 +43,14 @@ def test_serve_names_a_serial_port_or_tcp_server_it_cannot_reach_in_one_line(cap
 def test_sim_fly_offers_the_udp_and_serial_links_only(capsys):
     assert main(["sim", "fly", "--link", "can"]) == 2
     assert "invalid choice: 'can' (choose from 'udp', 'serial')" in capsys.readouterr().err
+
+
+def test_sim_fly_refuses_truth_tracks_through_the_realistic_camera(capsys):
+    """The truth is projected through the configured camera: the realistic profile's lens,
+    mounting error and late stamps would make it wrong, so the flight does not start."""
+    assert main(["sim", "fly", "--tracks", "truth", "--set", "sim.profile=realistic",
+                 "--no-plot", "--no-record"]) == 1
+    assert capsys.readouterr().err.startswith(
+        "sim fly: truth tracks need the ideal profile ([sim] profile = \"ideal\")")
+    assert main(["sim", "fly", "--tracks", "oracle"]) == 2
+    assert "invalid choice: 'oracle' (choose from 'tracker', 'truth')" in capsys.readouterr().err

@@ -20,6 +20,7 @@ DEFAULT_PLOT = Path("sim-fly.png")
 def add_commands(commands: argparse._SubParsersAction) -> None:
     from companion.tools.fault_matrix import MATRIX_FAULTS
     from drivers.sim.faults import FAULT_KINDS, MOMENTS
+    from drivers.sim.host import TRACK_SOURCES
     from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
     from drivers.sim.serve import LINKS
 
@@ -83,6 +84,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "network (the synthetic stand-in unless [depth_network] model is set), "
                     "rescaler and planner, from a start/goal pair of the world. Prints progress "
                     "and a summary, and draws the flown path over the world map.")
+    fly.add_argument("--tracks", choices=TRACK_SOURCES, default="tracker",
+                     help="the VINS's feature tracks: the tracker's, or the same tracks with "
+                          "each pixel the true projection of the point it was born on, to tell "
+                          "the tracker's error from the estimator's (ideal profile only; "
+                          "docs/vins.md) (default: %(default)s)")
     fly.add_argument("--start-yaw", type=float, metavar="DEG",
                      help="heading the vehicle stands at before take-off, degrees "
                           "counter-clockwise from east (default: facing the first leg)")
@@ -220,6 +226,7 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
         mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
                                        goal=args.goal, start_yaw_deg=args.start_yaw,
                                        clock=args.clock, depth=args.depth, link=args.link,
+                                       tracks=args.tracks,
                                        faults=tuple(Fault.parse(f) for f in args.faults),
                                        go_after_s=args.go_after)
         summary = simulated.run(config, mission, plot=plot,

@@ -67,27 +67,32 @@ class FlightApp:
     def from_config(cls, config, *, autopilot, camera, pinhole: PinholeCamera, T_B_C,
                     depth: DepthSource, waypoints_L, clock, lockstep: bool,
                     go_given_by: str = "", notifier=None,
-                    latency: dict[str, float] | None = None) -> "FlightApp":
+                    latency: dict[str, float] | None = None,
+                    exact_tracks=None) -> "FlightApp":
         """The application with its VINS, planner and workers built from ``config``: the
         camera's frames follow the ideal ``pinhole`` (rectified, drivers.camera.calibration)
         from a camera mounted at ``T_B_C``; the ``[vins_imu]`` noise model; workers inline in
         lockstep (charging ``latency``, seconds per worker, to the simulated clock), threads
         otherwise (closed when :meth:`run` ends). ``go_given_by`` non-empty:
-        the operator's go is already given (``sim fly``), else ``[go]`` says how it comes."""
+        the operator's go is already given (``sim fly``), else ``[go]`` says how it comes.
+        ``exact_tracks``: a simulated flight's tracks replaced by the truth's
+        (:class:`drivers.sim.truth_tracks.TruthTracks`; None: the tracker's)."""
         vins = Vins(pinhole, (0.0,) * 4, T_B_C, config.vins_imu, config.vins,
                     frontend=config.vins_frontend, static=config.vins_init)
         return cls(config, autopilot=autopilot, camera=camera, depth=depth, vins=vins,
                    T_B_C=T_B_C, planner=Planner(pinhole, config.planner),
                    waypoints_L=waypoints_L, clock=clock, notifier=notifier,
                    workers=make_workers(lockstep, WORKERS, clock, latency),
-                   gate=OperatorGate(config.go, autopilot, go_given_by))
+                   gate=OperatorGate(config.go, autopilot, go_given_by),
+                   exact_tracks=exact_tracks)
 
     def __init__(self, config, *, autopilot, camera, depth: DepthSource, vins: Vins,
                  T_B_C: np.ndarray, planner: Planner, waypoints_L, clock, workers: dict,
-                 gate: OperatorGate, notifier=None):
+                 gate: OperatorGate, notifier=None, exact_tracks=None):
         options = config.flight
         self.context = FlightContext(options, clock, autopilot, workers)
-        self.perception = Perception(self.context, camera, vins, depth, planner, T_B_C)
+        self.perception = Perception(self.context, camera, vins, depth, planner, T_B_C,
+                                     exact_tracks)
         self.navigation = Navigation(self.context, self.perception, planner,
                                      Route(waypoints_L, math.radians(options.corner_turn_deg)))
         self.command = Command(self.context, self.perception, self.navigation)

@@ -100,8 +100,10 @@ class Perception:
     other stages read its counters)."""
 
     def __init__(self, context: FlightContext, camera, vins: Vins, depth: DepthSource,
-                 planner: Planner, T_B_C: np.ndarray):
+                 planner: Planner, T_B_C: np.ndarray, exact_tracks=None):
         self.context, self.camera, self.vins, self.depth = context, camera, vins, depth
+        # a simulated flight's diagnostic (sim fly --tracks truth): (frame, tracks) -> tracks
+        self.exact_tracks = exact_tracks
         self.planner, self.T_B_C = planner, np.asarray(T_B_C, dtype=float)
         self.last_depth_t: float | None = None  # newest depth in the planner's history
         self.last_fit_t: float | None = None  # newest depth rescaled by its own frame's fit
@@ -191,7 +193,10 @@ class Perception:
         """The VINS on one frame, with the IMU up to it (on the VINS worker); on the ground
         while the mission is in a state before arming or after the landing."""
         self._feed_imu()
-        return self.vins.add_frame(frame.t, self.vins.track(frame.image),
+        tracks = self.vins.track(frame.image)
+        if self.exact_tracks is not None:
+            tracks = self.exact_tracks(frame, tracks)
+        return self.vins.add_frame(frame.t, tracks,
                                    on_ground=self.context.state in DISARMED_STATES)
 
     def _after_vins(self, update: FrameUpdate) -> None:

@@ -42,11 +42,12 @@ from drivers.camera.calibration import CalibratedCamera
 from drivers.mavlink.autopilot import Autopilot
 from drivers.mavlink.signing import load_key
 from drivers.sim.faults import FaultSchedule
-from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMission,
-                              ThreadedSimulator, TruthDepth, TruthTrack, empty_disk,
+from drivers.sim.host import (DEPTH_SOURCES, TRACK_SOURCES, LockstepSimulator, SimError,
+                              SimMission, ThreadedSimulator, TruthDepth, TruthTrack, empty_disk,
                               fill_disk_when_due, mission_waypoints, simulated_network,
                               stall_when_due)
 from drivers.sim.serve import LINKS
+from drivers.sim.truth_tracks import TruthTracks
 from drivers.sim.world import World, build_world
 
 log = logging.getLogger(__name__)
@@ -73,6 +74,13 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     if mission.depth not in DEPTH_SOURCES:
         raise SimError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
                        f"got {mission.depth!r}")
+    if mission.tracks not in TRACK_SOURCES:
+        raise SimError(f"tracks must be one of {', '.join(TRACK_SOURCES)}, "
+                       f"got {mission.tracks!r}")
+    if mission.tracks == "truth" and config.sim.profile != "ideal":
+        raise SimError("truth tracks need the ideal profile ([sim] profile = \"ideal\"): the "
+                       "realistic camera's lens, mounting error and late stamps are not the "
+                       "configured camera the truth is projected through")
     if mission.link not in LINKS:
         raise SimError(f"link must be one of {', '.join(LINKS)}, got {mission.link!r}")
     for table in (config.mavlink, config.px4):
@@ -127,8 +135,11 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         depth = TruthDepth(config.planner.max_range) if mission.depth == "truth" else \
             NetworkDepth(simulated_network(config, mission.seed, faults, lambda: sim.time),
                          config.rescale, config.depth)
+        exact_tracks = (TruthTracks(config.camera.pinhole(), config.camera.T_B_C())
+                        if mission.tracks == "truth" else None)
         app = build_app(config, clock, side.companion_url(), camera, depth, waypoints,
-                        lockstep=mission.clock == "lockstep", go_given_by=go_given_by)
+                        lockstep=mission.clock == "lockstep", go_given_by=go_given_by,
+                        exact_tracks=exact_tracks)
         go_later = asyncio.create_task(give_go_after(app.gate, clock, mission.go_after_s))
         try:
             metadata = recording_metadata(config,
@@ -173,17 +184,18 @@ async def give_go_after(gate, clock, seconds: float | None) -> None:
 
 
 def build_app(config, clock, url: str, camera, depth, waypoints, *,
-              lockstep: bool, go_given_by: str = "sim fly") -> FlightApp:
+              lockstep: bool, go_given_by: str = "sim fly", exact_tracks=None) -> FlightApp:
     """The application wired to a camera, a depth source and the autopilot at ``url``; in
     lockstep with the realistic profile, each stage's compute takes ``[sim_latency]``'s time
-    in simulated time."""
+    in simulated time. ``exact_tracks``: as :meth:`FlightApp.from_config`."""
     autopilot = Autopilot.open(dataclasses.replace(config.mavlink, url=url), clock)
     realistic = lockstep and config.sim.profile == "realistic"
     return FlightApp.from_config(config, autopilot=autopilot, camera=camera,
                                  pinhole=config.camera.pinhole(), T_B_C=config.camera.T_B_C(),
                                  depth=depth, waypoints_L=waypoints, clock=clock,
                                  lockstep=lockstep, go_given_by=go_given_by,
-                                 latency=config.sim_latency.per_stage() if realistic else None)
+                                 latency=config.sim_latency.per_stage() if realistic else None,
+                                 exact_tracks=exact_tracks)
 
 
 def _link_load(link, sim) -> dict:
