@@ -354,7 +354,7 @@ class Vins:
         accelerometer bias off by ``sigma_ba`` (``prior_accel_bias_sigma``) adds while the IMU
         alone carries the state. Any wider and the new window takes its speed, so its map's
         scale, from its first images, in a cruise that says little of it (docs/vins.md,
-        "The sewer's hallway")."""
+        "The hallway's drift, taken apart")."""
         o = self.options
         return math.hypot(o.propagated_velocity_sigma,
                           o.prior_accel_bias_sigma * max(lost_s, 0.0))
