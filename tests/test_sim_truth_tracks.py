@@ -10,7 +10,7 @@ from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, rot_z
 from autonomy.messages import Frame
 from autonomy.vins import Tracks
 from autonomy.vins.frontend import FeatureTracker
-from drivers.sim.render import RenderError, Renderer, create_context
+from drivers.sim.render import Renderer
 from drivers.sim.truth_tracks import TruthTracks
 from drivers.sim.world import build_world
 
@@ -18,21 +18,11 @@ CAMERA = PinholeCamera(640, 480, 320.0, 320.0, 319.5, 239.5)
 T_B_C = make_pose(R_BODY_CAMERA, np.array([0.1, 0.0, 0.05]))  # the default mounting's offset
 
 
-def _egl_problem():
-    try:
-        create_context().release()
-    except RenderError as error:
-        return str(error)
-    return None
-
-
-pytestmark = pytest.mark.skipif(_egl_problem() is not None, reason="no OpenGL")
-
-
 @pytest.fixture(scope="module")
-def hall():
+def hall(opengl):
     """Frames down the sewer's hall (seed 0, pair 5 starts in it), 8 cm apart, as a vehicle
-    cruising at 1.6 m/s sees them at 20 Hz, with their true body poses and depths."""
+    cruising at 1.6 m/s sees them at 20 Hz, with their true body poses and depths (skipped
+    without OpenGL: conftest's ``opengl``)."""
     world = build_world("sewer", seed=0)
     start = np.array([*world.routes[5].start[:2], 1.5])
     heading = math.pi  # down the hall, towards the route's goal
