@@ -403,29 +403,32 @@ def test_the_smoother_moves_keyframes_little_from_the_imu_while_they_agree(run):
 @pytest.mark.parametrize("step", [1.0, 3.0])
 def test_an_accelerometer_that_shifts_in_flight_shows_as_keyframe_corrections(flight, step):
     """The accelerometer's x reads ``step`` m/s^2 more from 5 s on (a bias shift): the
-    landmarks pull the smoother away from the IMU's propagation, by more than 1 cm and five
-    times the largest correction before (measured: 3.9 mm before, on one keyframe; after, up
-    to 32 mm at 1 m/s^2, 135 mm at 3 m/s^2; with the 21 px window of before 2026-11-28, 1.3 mm,
-    then 43 and 284 mm)."""
+    landmarks pull the smoother away from the IMU's propagation, by more than 5 mm and three
+    times the largest correction before (measured: 1.9 mm before, on one keyframe; after, up
+    to 10.6 mm at 1 m/s^2, 7.7 mm at 3 m/s^2. Without the gauge hold, 3.9 mm, then 32 and
+    135 mm: most of that was the whole window sliding with the bias, which the hold stops,
+    docs/vins.md)."""
     shifted = dataclasses.replace(
         flight, accel=flight.accel + np.where(flight.imu_t[:, None] > 5.0, [step, 0.0, 0.0], 0.0))
     updates = fly(shifted, shifted.vins(), 8.0)
     before = keyframe_corrections([u for u in updates if u.t <= 5.0])
     after = keyframe_corrections(updates, after=5.0)
-    assert max(after) > max(0.01, 5.0 * max(before)), (before, after)
+    assert max(after) > max(0.005, 3.0 * max(before)), (before, after)
     # Far below the divergence limit (1 m): never LOST.
     assert all(u.health.state is not HealthState.LOST for u in updates)
 
 
 def test_a_keyframe_moved_past_the_divergence_limit_is_lost_at_the_imus_propagation(flight):
-    """The divergence check: the same accelerometer shift (3 m/s^2 from 5 s, corrections up
-    to 144 mm) against a 5 cm limit. The first keyframe past it is dropped: LOST with the
-    correction in the reason, the pose where the IMU's propagation put it, not the jump;
-    the VINS then re-initialises there and tracks again. (With the default limit, 1 m, the
-    same flight is never LOST: the test above.)"""
+    """The divergence check: the same accelerometer shift (3 m/s^2 from 5 s) against a 5 cm
+    limit, without the gauge hold, so that the window slides with the bias (corrections up to
+    144 mm; with the hold they stay under 1 cm: the test above). The first keyframe past it
+    is dropped: LOST with the correction in the reason, the pose where the IMU's propagation
+    put it, not the jump; the VINS then re-initialises there and tracks again. (With the
+    default limit, 1 m, the same flight is never LOST: the test above.)"""
     shifted = dataclasses.replace(
         flight, accel=flight.accel + np.where(flight.imu_t[:, None] > 5.0, [3.0, 0.0, 0.0], 0.0))
-    updates = fly(shifted, shifted.vins(VinsOptions(max_keyframe_correction_m=0.05)), 8.0)
+    updates = fly(shifted, shifted.vins(VinsOptions(hold_gauge=False,
+                                                    max_keyframe_correction_m=0.05)), 8.0)
     lost = next(k for k, u in enumerate(updates) if u.health.state is HealthState.LOST)
     reason = updates[lost].health.reason
     assert reason.startswith("diverging: the smoother moved a keyframe ") and \
@@ -487,10 +490,13 @@ def test_standing_on_the_ground_for_the_go_keeps_the_smoother_at_rest(flight):
     ("switched off", VinsOptions(zero_velocity_update=False), True),
     ("the caller does not say it is on the ground", None, False),
 ])
-def test_without_the_zero_velocity_prior_the_window_standing_still_is_rebuilt(
+def test_without_the_zero_velocity_prior_the_window_standing_still_drifts(
         flight, why, options, on_ground):
-    """The cause the prior removes: measured, 4 rebuilds in the 20 s and 0.29 m of drift."""
+    """The cause the prior removes: measured, 0.29 m and 0.04 m/s off after the 20 s (and,
+    without the gauge hold, 4 rebuilds on the way)."""
     vins = flight.vins(options)
     stand(flight, vins, 20.0, on_ground)
-    assert vins.resets >= 1, why
+    odometry = vins.odometry()
+    assert np.linalg.norm(odometry.T_W_B[:3, 3]) > 0.1, why
+    assert np.linalg.norm(odometry.velocity_W) > 0.01, why
     assert vins.zero_velocity_keyframes == 0

@@ -128,3 +128,43 @@ def test_gtsams_cholesky_refuses_or_factors_the_same_window_by_what_it_eliminate
     assert factors(1e8, gauge_free_last)
     assert factors(1e8, gauge_last, qr=True)
     assert factors(1e7, gauge_last) and factors(1e7, gauge_free_last)
+
+
+def chain_with_a_held_pose(hold: str, held: int = 5, steps: int = 30):
+    """The pose chain of :func:`fly_a_pose_chain` with a tight prior added on pose ``held`` (a
+    rigid 5 cm off its estimate) when it enters: ``hold`` is "never" (not added), "removed" (in
+    the update that marginalises the pose) or "kept". Returns the smoother after ``steps``."""
+    smoother, slot = FixedLagSmoother(LAG, isam2_params()), None
+    chain = fly_a_pose_chain(smoother, steps)
+    for k in chain:
+        if k == held and hold != "never":
+            moved = smoother.calculateEstimate().atPose3(X(held)).compose(
+                gtsam.Pose3(gtsam.Rot3(), np.array([0.05, 0.0, 0.0])))
+            graph = gtsam.NonlinearFactorGraph()
+            graph.add(gtsam.PriorFactorPose3(X(held), moved, gtsam.noiseModel.Isotropic.Sigma(
+                6, 1e-4)))
+            slot = smoother.update(graph)[0]
+        leaving = (k + 1) * STEP - LAG > held * STEP
+        if hold == "removed" and slot is not None and leaving:
+            smoother.update(remove=[slot])
+            slot = None
+    return smoother
+
+
+def test_a_factor_removed_before_its_variable_is_marginalised_leaves_no_trace():
+    """The gauge hold's prior (autonomy/vins/backend.py) never enters a marginal: removed
+    before its pose leaves the window, the window later solves as if it had never been (but
+    for the linearisation point the pull left, 1 mm of its 5 cm); kept, it is marginalised
+    into the window and holds it 5 cm off, and tighter, for good."""
+    never, removed, kept = (chain_with_a_held_pose(hold) for hold in ("never", "removed", "kept"))
+    last = X(30)
+
+    def offset(smoother) -> float:
+        return float(np.linalg.norm(never.calculateEstimate().atPose3(last).between(
+            smoother.calculateEstimate().atPose3(last)).translation()))
+
+    assert offset(removed) < 0.002 and offset(kept) > 0.045
+    np.testing.assert_allclose(removed.marginalCovariance(last), never.marginalCovariance(last),
+                               rtol=0.01, atol=1e-6)
+    assert np.all(np.diag(kept.marginalCovariance(last)) < 0.9 * np.diag(
+        never.marginalCovariance(last)))

@@ -2,9 +2,10 @@
 with no landmark the biases are known only from their priors too, and once the window's
 information on them is about 1e8 times weaker than its strongest, GTSAM's Cholesky calls the
 system indeterminate (a reset) in each elimination order tried (tests/test_vins_fixed_lag.py
-for windows with landmarks). The loose keyframe priors (``keyframe_prior_position_sigma``, off by
-default: docs/vins.md) keep it. A rebuild pins the last good keyframe, and its uncertainty is
-carried on (``GaugeAnchor``)."""
+for windows with landmarks). The gauge hold (``hold_gauge``, the default) keeps it, and so do
+the loose keyframe priors (``keyframe_prior_position_sigma``, off by default: docs/vins.md). A
+rebuild, and each move of the hold, pins a keyframe, and its uncertainty is carried on
+(``GaugeAnchor``)."""
 
 import math
 
@@ -13,7 +14,9 @@ import numpy as np
 from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.trajectory import pose_error_body
 from autonomy.vins import ImuNoise, VinsOptions
-from autonomy.vins.backend import GaugeAnchor, KeyframeState, PriorSigmas, SlidingWindowSmoother
+from autonomy.vins.backend import (
+    GaugeAnchor, KeyframeState, PriorSigmas, SlidingWindowSmoother, released_covariance,
+)
 
 #: The estimator's noise model of the simulated vehicle's IMU (config/sim.toml [vins_imu]).
 NOISE = ImuNoise(4.8869e-05, 6.865e-04, 1.9393e-05, 3e-3)
@@ -52,19 +55,80 @@ def resets_turning_in_place_unseeing(options: VinsOptions) -> int:
     return smoother.resets
 
 
-def test_with_the_loose_keyframe_priors_a_window_without_landmarks_stays_well_posed():
-    assert resets_turning_in_place_unseeing(VinsOptions(keyframe_prior_position_sigma=0.1,
-                                                        keyframe_prior_rotation_sigma=0.05)) == 0
+#: Only the first keyframe's prior holds the gauge, fading (the smoother before the hold).
+UNHELD = VinsOptions(hold_gauge=False)
 
 
-def test_without_them_the_same_window_is_rebuilt():
-    """What the priors are for: the same IMU-only window meets an indeterminate linear system
+def test_a_window_without_landmarks_stays_well_posed_with_the_hold_or_the_loose_priors():
+    assert resets_turning_in_place_unseeing(VinsOptions()) == 0
+    assert resets_turning_in_place_unseeing(VinsOptions(
+        hold_gauge=False, keyframe_prior_position_sigma=0.1,
+        keyframe_prior_rotation_sigma=0.05)) == 0
+
+
+def test_without_either_the_same_window_is_rebuilt():
+    """What they are for: the same IMU-only window meets an indeterminate linear system
     within 20 s when nothing refreshes its absolute pose information."""
-    assert resets_turning_in_place_unseeing(VinsOptions()) >= 1
+    assert resets_turning_in_place_unseeing(UNHELD) >= 1
+
+
+def held_joint(information: np.ndarray, prior_covariance: np.ndarray) -> np.ndarray:
+    """The covariance of ``(x, y)`` with information ``information`` and a prior on ``y``
+    (the last ``len(prior_covariance)`` dimensions)."""
+    held = information.copy()
+    m = len(prior_covariance)
+    held[-m:, -m:] += np.linalg.inv(prior_covariance)
+    return np.linalg.inv(held)
+
+
+def test_a_prior_taken_back_out_leaves_the_covariance_without_it():
+    """Woodbury's identity: a 3-dimensional ``x`` and a 6-dimensional ``y`` weakly held (their
+    information 1e-2 to 10 against the prior's 1e4 to 1e6): the covariance of ``x`` with the
+    prior, released, is the one without it."""
+    rng = np.random.default_rng(3)
+    root = rng.normal(size=(9, 9)) * np.r_[[3.0] * 3, [0.1] * 6]
+    information = root @ root.T + 1e-2 * np.eye(9)
+    prior = np.diag([1.0, 1.0, 0.005 ** 2, 0.01 ** 2, 0.01 ** 2, 0.01 ** 2])
+    released = released_covariance(held_joint(information, prior), prior)
+    expected = np.linalg.inv(information)[:3, :3]
+    np.testing.assert_allclose(released, expected, rtol=1e-6)
+    assert np.all(np.diag(held_joint(information, prior))[:3] < 0.5 * np.diag(expected))
+
+
+def test_a_prior_on_what_nothing_else_holds_cannot_be_taken_out():
+    """Without the prior the problem has no bound in ``y``: the covariance is unknown (NaN),
+    never the held one nor a negative one."""
+    information = np.zeros((9, 9))
+    information[:3, :3] = np.eye(3)
+    prior = np.diag([1.0, 1.0, 0.005 ** 2, 0.01 ** 2, 0.01 ** 2, 0.01 ** 2])
+    assert np.isnan(released_covariance(held_joint(information, prior), prior)).all()
+
+
+def assert_same_covariance(actual: np.ndarray, expected: np.ndarray, tolerance: float = 1e-3):
+    """Equal to ``tolerance`` of each entry's scale ``sqrt(P_ii P_jj)``."""
+    scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected)))
+    np.testing.assert_allclose(actual / scale, expected / scale, atol=tolerance)
+
+
+def test_the_held_window_reports_the_covariance_of_the_window_without_the_hold():
+    """The hold changes the covariance the window computes (every pose a millimetre from the
+    held one), not the one it reports: taken out again, the blind window's pose and velocity
+    covariances are those of the same window held by its fading first prior alone, metres
+    after 5 s of its accelerometer bias, through six moves of the hold."""
+    held, unheld = (turning_in_place_unseeing(options, seconds=5.0)
+                    for options in (VinsOptions(), UNHELD))
+    holds = set()
+    for a, b in zip(held, unheld):
+        holds.add(a.gauge_keyframe)
+        assert a.resets == b.resets == 0
+        assert_same_covariance(a.pose_covariance(), b.pose_covariance())
+        assert_same_covariance(a.velocity_covariance(), b.velocity_covariance())
+    assert len(holds) == 7  # the first keyframe, then a move every 0.75 s
+    assert np.all(np.sqrt(np.diag(a.pose_covariance())[3:]) > 1.0)
 
 
 def first_rebuild_s(gauge_sigmas: tuple[float, float]) -> float | None:
-    for smoother in turning_in_place_unseeing(VinsOptions(), seconds=10.0,
+    for smoother in turning_in_place_unseeing(UNHELD, seconds=10.0,
                                               gauge_sigmas=gauge_sigmas):
         if smoother.resets:
             return smoother.latest.t
@@ -85,7 +149,7 @@ def test_a_rebuild_keeps_the_uncertainty_of_the_keyframe_it_starts_from():
     """The rebuilt window pins the last good keyframe to 1 cm, but its position was known to
     metres after seconds blind: the reported covariance must not shrink to the pin's."""
     position_sigma = []
-    for smoother in turning_in_place_unseeing(VinsOptions()):
+    for smoother in turning_in_place_unseeing(UNHELD):
         sigma = np.sqrt(np.diag(smoother.pose_covariance())[3:])
         if smoother.resets:
             break
@@ -101,7 +165,7 @@ def test_a_covariance_kept_for_a_period_is_refreshed_when_it_ages_and_after_a_re
     until it is that old, then the new keyframe's own, and never the old window's after a
     rebuild, whose covariance has just grown by the anchor's."""
     period, kept, kept_since, resets, refreshes = 0.5, None, None, 0, 0
-    for smoother in turning_in_place_unseeing(VinsOptions(), seconds=10.0):
+    for smoother in turning_in_place_unseeing(UNHELD, seconds=10.0):
         before, kept = kept, smoother.pose_covariance(period)
         t = smoother.latest.t
         if smoother.resets != resets or kept_since is None or t - kept_since >= period - 1e-9:
@@ -120,8 +184,7 @@ def test_the_anchor_covariance_is_that_of_the_rigid_motion_it_stands_for():
     rng = np.random.default_rng(1)
     anchor_pose = make_pose(so3_exp(np.array([0.05, -0.03, 2.0])), np.array([1.0, 2.0, 1.5]))
     root = np.r_[[0.01] * 3, [0.2] * 3][:, None] * rng.normal(size=(6, 6))
-    anchor = GaugeAnchor.at(KeyframeState(0, 0.0, anchor_pose, np.zeros(3), np.zeros(3),
-                                          np.zeros(3)), root @ root.T)
+    anchor = GaugeAnchor.at(anchor_pose, root @ root.T)
     keyframe = make_pose(so3_exp(np.array([-0.04, 0.02, -1.0])), np.array([9.0, -7.0, 2.0]))
     p_g = anchor.position_W
     errors = []

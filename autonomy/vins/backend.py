@@ -11,6 +11,9 @@ Factors:
   mounting ``T_B_C``;
 - priors on the first keyframe (from static initialisation) or, after a rebuild, on the last
   good estimate;
+- with ``hold_gauge`` (the default), the gauge hold: a prior on one keyframe inside the window
+  at its estimate, tight in world yaw and position only, moved to a newer keyframe as the
+  window slides (below);
 - on a keyframe taken standing still, a prior ``V(k) = 0`` (``zero_velocity_sigma``;
   :mod:`autonomy.vins.stillness`);
 - with ``drag_coefficient`` above 0 (off by default: docs/vins.md), on every keyframe interval
@@ -18,11 +21,11 @@ Factors:
   (:mod:`autonomy.vins.drag`);
 - with ``keyframe_prior_position_sigma`` above 0 (off by default: docs/vins.md, the resets,
   for what it costs), a loose prior on every new keyframe's pose at its IMU prediction.
-  Position and yaw are unobservable: all the window knows of them is the marginal of the
-  first prior, whose information fades as the flight goes on, while the IMU factors between
-  close keyframes hold their poses to about 1e-5 of that. A window with no landmark at all
-  knows its biases only from their priors too, and meets iSAM2's "indeterminate linear
-  system" within 10 s; the priors keep it from fading. In flight the window is sound, and the
+  Position and yaw are unobservable: without the gauge hold, all the window knows of them is
+  the marginal of the first prior, whose information fades as the flight goes on, while the
+  IMU factors between close keyframes hold their poses to about 1e-5 of that. A window with no
+  landmark at all knows its biases only from their priors too, and meets iSAM2's
+  "indeterminate linear system" within 10 s; the priors keep it from fading. In flight the window is sound, and the
   smoother eliminates the newest keyframe's variables last so that GTSAM's Cholesky does not
   call it indeterminate as the gauge fades (:mod:`autonomy.vins.fixed_lag`).
 
@@ -35,12 +38,22 @@ built from the last good keyframe's estimate, the keyframe is added again with i
 only, and the event counts as a reset. The rebuilt window holds that keyframe's position and yaw
 nearly fixed (they are unobservable: nothing in it could move them), so the uncertainty they had
 is carried by a :class:`GaugeAnchor` and added to every covariance reported after it.
+
+The gauge hold holds the window's position and yaw at a keyframe ``g`` inside it, so that a
+window whose gauge has faded cannot slide whole (every keyframe a metre away in one update, at
+the sewer's pipe mouth: docs/vins.md, "The gauge hold"). Once ``g`` is half a lag old the hold
+moves to the newest keyframe: the old prior is removed in the same update, so it never enters
+a marginal, and the window's absolute information stays what it was, the first prior's,
+fading, plus the hold's alone. The hold changes the covariance the window computes, not the
+one it reports: :meth:`SlidingWindowSmoother.pose_covariance` takes the hold's prior out again
+(a rank update, :func:`released_covariance`), so the covariance still measures from the first
+prior, through every correlation of the pose with the velocity and the biases.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -65,6 +78,17 @@ _DENSITY_FLOOR = {"gyro": 1e-5, "accel": 1e-4, "gyro_walk": 1e-7, "accel_walk": 
 REBUILD_ROTATION_SIGMAS = (0.02, 0.02, 0.005)
 REBUILD_POSITION_SIGMA = 0.01
 REBUILD_VELOCITY_SIGMA = 0.1
+
+#: The gauge hold's prior: the hold needs only to be far stronger than the faded gauge (a
+#: window a metre uncertain holds it with information about 1 m^-2), and a weaker hold keeps
+#: what the rest of the window knows of the held keyframe within the precision of its
+#: marginal, which :func:`released_covariance` takes back out.
+HOLD_YAW_SIGMA = 0.005
+HOLD_POSITION_SIGMA = 0.01
+
+#: Below this fraction of the hold's prior covariance, what the rest of the window knows of
+#: the held keyframe is lost in the marginal's rounding, and the covariance is unknown.
+RELEASE_PRECISION = 1e-6
 
 #: Columns and rows of the image grid over which new landmarks are spread.
 LANDMARK_GRID = (4, 4)
@@ -139,14 +163,14 @@ class GaugeAnchor:
     covariance: np.ndarray
 
     @classmethod
-    def at(cls, state: KeyframeState, pose_covariance: np.ndarray) -> "GaugeAnchor":
-        """The anchor at ``state`` whose pose covariance (6x6, body tangent) is given:
+    def at(cls, T_W_B: np.ndarray, pose_covariance: np.ndarray) -> "GaugeAnchor":
+        """The anchor at the pose ``T_W_B`` whose covariance (6x6, body tangent) is given:
         ``dpsi = e_z^T R dtheta_B`` and ``dp = R dp_B``."""
-        R = state.T_W_B[:3, :3]
+        R = T_W_B[:3, :3]
         to_world = np.zeros((4, 6))
         to_world[0, :3] = R[2]
         to_world[1:, 3:] = R
-        return cls(np.array(state.T_W_B[:3, 3]), to_world @ pose_covariance @ to_world.T)
+        return cls(np.array(T_W_B[:3, 3]), to_world @ pose_covariance @ to_world.T)
 
     def pose_covariance(self, T_W_B: np.ndarray) -> np.ndarray:
         """What the anchor adds to the covariance of the pose ``T_W_B`` (class docstring)."""
@@ -161,6 +185,38 @@ class GaugeAnchor:
         """What the anchor's yaw adds to the covariance of ``velocity_W`` (world frame)."""
         turned = np.cross([0.0, 0.0, 1.0], velocity_W)
         return self.covariance[0, 0] * np.outer(turned, turned)
+
+
+def released_covariance(joint: np.ndarray, prior_covariance: np.ndarray) -> np.ndarray:
+    """The covariance of ``x`` once a prior on ``y`` is taken out of the problem.
+
+    ``joint`` is the covariance of ``(x, y)`` with the prior, ``[[S_xx, S_xy], [S_yx, S_yy]]``,
+    and ``prior_covariance`` (``W^-1``) the prior's, in ``y``'s tangent. The information
+    without the prior is ``L - P^T W P`` (``P`` picks ``y``), so by Woodbury's identity
+    ``S'_xx = S_xx + S_xy (W^-1 - S_yy)^-1 S_yx``. ``W^-1 - S_yy`` is what the rest of the
+    problem knows of ``y`` beside the prior; singular (nothing else holds ``y``), the
+    covariance is unbounded; known only to within ``RELEASE_PRECISION`` of the prior's, it
+    is unknown: NaN either way.
+    """
+    n = len(joint) - len(prior_covariance)
+    S_xx, S_xy, S_yy = joint[:n, :n], joint[:n, n:], joint[n:, n:]
+    # in the prior's whitened coordinates, where its covariance is the identity
+    whiten = np.linalg.inv(np.linalg.cholesky(prior_covariance))
+    rest = np.eye(len(prior_covariance)) - whiten @ S_yy @ whiten.T
+    if not np.isfinite(rest).all() or np.linalg.eigvalsh(rest)[0] <= RELEASE_PRECISION:
+        return np.full((n, n), np.nan)
+    lever = S_xy @ whiten.T
+    return S_xx + lever @ np.linalg.solve(rest, lever.T)
+
+
+@dataclass(frozen=True)
+class _GaugeHold:
+    """The keyframe that holds the window's gauge, its prior's covariance (pose tangent) and
+    iSAM2 slot; both None for the start prior, which also holds the tilt and stays."""
+
+    index: int
+    covariance: np.ndarray | None = None
+    slot: int | None = None
 
 
 class BackendError(RuntimeError):
@@ -240,6 +296,7 @@ class SlidingWindowSmoother:
         self._retired = np.zeros(0, np.int64)
         self._pose_covariance: tuple[int, float, np.ndarray] | None = None
         self._anchor: GaugeAnchor | None = None
+        self._hold: _GaugeHold | None = None
         self._known_pose_covariance = np.full((6, 6), np.nan)
         self._landmarks = Landmarks.empty()
 
@@ -254,6 +311,12 @@ class SlidingWindowSmoother:
         if self._latest is None:
             raise RuntimeError("the smoother has not been started")
         return self._latest
+
+    @property
+    def gauge_keyframe(self) -> int | None:
+        """The keyframe whose prior holds the window's position and yaw (module docstring),
+        None while none does."""
+        return None if self._hold is None else self._hold.index
 
     @property
     def landmarks(self) -> Landmarks:
@@ -289,6 +352,7 @@ class SlidingWindowSmoother:
         self._smoother.update(graph, values, {X(k): state.t, V(k): state.t, B(k): state.t},
                               eliminate_last=_variables(k))
         self._latest = state
+        self._hold = _GaugeHold(k)
         self._window = [self._keyframe(k, state.t, ids, normalised)]
         self._poses = {k: np.asarray(state.T_W_B, float)}
         self._landmarks = Landmarks.empty()
@@ -315,8 +379,8 @@ class SlidingWindowSmoother:
         except (RuntimeError, ValueError) as error:
             self.resets += 1
             self.last_failure = f"keyframe {keyframe.index} at t={keyframe.t:.3f}: {error}"
-            self._rebuild(good, good_keyframe, GaugeAnchor.at(good, good_covariance), keyframe,
-                          pim, still, airborne)
+            self._rebuild(good, good_keyframe, GaugeAnchor.at(good.T_W_B, good_covariance),
+                          keyframe, pim, still, airborne)
             return False
 
     def _rebuild(self, good: KeyframeState, good_keyframe: _Keyframe, anchor: GaugeAnchor,
@@ -347,22 +411,52 @@ class SlidingWindowSmoother:
         state, cached = self.latest, self._pose_covariance
         if cached is None or (cached[0] != state.index and
                               state.t - cached[1] >= max_age_s - 1e-9):
-            covariance = self._marginal(X(state.index), 6)
-            if self._anchor is not None:
-                covariance = covariance + self._anchor.pose_covariance(state.T_W_B)
+            covariance = self._anchored_pose_covariance(state.index)
             self._pose_covariance = cached = (state.index, state.t, covariance)
             if np.isfinite(covariance).all():
                 self._known_pose_covariance = covariance
         return cached[2]
 
+    def _anchored_pose_covariance(self, index: int) -> np.ndarray:
+        """Keyframe ``index``'s pose covariance: its marginal without the gauge hold's prior,
+        plus what a rebuild's anchor carries (NaN: unknown)."""
+        covariance = self._released_marginal(X(index), 6)
+        if self._anchor is not None:
+            covariance = covariance + self._anchor.pose_covariance(self._poses[index])
+        return covariance
+
     def velocity_covariance(self) -> np.ndarray:
         """The latest keyframe velocity's covariance (3x3, world frame), as
         :meth:`pose_covariance`."""
         state = self.latest
-        covariance = self._marginal(V(state.index), 3)
+        covariance = self._released_marginal(V(state.index), 3)
         if self._anchor is not None:
             covariance = covariance + self._anchor.velocity_covariance(state.velocity)
         return covariance
+
+    def _released_marginal(self, key: int, size: int) -> np.ndarray:
+        """The marginal covariance of ``key`` with the gauge hold's prior taken out
+        (:func:`released_covariance`); the start prior stays."""
+        hold = self._hold
+        if hold is None or hold.slot is None:
+            return self._marginal(key, size)
+        held = X(hold.index)
+        if key == held:
+            marginal = self._marginal(key, size)
+            joint = np.block([[marginal, marginal], [marginal, marginal]])
+        else:
+            joint = self._joint_marginal(key, size, held)
+        return released_covariance(joint, hold.covariance)
+
+    def _joint_marginal(self, key: int, size: int, pose_key: int) -> np.ndarray:
+        """The joint covariance of ``key`` (``size`` dims) and a pose (NaN where GTSAM cannot
+        compute it, as :meth:`_marginal`)."""
+        try:
+            joint = self._smoother.jointMarginalCovariance([key, pose_key])
+        except RuntimeError:
+            return np.full((size + 6, size + 6), np.nan)
+        return np.block([[joint.at(key, key), joint.at(key, pose_key)],
+                         [joint.at(pose_key, key), joint.at(pose_key, pose_key)]])
 
     def _marginal(self, key: int, size: int) -> np.ndarray:
         """The marginal covariance of ``key``. iSAM2 can meet an indeterminate linear system
@@ -431,10 +525,46 @@ class SlidingWindowSmoother:
         fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
         self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
                                 stamps)
-        self._smoother.update(graph, values, stamps, eliminate_last=_variables(keyframe.index))
+        moved = self._gauge_move(keyframe.t, graph)
+        slots = self._smoother.update(graph, values, stamps,
+                                      eliminate_last=_variables(keyframe.index),
+                                      remove=[] if moved is None or self._hold.slot is None
+                                      else [self._hold.slot])
+        if moved is not None:
+            self._hold = replace(moved, slot=slots[-1])
         for _ in range(self.options.extra_iterations):
             self._smoother.update()
         self._read_estimate(keyframe, window)
+
+    def _gauge_move(self, newest_t: float,
+                    graph: gtsam.NonlinearFactorGraph) -> _GaugeHold | None:
+        """The hold's move in the update that adds a keyframe at ``newest_t`` (module
+        docstring), its prior added to ``graph`` last; None where it stays: until its keyframe
+        is half a lag old, it stays there."""
+        hold, newest = self._hold, self._window[-1]
+        held_t = next((kf.t for kf in self._window if kf.index == hold.index), -math.inf)
+        if (not self.options.hold_gauge or newest.index == hold.index
+                or newest_t - held_t <= self.options.smoother_lag_s / 2):
+            return None
+        prior, covariance = self._gauge_prior(newest.index)
+        graph.add(prior)
+        return _GaugeHold(newest.index, covariance)
+
+    def _gauge_prior(self, index: int) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
+        """The prior holding keyframe ``index`` at its estimate in world yaw and position
+        (``HOLD_YAW_SIGMA``, ``HOLD_POSITION_SIGMA``), and its covariance. Pose3's tangent
+        is the body's: world yaw is the rotation about ``u = R^T e_z``, information
+        ``u u^T / sigma^2``; roll and pitch, which gravity observes, get a negligible one
+        (1 rad)."""
+        T_W_B = self._poses[index]
+        up = T_W_B[2, :3]
+        information = np.zeros((6, 6))
+        information[:3, :3] = (np.outer(up, up) / HOLD_YAW_SIGMA ** 2
+                               + np.eye(3) - np.outer(up, up))
+        information[3:, 3:] = np.eye(3) / HOLD_POSITION_SIGMA ** 2
+        prior = gtsam.PriorFactorPose3(X(index), gtsam.Pose3(T_W_B),
+                                       gtsam.noiseModel.Gaussian.Information(information))
+        return prior, np.linalg.inv(information)
 
     def _consistent_observations(self, keyframe: _Keyframe, seen: np.ndarray):
         """The observations of known landmarks that reproject within ``max_observation_px`` at

@@ -52,11 +52,15 @@ class FixedLagSmoother:
 
     def update(self, graph: gtsam.NonlinearFactorGraph | None = None,
                values: gtsam.Values | None = None, stamps: Mapping[int, float] | None = None,
-               eliminate_last: Collection[int] | None = None) -> None:
+               eliminate_last: Collection[int] | None = None,
+               remove: Collection[int] = ()) -> list[int]:
         """Add ``graph`` with the new variables ``values``, (re)stamp the variables in
-        ``stamps`` (seconds), solve, and marginalise every variable older than the lag.
-        ``eliminate_last`` are the keys eliminated last from now on (they must be in the
-        window); without them, those named before, until they are marginalised."""
+        ``stamps`` (seconds), remove the factors at the iSAM2 slots ``remove``, solve, and
+        marginalise every variable older than the lag. ``eliminate_last`` are the keys
+        eliminated last from now on (they must be in the window); without them, those named
+        before, until they are marginalised. Returns the slots of ``graph``'s factors, in
+        order. A factor removed in the update that marginalises its variables never enters
+        their marginal."""
         graph = gtsam.NonlinearFactorGraph() if graph is None else graph
         values = gtsam.Values() if values is None else values
         stamps = dict(stamps or {})
@@ -75,12 +79,15 @@ class FixedLagSmoother:
         params = gtsam.ISAM2UpdateParams()
         params.constrainedKeys = self._groups(old)
         params.extraReelimKeys = _key_list(key for key in self._stamps if not values.exists(key))
-        self._isam.update(graph, values, params)
+        if remove:
+            params.removeFactorIndices = list(remove)
+        slots = list(self._isam.update(graph, values, params).getNewFactorsIndices())
         if old:
             self._isam.marginalizeLeaves(_key_list(old))
             for key in old:
                 del self._stamps[key]
             self._last = self._last.difference(old)
+        return slots
 
     def _groups(self, old: list[int]) -> gtsam.KeyGroupMap:
         """The ordering constraint: ``old`` first, then the window, then the last keys. Group
@@ -104,6 +111,9 @@ class FixedLagSmoother:
 
     def marginalCovariance(self, key: int):  # noqa: N802 (GTSAM's smoother interface)
         return self._isam.marginalCovariance(key)
+
+    def jointMarginalCovariance(self, keys: list[int]) -> gtsam.JointMarginal:  # noqa: N802
+        return self._isam.jointMarginalCovariance(keys)
 
 
 def _key_list(keys: Iterable[int]) -> gtsam.KeyList:

@@ -30,6 +30,11 @@ class VinsOptions:
     factorization: str = option("cholesky", choices=("cholesky", "qr"), doc="iSAM2's "
                                 "elimination: cholesky, or qr (no indeterminate-system rebuilds "
                                 "in the sewer's hallway, about 3x the update time)")
+    hold_gauge: bool = option(True, doc="hold the window's position and yaw at a keyframe "
+                              "inside it, moved to a newer one as the window slides, taken out "
+                              "again of every covariance reported (docs/vins.md, the gauge "
+                              "hold); false: only the first keyframe's prior holds them, "
+                              "fading as it is marginalised")
     covariance_period_s: float = option(0.5, ge=0.0, le=10.0, doc="the odometry's pose "
                                         "covariance is refreshed at most this often, seconds "
                                         "of keyframe time (iSAM2's marginal costs about twice "
