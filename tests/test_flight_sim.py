@@ -43,9 +43,8 @@ def test_blocked_beside_a_door_it_backs_off_along_its_trail_and_goes_through():
     the smoother ordered to end on the newest keyframe: two back-offs, 6 m into the hallway at
     45 s, 23 m at 52 s. With Lucas-Kanade's 11 px window: from -180° one back-off and 11 m
     from the goal at 50 s; from -160° two and 35 m; from -170° and -175° none, the arcs
-    clearing the edge. With the gauge hold: from -180° none, 0.9 m from the goal at 50 s;
-    from -175° one and 10.9 m; from -170°, -165° and -160° two and 37-39 m; from -155° two,
-    and the no-safe-primitive failsafe 57 m from the goal.)"""
+    clearing the edge. With the gauge hold: from -180° one back-off and 10.4 m from the goal
+    at 50 s; from -175°, -170° and -165° two and 38-39 m.)"""
     config = load_config(None, ["flight.mission_timeout_s=50"])
     summary = simulated.run(config, simulated.SimMission(world="sewer", pair=2, depth="truth",
                                                          start_yaw_deg=-175.0))

@@ -114,7 +114,7 @@ def test_the_held_window_reports_the_covariance_of_the_window_without_the_hold()
     """The hold changes the covariance the window computes (every pose a millimetre from the
     held one), not the one it reports: taken out again, the blind window's pose and velocity
     covariances are those of the same window held by its fading first prior alone, metres
-    after 5 s of its accelerometer bias, through six moves of the hold."""
+    after 5 s of its accelerometer bias, through some fifty moves of the hold."""
     held, unheld = (turning_in_place_unseeing(options, seconds=5.0)
                     for options in (VinsOptions(), UNHELD))
     holds = set()
@@ -123,7 +123,7 @@ def test_the_held_window_reports_the_covariance_of_the_window_without_the_hold()
         assert a.resets == b.resets == 0
         assert_same_covariance(a.pose_covariance(), b.pose_covariance())
         assert_same_covariance(a.velocity_covariance(), b.velocity_covariance())
-    assert len(holds) == 7  # the first keyframe, then a move every 0.75 s
+    assert len(holds) > 40  # a move with (nearly) every keyframe once the window is full
     assert np.all(np.sqrt(np.diag(a.pose_covariance())[3:]) > 1.0)
 
 

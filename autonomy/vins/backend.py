@@ -41,9 +41,9 @@ is carried by a :class:`GaugeAnchor` and added to every covariance reported afte
 
 The gauge hold holds the window's position and yaw at a keyframe ``g`` inside it, so that a
 window whose gauge has faded cannot slide whole (every keyframe a metre away in one update, at
-the sewer's pipe mouth: docs/vins.md, "The gauge hold"). Once ``g`` is half a lag old the hold
-moves to the newest keyframe: the old prior is removed in the same update, so it never enters
-a marginal, and the window's absolute information stays what it was, the first prior's,
+the sewer's pipe mouth: docs/vins.md, "The gauge hold"). When the update marginalises ``g``
+the hold moves to the oldest keyframe the update keeps: the old prior is removed in the same
+update, so it never enters a marginal, and the window's absolute information stays what it was, the first prior's,
 fading, plus the hold's alone. The hold changes the covariance the window computes, not the
 one it reports: :meth:`SlidingWindowSmoother.pose_covariance` takes the hold's prior out again
 (a rank update, :func:`released_covariance`), so the covariance still measures from the first
@@ -539,16 +539,22 @@ class SlidingWindowSmoother:
     def _gauge_move(self, newest_t: float,
                     graph: gtsam.NonlinearFactorGraph) -> _GaugeHold | None:
         """The hold's move in the update that adds a keyframe at ``newest_t`` (module
-        docstring), its prior added to ``graph`` last; None where it stays: until its keyframe
-        is half a lag old, it stays there."""
-        hold, newest = self._hold, self._window[-1]
-        held_t = next((kf.t for kf in self._window if kf.index == hold.index), -math.inf)
-        if (not self.options.hold_gauge or newest.index == hold.index
-                or newest_t - held_t <= self.options.smoother_lag_s / 2):
+        docstring), its prior added to ``graph`` last; None where it stays. It stays until
+        this update marginalises its keyframe, then moves to the oldest keyframe that this
+        update keeps: the most settled estimate of the window, which the marginalisation is
+        about to freeze in any case."""
+        if not self.options.hold_gauge:
             return None
-        prior, covariance = self._gauge_prior(newest.index)
+        kept_from = newest_t - self.options.smoother_lag_s
+        held_t = next((kf.t for kf in self._window if kf.index == self._hold.index), -math.inf)
+        if held_t >= kept_from:
+            return None
+        oldest_kept = next((kf for kf in self._window if kf.t >= kept_from), None)
+        if oldest_kept is None:
+            return None
+        prior, covariance = self._gauge_prior(oldest_kept.index)
         graph.add(prior)
-        return _GaugeHold(newest.index, covariance)
+        return _GaugeHold(oldest_kept.index, covariance)
 
     def _gauge_prior(self, index: int) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
         """The prior holding keyframe ``index`` at its estimate in world yaw and position
