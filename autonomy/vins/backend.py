@@ -43,9 +43,9 @@ The gauge hold holds the window's position and yaw at a keyframe ``g`` inside it
 window whose gauge has faded cannot slide whole (every keyframe a metre away in one update, at
 the sewer's pipe mouth: docs/vins.md, "The gauge hold"). When the update marginalises ``g``
 the hold moves to the oldest keyframe the update keeps: the old prior is removed in the same
-update, so it never enters a marginal, and the window's absolute information stays what it was, the first prior's,
-fading, plus the hold's alone. The hold changes the covariance the window computes, not the
-one it reports: :meth:`SlidingWindowSmoother.pose_covariance` takes the hold's prior out again
+update, so it never enters a marginal, and the window's absolute information stays what it
+was, the first prior's, fading, plus the hold's alone. The hold changes the covariance the
+window computes, not the one it reports: :meth:`SlidingWindowSmoother.pose_covariance` takes the hold's prior out again
 (a rank update, :func:`released_covariance`), so the covariance still measures from the first
 prior, through every correlation of the pose with the velocity and the biases.
 """
