@@ -25,9 +25,10 @@ Factors:
   the marginal of the first prior, whose information fades as the flight goes on, while the
   IMU factors between close keyframes hold their poses to about 1e-5 of that. A window with no
   landmark at all knows its biases only from their priors too, and meets iSAM2's
-  "indeterminate linear system" within 10 s; the priors keep it from fading. In flight the window is sound, and the
-  smoother eliminates the newest keyframe's variables last so that GTSAM's Cholesky does not
-  call it indeterminate as the gauge fades (:mod:`autonomy.vins.fixed_lag`).
+  "indeterminate linear system" within 10 s; the priors keep it from fading. In flight the
+  window is sound, and the smoother eliminates the newest keyframe's variables last so that
+  GTSAM's Cholesky does not call it indeterminate as the gauge fades
+  (:mod:`autonomy.vins.fixed_lag`).
 
 The fixed-lag smoother (:class:`FixedLagSmoother`, iSAM2 underneath) marginalises every variable
 whose time stamp falls more than ``smoother_lag_s`` behind the newest keyframe; a landmark's
@@ -45,9 +46,10 @@ the sewer's pipe mouth: docs/vins.md, "The gauge hold"). When the update margina
 the hold moves to the oldest keyframe the update keeps: the old prior is removed in the same
 update, so it never enters a marginal, and the window's absolute information stays what it
 was, the first prior's, fading, plus the hold's alone. The hold changes the covariance the
-window computes, not the one it reports: :meth:`SlidingWindowSmoother.pose_covariance` takes the hold's prior out again
-(a rank update, :func:`released_covariance`), so the covariance still measures from the first
-prior, through every correlation of the pose with the velocity and the biases.
+window computes, not the one it reports: :meth:`SlidingWindowSmoother.pose_covariance` takes
+the hold's prior out again (a rank update, :func:`released_covariance`), so the covariance
+still measures from the first prior, through every correlation of the pose with the velocity
+and the biases.
 """
 
 from __future__ import annotations
