@@ -25,11 +25,13 @@ IMU_DT = 0.005
 
 def turning_in_place_unseeing(options: VinsOptions, seconds: float = 20.0,
                               keyframe_interval: float = 0.05, seed: int = 0,
-                              gauge_sigmas: tuple[float, float] = (0.005, 0.01)):
+                              gauge_sigmas: tuple[float, float] = (0.005, 0.01),
+                              gap: tuple[float, float] | None = None):
     """A smoother fed keyframes with no landmark while the IMU turns in place at 0.5 rad/s,
     as over a corner: the keyframes come fast (the front-end's parallax is the rotation's) and
     nothing but the IMU joins them. It starts with the yaw and position sigmas
-    ``gauge_sigmas``. Yields the smoother after each keyframe."""
+    ``gauge_sigmas``; no keyframe comes inside ``gap`` = (a, b) seconds, the IMU integrated
+    across it (a camera that stalls). Yields the smoother after each keyframe."""
     smoother = SlidingWindowSmoother(PinholeCamera.from_hfov(640, 480, math.radians(90.0)),
                                      np.eye(4), NOISE, options)
     yaw_sigma, position_sigma = gauge_sigmas
@@ -38,14 +40,18 @@ def turning_in_place_unseeing(options: VinsOptions, seconds: float = 20.0,
                                                 position_sigma, 0.02))
     rng = np.random.default_rng(seed)
     steps = int(round(keyframe_interval / IMU_DT))
+    pim = smoother.preintegration()
     for k in range(1, int(round(seconds / keyframe_interval)) + 1):
-        pim = smoother.preintegration()
         for _ in range(steps):
             gyro = np.array([0.0, 0.0, 0.5]) + rng.normal(0.0, 4.9e-5 / math.sqrt(IMU_DT), 3)
             accel = np.array([0.0, 0.0, GRAVITY]) + rng.normal(0.0, 6.9e-4 / math.sqrt(IMU_DT),
                                                                3)
             pim.integrateMeasurement(accel, gyro, IMU_DT)
-        smoother.add_keyframe(k * keyframe_interval, pim, [], None)
+        t = k * keyframe_interval
+        if gap is not None and gap[0] < t < gap[1]:
+            continue
+        smoother.add_keyframe(t, pim, [], None)
+        pim = smoother.preintegration()
         yield smoother
 
 
@@ -125,6 +131,28 @@ def test_the_held_window_reports_the_covariance_of_the_window_without_the_hold()
         assert_same_covariance(a.velocity_covariance(), b.velocity_covariance())
     assert len(holds) > 40  # a move with (nearly) every keyframe once the window is full
     assert np.all(np.sqrt(np.diag(a.pose_covariance())[3:]) > 1.0)
+
+
+def test_a_keyframe_gap_longer_than_the_window_lets_the_hold_go_and_takes_it_up_again():
+    """A camera that stalls for 2 s, longer than the 1.5 s window: the keyframe after it
+    marginalises the whole window, the held keyframe with it. The hold's prior goes before
+    (no marginal may keep it), the next keyframe takes the hold up again, and nothing is
+    rebuilt. The covariance is the unheld window's up to the gap (measured: 1.59 m at 4 s);
+    the unheld window is rebuilt at the next keyframe, while the held one's goes on growing
+    (2.5 m horizontally at 5 s)."""
+    held, unheld = (turning_in_place_unseeing(options, seconds=5.0, gap=(2.0, 4.0))
+                    for options in (VinsOptions(), UNHELD))
+    holds, sigmas = [], []
+    for a, b in zip(held, unheld):
+        holds.append(a.gauge_keyframe)
+        sigmas.append(np.sqrt(np.diag(a.pose_covariance())[3:]))
+        assert a.resets == 0
+        if b.resets == 0:
+            assert_same_covariance(a.pose_covariance(), b.pose_covariance())
+    assert b.resets == 1
+    after_gap = holds.index(None) + 1  # let go at the keyframe after the gap
+    assert all(hold is not None for hold in holds[after_gap:])
+    assert np.all(np.diff(np.array(sigmas), axis=0) > -1e-6) and np.all(sigmas[-1][:2] > 2.0)
 
 
 def first_rebuild_s(gauge_sigmas: tuple[float, float]) -> float | None:

@@ -413,19 +413,13 @@ class SlidingWindowSmoother:
         state, cached = self.latest, self._pose_covariance
         if cached is None or (cached[0] != state.index and
                               state.t - cached[1] >= max_age_s - 1e-9):
-            covariance = self._anchored_pose_covariance(state.index)
+            covariance = self._released_marginal(X(state.index), 6)
+            if self._anchor is not None:
+                covariance = covariance + self._anchor.pose_covariance(state.T_W_B)
             self._pose_covariance = cached = (state.index, state.t, covariance)
             if np.isfinite(covariance).all():
                 self._known_pose_covariance = covariance
         return cached[2]
-
-    def _anchored_pose_covariance(self, index: int) -> np.ndarray:
-        """Keyframe ``index``'s pose covariance: its marginal without the gauge hold's prior,
-        plus what a rebuild's anchor carries (NaN: unknown)."""
-        covariance = self._released_marginal(X(index), 6)
-        if self._anchor is not None:
-            covariance = covariance + self._anchor.pose_covariance(self._poses[index])
-        return covariance
 
     def velocity_covariance(self) -> np.ndarray:
         """The latest keyframe velocity's covariance (3x3, world frame), as
@@ -437,18 +431,14 @@ class SlidingWindowSmoother:
         return covariance
 
     def _released_marginal(self, key: int, size: int) -> np.ndarray:
-        """The marginal covariance of ``key`` with the gauge hold's prior taken out
-        (:func:`released_covariance`); the start prior stays."""
+        """The marginal covariance of the newest keyframe's ``key`` with the gauge hold's
+        prior taken out (:func:`released_covariance`; the hold is never on the newest
+        keyframe); the start prior stays."""
         hold = self._hold
         if hold is None or hold.slot is None:
             return self._marginal(key, size)
-        held = X(hold.index)
-        if key == held:
-            marginal = self._marginal(key, size)
-            joint = np.block([[marginal, marginal], [marginal, marginal]])
-        else:
-            joint = self._joint_marginal(key, size, held)
-        return released_covariance(joint, hold.covariance)
+        return released_covariance(self._joint_marginal(key, size, X(hold.index)),
+                                   hold.covariance)
 
     def _joint_marginal(self, key: int, size: int, pose_key: int) -> np.ndarray:
         """The joint covariance of ``key`` (``size`` dims) and a pose (NaN where GTSAM cannot
@@ -527,36 +517,36 @@ class SlidingWindowSmoother:
         fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
         self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
                                 stamps)
-        moved = self._gauge_move(keyframe.t, graph)
+        removed, hold = self._gauge_move(keyframe.t, graph)
         slots = self._smoother.update(graph, values, stamps,
-                                      eliminate_last=_variables(keyframe.index),
-                                      remove=[] if moved is None or self._hold.slot is None
-                                      else [self._hold.slot])
-        if moved is not None:
-            self._hold = replace(moved, slot=slots[-1])
+                                      eliminate_last=_variables(keyframe.index), remove=removed)
+        if hold is not self._hold:
+            self._hold = None if hold is None else replace(hold, slot=slots[-1])
         for _ in range(self.options.extra_iterations):
             self._smoother.update()
         self._read_estimate(keyframe, window)
 
-    def _gauge_move(self, newest_t: float,
-                    graph: gtsam.NonlinearFactorGraph) -> _GaugeHold | None:
+    def _gauge_move(self, newest_t: float, graph: gtsam.NonlinearFactorGraph
+                    ) -> tuple[list[int], _GaugeHold | None]:
         """The hold's move in the update that adds a keyframe at ``newest_t`` (module
-        docstring), its prior added to ``graph`` last; None where it stays. It stays until
-        this update marginalises its keyframe, then moves to the oldest keyframe that this
-        update keeps: the most settled estimate of the window, which the marginalisation is
-        about to freeze in any case."""
+        docstring): the iSAM2 slots of the priors this update removes, and the hold after it,
+        a new one's prior added to ``graph`` last. The hold stays until this update
+        marginalises its keyframe, then moves to the oldest keyframe that this update keeps:
+        the most settled estimate of the window, which the marginalisation is about to freeze
+        in any case. Where the update keeps none (a keyframe gap longer than the lag), it is
+        let go, and taken up again at the next update."""
+        hold = self._hold
         if not self.options.hold_gauge:
-            return None
-        kept_from = newest_t - self.options.smoother_lag_s
-        held_t = next((kf.t for kf in self._window if kf.index == self._hold.index), -math.inf)
-        if held_t >= kept_from:
-            return None
-        oldest_kept = next((kf for kf in self._window if kf.t >= kept_from), None)
-        if oldest_kept is None:
-            return None
-        prior, covariance = self._gauge_prior(oldest_kept.index)
+            return [], hold
+        kept = [kf for kf in self._window if kf.t >= newest_t - self.options.smoother_lag_s]
+        if hold is not None and any(kf.index == hold.index for kf in kept):
+            return [], hold
+        removed = [] if hold is None or hold.slot is None else [hold.slot]
+        if not kept:
+            return removed, None
+        prior, covariance = self._gauge_prior(kept[0].index)
         graph.add(prior)
-        return _GaugeHold(oldest_kept.index, covariance)
+        return removed, _GaugeHold(kept[0].index, covariance)
 
     def _gauge_prior(self, index: int) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
         """The prior holding keyframe ``index`` at its estimate in world yaw and position
