@@ -4,9 +4,10 @@
 
 Feeds the EuRoC V1_01 cam0 images, cropped to their central 640x480 (principal point moved
 to match), through FeatureTracker.track with cv2.setNumThreads(1). Baseline in the same run:
-goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and the tracker of
-before 2026-11-28 (VINS-Mono's 21 px Lucas-Kanade window, no second try on a deeper pyramid;
-the default is 11 px: docs/vins.md) on the same frames, interleaved. Prints one JSON object.
+goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and, interleaved
+on the same frames, the default tracker with the affine refinement of its tracks
+(``affine_refinement``) and the tracker of before 2026-11-28 (VINS-Mono's 21 px Lucas-Kanade
+window, no second try on a deeper pyramid; docs/vins.md). Prints one JSON object.
 """
 
 import argparse
@@ -38,28 +39,35 @@ def main() -> None:
     frames = [np.ascontiguousarray(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)[y0:y0 + 480, x0:x0 + 640])
               for p in stream.paths[:args.frames]]
     tracker = FeatureTracker(camera, stream.distortion)
-    wide = FeatureTracker(camera, stream.distortion, FrontendOptions(lk_window=21, retry_pyramid_levels=0))
-    tracker.track(frames[0])  # warm-up: first-call allocations
-    wide.track(frames[0])
-    track_ms, wide_ms, gftt_ms, counts, detected = [], [], [], [], 0
+    variants = {
+        "affine": FeatureTracker(camera, stream.distortion,
+                                 FrontendOptions(affine_refinement=True)),
+        "lk21": FeatureTracker(camera, stream.distortion,
+                               FrontendOptions(lk_window=21, retry_pyramid_levels=0)),
+    }
+    for each in (tracker, *variants.values()):
+        each.track(frames[0])  # warm-up: first-call allocations
+    track_ms, gftt_ms, counts, detected = [], [], [], 0
+    variant_ms = {name: [] for name in variants}
     for frame in frames[1:]:
         t0 = time.perf_counter()
         tracks = tracker.track(frame)
         t1 = time.perf_counter()
         cv2.goodFeaturesToTrack(frame, 150, 0.01, 30)
-        t2 = time.perf_counter()
-        wide.track(frame)
-        t3 = time.perf_counter()
         track_ms.append((t1 - t0) * 1e3)
-        gftt_ms.append((t2 - t1) * 1e3)
-        wide_ms.append((t3 - t2) * 1e3)
+        gftt_ms.append((time.perf_counter() - t1) * 1e3)
+        for name, variant in variants.items():
+            start = time.perf_counter()
+            variant.track(frame)
+            variant_ms[name].append((time.perf_counter() - start) * 1e3)
         counts.append(len(tracks))
         detected += tracks.detected
     print(json.dumps({"image": [480, 640], "frames": len(track_ms), "threads": 1,
                       "track_ms_median": round(float(np.median(track_ms)), 3),
                       "track_ms_p95": round(float(np.percentile(track_ms, 95)), 3),
                       "gftt_only_ms_median": round(float(np.median(gftt_ms)), 3),
-                      "track_lk21_ms_median": round(float(np.median(wide_ms)), 3),
+                      **{f"track_{name}_ms_median": round(float(np.median(times)), 3)
+                         for name, times in variant_ms.items()},
                       "features_median": int(np.median(counts)), "new_features": detected}))
 
 

@@ -8,7 +8,9 @@ The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracke
    when both directions converge, it lands inside the image and the round trip returns
    within ``forward_backward_threshold`` pixels of where it started; when fewer than half
    survive this and the RANSAC of step 3, the frame is tracked again on a deeper pyramid
-   (``retry_pyramid_levels``: motion beyond the window's reach);
+   (``retry_pyramid_levels``: motion beyond the window's reach); with ``affine_refinement``
+   (off by default; not VINS-Mono's) each surviving track is then refined under an affine
+   warp of its patch (``affine_refine.py``);
 3. RANSAC on the fundamental matrix between the two frames' *undistorted* positions, expressed
    as pixels of the camera's ideal pinhole (so the threshold means pixels);
 4. features are ranked by age; walking from the oldest, each one that is not within
@@ -27,6 +29,7 @@ import cv2
 import numpy as np
 
 from autonomy.geometry import PinholeCamera, undistort_points
+from autonomy.vins.affine_refine import refine_affine, with_gradients
 from autonomy.options import OptionError, option, validate
 
 
@@ -57,6 +60,11 @@ class FrontendOptions:
                                "this, pixels")
     forward_backward_threshold: float = option(1.0, gt=0.0, doc="largest forward-backward "
                                                "round-trip error kept, pixels")
+    # Off: it halves the tracks' error, but the flights it scores are not better (docs/vins.md,
+    # "Tracks refined under an affine warp") and it triples the front-end's time.
+    affine_refinement: bool = option(False, doc="refine each track under an affine warp of "
+                                     "its patch (affine_refine.py: a patch that grows in "
+                                     "forward flight biases Lucas-Kanade's translation)")
     ransac: bool = option(True, doc="reject tracks that break the epipolar geometry "
                           "(fundamental-matrix RANSAC)")
     ransac_threshold: float = option(1.0, gt=0.0, doc="RANSAC epipolar distance limit, "
@@ -197,7 +205,12 @@ class FeatureTracker:
         b = o.border
         inside = ((forward[:, 0] >= b) & (forward[:, 0] <= w - 1 - b)
                   & (forward[:, 1] >= b) & (forward[:, 1] <= h - 1 - b))
-        return forward, ok & ok_back & inside & (round_trip <= o.forward_backward_threshold)
+        keep = ok & ok_back & inside & (round_trip <= o.forward_backward_threshold)
+        if o.affine_refinement and keep.any():
+            forward = forward.copy()
+            forward[keep], _ = refine_affine(self._previous_template, gray, points[keep],
+                                             forward[keep], half=o.lk_window // 2)
+        return forward, keep
 
     def _epipolar(self, previous_normalised: np.ndarray, normalised: np.ndarray,
                   keep: np.ndarray) -> np.ndarray:
@@ -277,6 +290,8 @@ class FeatureTracker:
                     [normalised, undistort_points(self.camera, self.distortion, new)])
 
         self._previous = gray
+        if o.affine_refinement:
+            self._previous_template = with_gradients(gray)
         self._pixels = np.ascontiguousarray(pixels, dtype=np.float32)
         self._normalised = normalised
         self._ids, self._ages = ids, ages
