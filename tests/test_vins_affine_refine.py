@@ -74,6 +74,26 @@ def test_a_guess_on_another_feature_is_not_moved_far():
                                 half=5, max_shift=0.5)
     assert not ok.any()
     assert np.array_equal(refined, truth + [1.5, 0.0])
+    # The limit, not a divergence, is what kept them: without it they come back to the truth.
+    unlimited, ok = refine_affine(with_gradients(previous), current, starts,
+                                  truth + [1.5, 0.0], half=5, max_shift=np.inf)
+    assert ok.all()
+    assert np.median(np.linalg.norm(unlimited - truth, axis=1)) < 0.05
+
+
+def test_a_step_that_is_not_finite_gives_the_track_up_without_a_crash():
+    """A step that is not finite (here from a NaN in the image; in flight, an ``I + D`` that
+    is singular) would be sampled at NaN coordinates next; the track keeps its guess instead
+    and the others are refined as before."""
+    previous, current, starts, truth = warped_pair(0)
+    spoiled = current.astype(np.float32)
+    x, y = np.rint(truth[0]).astype(int)
+    spoiled[y - 2:y + 3, x - 2:x + 3] = np.nan
+    refined, ok = refine_affine(with_gradients(previous), spoiled, starts, truth + [0.3, -0.2],
+                                half=5)
+    assert np.isfinite(refined).all()
+    assert not ok[0] and np.array_equal(refined[0], truth[0] + [0.3, -0.2])
+    assert ok[1:].all()
 
 
 def test_no_tracks():

@@ -32,7 +32,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-#: Sobel's 3x3 kernel sums its weights to 8: this scale makes it a derivative per pixel.
+#: Sobel's 3x3 derivative is a central difference (twice the slope) smoothed across by
+#: [1, 2, 1] (four times the value): this scale makes it a derivative per pixel.
 SOBEL_SCALE = 1.0 / 8.0
 
 
@@ -84,8 +85,10 @@ def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
     features at ``starts`` in ``previous`` (:func:`with_gradients` of the previous image),
     refined under an affine warp of the ``2 half + 1`` square patch (module docstring).
     Returns the positions and whether each was refined (else it is its guess): converged
-    (a last step under ``epsilon`` pixels) within ``max_shift`` of its guess, the patch's
-    linear map within ``max_deformation`` of the identity in every entry."""
+    (a last step of the patch's centre under ``epsilon`` pixels) within ``max_shift`` of its
+    guess, the patch's linear map within ``max_deformation`` of the identity in every entry.
+    A patch whose Hessian is singular to working precision (flat, or a straight edge) is not
+    refined."""
     starts = np.asarray(starts, float).reshape(-1, 2)
     guesses = np.asarray(guesses, float).reshape(-1, 2)
     n = len(starts)
@@ -121,7 +124,11 @@ def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
         centre[k], linear[k] = c - moved, a
         done = np.linalg.norm(moved, axis=1) < epsilon
         converged[k[done]] = True
-        active[k[done]] = False
+        # A singular step leaves a warp that is not finite: that track is given up (its
+        # guess kept), not sampled again.
+        lost = ~(np.isfinite(a).all(axis=(1, 2)) & np.isfinite(moved).all(axis=1))
+        converged[k[lost]] = False
+        active[k[done | lost]] = False
     deformation = np.abs(linear - np.eye(2)).max(axis=(1, 2))
     refined = (usable & converged & np.isfinite(centre).all(axis=1)
                & (np.linalg.norm(centre - guesses, axis=1) <= max_shift)

@@ -179,6 +179,7 @@ class FeatureTracker:
     def reset(self) -> None:
         """Forget every track (ids keep increasing, so none is ever reused)."""
         self._previous: np.ndarray | None = None
+        self._previous_template: np.ndarray | None = None  # with_gradients(_previous)
         self._pixels = np.zeros((0, 2), np.float32)
         self._normalised = np.zeros((0, 2))
         self._ids = np.zeros(0, np.int64)
@@ -202,15 +203,14 @@ class FeatureTracker:
         forward, ok = self._lk(self._previous, gray, points, levels)
         backward, ok_back = self._lk(gray, self._previous, forward, levels)
         round_trip = np.linalg.norm(backward - points, axis=1)
-        b = o.border
-        inside = ((forward[:, 0] >= b) & (forward[:, 0] <= w - 1 - b)
-                  & (forward[:, 1] >= b) & (forward[:, 1] <= h - 1 - b))
-        keep = ok & ok_back & inside & (round_trip <= o.forward_backward_threshold)
+        keep = ok & ok_back & (round_trip <= o.forward_backward_threshold)
         if o.affine_refinement and keep.any():
-            forward = forward.copy()
             forward[keep], _ = refine_affine(self._previous_template, gray, points[keep],
                                              forward[keep], half=o.lk_window // 2)
-        return forward, keep
+        b = o.border  # after the refinement, which may move a track by up to 0.5 px
+        inside = ((forward[:, 0] >= b) & (forward[:, 0] <= w - 1 - b)
+                  & (forward[:, 1] >= b) & (forward[:, 1] <= h - 1 - b))
+        return forward, keep & inside
 
     def _epipolar(self, previous_normalised: np.ndarray, normalised: np.ndarray,
                   keep: np.ndarray) -> np.ndarray:
