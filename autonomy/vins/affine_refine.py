@@ -87,8 +87,7 @@ def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
     Returns the positions and whether each was refined (else it is its guess): converged
     (a last step of the patch's centre under ``epsilon`` pixels) within ``max_shift`` of its
     guess, the patch's linear map within ``max_deformation`` of the identity in every entry.
-    A patch whose Hessian is singular to working precision (flat, or a straight edge) is not
-    refined."""
+    A patch whose Hessian is singular to working precision (a flat one) is not refined."""
     starts = np.asarray(starts, float).reshape(-1, 2)
     guesses = np.asarray(guesses, float).reshape(-1, 2)
     n = len(starts)
@@ -130,7 +129,7 @@ def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
         converged[k[lost]] = False
         active[k[done | lost]] = False
     deformation = np.abs(linear - np.eye(2)).max(axis=(1, 2))
-    refined = (usable & converged & np.isfinite(centre).all(axis=1)
+    refined = (usable & converged  # converged: a finite warp (the loop gives others up)
                & (np.linalg.norm(centre - guesses, axis=1) <= max_shift)
                & (deformation <= max_deformation))
     return np.where(refined[:, None], centre, guesses), refined

@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 
 from autonomy.geometry import PinholeCamera, undistort_points
-from autonomy.vins.affine_refine import refine_affine, with_gradients
 from autonomy.options import OptionError, option, validate
+from autonomy.vins.affine_refine import refine_affine, with_gradients
 
 
 @dataclass(frozen=True)
