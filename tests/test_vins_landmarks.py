@@ -1,7 +1,8 @@
 """Landmark triangulation and the gate in front of the smoother: the midpoint method recovers a
 known point, and the gate keeps only points the observations pin down (enough views, enough
 parallax, in front of every camera within the depth range, consistent with every observation);
-the depth uncertainty follows the observation geometry."""
+the depth uncertainty follows the observation geometry; a landmark's later observations are used
+within a limit widened by what the whole keyframe shares (the predicted pose's own error)."""
 
 import math
 from dataclasses import replace
@@ -12,8 +13,10 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from autonomy.geometry import so3_exp
-from autonomy.vins.landmarks import (Gate, depth_sigma, gate_candidates, midpoint_triangulate,
-                                     spread_choice, widest_ray_angle, world_rays)
+from autonomy.vins.landmarks import (MIN_OBSERVATIONS_FOR_MEDIAN, Gate, depth_sigma,
+                                     gate_candidates, midpoint_triangulate,
+                                     observation_limit_px, spread_choice, widest_ray_angle,
+                                     world_rays)
 
 FOCAL = 400.0
 GATE = Gate(min_observations=3, min_parallax_rad=math.radians(2.0), min_depth=0.2,
@@ -276,3 +279,32 @@ def test_depth_sigma_stays_finite_without_parallax():
     sigma = depth_sigma(np.array([5.0, 5.0]), np.array([0.0, math.radians(0.01)]), 1.0, FOCAL)
     assert np.isfinite(sigma).all() and (sigma > 0).all()
     np.testing.assert_allclose(sigma, 5.0 / FOCAL / math.sin(math.radians(0.1)))
+
+
+# ------------------------------------------------------------------ the observation gate
+
+
+def test_observations_on_their_points_are_held_to_the_limit():
+    errors = np.full(40, 0.3)
+    assert observation_limit_px(errors, 1.5) == pytest.approx(math.hypot(1.5, 0.3))
+    assert observation_limit_px(np.zeros(40), 1.5) == 1.5
+
+
+def test_an_error_the_whole_keyframe_shares_widens_the_limit():
+    """A predicted pose 5 px off (a time offset not yet known, in the first pitch) moves every
+    projection: the limit grows past it, so the keyframe keeps its observations, while a track
+    3 px further off than the rest is still dropped."""
+    errors = np.r_[np.full(30, 5.0), 8.0]
+    limit = observation_limit_px(errors, 1.5)
+    assert limit == pytest.approx(math.hypot(1.5, 5.0))
+    assert (errors[:30] <= limit).all() and errors[30] > limit
+
+
+def test_too_few_or_unknown_errors_leave_the_limit_as_it_is():
+    few = np.full(MIN_OBSERVATIONS_FOR_MEDIAN - 1, 5.0)
+    assert observation_limit_px(few, 1.5) == 1.5
+    unknown = np.r_[few, np.nan, np.inf, -np.inf]
+    assert observation_limit_px(unknown, 1.5) == 1.5
+    assert observation_limit_px(np.zeros(0), 1.5) == 1.5
+    enough = np.r_[np.full(MIN_OBSERVATIONS_FOR_MEDIAN, 2.0), np.nan, np.nan]
+    assert observation_limit_px(enough, 1.5) == pytest.approx(2.5)

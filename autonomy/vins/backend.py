@@ -65,7 +65,7 @@ from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
 from autonomy.vins.drag import MAX_INTERVAL_S, drag_factor
 from autonomy.vins.fixed_lag import FixedLagSmoother
 from autonomy.vins.landmarks import (
-    Gate, depth_sigma, gate_candidates, spread_choice, widest_ray_angle,
+    Gate, depth_sigma, gate_candidates, observation_limit_px, spread_choice, widest_ray_angle,
 )
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
@@ -565,18 +565,20 @@ class SlidingWindowSmoother:
         return prior, np.linalg.inv(information)
 
     def _consistent_observations(self, keyframe: _Keyframe, seen: np.ndarray):
-        """The observations of known landmarks that reproject within ``max_observation_px`` at
-        the IMU-predicted pose: their ``tracks`` (N,) and ``xy`` (N, 2). A landmark seen
-        further away (a track that slid onto another surface) is retired: it takes no more
-        observations and no track of its id becomes a landmark again."""
+        """The observations of known landmarks that reproject near their landmark at the
+        IMU-predicted pose, within :func:`observation_limit_px` of ``max_observation_px``:
+        their ``tracks`` (N,) and ``xy`` (N, 2). A landmark seen further away (a track that slid
+        off its point, or onto another surface) takes no observation from this keyframe, and is
+        retired: once marginalised, no track of its id becomes a landmark again."""
         tracks, xy = keyframe.ids[seen], keyframe.normalised[seen]
         rows = np.searchsorted(self._landmarks.ids, tracks)
         T_C_W = invert_pose(self._poses[keyframe.index] @ self._T_B_C)
         p_C = self._landmarks.points_W[rows] @ T_C_W[:3, :3].T + T_C_W[:3, 3]
+        in_front = p_C[:, 2] > self.options.min_depth
         with np.errstate(invalid="ignore", divide="ignore"):
             error_px = self.gate.focal_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:] - xy, axis=1)
-            good = (p_C[:, 2] > self.options.min_depth) & (
-                error_px <= self.options.max_observation_px)
+        limit = observation_limit_px(error_px[in_front], self.options.max_observation_px)
+        good = in_front & (error_px <= limit)
         self._retired = np.union1d(self._retired, tracks[~good])
         return tracks[good], xy[good]
 

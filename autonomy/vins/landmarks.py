@@ -22,6 +22,12 @@ left of it on the gated candidates that fill the emptiest parts of the image fir
 covers the view (for the rescaler's fit and for the pose's conditioning) instead of clustering on
 the most textured surface.
 
+Once in the smoother, a landmark is observed again at each keyframe only where the track lands
+near its projection at the IMU-predicted pose (:func:`observation_limit_px`): a track that has
+slid off its point by more than a pixel or two would otherwise keep pulling on the landmark, and
+in a cruise, where the IMU says little of the scale, on the scale (docs/vins.md, "The observation
+gate at 1.5 px").
+
 The depth uncertainty of a triangulated point follows from the observation geometry: an angular
 error ``sigma_px / f`` on a ray, over a baseline that subtends ``parallax`` at the point, moves
 it along the ray by about ``z * (sigma_px / f) / sin(parallax)``.
@@ -117,6 +123,28 @@ def gate_candidates(R_W_C: np.ndarray, centres: np.ndarray, normalised: np.ndarr
             error_px <= gate.max_reprojection_px)
     accepted = enough & np.where(mask, good, True).all(axis=1)
     return Triangulated(points, parallax, accepted)
+
+
+#: Fewest observations whose median error says how far the predicted pose is off.
+MIN_OBSERVATIONS_FOR_MEDIAN = 10
+
+
+def observation_limit_px(errors_px: np.ndarray, limit_px: float) -> float:
+    """The farthest a keyframe's observation of a known landmark may lie from the landmark's
+    projection at the IMU-predicted pose and still be used, pixels:
+    ``hypot(limit_px, median(errors_px))``.
+
+    An error the whole keyframe shares is the prediction's, not the tracks': a camera-IMU time
+    offset not yet estimated turns the first pitch or yaw into a shift of every projection (5 px
+    at the first pitch of a realistic mine flight, 15 ms late). The median of the keyframe's
+    errors measures it and widens the limit, so such a keyframe keeps its observations instead
+    of losing them all. With fewer than :data:`MIN_OBSERVATIONS_FOR_MEDIAN` finite errors the
+    median says nothing and ``limit_px`` stands."""
+    finite = np.asarray(errors_px, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if len(finite) < MIN_OBSERVATIONS_FOR_MEDIAN:
+        return float(limit_px)
+    return math.hypot(limit_px, float(np.median(finite)))
 
 
 def depth_sigma(depth: np.ndarray, parallax_rad: np.ndarray, pixel_sigma: float,

@@ -133,8 +133,10 @@ class VinsOptions:
                                      "landmark's viewing rays, degrees")
     max_reprojection_px: float = option(3.0, gt=0.0, doc="largest reprojection error of a "
                                         "triangulated landmark in any of its keyframes, pixels")
-    max_observation_px: float = option(5.0, gt=0.0, doc="a landmark observed further than this"
-                                       " from its projection at the IMU-predicted pose is "
+    max_observation_px: float = option(1.5, gt=0.0, doc="a landmark's observation further "
+                                       "than this from its projection at the IMU-predicted "
+                                       "pose (widened by the keyframe's median error, the "
+                                       "prediction's own) is not used, and the landmark is "
                                        "retired, pixels")
     max_landmarks: int = option(80, ge=1, le=10000, doc="landmarks the smoother holds at most "
                                 "(its update time grows with them); new ones fill the emptiest "
