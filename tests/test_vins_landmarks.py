@@ -284,7 +284,7 @@ def test_depth_sigma_stays_finite_without_parallax():
 # ------------------------------------------------------------------ the observation gate
 
 
-def test_observations_on_their_points_are_held_to_the_limit():
+def test_the_limit_grows_only_by_the_keyframes_median_error():
     errors = np.full(40, 0.3)
     assert observation_limit_px(errors, 1.5) == pytest.approx(math.hypot(1.5, 0.3))
     assert observation_limit_px(np.zeros(40), 1.5) == 1.5
