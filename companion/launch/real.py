@@ -11,9 +11,9 @@ starts only on the operator's go (``[go]``, :mod:`companion.flight.go`).
 Run by systemd (``systemd/companion.service``, Type=notify): more start-up time asked for while
 the network opens (a first TensorRT engine build), ``READY=1`` once preflight has passed, ``WATCHDOG=1`` from the event loop's monitor (a stalled loop stops the pings and systemd
 restarts the service), ``STOPPING=1`` at the end; SIGTERM or SIGINT ask the mission to stop,
-which in the air means stop, hold and land. With ``[camera] learned_time_offset_file`` the
-camera-IMU time offset a flight estimated is the next flight's start
-(:mod:`companion.launch.learned_offset`).
+which in the air means stop, hold and land. With ``[camera] learned_time_offset_file`` and
+``learned_gyro_alignment_file`` the camera-IMU time offset and the gyro's yaw response a flight
+estimated are the next flight's start (:mod:`companion.launch.learned_calibration`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import signal
 from autonomy.depth.network import DepthNetwork
 from companion.flight.app import FlightApp
 from companion.flight.perception import NetworkDepth
-from companion.launch.learned_offset import keep_learned, start_from_learned
+from companion.launch.learned_calibration import keep_learned, start_from_learned
 from companion.launch.systemd import SystemdNotifier
 from companion.recording.session import open_recording, recorded, recording_metadata
 from drivers.camera.calibration import CalibratedCamera, resolve

@@ -78,6 +78,12 @@ class CameraOptions:
                                            "camera-IMU time offset a flight estimated, for the "
                                            "next flight of this camera to start from (relative:"
                                            " to the working directory); \"\" = not kept")
+    learned_gyro_alignment_file: str = option("", doc="where `companion fly` keeps the gyro's "
+                                              "response to the yaw rate a flight estimated "
+                                              "([vins] estimate_gyro_alignment), which every "
+                                              "later flight of this camera is corrected by "
+                                              "(relative: to the working directory); \"\" = "
+                                              "not kept")
 
     def __post_init__(self) -> None:
         validate(self)
