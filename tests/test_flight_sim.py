@@ -68,7 +68,8 @@ def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_
     assert_safe_landing(summary)
     assert summary["failsafes"] == ["mission timeout"], summary["failsafes"]
     frames = summary["frames"]
-    assert summary["vins_frames"] == frames > 200
+    # every frame through the VINS, but the last when the flight ends during its 17 ms
+    assert frames - 1 <= summary["vins_frames"] <= frames and frames > 200
     # the network busy throughout: one frame per inference, the rest skipped
     busy_network_frames = frames / (config.camera.rate_hz * config.sim_latency.network_s)
     assert 0.9 * busy_network_frames <= summary["depth_frames"] <= busy_network_frames + 1

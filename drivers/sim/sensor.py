@@ -243,7 +243,9 @@ class CameraSensor:
     Cost: one remap from the render straight into the image per blur sample (the lens and
     the motion in one map), the flow on a grid :data:`FLOW_STRIDE` times coarser (it is smooth
     but at depth edges, where the warp is approximate anyway), and the noise drawn from a bank
-    made once, at a random offset per frame. Every full-frame intermediate lives in a buffer
+    made once, each row of the image at its own random offset in every frame (one offset for
+    the whole image made each frame's noise the last one's moved whole, which the tracker
+    follows: docs/simulator.md). Every full-frame intermediate lives in a buffer
     made once: a fresh megabyte-sized array per step would be fresh pages from the kernel,
     whose faults cost more than the arithmetic.
 
@@ -274,6 +276,7 @@ class CameraSensor:
         self._row_offset = (self.lens.map_v - wide.cy) / camera.height
         bank = 2 * camera.height * camera.width * 3
         self._noise = rng.standard_normal(bank, dtype=np.float32)
+        self._noise_image = np.empty((camera.height, camera.width * 3), np.float32)
         if vehicle_rng is not None:
             # A vehicle's generator is another flight's: past a bank of its own, its draws are
             # that flight's mounting, so a vehicle seed equal to the run's gives the run's.
@@ -378,8 +381,12 @@ class CameraSensor:
                               * o.full_well_electrons)
         gain = np.multiply(self._vignette, np.float32(electrons_at_unity), out=self._scratch)
         electrons = np.multiply(radiance, gain, out=radiance)
-        start = int(self._rng.integers(0, self._noise.size - radiance.size + 1))
-        noise = self._noise[start:start + radiance.size].reshape(radiance.shape)
+        # each row from its own place in the bank: no shift maps one frame's noise on the next
+        noise, length = self._noise_image, self._noise_image.shape[1]
+        starts = self._rng.integers(0, self._noise.size - length + 1, noise.shape[0])
+        for row, start in enumerate(starts.tolist()):
+            noise[row] = self._noise[start:start + length]
+        noise = noise.reshape(radiance.shape)
         deviation = np.add(electrons, np.float32(o.read_noise_electrons ** 2),
                            out=self._scratch)
         np.sqrt(deviation, out=deviation)
