@@ -18,8 +18,8 @@ next one than learned again in it (docs/vins.md):
   sigma at most :data:`KEEP_ALIGNMENT_SHARE` of the prior's). Every later flight is corrected
   by it from the first sample (``[vins] gyro_alignment``; fixed, or the estimate's prior mean
   when ``estimate_gyro_alignment`` is set). On the simulator's 36 realistic recordings the
-  carried column was better than none on 25, and the online estimate on 22 (docs/vins.md, "The
-  gyro's yaw response with the gate").
+  online estimate was better than none on 26, the carried column on 25 (docs/vins.md, "The
+  gyro's yaw response with the gate", "The sensor noise's bank").
 
 Each file names the camera (:func:`camera_identity`), so a different camera, or the same one in
 another mode, starts from the configuration again. A file that cannot be read, or holds a value
