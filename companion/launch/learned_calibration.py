@@ -93,8 +93,8 @@ def start_from_learned(config):
     alignment = _learned(config, path, "gyro alignment", "gyro_alignment", _column_from)
     if alignment is not None:
         config = dataclasses.replace(config, vins=alignment)
-        log.info("correcting the gyro by the yaw response learned before: [%s] (%s)",
-                 ", ".join(f"{c:.4f}" for c in alignment.gyro_alignment), path)
+        log.info("correcting the gyro by the yaw response learned before: %s (%s)",
+                 _column_text(alignment.gyro_alignment), path)
     elif path is not None and not path.exists() and config.vins.estimate_time_offset:
         config = dataclasses.replace(config, vins=dataclasses.replace(
             config.vins, estimate_gyro_alignment=True))
@@ -108,24 +108,35 @@ def keep_learned(config, summary: dict, now: datetime | None = None) -> list[Pat
     (``vins_gyro_alignment``, when frame pairs have shown it: :data:`KEEP_ALIGNMENT_SHARE`).
     The paths written."""
     saved = (now or datetime.now(timezone.utc)).isoformat(timespec="seconds")
-    kept = []
-    path, offset = learned_offset_path(config), summary.get("vins_time_offset")
-    if path is not None and offset is not None and offset["estimated"] \
-            and offset["sigma_s"] is not None:
-        _write(path, config, {"offset_s": offset["seconds"], "sigma_s": offset["sigma_s"]}, saved)
-        log.info("kept the camera-IMU time offset %.1f ms for the next flight (%s)",
-                 1e3 * offset["seconds"], path)
-        kept.append(path)
-    path, alignment = learned_alignment_path(config), summary.get("vins_gyro_alignment")
-    if path is not None and alignment is not None and alignment["pairs"] and max(
-            alignment["sigma"]) <= KEEP_ALIGNMENT_SHARE * config.vins.gyro_cross_axis_sigma:
-        _write(path, config, {"gyro_alignment": list(alignment["column"]),
-                              "sigma": list(alignment["sigma"]), "pairs": alignment["pairs"]},
-               saved)
-        log.info("kept the gyro's yaw response [%s] for the next flight (%s)",
-                 ", ".join(f"{c:.4f}" for c in alignment["column"]), path)
-        kept.append(path)
-    return kept
+    kept = (_keep_offset(config, summary.get("vins_time_offset"), saved),
+            _keep_alignment(config, summary.get("vins_gyro_alignment"), saved))
+    return [path for path in kept if path is not None]
+
+
+def _keep_offset(config, offset: dict | None, saved: str) -> Path | None:
+    path = learned_offset_path(config)
+    if path is None or offset is None or not offset["estimated"] or offset["sigma_s"] is None:
+        return None
+    _write(path, config, {"offset_s": offset["seconds"], "sigma_s": offset["sigma_s"]}, saved)
+    log.info("kept the camera-IMU time offset %.1f ms for the next flight (%s)",
+             1e3 * offset["seconds"], path)
+    return path
+
+
+def _keep_alignment(config, alignment: dict | None, saved: str) -> Path | None:
+    path = learned_alignment_path(config)
+    if path is None or alignment is None or not alignment["pairs"] or max(
+            alignment["sigma"]) > KEEP_ALIGNMENT_SHARE * config.vins.gyro_cross_axis_sigma:
+        return None
+    _write(path, config, {"gyro_alignment": list(alignment["column"]),
+                          "sigma": list(alignment["sigma"]), "pairs": alignment["pairs"]}, saved)
+    log.info("kept the gyro's yaw response %s for the next flight (%s)",
+             _column_text(alignment["column"]), path)
+    return path
+
+
+def _column_text(column) -> str:
+    return "[" + ", ".join(f"{c:.4f}" for c in column) + "]"
 
 
 def _learned(config, path: Path | None, what: str, field: str, value_from):
