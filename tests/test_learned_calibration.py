@@ -128,7 +128,7 @@ def test_with_no_column_kept_yet_the_flight_estimates_it(tmp_path, caplog):
     caplog.set_level(logging.INFO)
     first = start_from_learned(_alignment_config(tmp_path))
     assert first.vins.estimate_gyro_alignment and first.vins.gyro_alignment == (0.0, 0.0, 0.0)
-    assert f"no gyro yaw response kept yet ({tmp_path / 'gyro.json'})" in caplog.text
+    assert f"no gyro yaw response kept for this camera ({tmp_path / 'gyro.json'})" in caplog.text
     # the estimate needs the time offset's frame pairs: without them the flight is as configured
     no_pairs = _alignment_config(tmp_path, "vins.estimate_time_offset=false")
     assert start_from_learned(no_pairs) is no_pairs
@@ -170,15 +170,30 @@ def test_a_bad_gyro_alignment_file_is_named_and_ignored(tmp_path, caplog, column
     (tmp_path / "gyro.json").write_text(
         '{"format": 1, "camera": "realsense \'\' 640x480 at 30 Hz", "gyro_alignment": '
         f'{column}}}')
-    config = _alignment_config(tmp_path)
+    config = _alignment_config(tmp_path, "vins.estimate_time_offset=false")
     assert start_from_learned(config) is config
     assert f"ignoring the learned gyro alignment in {tmp_path / 'gyro.json'}" in caplog.text
     assert complaint in caplog.text
+
+
+def test_an_ignored_gyro_alignment_file_is_learned_again_and_replaced(tmp_path, caplog):
+    (tmp_path / "gyro.json").write_text("{not json")
+    started = start_from_learned(_alignment_config(tmp_path))
+    assert "ignoring the learned gyro alignment" in caplog.text
+    assert started.vins.estimate_gyro_alignment and started.vins.gyro_alignment == (0.0, 0.0, 0.0)
+    assert keep_learned(started, _alignment_summary(), NOW) == [tmp_path / "gyro.json"]
+    assert start_from_learned(_alignment_config(tmp_path)).vins.gyro_alignment == COLUMN
 
 
 def test_a_gyro_alignment_learned_with_another_camera_is_not_used(tmp_path, caplog):
     keep_learned(_alignment_config(tmp_path, "vins.estimate_gyro_alignment=true"),
                  _alignment_summary(), NOW)
     other = _alignment_config(tmp_path, 'realsense.serial="123456789"')
-    assert start_from_learned(other).vins.gyro_alignment == (0.0, 0.0, 0.0)
+    started = start_from_learned(other)
+    assert started.vins.gyro_alignment == (0.0, 0.0, 0.0)
     assert "learned with another camera" in caplog.text
+    # the new camera calibrates itself: its flight estimates the column, and keeps it
+    assert started.vins.estimate_gyro_alignment
+    keep_learned(started, _alignment_summary(), NOW)
+    record = json.loads((tmp_path / "gyro.json").read_text())
+    assert record["camera"] == camera_identity(other)

@@ -23,8 +23,9 @@ next one than learned again in it (docs/vins.md):
 
 Each file names the camera (:func:`camera_identity`), so a different camera, or the same one in
 another mode, starts from the configuration again. A file that cannot be read, or holds a value
-the options refuse, is named in a warning and ignored: the flight then starts as configured.
-Files are replaced atomically, so a reader sees the old file or the new one.
+the options refuse, is named in a warning and ignored: the flight then starts as configured, and
+learns both calibrations again as a flight with no file does, replacing the file. Files are
+replaced atomically, so a reader sees the old file or the new one.
 """
 
 from __future__ import annotations
@@ -82,7 +83,8 @@ def learned_alignment_path(config) -> Path | None:
 def start_from_learned(config):
     """``config`` with ``[vins] time_offset_s`` and ``gyro_alignment`` set to what was learned
     for this camera, each left as configured where nothing is kept, or the file is ignored
-    (logged)."""
+    (logged). With no column kept for this camera, the flight estimates it when it can
+    (``estimate_gyro_alignment``, which needs ``estimate_time_offset``)."""
     offset = _learned(config, learned_offset_path(config), "camera-IMU time offset",
                       "time_offset_s", _offset_from)
     if offset is not None:
@@ -95,10 +97,13 @@ def start_from_learned(config):
         config = dataclasses.replace(config, vins=alignment)
         log.info("correcting the gyro by the yaw response learned before: %s (%s)",
                  _column_text(alignment.gyro_alignment), path)
-    elif path is not None and not path.exists() and config.vins.estimate_time_offset:
+    elif path is not None and config.vins.estimate_time_offset:
+        # None kept for this camera (no file, or one ignored above): a calibration flight, so
+        # that a broken file or another camera's is replaced, as the time offset's is
         config = dataclasses.replace(config, vins=dataclasses.replace(
             config.vins, estimate_gyro_alignment=True))
-        log.info("no gyro yaw response kept yet (%s): this flight estimates it", path)
+        log.info("no gyro yaw response kept for this camera (%s): this flight estimates it",
+                 path)
     return config
 
 
