@@ -175,8 +175,22 @@ def _load(document: tuple[dict[str, Any], str] | None, overrides: Sequence[str])
     for text in overrides:
         override = parse_override(text)
         _set(settings, override.source, override.section, override.key, override.value)
-    return Config(**{section.name: _build_section(section, settings.get(section.name, {}))
-                     for section in dataclasses.fields(Config)})
+    config = Config(**{section.name: _build_section(section, settings.get(section.name, {}))
+                       for section in dataclasses.fields(Config)})
+    _check_across_tables(config, settings)
+    return config
+
+
+def _check_across_tables(config: Config, settings: _Settings) -> None:
+    """The rules that join two tables; ConfigError naming the source of the later key."""
+    if config.rescale.extrapolation == "clamp" and config.planner.near_tail_share > 0.0:
+        sources = [settings.get(section, {}).get(key, (None, ""))[1]
+                   for section, key in (("rescale", "extrapolation"),
+                                        ("planner", "near_tail_share"))]
+        raise ConfigError(
+            sources[0] or sources[1], "a clamped tail reads every pixel nearer than the "
+            "nearest landmark at that landmark's depth, which the planner's near tail would "
+            "fly on: set planner.near_tail_share = 0 with it", "rescale.extrapolation")
 
 
 def _read_toml(path: Path) -> dict[str, Any]:

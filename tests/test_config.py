@@ -169,6 +169,15 @@ def test_an_override_that_is_not_utf8_is_refused():
     assert message == "--set recorder.directory=/flights/\\xff: not UTF-8 text"
 
 
+def test_a_clamped_rescaling_tail_with_the_planners_near_tail_is_refused():
+    """A clamped tail is no near bound: the planner's near tail would fly on it."""
+    message = load_error(None, ("rescale.extrapolation=clamp",))
+    assert message.startswith("--set rescale.extrapolation=clamp: rescale.extrapolation: a "
+                              "clamped tail reads every pixel nearer")
+    assert "planner.near_tail_share = 0" in message
+    assert load_config(None, ("rescale.extrapolation=clamp", "planner.near_tail_share=0"))
+
+
 def test_override_with_unknown_key_names_the_override():
     message = load_error(None, ("rescale.kapa=3",))
     assert message == "--set rescale.kapa=3: rescale.kapa: unknown key; did you mean 'kappa'?"

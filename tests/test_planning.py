@@ -193,6 +193,32 @@ def test_low_confidence_nearer_than_a_confident_depth_counts_as_that_depth():
     assert 3.0 * 0.98 - 1.5 <= result.clearance[0] <= 3.0 - 1.5
 
 
+def test_low_confidence_nearer_than_every_confident_depth_counts_as_a_share_of_itself():
+    """The rescaling's near tail (no landmark that near) reads as ``near_tail_share`` of its
+    depth: the unsure floor 4 m below the view, nearer than the confident wall, counts as 2 m
+    at half, which leaves the sphere 0.5 m ahead free (L + R = 1.5 m), and as 1.2 m at 0.3,
+    which does not."""
+    T_W_C, start = camera_pose(body()), np.array([0.0, 0.0, ALTITUDE])
+    near = [[0.5, 0.0, ALTITUDE]]
+    depth = np.full((CAMERA.height, CAMERA.width), 6.0, np.float32)  # a wall, confident
+    confidence = np.ones_like(depth)
+    depth[60:110, 40:120], confidence[60:110, 40:120] = 4.0, 0.1  # the floor, unsure
+    verdicts = {}
+    for share in (0.5, 0.3):
+        history = DepthHistory(near_tail_share=share)
+        history.add(depth, confidence, T_W_C, CAMERA, 0.0)
+        verdicts[share] = history.check(near, start_W=start)
+    assert verdicts[0.5].free.all()
+    assert verdicts[0.5].clearance[0] == pytest.approx(4.0 * 0.5 - 1.5, abs=1e-3)
+    assert not verdicts[0.3].free.any() and verdicts[0.3].occupied.all()
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
+def test_a_near_tail_share_outside_0_to_1_is_refused(share):
+    with pytest.raises(ValueError, match="near_tail_share must be in"):
+        DepthHistory(near_tail_share=share)
+
+
 def test_an_older_frame_decides_where_the_newest_cannot_tell():
     T_W_C = camera_pose(body())
     depth = render(T_W_C, ROOM)
@@ -556,6 +582,29 @@ def test_no_depth_and_unknown_depth_mean_stop():
     stale = planner_seeing(ROOM, t=0.0)
     assert stale.plan(0.05, body(), FORWARD, AHEAD).kind == "arc"
     assert stale.plan(5.0, body(), FORWARD, AHEAD).reason == "no depth"  # older than history_s
+
+
+def test_a_corridor_whose_near_walls_hold_no_landmark_is_flown_on_their_near_tail():
+    """A 3.4 m wide corridor (floor and ceiling 1.7 m from the vehicle too) whose landmarks
+    all lie 3 m or farther: every wall pixel nearer has no confident depth to bound it. As
+    unknown they leave no arc safe; as 0.9 of their depth the straight arcs are, and no arc
+    that turns into a wall is."""
+    corridor = [((-50.0, 1.7, -50.0), (50.0, 1.8, 50.0)),
+                ((-50.0, -1.8, -50.0), (50.0, -1.7, 50.0)),
+                ((-50.0, -50.0, ALTITUDE - 1.8), (50.0, 50.0, ALTITUDE - 1.7)),
+                ((-50.0, -50.0, ALTITUDE + 1.7), (50.0, 50.0, ALTITUDE + 1.8)), *ROOM]
+    T_W_C = camera_pose(body())
+    depth = render(T_W_C, corridor)
+    confidence = np.where(depth >= 3.0, 1.0, 0.1).astype(np.float32)
+    plans = {}
+    for share in (0.0, 0.9):
+        planner = Planner(CAMERA, PlannerOptions(near_tail_share=share))
+        planner.add_depth(metric(depth, 0.0, confidence), T_W_C)
+        plans[share] = planner.plan(0.05, body(), FORWARD, AHEAD)
+    assert plans[0.0].reason == "no safe primitive"
+    flown = plans[0.9].candidates
+    assert plans[0.9].kind == "arc" and plans[0.9].primitive.yaw_rate == 0.0
+    assert {flown.primitives[i].yaw_rate for i in np.flatnonzero(flown.safe)} == {0.0}
 
 
 def test_low_confidence_everywhere_means_stop():

@@ -188,7 +188,7 @@ class DepthHistory:
 
     def __init__(self, *, robot_radius: float = 1.0, min_confidence: float = 0.3,
                  max_range: float = 10.0, max_frames: int = 8, max_age_s: float = 2.0,
-                 rings: int = 4):
+                 rings: int = 4, near_tail_share: float = 0.0):
         if not robot_radius > 0.0:
             raise ValueError(f"robot_radius must be > 0, got {robot_radius}")
         if not 0.0 <= min_confidence <= 1.0:
@@ -201,11 +201,14 @@ class DepthHistory:
             raise ValueError(f"max_age_s must be > 0, got {max_age_s}")
         if not 1 <= rings <= 16:
             raise ValueError(f"rings must be in [1, 16], got {rings}")
+        if not 0.0 <= near_tail_share <= 1.0:
+            raise ValueError(f"near_tail_share must be in [0, 1], got {near_tail_share}")
         self.robot_radius = float(robot_radius)
         self.min_confidence = float(min_confidence)
         self.max_range = float(max_range)
         self.max_frames = int(max_frames)
         self.max_age_s = float(max_age_s)
+        self.near_tail_share = float(near_tail_share)
         #: The impact fractions q_0 = 1 > ... > q_{n-1} of the windows and q_1 .. q_n = 0 of
         #: their thresholds (module docstring: rings).
         k = np.arange(rings + 1) / rings
@@ -244,7 +247,7 @@ class DepthHistory:
             raise ValueError(f"frame time must be finite, got {t!r}")
         T_W_C = as_pose(T_W_C, "T_W_C")
         image = _known_range(depth, confidence, self.min_confidence, self.max_range,
-                             self._norms(camera))
+                             self._norms(camera), self.near_tail_share)
         image = fill_small_holes(image, HOLE_FILL_PX)
         frame = _Frame(min_table(image), T_W_C, camera, float(t))
         bisect.insort(self._frames, frame, key=lambda f: f.t)
@@ -616,9 +619,11 @@ def ray_norms(camera: PinholeCamera) -> np.ndarray:
 
 
 def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
-                 max_range: float, norms: np.ndarray) -> np.ndarray:
+                 max_range: float, norms: np.ndarray, near_tail_share: float = 0.0
+                 ) -> np.ndarray:
     """float32 range along each pixel's ray of the depth clipped to ``max_range``, -1 where
-    unknown (NaN, <= 0, or low confidence and nearer than every confident pixel).
+    unknown (NaN, <= 0, or low confidence and nearer than every confident pixel while
+    ``near_tail_share`` is 0).
 
     A low-confidence pixel at or beyond ``max_range`` (the sky, a far wall no landmark lies
     on) counts as ``max_range``: the rescaling curve is monotone, so a pixel less disparate
@@ -629,8 +634,13 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
     farther than it, whatever its own error. That is the farthest confident depth ``d*`` in
     the middle of a long hallway whose walls carry landmarks only near by, and the confident
     surface just nearer on a floor whose disparities fall between the landmarks'. A
-    low-confidence pixel nearer than every confident one stays unknown: nothing bounds it
-    from below."""
+    low-confidence pixel nearer than every confident one has no such bound. Its depth is the
+    rescaling curve's straight near tail, which never reads a pixel farther than the nearest
+    landmark; it counts as ``near_tail_share`` of that depth, the share that makes it err
+    toward the vehicle as rarely as confident depth does (docs/planner.md), or stays unknown
+    with a share of 0, or when no pixel is confident (the whole image is then a guess).
+    Without it a hallway whose near walls carry no landmark (no texture the tracker can
+    hold) leaves every sphere near the vehicle unknown."""
     d = depth.astype(np.float32, copy=False)
     with np.errstate(invalid="ignore"):
         valid = d > 0.0  # NaN: False
@@ -638,6 +648,8 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
         far = valid & ~confident & (d >= max_range)
         unsure = valid & ~confident & ~far
     floor = _confident_floor(d, confident & (d < max_range), unsure, max_range)
+    if confident.any():  # a tail needs landmarks to continue from: none, the frame is unsure
+        floor = np.where(floor > 0.0, floor, d * np.float32(near_tail_share))
     d = np.where(unsure, floor, d)
     known = confident | far | (unsure & (floor > 0.0))
     return np.where(known, np.minimum(d, np.float32(max_range)) * norms, _UNKNOWN)

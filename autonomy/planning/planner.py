@@ -89,6 +89,10 @@ class PlannerOptions(PrimitiveOptions):
                                    "this are unknown")
     max_range: float = option(10.0, gt=0.0, le=100.0, doc="depth trusted up to this distance, "
                               "metres; farther space is unknown, farther pixels count as this")
+    near_tail_share: float = option(0.9, ge=0.0, le=1.0, doc="a low-confidence pixel nearer "
+                                    "than every confident one (the rescaling's straight tail "
+                                    "past the nearest landmark) counts as this share of its "
+                                    "depth; 0: unknown (docs/planner.md, low confidence)")
     progress_weight: float = option(1.0, ge=0.0, le=100.0, doc="cost weight of progress toward "
                                     "the goal")
     smoothness_weight: float = option(0.3, ge=0.0, le=100.0, doc="cost weight of changing yaw "
@@ -221,7 +225,7 @@ class Planner:
         self.options = o
         self.history = DepthHistory(robot_radius=o.robot_radius, min_confidence=o.min_confidence,
                                     max_range=o.max_range, max_frames=o.history_frames,
-                                    max_age_s=o.history_s)
+                                    max_age_s=o.history_s, near_tail_share=o.near_tail_share)
         self.tiers = [PrimitiveTier(speed, o) for speed in tier_speeds(o.primitives)]
         self._previous: Plan | None = None
         self._checked_stop: Plan | None = None
