@@ -11,8 +11,9 @@ import pytest
 
 from autonomy.geometry import PinholeCamera, make_pose, rot_z
 from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, PARALLAX_WAIT_S,
-                                            Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
-                                            approach_targets, facing, must_turn, still_turning,
+                                            TURN_STOP_REASON, Backoff, Blocked, NoPathClock,
+                                            ParallaxGlide, Step, approach_targets,
+                                            braking_to_turn, facing, must_turn, still_turning,
                                             turn_rate)
 from autonomy.navigation.failsafes import BlindClock, Vitals, failsafe_reason, vins_problem
 from autonomy.navigation.mission import FlightOptions, FlightState, Mission
@@ -134,6 +135,17 @@ def test_a_passed_corner_or_a_waypoint_far_off_the_heading_makes_the_vehicle_tur
                              np.array([1.0, 0.0, 1.5]), "approach")
     assert not must_turn(False, math.radians(170.0), approach, OPTIONS)
     assert must_turn(True, math.radians(170.0), approach, OPTIONS)
+
+
+def test_only_the_stop_before_a_turn_counts_as_braking_to_turn(planner):
+    """The failsafe on stale depth waits while the vehicle brakes to a turn (that stop was
+    checked at the last round); a stop for any other reason is not it."""
+    T_W_B, velocity = make_pose(np.eye(3), [0.0, 0.0, 1.5]), np.array([1.0, 0.0, 0.0])
+    assert braking_to_turn(planner.stop_plan(0.0, T_W_B, velocity, TURN_STOP_REASON))
+    assert not braking_to_turn(planner.stop_plan(0.0, T_W_B, velocity, "no safe primitive"))
+    assert not braking_to_turn(planner.glide(0.0, T_W_B, np.array([1.0, 0.0, 1.5]),
+                                             PARALLAX_REASON))
+    assert not braking_to_turn(None)
 
 
 def test_a_turn_in_place_turns_toward_the_waypoint_until_within_align_done():

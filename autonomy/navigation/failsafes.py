@@ -26,7 +26,7 @@ class Vitals:
     depth_reason: str  # why the newest frame had no metric depth
     blind_s: float  # how long the VINS has been flown on blind (BlindClock)
     blind_expired: bool  # for longer than blind_timeout_s
-    on_flown_ground: bool  # turning in place or gliding over the flown trail
+    on_flown_ground: bool  # braking to a turn, turning in place, gliding over the trail
     no_path_expired: bool  # no safe primitive for longer than no_path_timeout_s
 
 

@@ -17,10 +17,10 @@ import logging
 import numpy as np
 
 from autonomy.messages import Odometry
-from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, Backoff,
-                                            Blocked, NoPathClock, ParallaxGlide, Step,
-                                            approach_targets, must_turn, on_glide,
-                                            still_turning)
+from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, TURN_STOP_REASON,
+                                            Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
+                                            approach_targets, braking_to_turn, must_turn,
+                                            on_glide, still_turning)
 from autonomy.navigation.failsafes import age
 from autonomy.navigation.mission import FlightState
 from autonomy.navigation.route import Route, heading_error
@@ -66,13 +66,14 @@ class Navigation:
             self.context.options.stopped_speed
 
     def on_flown_ground(self) -> bool:
-        """Turning in place at a corner, gliding for parallax after it, or backing off along
-        the trail: the vehicle stays on ground it has flown, so depth may lapse (new depth is
-        what the first two are for)."""
+        """Braking to a corner's turn on the stop checked before it, turning in place there,
+        gliding for parallax after it, or backing off along the trail: the vehicle stays on
+        ground it has flown or checked, so depth may lapse (new depth is what the turn and
+        the glides are for)."""
         now, plan = self.context.clock.now(), self.plan
         return self.context.state == FlightState.ALIGNING or self.parallax.active \
             or self.backoff.active or on_glide(plan, PARALLAX_REASON, now) \
-            or on_glide(plan, BACKOFF_REASON, now)
+            or on_glide(plan, BACKOFF_REASON, now) or braking_to_turn(plan)
 
     def stop_plan(self, reason: str) -> Plan | None:
         """The stop checked at the last planning round while it lasts (braking from the
@@ -171,8 +172,7 @@ class Navigation:
         c = self.context
         self.no_path.since = None
         if not self.stopped():
-            stop = await c.workers["planner"].run(self.stop_plan,
-                                                  "stopping to turn to the next waypoint")
+            stop = await c.workers["planner"].run(self.stop_plan, TURN_STOP_REASON)
             if c.state == FlightState.NAVIGATING:  # else a failsafe's stop is in charge
                 c.channels.plan.publish(stop)
             return
