@@ -683,8 +683,27 @@ def test_an_approach_glides_straight_to_rest_over_its_goal(distance):
 
 def test_an_approach_through_a_wall_is_refused():
     planner = planner_seeing([((1.5, -50, -50), (2.0, 50, 50))])
+    checked = planner.plan(0.0, body(), FORWARD, AHEAD)  # a stop is checked, whatever it is
     assert planner.approach(1.0, body(), np.array([2.5, 0.0, ALTITUDE])) is None
     assert planner.approach(1.0, body(), body()[:3, 3]) is None  # already there
+    # a refused approach leaves the stop checked before it to the failsafes
+    assert planner.stop_plan(0.05, body(), FORWARD, "vins lost").t == checked.t
+
+
+def test_after_a_glide_a_failsafe_continues_the_glide_not_the_stop_checked_before_it():
+    """A glide (a parallax move, a backing-off) takes the vehicle away from where the last
+    round checked its stop; that stop, continued, would fly it back there."""
+    planner = planner_seeing(ROOM)
+    arc = planner.plan(0.0, body(), FORWARD, AHEAD)
+    assert arc.kind == "arc"
+    back = body(x=-0.8)  # glided back along its trail, at rest
+    glide = planner.glide(0.5, back, np.array([-1.3, 0.0, ALTITUDE]), "backing off")
+    stop = planner.stop_plan(0.6, back, np.zeros(3), "no metric depth")
+    assert stop.primitive is glide.primitive and stop.reason == "no metric depth"
+    there = body(x=-1.3)
+    assert planner.glide(4.0, there, there[:3, 3], "backing off") is None  # already there
+    hold = planner.stop_plan(4.1, there, np.zeros(3), "no metric depth")
+    np.testing.assert_allclose(hold.setpoint(5.0).position_W, there[:3, 3], atol=1e-9)
 
 
 def test_the_chosen_primitives_stop_branch_was_checked_free():

@@ -341,7 +341,7 @@ class Planner:
         and braking); None when unsafe. For stopping at a corner or the goal precisely, where
         a narrow passage leaves no room to be off its axis, and the arcs cannot stop on a
         point."""
-        plan = self.glide(t, T_W_B, goal_W, APPROACH_REASON)
+        plan = self._glide(t, T_W_B, goal_W, APPROACH_REASON)
         if plan is None:
             return None
         start = plan.T_W_S[:3, 3]
@@ -355,12 +355,22 @@ class Planner:
         return plan
 
     def glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
+        """:meth:`_glide`, unchecked, over ground the caller chose (the flown trail); it is
+        what a failsafe's :meth:`stop_plan` continues from now on (none when already there:
+        braking where the vehicle is). The stop checked before it belongs to a place the
+        vehicle glides away from: continued after a parallax glide and a turn, it flew a
+        realistic mine flight (seed 1, pair 0, estimated depth) 0.9 m back toward that place
+        on a VINS without landmarks, into the tunnel's wall."""
+        self._checked_stop = self._glide(t, T_W_B, goal_W, reason)
+        return self._checked_stop
+
+    def _glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
         """A straight glide from the body at ``T_W_B`` (at rest) to come to rest at
         ``goal_W``, heading held: horizontally at no more than the slowest tier's speed ``u``,
         cruise then brake over ``stop_duration_s`` (``u T / 2``), slower when the goal is
         nearer than that; vertically at the constant rate ``c`` (then braking with the rest)
         that ends at the goal's height, at most ``max_vertical_speed``. None when already
-        there. Unchecked: :meth:`approach` checks it."""
+        there."""
         t = _finite_time(t)
         T_W_B = as_pose(T_W_B, "T_W_B")
         start = T_W_B[:3, 3]
