@@ -182,7 +182,8 @@ def _load(document: tuple[dict[str, Any], str] | None, overrides: Sequence[str])
 
 
 def _check_across_tables(config: Config, settings: _Settings) -> None:
-    """The rules that join two tables; ConfigError naming the source of the later key."""
+    """The rules that join two tables; ConfigError naming the source that set the first of
+    the two keys (the other's when the first is the default)."""
     if config.rescale.extrapolation == "clamp" and config.planner.near_tail_share > 0.0:
         sources = [settings.get(section, {}).get(key, (None, ""))[1]
                    for section, key in (("rescale", "extrapolation"),

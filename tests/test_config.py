@@ -169,13 +169,18 @@ def test_an_override_that_is_not_utf8_is_refused():
     assert message == "--set recorder.directory=/flights/\\xff: not UTF-8 text"
 
 
-def test_a_clamped_rescaling_tail_with_the_planners_near_tail_is_refused():
+def test_a_clamped_rescaling_tail_with_the_planners_near_tail_is_refused(tmp_path):
     """A clamped tail is no near bound: the planner's near tail would fly on it."""
-    message = load_error(None, ("rescale.extrapolation=clamp",))
+    message = load_error(None, ("planner.near_tail_share=0.9", "rescale.extrapolation=clamp"))
     assert message.startswith("--set rescale.extrapolation=clamp: rescale.extrapolation: a "
                               "clamped tail reads every pixel nearer")
     assert "planner.near_tail_share = 0" in message
-    assert load_config(None, ("rescale.extrapolation=clamp", "planner.near_tail_share=0"))
+    clamped = tmp_path / "clamped.toml"
+    clamped.write_text('[rescale]\nextrapolation = "clamp"\n')
+    assert load_error(clamped, ("planner.near_tail_share=0.9",)).startswith(f"{clamped}: ")
+    assert load_error(None, ("planner.near_tail_share=0.9", "rescale.extrapolation=linear",
+                             "rescale.extrapolation=clamp")) == message
+    assert load_config(None, ("rescale.extrapolation=clamp",))  # the share is 0 by default
 
 
 def test_override_with_unknown_key_names_the_override():

@@ -89,10 +89,11 @@ class PlannerOptions(PrimitiveOptions):
                                    "this are unknown")
     max_range: float = option(10.0, gt=0.0, le=100.0, doc="depth trusted up to this distance, "
                               "metres; farther space is unknown, farther pixels count as this")
-    near_tail_share: float = option(0.9, ge=0.0, le=1.0, doc="a low-confidence pixel nearer "
+    near_tail_share: float = option(0.0, ge=0.0, le=1.0, doc="a low-confidence pixel nearer "
                                     "than every confident one (the rescaling's straight tail "
                                     "past the nearest landmark) counts as this share of its "
-                                    "depth; 0: unknown (docs/planner.md, low confidence)")
+                                    "depth, 0.9 measured; 0: unknown (docs/planner.md, the "
+                                    "near tail)")
     progress_weight: float = option(1.0, ge=0.0, le=100.0, doc="cost weight of progress toward "
                                     "the goal")
     smoothness_weight: float = option(0.3, ge=0.0, le=100.0, doc="cost weight of changing yaw "
@@ -358,9 +359,9 @@ class Planner:
         """:meth:`_glide`, unchecked, over ground the caller chose (the flown trail); it is
         what a failsafe's :meth:`stop_plan` continues from now on (none when already there:
         braking where the vehicle is). The stop checked before it belongs to a place the
-        vehicle glides away from: continued after a parallax glide and a turn, it flew a
-        realistic mine flight (seed 1, pair 0, estimated depth) 0.9 m back toward that place
-        on a VINS without landmarks, into the tunnel's wall."""
+        vehicle glides away from: continued after a parallax glide and a turn, it sent a
+        realistic mine flight (seed 1, pair 0, estimated depth, ``near_tail_share`` 0.9) back
+        toward that place, 0.9 m off, over ground the glide had not flown."""
         self._checked_stop = self._glide(t, T_W_B, goal_W, reason)
         return self._checked_stop
 
