@@ -141,11 +141,14 @@ def test_only_the_stop_before_a_turn_counts_as_braking_to_turn(planner):
     """The failsafe on stale depth waits while the vehicle brakes to a turn (that stop was
     checked at the last round); a stop for any other reason is not it."""
     T_W_B, velocity = make_pose(np.eye(3), [0.0, 0.0, 1.5]), np.array([1.0, 0.0, 0.0])
-    assert braking_to_turn(planner.stop_plan(0.0, T_W_B, velocity, TURN_STOP_REASON))
-    assert not braking_to_turn(planner.stop_plan(0.0, T_W_B, velocity, "no safe primitive"))
+    turn_stop = planner.stop_plan(0.0, T_W_B, velocity, TURN_STOP_REASON)
+    assert braking_to_turn(turn_stop, 0.5)
+    assert not braking_to_turn(turn_stop, turn_stop.end_time)  # run out: no longer waits
+    assert not braking_to_turn(planner.stop_plan(0.0, T_W_B, velocity, "no safe primitive"),
+                               0.5)
     assert not braking_to_turn(planner.glide(0.0, T_W_B, np.array([1.0, 0.0, 1.5]),
-                                             PARALLAX_REASON))
-    assert not braking_to_turn(None)
+                                             PARALLAX_REASON), 0.5)
+    assert not braking_to_turn(None, 0.5)
 
 
 def test_a_turn_in_place_turns_toward_the_waypoint_until_within_align_done():

@@ -607,11 +607,16 @@ def test_a_corridor_whose_near_walls_hold_no_landmark_is_flown_on_their_near_tai
     assert {flown.primitives[i].yaw_rate for i in np.flatnonzero(flown.safe)} == {0.0}
 
 
-def test_low_confidence_everywhere_means_stop():
-    planner = Planner(CAMERA)
+@pytest.mark.parametrize("share", [0.0, 0.9])
+def test_low_confidence_everywhere_means_stop(share):
+    """With no confident depth within range there is no near tail to trust, whatever the
+    share: confident pixels only beyond ``max_range`` (the sky) do not make one."""
+    planner = Planner(CAMERA, PlannerOptions(near_tail_share=share))
     T_W_C = camera_pose(body())
     depth = np.full((CAMERA.height, CAMERA.width), 6.0, np.float32)  # a wall within range
-    planner.add_depth(metric(depth, 0.0, np.full_like(depth, 0.2)), T_W_C)
+    confidence = np.full_like(depth, 0.2)
+    depth[:5], confidence[:5] = 60.0, 1.0  # a confident strip beyond range
+    planner.add_depth(metric(depth, 0.0, confidence), T_W_C)
     assert planner.plan(0.05, body(), FORWARD, AHEAD).reason == "no safe primitive"
 
 
@@ -690,20 +695,20 @@ def test_an_approach_through_a_wall_is_refused():
     assert planner.stop_plan(0.05, body(), FORWARD, "vins lost").t == checked.t
 
 
-def test_after_a_glide_a_failsafe_continues_the_glide_not_the_stop_checked_before_it():
+def test_after_a_glide_a_failsafe_brakes_where_the_vehicle_is():
     """A glide (a parallax move, a backing-off) takes the vehicle away from where the last
     round checked its stop; that stop, continued, would fly it back there."""
     planner = planner_seeing(ROOM)
     arc = planner.plan(0.0, body(), FORWARD, AHEAD)
     assert arc.kind == "arc"
-    back = body(x=-0.8)  # glided back along its trail, at rest
+    back = body(x=-0.8)  # gliding back along its trail
     glide = planner.glide(0.5, back, np.array([-1.3, 0.0, ALTITUDE]), "backing off")
-    stop = planner.stop_plan(0.6, back, np.zeros(3), "no metric depth")
-    assert stop.primitive is glide.primitive and stop.reason == "no metric depth"
-    there = body(x=-1.3)
-    assert planner.glide(4.0, there, there[:3, 3], "backing off") is None  # already there
-    hold = planner.stop_plan(4.1, there, np.zeros(3), "no metric depth")
-    np.testing.assert_allclose(hold.setpoint(5.0).position_W, there[:3, 3], atol=1e-9)
+    assert glide is not None
+    stop = planner.stop_plan(0.6, back, np.array([-0.3, 0.0, 0.0]), "no metric depth")
+    assert stop.t == 0.6 and stop.reason == "no metric depth"
+    np.testing.assert_allclose(stop.T_W_S[:3, 3], back[:3, 3])
+    rest = stop.setpoint(stop.end_time + 1.0).position_W
+    assert -1.2 < rest[0] < -0.8 and abs(rest[1]) < 1e-9  # braked on, not back toward x = 0
 
 
 def test_the_chosen_primitives_stop_branch_was_checked_free():

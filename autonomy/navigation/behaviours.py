@@ -42,12 +42,14 @@ def on_glide(plan, reason: str, now: float) -> bool:
     return plan is not None and plan.reason == reason and now < plan.end_time
 
 
-def braking_to_turn(plan) -> bool:
-    """Is ``plan`` the stop before a turn in place? It brakes along the stop the last planning
-    round checked, so it needs no new depth: the staleness failsafe waits, as it does through
-    the turn and the glides after it (a turn in the dome's open space can leave the view
-    without landmarks before the vehicle is at rest)."""
-    return plan is not None and plan.reason == TURN_STOP_REASON
+def braking_to_turn(plan, now: float) -> bool:
+    """Is ``plan`` the stop before a turn in place, not yet at rest by ``now``? It brakes on
+    the stop the last planning round checked (or from the present velocity where none is
+    left), so it needs no new depth: the staleness failsafe waits, as it does through the turn
+    and the glides after it (a turn in the dome's open space can leave the view without
+    landmarks before the vehicle is at rest). Once the stop has run out, the failsafe no
+    longer waits for a vehicle that does not come to rest."""
+    return plan is not None and plan.reason == TURN_STOP_REASON and now < plan.end_time
 
 
 def must_turn(corner_pending: bool, heading_error: float, plan, options) -> bool:

@@ -623,7 +623,7 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
                  ) -> np.ndarray:
     """float32 range along each pixel's ray of the depth clipped to ``max_range``, -1 where
     unknown (NaN, <= 0, or low confidence and nearer than every confident pixel while
-    ``near_tail_share`` is 0).
+    ``near_tail_share`` is 0 or no confident pixel lies within ``max_range``).
 
     A low-confidence pixel at or beyond ``max_range`` (the sky, a far wall no landmark lies
     on) counts as ``max_range``: the rescaling curve is monotone, so a pixel less disparate
@@ -638,7 +638,8 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
     rescaling curve's straight near tail, which never reads a pixel farther than the nearest
     landmark; it counts as ``near_tail_share`` of that depth, the share that makes it err
     toward the vehicle as rarely as confident depth does (docs/planner.md), or stays unknown
-    with a share of 0, or when no pixel is confident (the whole image is then a guess).
+    with a share of 0, or when no confident pixel lies within range (the whole image is then a
+    guess).
     Without it a hallway whose near walls carry no landmark (no texture the tracker can
     hold) leaves every sphere near the vehicle unknown."""
     d = depth.astype(np.float32, copy=False)
@@ -647,8 +648,9 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
         confident = valid & (confidence >= min_confidence)
         far = valid & ~confident & (d >= max_range)
         unsure = valid & ~confident & ~far
-    floor = _confident_floor(d, confident & (d < max_range), unsure, max_range)
-    if confident.any():  # a tail needs landmarks to continue from: none, the frame is unsure
+    in_range = confident & (d < max_range)
+    floor = _confident_floor(d, in_range, unsure, max_range)
+    if near_tail_share > 0.0 and in_range.any():  # no confident depth in range: no tail
         floor = np.where(floor > 0.0, floor, d * np.float32(near_tail_share))
     d = np.where(unsure, floor, d)
     known = confident | far | (unsure & (floor > 0.0))

@@ -356,14 +356,13 @@ class Planner:
         return plan
 
     def glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
-        """:meth:`_glide`, unchecked, over ground the caller chose (the flown trail); it is
-        what a failsafe's :meth:`stop_plan` continues from now on (none when already there:
-        braking where the vehicle is). The stop checked before it belongs to a place the
-        vehicle glides away from: continued after a parallax glide and a turn, it sent a
-        realistic mine flight (seed 1, pair 0, estimated depth, ``near_tail_share`` 0.9) back
-        toward that place, 0.9 m off, over ground the glide had not flown."""
-        self._checked_stop = self._glide(t, T_W_B, goal_W, reason)
-        return self._checked_stop
+        """:meth:`_glide`, unchecked, over ground the caller chose (the flown trail). It
+        forgets the stop checked before it, which belongs to a place the vehicle glides away
+        from (continued after a parallax glide and a turn, it sent a realistic mine flight,
+        seed 1, pair 0, estimated depth, ``near_tail_share`` 0.9, back toward that place, 0.9
+        m off): until the next round checks one, a stop brakes where the vehicle is."""
+        self._checked_stop = None
+        return self._glide(t, T_W_B, goal_W, reason)
 
     def _glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
         """A straight glide from the body at ``T_W_B`` (at rest) to come to rest at

@@ -73,7 +73,7 @@ class Navigation:
         now, plan = self.context.clock.now(), self.plan
         return self.context.state == FlightState.ALIGNING or self.parallax.active \
             or self.backoff.active or on_glide(plan, PARALLAX_REASON, now) \
-            or on_glide(plan, BACKOFF_REASON, now) or braking_to_turn(plan)
+            or on_glide(plan, BACKOFF_REASON, now) or braking_to_turn(plan, now)
 
     def stop_plan(self, reason: str) -> Plan | None:
         """The stop checked at the last planning round while it lasts (braking from the
