@@ -182,16 +182,13 @@ def _load(document: tuple[dict[str, Any], str] | None, overrides: Sequence[str])
 
 
 def _check_across_tables(config: Config, settings: _Settings) -> None:
-    """The rules that join two tables; ConfigError naming the source that set the first of
-    the two keys (the other's when the first is the default)."""
+    """The rules that join two tables; ConfigError naming the source of the non-default key
+    (``clamp`` is never the default)."""
     if config.rescale.extrapolation == "clamp" and config.planner.near_tail_share > 0.0:
-        sources = [settings.get(section, {}).get(key, (None, ""))[1]
-                   for section, key in (("rescale", "extrapolation"),
-                                        ("planner", "near_tail_share"))]
         raise ConfigError(
-            sources[0] or sources[1], "a clamped tail reads every pixel nearer than the "
-            "nearest landmark at that landmark's depth, which the planner's near tail would "
-            "fly on: set planner.near_tail_share = 0 with it", "rescale.extrapolation")
+            settings["rescale"]["extrapolation"][1], "a clamped tail reads every pixel nearer "
+            "than the nearest landmark at that landmark's depth, which the planner's near tail "
+            "would fly on: set planner.near_tail_share = 0 with it", "rescale.extrapolation")
 
 
 def _read_toml(path: Path) -> dict[str, Any]:

@@ -185,6 +185,14 @@ def test_an_ignored_gyro_alignment_file_is_learned_again_and_replaced(tmp_path, 
     assert start_from_learned(_alignment_config(tmp_path)).vins.gyro_alignment == COLUMN
 
 
+def test_a_file_that_cannot_be_written_is_named_and_the_flight_goes_on(tmp_path, caplog):
+    (tmp_path / "gyro.json").mkdir()  # ignored as unreadable, and not replaceable
+    started = start_from_learned(_alignment_config(tmp_path))
+    assert keep_learned(started, _alignment_summary(), NOW) == []
+    assert f"could not keep the learned calibration in {tmp_path / 'gyro.json'}" in caplog.text
+    assert not list(tmp_path.glob("*.partial"))
+
+
 def test_a_gyro_alignment_learned_with_another_camera_is_not_used(tmp_path, caplog):
     keep_learned(_alignment_config(tmp_path, "vins.estimate_gyro_alignment=true"),
                  _alignment_summary(), NOW)

@@ -195,9 +195,9 @@ def test_low_confidence_nearer_than_a_confident_depth_counts_as_that_depth():
 
 def test_low_confidence_nearer_than_every_confident_depth_counts_as_a_share_of_itself():
     """The rescaling's near tail (no landmark that near) reads as ``near_tail_share`` of its
-    depth: the unsure floor 4 m below the view, nearer than the confident wall, counts as 2 m
-    at half, which leaves the sphere 0.5 m ahead free (L + R = 1.5 m), and as 1.2 m at 0.3,
-    which does not."""
+    depth: the unsure patch at 4 m, nearer than the confident wall, counts as 2 m at half,
+    which leaves the sphere 0.5 m ahead free (L + R = 1.5 m), and as 1.2 m at 0.3, which does
+    not."""
     T_W_C, start = camera_pose(body()), np.array([0.0, 0.0, ALTITUDE])
     near = [[0.5, 0.0, ALTITUDE]]
     depth = np.full((CAMERA.height, CAMERA.width), 6.0, np.float32)  # a wall, confident

@@ -39,7 +39,7 @@ was used.
 
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
-no such stop, braking from the present velocity, which the following rounds continue in the
+no such stop (none yet, or a glide since), braking from the present velocity, which the following rounds continue in the
 same way. A stop that has come to rest goes on holding its end point (the application steers
 toward the plan's position) while the vehicle is within a robot radius of it; farther off, a
 new braking begins where the vehicle is.

@@ -30,6 +30,7 @@ replaced atomically, so a reader sees the old file or the new one.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -122,7 +123,9 @@ def _keep_offset(config, offset: dict | None, saved: str) -> Path | None:
     path = learned_offset_path(config)
     if path is None or offset is None or not offset["estimated"] or offset["sigma_s"] is None:
         return None
-    _write(path, config, {"offset_s": offset["seconds"], "sigma_s": offset["sigma_s"]}, saved)
+    if not _write(path, config, {"offset_s": offset["seconds"], "sigma_s": offset["sigma_s"]},
+                  saved):
+        return None
     log.info("kept the camera-IMU time offset %.1f ms for the next flight (%s)",
              1e3 * offset["seconds"], path)
     return path
@@ -133,8 +136,10 @@ def _keep_alignment(config, alignment: dict | None, saved: str) -> Path | None:
     if path is None or alignment is None or not alignment["pairs"] or max(
             alignment["sigma"]) > KEEP_ALIGNMENT_SHARE * config.vins.gyro_cross_axis_sigma:
         return None
-    _write(path, config, {"gyro_alignment": list(alignment["column"]),
-                          "sigma": list(alignment["sigma"]), "pairs": alignment["pairs"]}, saved)
+    if not _write(path, config, {"gyro_alignment": list(alignment["column"]),
+                                 "sigma": list(alignment["sigma"]), "pairs": alignment["pairs"]},
+                  saved):
+        return None
     log.info("kept the gyro's yaw response %s for the next flight (%s)",
              _column_text(alignment["column"]), path)
     return path
@@ -158,11 +163,20 @@ def _learned(config, path: Path | None, what: str, field: str, value_from):
         return None
 
 
-def _write(path: Path, config, values: dict, saved: str) -> None:
+def _write(path: Path, config, values: dict, saved: str) -> bool:
+    """Replace the file at ``path`` with ``values``; False, with a warning, when it cannot be
+    written (a directory there, a read-only disk): the flight's summary still comes."""
     record = {"format": FORMAT, "camera": camera_identity(config), **values, "saved": saved}
     partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(record, indent=1) + "\n")
-    os.replace(partial, path)  # a reader sees the old file or the new one, never half of one
+    try:
+        partial.write_text(json.dumps(record, indent=1) + "\n")
+        os.replace(partial, path)  # a reader sees the old file or the new one, never half of one
+    except OSError as error:
+        log.warning("could not keep the learned calibration in %s: %s", path, error)
+        with contextlib.suppress(OSError):
+            partial.unlink(missing_ok=True)
+        return False
+    return True
 
 
 def _read(path: Path, camera: str) -> dict:
