@@ -688,27 +688,8 @@ def test_an_approach_glides_straight_to_rest_over_its_goal(distance):
 
 def test_an_approach_through_a_wall_is_refused():
     planner = planner_seeing([((1.5, -50, -50), (2.0, 50, 50))])
-    checked = planner.plan(0.0, body(), FORWARD, AHEAD)  # a stop is checked, whatever it is
     assert planner.approach(1.0, body(), np.array([2.5, 0.0, ALTITUDE])) is None
     assert planner.approach(1.0, body(), body()[:3, 3]) is None  # already there
-    # a refused approach leaves the stop checked before it to the failsafes
-    assert planner.stop_plan(0.05, body(), FORWARD, "vins lost").t == checked.t
-
-
-def test_after_a_glide_a_failsafe_brakes_where_the_vehicle_is():
-    """A glide (a parallax move, a backing-off) takes the vehicle away from where the last
-    round checked its stop; that stop, continued, would fly it back there."""
-    planner = planner_seeing(ROOM)
-    arc = planner.plan(0.0, body(), FORWARD, AHEAD)
-    assert arc.kind == "arc"
-    back = body(x=-0.8)  # gliding back along its trail
-    glide = planner.glide(0.5, back, np.array([-1.3, 0.0, ALTITUDE]), "backing off")
-    assert glide is not None
-    stop = planner.stop_plan(0.6, back, np.array([-0.3, 0.0, 0.0]), "no metric depth")
-    assert stop.t == 0.6 and stop.reason == "no metric depth"
-    np.testing.assert_allclose(stop.T_W_S[:3, 3], back[:3, 3])
-    rest = stop.setpoint(stop.end_time + 1.0).position_W
-    assert -1.2 < rest[0] < -0.8 and abs(rest[1]) < 1e-9  # braked on, not back toward x = 0
 
 
 def test_the_chosen_primitives_stop_branch_was_checked_free():

@@ -39,7 +39,7 @@ was used.
 
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
-no such stop (none yet, or a glide since), braking from the present velocity, which the following rounds continue in the
+no such stop, braking from the present velocity, which the following rounds continue in the
 same way. A stop that has come to rest goes on holding its end point (the application steers
 toward the plan's position) while the vehicle is within a robot radius of it; farther off, a
 new braking begins where the vehicle is.
@@ -342,7 +342,7 @@ class Planner:
         and braking); None when unsafe. For stopping at a corner or the goal precisely, where
         a narrow passage leaves no room to be off its axis, and the arcs cannot stop on a
         point."""
-        plan = self._glide(t, T_W_B, goal_W, APPROACH_REASON)
+        plan = self.glide(t, T_W_B, goal_W, APPROACH_REASON)
         if plan is None:
             return None
         start = plan.T_W_S[:3, 3]
@@ -356,21 +356,12 @@ class Planner:
         return plan
 
     def glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
-        """:meth:`_glide`, unchecked, over ground the caller chose (the flown trail). It
-        forgets the stop checked before it, which belongs to a place the vehicle glides away
-        from (continued after a parallax glide and a turn, it sent a realistic mine flight,
-        seed 1, pair 0, estimated depth, ``near_tail_share`` 0.9, back toward that place, 0.9
-        m off): until the next round checks one, a stop brakes where the vehicle is."""
-        self._checked_stop = None
-        return self._glide(t, T_W_B, goal_W, reason)
-
-    def _glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
         """A straight glide from the body at ``T_W_B`` (at rest) to come to rest at
         ``goal_W``, heading held: horizontally at no more than the slowest tier's speed ``u``,
         cruise then brake over ``stop_duration_s`` (``u T / 2``), slower when the goal is
         nearer than that; vertically at the constant rate ``c`` (then braking with the rest)
         that ends at the goal's height, at most ``max_vertical_speed``. None when already
-        there."""
+        there. Unchecked: :meth:`approach` checks it."""
         t = _finite_time(t)
         T_W_B = as_pose(T_W_B, "T_W_B")
         start = T_W_B[:3, 3]
