@@ -13,7 +13,7 @@ from autonomy.geometry import PinholeCamera, make_pose, rot_z
 from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, PARALLAX_WAIT_S,
                                             TURN_STOP_REASON, Backoff, Blocked, NoPathClock,
                                             ParallaxGlide, Step, approach_targets,
-                                            braking_to_turn, facing, must_turn, still_turning,
+                                            facing, must_turn, on_glide, still_turning,
                                             turn_rate)
 from autonomy.navigation.failsafes import BlindClock, Vitals, failsafe_reason, vins_problem
 from autonomy.navigation.mission import FlightOptions, FlightState, Mission
@@ -142,13 +142,13 @@ def test_only_the_stop_before_a_turn_counts_as_braking_to_turn(planner):
     checked at the last round); a stop for any other reason is not it."""
     T_W_B, velocity = make_pose(np.eye(3), [0.0, 0.0, 1.5]), np.array([1.0, 0.0, 0.0])
     turn_stop = planner.stop_plan(0.0, T_W_B, velocity, TURN_STOP_REASON)
-    assert braking_to_turn(turn_stop, 0.5)
-    assert not braking_to_turn(turn_stop, turn_stop.end_time)  # run out: no longer waits
-    assert not braking_to_turn(planner.stop_plan(0.0, T_W_B, velocity, "no safe primitive"),
-                               0.5)
-    assert not braking_to_turn(planner.glide(0.0, T_W_B, np.array([1.0, 0.0, 1.5]),
-                                             PARALLAX_REASON), 0.5)
-    assert not braking_to_turn(None, 0.5)
+    assert on_glide(turn_stop, TURN_STOP_REASON, 0.5)
+    assert not on_glide(turn_stop, TURN_STOP_REASON, turn_stop.end_time)  # run out
+    assert not on_glide(planner.stop_plan(0.0, T_W_B, velocity, "no safe primitive"),
+                        TURN_STOP_REASON, 0.5)
+    assert not on_glide(planner.glide(0.0, T_W_B, np.array([1.0, 0.0, 1.5]), PARALLAX_REASON),
+                        TURN_STOP_REASON, 0.5)
+    assert not on_glide(None, TURN_STOP_REASON, 0.5)
 
 
 def test_a_turn_in_place_turns_toward_the_waypoint_until_within_align_done():

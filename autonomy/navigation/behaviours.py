@@ -33,23 +33,19 @@ PARALLAX_WAIT_S = 0.3
 #: The reasons the glides' plans carry (what the failsafe checks and the logs read).
 PARALLAX_REASON = "gliding for parallax"
 BACKOFF_REASON = "backing off along the trail"
-#: The reason of the stop a corner's turn begins with: the stop checked at the last round.
+#: The reason of the stop a corner's turn begins with. It brakes on the stop the last
+#: planning round checked (or from the present velocity where none is left), so it needs no
+#: new depth: while it lasts (:func:`on_glide`) the staleness failsafe waits, as it does
+#: through the turn and the glides after it (a turn in the dome's open space can leave the view
+#: without landmarks before the vehicle is at rest); once it has run out, it no longer waits
+#: for a vehicle that does not come to rest.
 TURN_STOP_REASON = "stopping to turn to the next waypoint"
 
 
 def on_glide(plan, reason: str, now: float) -> bool:
-    """Is ``plan`` a glide for ``reason`` that has not come to rest by ``now``?"""
+    """Is ``plan`` a glide (or the turn's stop) for ``reason`` that has not come to rest by
+    ``now``?"""
     return plan is not None and plan.reason == reason and now < plan.end_time
-
-
-def braking_to_turn(plan, now: float) -> bool:
-    """Is ``plan`` the stop before a turn in place, not yet at rest by ``now``? It brakes on
-    the stop the last planning round checked (or from the present velocity where none is
-    left), so it needs no new depth: the staleness failsafe waits, as it does through the turn
-    and the glides after it (a turn in the dome's open space can leave the view without
-    landmarks before the vehicle is at rest). Once the stop has run out, the failsafe no
-    longer waits for a vehicle that does not come to rest."""
-    return plan is not None and plan.reason == TURN_STOP_REASON and now < plan.end_time
 
 
 def must_turn(corner_pending: bool, heading_error: float, plan, options) -> bool:

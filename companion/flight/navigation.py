@@ -19,8 +19,8 @@ import numpy as np
 from autonomy.messages import Odometry
 from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, TURN_STOP_REASON,
                                             Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
-                                            approach_targets, braking_to_turn, must_turn,
-                                            on_glide, still_turning)
+                                            approach_targets, must_turn, on_glide,
+                                            still_turning)
 from autonomy.navigation.failsafes import age
 from autonomy.navigation.mission import FlightState
 from autonomy.navigation.route import Route, heading_error
@@ -73,7 +73,7 @@ class Navigation:
         now, plan = self.context.clock.now(), self.plan
         return self.context.state == FlightState.ALIGNING or self.parallax.active \
             or self.backoff.active or on_glide(plan, PARALLAX_REASON, now) \
-            or on_glide(plan, BACKOFF_REASON, now) or braking_to_turn(plan, now)
+            or on_glide(plan, BACKOFF_REASON, now) or on_glide(plan, TURN_STOP_REASON, now)
 
     def stop_plan(self, reason: str) -> Plan | None:
         """The stop checked at the last planning round while it lasts (braking from the
