@@ -1,4 +1,8 @@
-"""`companion sim serve` as a user runs it: it says where to connect, and refuses bad links."""
+"""`companion sim serve` and `sim fly` as a user runs them: they say where to connect, refuse
+bad links and missions, and warn of a realistic vehicle flown without its estimates."""
+
+import logging
+from pathlib import Path
 
 from companion.cli import main
 
@@ -54,3 +58,32 @@ def test_sim_fly_refuses_truth_tracks_through_the_realistic_camera(capsys):
         "sim fly: truth tracks need the ideal profile ([sim] profile = \"ideal\")")
     assert main(["sim", "fly", "--tracks", "oracle"]) == 2
     assert "invalid choice: 'oracle' (choose from 'tracker', 'truth')" in capsys.readouterr().err
+
+
+def test_sim_fly_names_the_realistic_vehicles_errors_its_vins_does_not_estimate(caplog):
+    """A realistic vehicle flown without the estimates every real vehicle's configuration runs
+    gets a warning naming them and the preset that runs them; the preset and the ideal profile
+    get none. (Each flight stops at once on a camera the simulator cannot render.)"""
+    preset = str(Path(__file__).resolve().parent.parent / "config" / "sim-realistic.toml")
+    cannot_render = ["--set", "camera.calibration=device", "--no-plot", "--no-record"]
+    flights = {
+        "time offset": ["--set", "sim.profile=realistic"],
+        "gyro": ["--set", "sim.profile=realistic", "--set", "vins.estimate_time_offset=true"],
+        "preset": ["--config", preset],
+        "carried column": ["--config", preset, "--set", "vins.estimate_gyro_alignment=false",
+                           "--set", "vins.gyro_alignment=[0.01, 0.0, 0.0]"],
+        "ideal": [],
+    }
+    warned = {}
+    for flight, argv in flights.items():
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="companion.launch.simulated"):
+            assert main(["sim", "fly", *argv, *cannot_render]) == 1
+        warned[flight] = " ".join(r.getMessage() for r in caplog.records
+                                  if r.name == "companion.launch.simulated")
+    assert "estimate_time_offset" in warned["time offset"]
+    assert "estimate_gyro_alignment" in warned["time offset"]
+    assert "estimate_time_offset" not in warned["gyro"]
+    assert "estimate_gyro_alignment" in warned["gyro"]
+    assert "config/sim-realistic.toml" in warned["gyro"]
+    assert warned["preset"] == warned["carried column"] == warned["ideal"] == ""

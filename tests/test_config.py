@@ -291,3 +291,25 @@ def test_vehicle_presets_pass_config_check_and_fly_their_camera_over_serial(pres
     assert config.mavlink.signing_key_file == "mavlink-signing.key"  # signing on
     assert config.mavlink.signing_key == ""  # the key itself never in the file
     assert config.go.required
+
+
+def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys, tmp_path,
+                                                                          monkeypatch):
+    """config/sim-realistic.toml flies the simulator's realistic vehicle as the Orin presets fly
+    a real one: valid, the realistic profile, the camera's time offset estimated as the presets
+    estimate it, and the gyro's yaw response estimated as a preset's first flight (no column
+    kept yet) estimates it (docs/operations.md, section 6)."""
+    from companion.cli import main
+    from companion.launch.learned_calibration import start_from_learned
+
+    path = SIM_TOML.parent / "sim-realistic.toml"
+    assert main(["config", "check", str(path)]) == 0
+    assert capsys.readouterr().out.strip() == f"{path}: ok"
+    realistic = load_config(path)
+    assert realistic.sim.profile == "realistic"
+    monkeypatch.chdir(tmp_path)  # where the presets' learned files are not (yet)
+    for preset in ("orin-d455.toml", "orin-oak.toml"):
+        first_flight = start_from_learned(load_config(SIM_TOML.parent / preset)).vins
+        assert realistic.vins.estimate_time_offset == first_flight.estimate_time_offset is True
+        assert realistic.vins.estimate_gyro_alignment == first_flight.estimate_gyro_alignment \
+            is True

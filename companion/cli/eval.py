@@ -187,6 +187,7 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
     from companion.tools.eval import depth, provenance, rescale
     from companion.tools.eval.vio import EvaluationError
 
+    _warn_of_unestimated_errors("eval rescale", config)
     seed = config.sim.seed if args.seed is None else args.seed
     try:
         result = rescale.evaluate_rescaling(
@@ -208,6 +209,15 @@ def _eval_rescale(args: argparse.Namespace, config: Config) -> int:
                          rescale.format_markdown(result, seed=seed),
                          (args.plot, lambda path: rescale.plot_absrel(
                              result, path, seed=seed, revision=provenance.code_revision())))
+
+
+def _warn_of_unestimated_errors(command: str, config: Config) -> None:
+    """Once, before the trials: their workers log errors only."""
+    from companion.launch.simulated import realistic_errors_not_estimated
+
+    unestimated = realistic_errors_not_estimated(config)
+    if unestimated:
+        print(f"{command}: warning: {unestimated}", file=sys.stderr)
 
 
 def _eval_nav(args: argparse.Namespace, config: Config) -> int:
@@ -262,6 +272,7 @@ def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> lis
             print(f"eval nav: {note}", file=sys.stderr)
         nav.write_runs(done, args.resume)  # without the torn line, before adding to it
 
+    _warn_of_unestimated_errors("eval nav", config)
     seed = config.sim.seed if args.seed is None else args.seed
     timeout = nav.TIMEOUT_S if args.timeout is None else args.timeout
     worlds, pairs, trials = args.worlds or list(WORLD_NAMES), args.pairs, args.trials or nav.TRIALS

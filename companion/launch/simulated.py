@@ -85,6 +85,9 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
         raise SimError(f"link must be one of {', '.join(LINKS)}, got {mission.link!r}")
     for table in (config.mavlink, config.px4):
         load_key(table)  # a key that cannot be used stops here, before the simulator starts
+    unestimated = realistic_errors_not_estimated(config)
+    if unestimated:
+        log.warning("%s", unestimated)
     camera = config.camera
     if camera.calibration != "config" or camera.distortion_model != "none":
         raise SimError("the simulator renders an ideal pinhole camera: [camera] calibration "
@@ -99,6 +102,26 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     # 370 MB more after nine (`companion sim soak`, docs/reliability.md).
     gc.collect()
     return summary
+
+
+def realistic_errors_not_estimated(config) -> str:
+    """What of the realistic vehicle's errors the configured VINS leaves unestimated, which a
+    real vehicle's configuration estimates ("" when none, or on the ideal profile): the
+    camera's time offset (the Orin presets' ``estimate_time_offset``) and the gyro's yaw
+    response (their first flight's ``estimate_gyro_alignment``, carried after it)."""
+    vins = config.vins
+    if config.sim.profile != "realistic":
+        return ""
+    missing = [what for what, estimated in (
+        ("the camera's time offset ([vins] estimate_time_offset)", vins.estimate_time_offset),
+        ("the gyro's yaw response ([vins] estimate_gyro_alignment or gyro_alignment)",
+         vins.estimate_gyro_alignment or any(vins.gyro_alignment)))
+        if not estimated]
+    if not missing:
+        return ""
+    return (f"the realistic profile's vehicle is flown without estimating {' or '.join(missing)}"
+            ", as no real vehicle's configuration flies: its errors are then the VINS's; "
+            "--config config/sim-realistic.toml flies it as the Orin presets do")
 
 
 async def fly(config, mission: SimMission, *, plot: Path | None = None,
