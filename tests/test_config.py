@@ -297,8 +297,8 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
                                                                           monkeypatch):
     """config/sim-realistic.toml flies the simulator's realistic vehicle as the Orin presets fly
     a real one: valid, the realistic profile, the camera's time offset estimated as the presets
-    estimate it, and the gyro's yaw response estimated as a preset's first flight (no column
-    kept yet) estimates it (docs/operations.md, section 6)."""
+    estimate it, the gyro's yaw response estimated as a preset's first flight (no column kept
+    yet) estimates it (docs/operations.md, section 6), and the near tail counted as theirs."""
     from companion.cli import main
     from companion.launch.learned_calibration import start_from_learned
 
@@ -313,3 +313,5 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
         assert realistic.vins.estimate_time_offset == first_flight.estimate_time_offset is True
         assert realistic.vins.estimate_gyro_alignment == first_flight.estimate_gyro_alignment \
             is True
+        planner = load_config(SIM_TOML.parent / preset).planner
+        assert realistic.planner.near_tail_share == planner.near_tail_share > 0.0

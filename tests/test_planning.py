@@ -213,6 +213,27 @@ def test_low_confidence_nearer_than_every_confident_depth_counts_as_a_share_of_i
     assert not verdicts[0.3].free.any() and verdicts[0.3].occupied.all()
 
 
+def test_a_thin_pole_nearer_than_every_landmark_is_kept_only_by_the_near_tail():
+    """A realistic dome flight's collision (docs/results.md, "The gyro's yaw response in
+    navigation"): the network saw a thin pole ahead, but nearer than every landmark, so with
+    no confident depth. As unknown it is a small hole, which takes the range of the wall
+    around it (``fill_small_holes``), and the arc through it is free; as 0.9 of its depth it
+    is occupied."""
+    wall = ((8.0, -50.0, -50.0), (9.0, 50.0, 50.0))
+    pole = ((3.95, -0.05, -50.0), (4.05, 0.05, 50.0))
+    T_W_C = camera_pose(body(x=1.5))
+    depth = render(T_W_C, [pole, wall])
+    confidence = np.where(depth < 5.0, 0.1, 1.0).astype(np.float32)  # landmarks on the wall
+    at_the_pole = [[4.0, 0.0, ALTITUDE]]
+    verdicts = {}
+    for share in (0.0, 0.9):
+        history = DepthHistory(near_tail_share=share)
+        history.add(depth, confidence, T_W_C, CAMERA, 0.0)
+        verdicts[share] = history.check(at_the_pole)
+    assert verdicts[0.0].free[0]
+    assert verdicts[0.9].occupied[0] and not verdicts[0.9].free[0]
+
+
 @pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
 def test_a_near_tail_share_outside_0_to_1_is_refused(share):
     with pytest.raises(ValueError, match="near_tail_share must be in"):
