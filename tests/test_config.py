@@ -309,9 +309,9 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
     assert realistic.sim.profile == "realistic"
     monkeypatch.chdir(tmp_path)  # where the presets' learned files are not (yet)
     for preset in ("orin-d455.toml", "orin-oak.toml"):
-        first_flight = start_from_learned(load_config(SIM_TOML.parent / preset)).vins
+        vehicle = load_config(SIM_TOML.parent / preset)
+        first_flight = start_from_learned(vehicle).vins
         assert realistic.vins.estimate_time_offset == first_flight.estimate_time_offset is True
         assert realistic.vins.estimate_gyro_alignment == first_flight.estimate_gyro_alignment \
             is True
-        planner = load_config(SIM_TOML.parent / preset).planner
-        assert realistic.planner.near_tail_share == planner.near_tail_share > 0.0
+        assert realistic.planner.near_tail_share == vehicle.planner.near_tail_share > 0.0

@@ -109,9 +109,9 @@ def realistic_errors_not_estimated(config) -> str:
     real vehicle's configuration estimates ("" when none, or on the ideal profile): the
     camera's time offset (the Orin presets' ``estimate_time_offset``) and the gyro's yaw
     response (their first flight's ``estimate_gyro_alignment``, carried after it)."""
-    vins = config.vins
     if config.sim.profile != "realistic":
         return ""
+    vins = config.vins
     missing = [what for what, estimated in (
         ("the camera's time offset ([vins] estimate_time_offset)", vins.estimate_time_offset),
         ("the gyro's yaw response ([vins] estimate_gyro_alignment or gyro_alignment)",
