@@ -57,9 +57,10 @@ re-evaluating the rotations exactly at each iterate. ``H`` is the window's rotat
 excitation. Consecutive pairs overlap (a pair spans ``time_offset_pair_s``, a new one starts
 every frame), so each pair's information is scaled by the frame interval over the pair's
 interval, and each pair's covariance has a floor (:data:`ROTATION_SIGMA_FLOOR`) for what the
-pixels' scatter does not show. Measured on four simulated 40 s flights with offsets of -15, 0
-and 15 ms, the windows with ``sigma`` under 1 ms were off by under ``1.8 sigma`` in 95 % of cases
-and ``2.8 sigma`` at worst.
+pixels' scatter does not show. Measured on four simulated 40 s flights of the ideal profile with
+offsets of -15, 0 and 15 ms, the windows with ``sigma`` under 1 ms were off by under
+``1.8 sigma`` in 95 % of cases and ``2.8 sigma`` at worst; on twelve realistic recordings (the
+gyro's and the mounting's errors, which the model leaves out) by ``1.4-5.3 sigma`` (docs/vins.md).
 
 **The estimate in use.** A window becomes the *target* when its ``sigma`` is below
 ``time_offset_max_sigma_s`` (the motion showed the offset), its solution within
