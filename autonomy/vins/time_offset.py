@@ -42,7 +42,7 @@ Each end's ``omega`` is the mean rate over :data:`RATE_SPAN_S` around it, the se
 vibration, which the camera does not see (in the realistic profile 0.145 rad/s at 122.5 Hz,
 aliased by the 200 Hz sampling to about 0.08 rad/s at 77.5 Hz: docs/simulator.md), as large as
 the change of rate a turn makes. Taken for motion it added to ``H`` information the pairs do not
-hold, so windows claimed a sigma of 0.3-0.9 ms while 3-7 ms off, and it shortened every
+hold, so windows claimed sigmas of 0.3-0.9 ms while up to 12 ms off, and it shortened every
 Gauss-Newton step by the same factor, so a window's solution stayed near its starting point,
 the previous estimate (docs/vins.md, "The time offset's windows and the rotors' vibration").
 
