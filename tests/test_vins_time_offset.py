@@ -187,7 +187,7 @@ def test_the_rotors_vibration_neither_biases_the_offset_nor_makes_it_overconfide
     """A gyro vibration the camera does not see (0.15 rad/s at 77.5 Hz, the realistic profile's
     rotors as the 200 Hz gyro aliases them, twice over for margin). Taken from one gyro sample
     as the rate at a pair's ends it passed for motion: 1.6-16 ms off with sigmas of 0.4-0.5 ms
-    here, and realistic recordings' windows 3-7 ms off (docs/vins.md). Averaged over
+    here, and realistic recordings' windows up to 12 ms off (docs/vins.md). Averaged over
     RATE_SPAN_S, a clear turn still gives the offset, and a gentle one gives no false claim."""
     _, offsets = _synthetic_flight(td, OPTIONS_ON, vibration=0.15)
     final = offsets[-1]
