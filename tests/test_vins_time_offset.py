@@ -22,7 +22,7 @@ from autonomy.vins import VinsOptions
 from autonomy.vins.time_offset import (
     TimeOffset, TimeOffsetEstimator, exp_so3, fit_rotation, log_so3,
 )
-from tests.time_offset_runs import run_vins_offset, shift_recording
+from tests.time_offset_runs import run_vins_offset, shift_recording, window_statistics
 
 SECONDS = 8.0  # the recording tests/test_vins_estimator.py flies (shared within a session)
 GOAL_S = 0.002  # issue 23: the offset recovered to within 2 ms
@@ -245,6 +245,17 @@ def test_a_hidden_offset_is_recovered_within_two_milliseconds(runs, td):
     assert run.sigmas[-1] < GOAL_S
     # the stamps are the recording's, the poses are at the corrected times
     np.testing.assert_allclose(np.array(run.exposures), stamps - offsets, atol=1e-12)
+
+
+@pytest.mark.parametrize("td", [0.015, -0.015])
+def test_the_windows_are_centred_on_the_hidden_offset(runs, td):
+    """Each excited window's own solution (one that may become the estimate's target) against
+    the hidden offset: their median within half the 2 ms goal. Their sigmas are not yet
+    honest: on this flight the median |z| is about 1.4 where 0.67 would be (docs/vins.md,
+    "The windows' statistics")."""
+    stats = window_statistics(runs[(td, "on")], td)
+    assert stats["windows_excited"] >= 20, stats
+    assert abs(stats["window_error_ms_median"]) < 0.5 * GOAL_S * 1e3, stats
 
 
 def test_without_an_offset_the_estimate_stays_near_zero(runs):

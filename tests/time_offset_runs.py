@@ -57,7 +57,8 @@ class OffsetRun:
     without a pose);
     ``backend_ms``: the time :meth:`Vins.add_frame` took on each keyframe, ``other_ms`` on
     each other frame; ``offset_ms``: per frame, ``(keyframe, ms)`` spent in the time-offset
-    estimator's frame work during it; ``offset_imu_s``: total time in its IMU work."""
+    estimator's frame work during it; ``offset_imu_s``: total time in its IMU work;
+    ``windows``: every window's own solution, ``(stamp, offset, sigma)`` in seconds."""
 
     stamps: list = field(default_factory=list)
     exposures: list = field(default_factory=list)
@@ -71,6 +72,7 @@ class OffsetRun:
     offset_ms: list = field(default_factory=list)
     offset_imu_s: float = 0.0
     imu_samples: int = 0
+    windows: list = field(default_factory=list)
     resets: int = 0
     vins: Vins | None = None
     data: object = None
@@ -134,12 +136,13 @@ def run_vins_offset(root: Path, options: VinsOptions, *,
 
 def _time_the_offset_estimator(vins: Vins, run: OffsetRun) -> list:
     """Wraps the estimator's methods (if any) to time them: returns the per-frame accumulator
-    of its frame work, seconds; its IMU work goes to ``run.offset_imu_s``."""
+    of its frame work, seconds; its IMU work goes to ``run.offset_imu_s``, and each window it
+    solves to ``run.windows``."""
     spent = [0.0]
     estimator = vins._offset_estimator
     if estimator is None:
         return spent
-    add_frame, add_imu = estimator.add_frame, estimator.add_imu
+    add_frame, add_imu, refit = estimator.add_frame, estimator.add_imu, estimator._refit
 
     def timed_frame(*args):
         start = time.perf_counter()
@@ -152,7 +155,12 @@ def _time_the_offset_estimator(vins: Vins, run: OffsetRun) -> list:
         run.offset_imu_s += time.perf_counter() - start
         run.imu_samples += 1
 
+    def traced_refit(stamp):
+        refit(stamp)
+        run.windows.append((stamp, estimator.window_offset, estimator.window_sigma))
+
     estimator.add_frame, estimator.add_imu = timed_frame, timed_imu
+    estimator._refit = traced_refit
     return spent
 
 
@@ -176,7 +184,27 @@ def summarise(run: OffsetRun, true_offset: float, until: float = 5.5) -> dict:
         "other_frame_ms_median": float(np.median(run.other_ms)),
         "other_frame_ms_p95": float(np.percentile(run.other_ms, 95)),
         **_offset_cost(run),
+        **window_statistics(run, true_offset),
     }
+
+
+def window_statistics(run: OffsetRun, true_offset: float) -> dict:
+    """How well the time-offset estimator's windows know the offset: over the excited ones
+    (``sigma`` within the estimator's ``time_offset_max_sigma_s``, those that may become its
+    target), their count, the median error (signed, ms), and the median and 95th percentile of
+    ``|z| = |offset - true| / sigma`` (about 0.67 and 1.96 when the sigmas are honest)."""
+    if not run.windows:
+        return {}
+    limit = run.vins.options.time_offset_max_sigma_s
+    excited = np.array([(td, sigma) for _, td, sigma in run.windows if sigma <= limit])
+    if len(excited) == 0:
+        return {"windows": len(run.windows), "windows_excited": 0}
+    error = excited[:, 0] - true_offset
+    z = np.abs(error) / excited[:, 1]
+    return {"windows": len(run.windows), "windows_excited": len(excited),
+            "window_error_ms_median": 1e3 * float(np.median(error)),
+            "window_z_median": float(np.median(z)),
+            "window_z_p95": float(np.percentile(z, 95))}
 
 
 def _offset_cost(run: OffsetRun) -> dict:
@@ -196,7 +224,9 @@ def _offset_cost(run: OffsetRun) -> dict:
 
 def main(argv=None) -> None:
     """``python -m tests.time_offset_runs DATASET --td-ms 15 [--estimate]``: the numbers of
-    docs/vins.md ("The camera-IMU time offset") for one recording, as JSON."""
+    docs/vins.md ("The camera-IMU time offset", and the windows' statistics of "The time
+    offset's windows and the rotors' vibration") for one recording, as JSON; ``--windows
+    FILE`` writes every window's solution there, one JSON line each."""
     import argparse
     import json
     import tempfile
@@ -210,6 +240,8 @@ def main(argv=None) -> None:
     parser.add_argument("--estimate", action="store_true", help="estimate_time_offset = true")
     parser.add_argument("--offset-ms", type=float, default=0.0,
                         help="time_offset_s: the fixed or starting offset, ms")
+    parser.add_argument("--windows", type=Path, default=None, metavar="FILE",
+                        help="write each window's stamp, offset and sigma (s, ms, ms) here")
     args = parser.parse_args(argv)
     options = VinsOptions(estimate_time_offset=args.estimate, time_offset_s=args.offset_ms * 1e-3)
     with tempfile.TemporaryDirectory() as folder:
@@ -217,6 +249,10 @@ def main(argv=None) -> None:
                 if args.td_ms else args.dataset)
         run = run_vins_offset(root, options)
     true = args.td_ms if args.true_ms is None else args.true_ms
+    if args.windows is not None:
+        args.windows.write_text("".join(
+            json.dumps({"stamp_s": stamp, "offset_ms": 1e3 * td, "sigma_ms": 1e3 * sigma}) + "\n"
+            for stamp, td, sigma in run.windows), encoding="ascii")
     print(json.dumps({"dataset": str(args.dataset), "td_ms": args.td_ms, "estimate": args.estimate,
                       "start_offset_ms": args.offset_ms, **summarise(run, true * 1e-3)}))
 
