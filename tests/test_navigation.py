@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import PinholeCamera, make_pose, rot_z
-from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, PARALLAX_WAIT_S,
-                                            TURN_STOP_REASON, Backoff, Blocked, NoPathClock,
-                                            ParallaxGlide, Step, approach_targets,
+from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX_REASON,
+                                            PARALLAX_WAIT_S, TURN_STOP_REASON, Backoff, Blocked,
+                                            NoPathClock, ParallaxGlide, Step, approach_targets,
                                             facing, must_turn, on_glide, still_turning,
                                             turn_rate)
 from autonomy.navigation.failsafes import BlindClock, Vitals, failsafe_reason, vins_problem
 from autonomy.navigation.mission import FlightOptions, FlightState, Mission
 from autonomy.navigation.route import Route, heading_error, stop_waypoints
 from autonomy.navigation.trail import Trail
-from autonomy.planning.planner import Planner, PlannerOptions
+from autonomy.planning.planner import Candidates, Planner, PlannerOptions
 from autonomy.vins.health import HealthState
 
 OPTIONS = FlightOptions()
@@ -224,6 +224,28 @@ def test_blocked_it_brakes_then_turns_once_then_backs_off_after_half_the_no_path
     assert not clock.expired(5.0, OPTIONS) and clock.expired(5.01, OPTIONS)
     clock.reset()
     assert clock.since is None and not clock.turned and not clock.expired(100.0, OPTIONS)
+
+
+def _candidates_blocked_on(planner, side: float) -> Candidates:
+    """The slowest tier, every arc turning to ``side`` (+1 left, -1 right) blocked."""
+    tier = planner.tiers[-1]
+    blocked = np.sign(tier.yaw_rates) == side
+    return Candidates(tier.speed, tier.library, np.zeros(len(blocked), bool), -1, blocked, 1.0)
+
+
+@pytest.mark.parametrize("blocked_side, first", [(-1.0, LOOK_ASIDE), (1.0, -LOOK_ASIDE)])
+def test_blocked_with_no_way_back_it_looks_to_the_freer_side_then_the_other(
+        planner, blocked_side, first):
+    clock = NoPathClock()
+    clock.blocked(0.0, True, 0.0, OPTIONS)
+    assert clock.look_aside(_candidates_blocked_on(planner, blocked_side)) == first
+    assert clock.aim == first and clock.since is None  # the look restarts the clock
+    assert clock.look_aside(None) == -first and clock.aim == -first
+    assert clock.look_aside(None) is None  # both sides seen: the failsafe is next
+    clock.blocked(9.0, True, 0.0, OPTIONS)
+    assert clock.expired(12.01, OPTIONS)
+    clock.reset()  # a safe plan: aimed at the waypoint again, both looks allowed again
+    assert clock.aim == 0.0 and clock.look_aside(None) == LOOK_ASIDE
 
 
 def test_backing_off_glides_along_the_trail_at_most_max_backoffs_times(planner):

@@ -12,7 +12,10 @@
 - **Blocked.** With no safe primitive, at rest: first one turn in place toward the waypoint (the
   arcs only turn while moving on), then, blocked for half the no-path time, backing off along
   the flown trail to see the place from farther back; at most ``max_backoffs`` times a
-  waypoint, then the no-path failsafe.
+  waypoint. With no way back left (none flown yet, as just after take-off, or the backings-off
+  spent), it looks aside: a turn in place to :data:`LOOK_ASIDE` off the waypoint's bearing,
+  the less blocked side first, then the other, for a view the arcs can turn into. Then the
+  no-path failsafe.
 
 Each is a small rule or state machine here; :mod:`companion.flight.navigation` runs them with
 the planner on its worker.
@@ -28,6 +31,11 @@ import numpy as np
 from autonomy.navigation.trail import Trail
 from autonomy.planning.planner import APPROACH_REASON
 
+#: Blocked with no way back: the angle off the waypoint's bearing looked at on each side. A
+#: pole dead ahead of the take-off (the dome's pair 4, seed 3) left every arc of a view aimed
+#: at the waypoint blocked or unseen; started 45 degrees to either side, the flight reached the
+#: goal.
+LOOK_ASIDE = math.radians(45.0)
 #: After a turn: how long without a fresh fit before the parallax glide starts, seconds.
 PARALLAX_WAIT_S = 0.3
 #: The reasons the glides' plans carry (what the failsafe checks and the logs read).
@@ -181,18 +189,22 @@ class Blocked(enum.Enum):
 
 
 class NoPathClock:
-    """How long the planner has found no safe primitive, and whether the one turn in place
-    toward the waypoint it allows has been made (both reset by a safe plan)."""
+    """How long the planner has found no safe primitive, whether the one turn in place toward
+    the waypoint it allows has been made, and the looks aside made (``aim``: the heading
+    aimed at, radians off the waypoint's bearing); all reset by a safe plan."""
 
     def __init__(self):
-        self.since: float | None = None
-        self.turned = False
+        self.reset()
 
     def reset(self) -> None:
-        self.since, self.turned = None, False
+        self.since: float | None = None
+        self.turned = False
+        self.looks: list[float] = []
+        self.aim = 0.0
 
     def blocked(self, now: float, stopped: bool, heading_error: float, options) -> Blocked:
-        """A stop round at ``now``: start the clock, and say what to do."""
+        """A stop round at ``now``: start the clock, and say what to do. ``heading_error``:
+        from the heading to the one aimed at."""
         self.since = self.since if self.since is not None else now
         if not stopped:
             return Blocked.WAIT
@@ -202,6 +214,30 @@ class NoPathClock:
         if now - self.since >= options.no_path_timeout_s / 2.0:
             return Blocked.BACK_OFF
         return Blocked.WAIT
+
+    def look_aside(self, candidates) -> float | None:
+        """With no way back: the next heading to look from (radians off the waypoint's
+        bearing, now :attr:`aim`; the clock starts again), or None when both sides have been
+        looked at. First the side whose arcs the last round found less blocked by observed
+        surfaces (``candidates``: its :class:`~autonomy.planning.planner.Candidates`, None:
+        left first), then the other."""
+        if len(self.looks) == 2:
+            return None
+        if not self.looks:
+            left = self._left_is_freer(candidates)
+            self.looks.append(LOOK_ASIDE if left else -LOOK_ASIDE)
+        else:
+            self.looks.append(-self.looks[0])
+        self.aim, self.since = self.looks[-1], None
+        return self.aim
+
+    @staticmethod
+    def _left_is_freer(candidates) -> bool:
+        if candidates is None:
+            return True
+        yaw_rates = np.array([p.yaw_rate for p in candidates.primitives])
+        blocked = np.asarray(candidates.blocked, dtype=bool)
+        return int(blocked[yaw_rates > 0.0].sum()) <= int(blocked[yaw_rates < 0.0].sum())
 
     def expired(self, now: float, options) -> bool:
         """Blocked for longer than ``no_path_timeout_s``: the failsafe."""

@@ -13,6 +13,7 @@ off. Decisions are autonomy's; this stage runs them and the planner (on its work
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 
@@ -53,12 +54,14 @@ class Navigation:
         return self.context.channels.plan.value
 
     def heading_error(self) -> float:
-        """Angle from the body's heading to the next waypoint, radians (0 without a state)."""
+        """Angle from the body's heading to the one aimed at, radians (0 without a state): the
+        next waypoint's bearing, or while blocked looking aside, that turned by the look."""
         c = self.context
         odometry = c.channels.odometry.value
         if odometry is None or c.T_L_W is None:
             return 0.0
-        return heading_error(odometry.T_W_B, self.route.next_W(c.T_L_W))
+        error = heading_error(odometry.T_W_B, self.route.next_W(c.T_L_W)) - self.no_path.aim
+        return math.atan2(math.sin(error), math.cos(error))
 
     def stopped(self) -> bool:
         odometry = self.context.channels.odometry.value
@@ -229,11 +232,25 @@ class Navigation:
         with the opening."""
         o = self.context.options
         if not self.backoff.start(self.trail, odometry.T_W_B[:3, 3], o):
+            self._look_aside()
             return
         self.context.stats.backoffs += 1
         self.no_path.reset()
         log.warning("no safe primitive; backing off %.1f m along the flown trail (%d of %d)",
                     o.backoff_distance, self.backoff.count, o.max_backoffs)
+
+    def _look_aside(self) -> None:
+        """Blocked at rest, facing the waypoint, with no way back: turn in place to look to one
+        side of it, then the other (:class:`NoPathClock`); after both, the no-path failsafe
+        comes."""
+        plan = self.plan
+        aim = self.no_path.look_aside(None if plan is None else plan.candidates)
+        if aim is None:
+            return
+        side = "left" if aim > 0.0 else "right"
+        self.context.go(FlightState.ALIGNING, f"no safe primitive and no way back; looking "
+                                              f"{math.degrees(abs(aim)):.0f} deg {side} of the "
+                                              f"waypoint")
 
     def _plan_with_stop(self, odometry: Odometry, goal_W: np.ndarray) -> tuple[Plan, Plan]:
         """This round's plan, and the braking branch it checked; on the planner's worker."""

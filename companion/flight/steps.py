@@ -178,7 +178,9 @@ class MissionSteps:
                 await self._after_stop(state)
         elif state == FlightState.ALIGNING and facing(self.navigation.heading_error(),
                                                       c.options):
-            c.go(FlightState.NAVIGATING, "facing the next waypoint")
+            looking = self.navigation.no_path.aim != 0.0
+            c.go(FlightState.NAVIGATING,
+                 "facing the look aside" if looking else "facing the next waypoint")
 
     async def _after_stop(self, state: FlightState) -> None:
         c = self.context
