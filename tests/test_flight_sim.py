@@ -64,7 +64,7 @@ def test_blocked_at_take_off_with_no_way_back_it_looks_aside_and_flies_on():
     along, the no-safe-primitive failsafe ended both depth sources' flights 3 s into
     navigation, 55 m from the goal (docs/results.md). Blocked for half the no-path time, the
     vehicle now turns 45 degrees to the side its arcs found less blocked and flies on (to the
-    goal in 36.5 s). A 15 s mission timeout cuts it short: the look is what is tested."""
+    goal in 36.3 s). A 15 s mission timeout cuts it short: the look is what is tested."""
     preset = Path(__file__).resolve().parent.parent / "config" / "sim-realistic.toml"
     config = load_config(preset, ["flight.mission_timeout_s=15"])
     summary = simulated.run(config, simulated.SimMission(world="dome", seed=3, pair=4,
