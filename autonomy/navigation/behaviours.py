@@ -33,8 +33,8 @@ from autonomy.planning.planner import APPROACH_REASON
 
 #: Blocked with no way back: the angle off the waypoint's bearing looked at on each side. A
 #: pole dead ahead of the take-off (the dome's pair 4, seed 3) left every arc of a view aimed
-#: at the waypoint blocked or unseen; started 45 degrees to either side, the flight reached the
-#: goal.
+#: at the waypoint blocked or unseen; looking 45 degrees left, both depth sources' flights
+#: reached the goal (docs/flight.md).
 LOOK_ASIDE = math.radians(45.0)
 #: After a turn: how long without a fresh fit before the parallax glide starts, seconds.
 PARALLAX_WAIT_S = 0.3

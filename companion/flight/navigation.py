@@ -229,7 +229,7 @@ class Navigation:
         """Blocked at rest and facing the waypoint: a dead end for forward arcs, such as a wall
         beside a door the arcs drifted past. Glide back ``backoff_distance`` along the flown
         trail, heading held, and plan again from there, where the arcs have room to line up
-        with the opening."""
+        with the opening. With no way back left, look aside instead."""
         o = self.context.options
         if not self.backoff.start(self.trail, odometry.T_W_B[:3, 3], o):
             self._look_aside()
