@@ -252,7 +252,7 @@ def test_the_windows_are_centred_on_the_hidden_offset(runs, td):
     """Each excited window's own solution (one that may become the estimate's target) against
     the hidden offset: their median within half the 2 ms goal. Their sigmas are not yet
     honest: on this flight the median |z| is about 1.4 where 0.67 would be (docs/vins.md,
-    "The windows' statistics")."""
+    "The camera-IMU time offset", "Measured")."""
     stats = window_statistics(runs[(td, "on")], td)
     assert stats["windows_excited"] >= 20, stats
     assert abs(stats["window_error_ms_median"]) < 0.5 * GOAL_S * 1e3, stats

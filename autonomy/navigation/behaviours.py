@@ -200,7 +200,11 @@ class NoPathClock:
         self.since: float | None = None
         self.turned = False
         self.looks: list[float] = []
-        self.aim = 0.0
+
+    @property
+    def aim(self) -> float:
+        """The heading aimed at, radians off the waypoint's bearing: the last look's, else 0."""
+        return self.looks[-1] if self.looks else 0.0
 
     def blocked(self, now: float, stopped: bool, heading_error: float, options) -> Blocked:
         """A stop round at ``now``: start the clock, and say what to do. ``heading_error``:
@@ -228,7 +232,7 @@ class NoPathClock:
             self.looks.append(LOOK_ASIDE if left else -LOOK_ASIDE)
         else:
             self.looks.append(-self.looks[0])
-        self.aim, self.since = self.looks[-1], None
+        self.since = None
         return self.aim
 
     @staticmethod

@@ -44,10 +44,11 @@ def to_world(T_L_W: np.ndarray, point_L) -> np.ndarray:
     return T_W_L[:3, :3] @ np.asarray(point_L, dtype=float) + T_W_L[:3, 3]
 
 
-def heading_error(T_W_B: np.ndarray, target_W: np.ndarray) -> float:
-    """Angle from the body's heading to ``target_W``, radians in (-pi, pi]."""
+def heading_error(T_W_B: np.ndarray, target_W: np.ndarray, turned: float = 0.0) -> float:
+    """Angle from the body's heading to the bearing of ``target_W`` turned by ``turned``
+    (radians, counter-clockwise), radians in (-pi, pi]."""
     to_target = target_W - T_W_B[:3, 3]
-    error = math.atan2(to_target[1], to_target[0]) - yaw_of(T_W_B[:3, :3])
+    error = math.atan2(to_target[1], to_target[0]) + turned - yaw_of(T_W_B[:3, :3])
     return math.atan2(math.sin(error), math.cos(error))
 
 

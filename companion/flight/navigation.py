@@ -60,8 +60,7 @@ class Navigation:
         odometry = c.channels.odometry.value
         if odometry is None or c.T_L_W is None:
             return 0.0
-        error = heading_error(odometry.T_W_B, self.route.next_W(c.T_L_W)) - self.no_path.aim
-        return math.atan2(math.sin(error), math.cos(error))
+        return heading_error(odometry.T_W_B, self.route.next_W(c.T_L_W), self.no_path.aim)
 
     def stopped(self) -> bool:
         odometry = self.context.channels.odometry.value
