@@ -68,3 +68,24 @@ class SimClock:
     def next_deadline(self) -> float | None:
         """The earliest time a sleeper waits for, or None when nobody sleeps."""
         return self._sleepers[0][0] if self._sleepers else None
+
+
+class Rate:
+    """A loop's fixed rate on ``clock``: :meth:`sleep` returns ``period_s`` after the previous
+    round began, so the work a round does (a planning round's compute, charged to simulated
+    time in lockstep) comes out of the period instead of being added to it. A round that
+    overruns its period is followed by the next at once, and the schedule starts again from
+    there: no burst of rounds to catch up."""
+
+    def __init__(self, clock: Clock, period_s: float):
+        if not period_s > 0.0:
+            raise ValueError(f"a rate's period must be positive seconds, got {period_s!r}")
+        self._clock, self.period_s = clock, float(period_s)
+        self._due = clock.now()  # the first round begins as the rate is made
+
+    async def sleep(self) -> None:
+        """Wait until the next round is due: one period after the last one was due, or now
+        when that has passed."""
+        now = self._clock.now()
+        self._due = max(self._due + self.period_s, now)
+        await self._clock.sleep(self._due - now)

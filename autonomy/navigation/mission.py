@@ -47,7 +47,7 @@ class FlightOptions:
                                      doc="height difference a reached goal may have (the "
                                          "tolerances above are horizontal), metres")
     corner_turn_deg: float = option(
-        30.0, gt=0.0, le=180.0,
+        60.0, gt=0.0, le=180.0,
         doc="a waypoint where the route turns by more than this is a corner: approached "
             "slowly, stopped at, and the next leg faced in place, degrees")
     corner_tolerance: float = option(0.5, gt=0.0, le=5.0,
@@ -64,7 +64,7 @@ class FlightOptions:
     max_backoffs: int = option(2, ge=0, le=10,
                                doc="backings-off per waypoint before the no-path failsafe")
     align_threshold_deg: float = option(
-        60.0, gt=0.0, le=180.0,
+        90.0, gt=0.0, le=180.0,
         doc="heading error to the next waypoint that makes the vehicle turn in place first, "
             "degrees")
     align_done_deg: float = option(15.0, gt=0.0, le=90.0,

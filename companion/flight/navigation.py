@@ -1,7 +1,8 @@
-"""Navigation: every ``[planner] period_s``, the route's next waypoint, the behaviours at
-corners and dead ends (:mod:`autonomy.navigation.behaviours`) and the planner's arcs, on the
-newest VINS state; the plan goes out on the ``plan`` channel, the braking branch it checked
-on ``checked_stop`` (the watchdog's fallback).
+"""Navigation: every ``[planner] period_s`` (a fixed rate: a round's compute comes out of the
+period, not on top of it), the route's next waypoint, the behaviours at corners and dead ends
+(:mod:`autonomy.navigation.behaviours`) and the planner's arcs, on the newest VINS state; the
+plan goes out on the ``plan`` channel, the braking branch it checked on ``checked_stop`` (the
+watchdog's fallback).
 
 A round (docs/flight.md): record the trail; pass waypoints or reach the goal; then the first
 behaviour that applies: backing off along the trail, turning at a corner, the parallax glide
@@ -29,6 +30,7 @@ from autonomy.navigation.trail import Trail
 from autonomy.planning.planner import Plan, Planner
 from companion.flight.context import FlightContext
 from companion.flight.perception import Perception
+from drivers.clock import Rate
 
 log = logging.getLogger(__name__)
 
@@ -93,13 +95,13 @@ class Navigation:
 
     async def run(self) -> None:
         c = self.context
-        period = self.planner.options.period_s
+        rate = Rate(c.clock, self.planner.options.period_s)
         while True:
             if c.state == FlightState.NAVIGATING:
                 await self._round()
             elif c.state in CLIMBING_STATES:
                 await self._record_climb()
-            await c.clock.sleep(period)
+            await rate.sleep()
 
     async def _record_climb(self) -> None:
         """Keep the take-off column in the trail: the first turn, toward the first waypoint,
