@@ -128,8 +128,9 @@ def test_no_way_back_shorter_than_one_glide():
 
 def test_a_passed_corner_or_a_waypoint_far_off_the_heading_makes_the_vehicle_turn(planner):
     assert must_turn(True, 0.0, None, OPTIONS)
-    assert not must_turn(False, math.radians(59.0), None, OPTIONS)
-    assert must_turn(False, math.radians(61.0), None, OPTIONS)
+    threshold = OPTIONS.align_threshold_deg  # 90 degrees: nearer the heading, the arcs turn
+    assert not must_turn(False, math.radians(threshold - 1.0), None, OPTIONS)
+    assert must_turn(False, math.radians(threshold + 1.0), None, OPTIONS)
     # on an approach glide the bearing to the point swings wildly close to it: no turn
     approach = planner.glide(0.0, make_pose(np.eye(3), [0.0, 0.0, 1.5]),
                              np.array([1.0, 0.0, 1.5]), "approach")
