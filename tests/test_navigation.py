@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import PinholeCamera, make_pose, rot_z
-from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX_REASON,
-                                            PARALLAX_WAIT_S, TURN_STOP_REASON, Backoff, Blocked,
-                                            NoPathClock, ParallaxGlide, Step, approach_targets,
-                                            facing, must_turn, on_glide, still_turning,
-                                            turn_rate)
-from autonomy.navigation.failsafes import BlindClock, Vitals, failsafe_reason, vins_problem
+from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX_LANDMARKS,
+                                            PARALLAX_REASON, PARALLAX_WAIT_S, TURN_STOP_REASON,
+                                            Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
+                                            approach_targets, facing, must_turn, on_glide,
+                                            still_turning, turn_rate, view_starved)
+from autonomy.navigation.failsafes import (BlindClock, Vitals, failsafe_reason, vins_failed,
+                                           vins_problem)
 from autonomy.navigation.mission import FlightOptions, FlightState, Mission
 from autonomy.navigation.route import Route, heading_error, stop_waypoints
 from autonomy.navigation.trail import Trail
@@ -166,20 +167,36 @@ def test_after_a_turn_it_glides_back_half_a_metre_and_returns_until_depth_comes(
     corner = np.array([3.0, 2.0, 1.5])
     parallax = ParallaxGlide()
     parallax.start(trail, corner)
-    no_fit = math.inf
-    back = parallax.step(None, 10.0, no_fit)
+    starved = view_starved(math.inf, None)  # no fit
+    back = parallax.step(None, 10.0, starved)
     np.testing.assert_allclose(back, (3.0, 1.5, 1.5))  # half a metre back along the trail
     glide = planner.glide(10.0, make_pose(np.eye(3), corner), back, PARALLAX_REASON)
-    assert parallax.step(glide, 10.5, no_fit) is Step.KEEP  # gliding back
-    np.testing.assert_allclose(parallax.step(glide, glide.end_time, no_fit), corner)
-    assert not parallax.active and parallax.step(None, 20.0, no_fit) is Step.IDLE
+    assert parallax.step(glide, 10.5, starved) is Step.KEEP  # gliding back
+    # returns to the corner even when the fit came back on the way
+    np.testing.assert_allclose(parallax.step(glide, glide.end_time, False), corner)
+    assert not parallax.active and parallax.step(None, 20.0, starved) is Step.IDLE
 
 
-def test_the_parallax_glide_is_given_up_when_a_fresh_fit_comes_before_it_starts():
+def test_the_parallax_glide_is_given_up_when_a_fresh_fit_and_landmarks_come_before_it_starts():
     parallax = ParallaxGlide()
     parallax.start(an_l_shaped_trail(), np.array([3.0, 2.0, 1.5]))
-    assert parallax.step(None, 10.0, PARALLAX_WAIT_S) is Step.IDLE
+    assert parallax.step(None, 10.0, view_starved(PARALLAX_WAIT_S, PARALLAX_LANDMARKS)) \
+        is Step.IDLE
     assert not parallax.active
+
+
+@pytest.mark.parametrize("fit_age_s, landmarks, starved", [
+    (PARALLAX_WAIT_S + 0.01, 80, True),  # no fresh fit (estimated depth without anchors)
+    (0.0, PARALLAX_LANDMARKS - 1, True),  # a fresh fit, but a VINS flying on the IMU alone
+    (0.0, 0, True),
+    (0.0, PARALLAX_LANDMARKS, False),
+    (0.0, None, False),  # no VINS update yet: the fit alone decides
+])
+def test_the_view_after_a_turn_is_starved_by_a_lapsed_fit_or_too_few_landmarks(
+        fit_age_s, landmarks, starved):
+    """True depth never lacks a fit, so after a turn in place that left the VINS no landmark
+    (a realistic mine flight, docs/results.md) only the landmark count starts the glide."""
+    assert view_starved(fit_age_s, landmarks) is starved
 
 
 def test_no_parallax_glide_without_half_a_metre_of_trail_behind():
@@ -312,6 +329,19 @@ def test_a_blind_vins_is_reported_after_its_loss_and_before_the_depth_it_starves
                                   blind_expired=True), OPTIONS) == "VINS lost (no tracks)"
     assert failsafe_reason(vitals(blind_s=9.0, blind_expired=True, depth_age_s=9.0),
                            OPTIONS).startswith("VINS blind")
+
+
+@pytest.mark.parametrize("changes, failed", [
+    ({"vins_problem": "VINS lost (no tracks)"}, True),
+    ({"vins_problem": "VINS reset in flight"}, True),
+    ({"blind_s": 3.04, "blind_expired": True}, True),
+    ({"blind_s": 2.0}, False),  # blind, but not yet past the timeout
+    ({"camera_age_s": 0.6}, False),
+    ({"depth_age_s": 1.2, "depth_reason": "no fit (too_few_anchors)"}, False),
+    ({"no_path_expired": True}, False),
+])
+def test_only_a_lost_reset_or_blind_vins_has_its_stop_flown_off_the_vins(changes, failed):
+    assert vins_failed(vitals(**changes)) is failed
 
 
 def blind_readings(landmarks_and_counting, rate_hz=20.0) -> list[tuple[float, bool]]:

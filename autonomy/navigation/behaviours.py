@@ -3,9 +3,9 @@
 - **Turn at a corner.** At a stop waypoint just passed, or with the next waypoint far off the
   heading, the vehicle comes to rest and turns in place to face it: the arcs would sweep wide.
 - **Parallax glide.** After the turn the view is new, and a monocular VINS has no landmarks in
-  it until the camera moves sideways: no anchors, no metric depth, no arc checked. The vehicle
-  glides back to the trail point half a metre behind and returns to the corner, the camera
-  moving across its view.
+  it until the camera moves sideways: no anchors, no metric depth, no arc checked, and a pose
+  that is the IMU's alone. The vehicle glides back to the trail point half a metre behind and
+  returns to the corner, the camera moving across its view.
 - **Approach.** Near a stop waypoint and slow, it glides straight to the point when that is
   checked safe (the arcs cannot stop on a point, and a narrow passage leaves no room off its
   axis).
@@ -38,6 +38,12 @@ from autonomy.planning.planner import APPROACH_REASON
 LOOK_ASIDE = math.radians(45.0)
 #: After a turn: how long without a fresh fit before the parallax glide starts, seconds.
 PARALLAX_WAIT_S = 0.3
+#: After a turn: with fewer VINS landmarks in front of the camera than this, the parallax glide
+#: starts even with a fresh fit (true depth needs no anchors, so its fit never lapses). A
+#: quarter of the window's 80-landmark budget, of which cruise keeps 40 in view; a realistic
+#: mine flight on true depth turned 126 degrees in place, flew on with 0-8 landmarks, and
+#: dead-reckoned 4.6 m off before "VINS blind" (docs/results.md).
+PARALLAX_LANDMARKS = 20
 #: The reasons the glides' plans carry (what the failsafe checks and the logs read).
 PARALLAX_REASON = "gliding for parallax"
 BACKOFF_REASON = "backing off along the trail"
@@ -122,10 +128,18 @@ class GlideSequence:
         return bool(self.targets)
 
 
+def view_starved(fit_age_s: float, landmarks: int | None) -> bool:
+    """Does the view after a turn want the parallax glide: no fresh fit for
+    :data:`PARALLAX_WAIT_S` (a held fit does not count), or fewer than
+    :data:`PARALLAX_LANDMARKS` VINS landmarks (None: no VINS update yet, not counted)?"""
+    return fit_age_s > PARALLAX_WAIT_S or (landmarks is not None
+                                           and landmarks < PARALLAX_LANDMARKS)
+
+
 class ParallaxGlide(GlideSequence):
     """Back to the trail point :data:`~autonomy.navigation.trail.GLIDE_STEP_M` behind the
-    turning point, then to the turning point again; given up as soon as a fresh fit comes
-    (the anchors came back by themselves; a held fit does not count)."""
+    turning point, then to the turning point again; given up before it starts when the view
+    is not :func:`view_starved` (the anchors and landmarks came back by themselves)."""
 
     def __init__(self):
         super().__init__(PARALLAX_REASON)
@@ -137,12 +151,13 @@ class ParallaxGlide(GlideSequence):
         if back is not None:
             self.targets = [back, position_W.copy()]
 
-    def step(self, plan, now: float, fit_age_s: float) -> Step | np.ndarray:
-        """The next target, :attr:`Step.KEEP` while gliding, :attr:`Step.IDLE` when done."""
+    def step(self, plan, now: float, starved: bool) -> Step | np.ndarray:
+        """The next target, :attr:`Step.KEEP` while gliding, :attr:`Step.IDLE` when done;
+        ``starved``: :func:`view_starved` now."""
         if not self.targets:
             return Step.IDLE
         started = len(self.targets) < 2
-        if not started and fit_age_s <= PARALLAX_WAIT_S:
+        if not started and not starved:
             self.targets.clear()
             return Step.IDLE
         if started and on_glide(plan, self.reason, now):

@@ -80,6 +80,14 @@ class BlindClock:
         return self.blind_s > options.blind_timeout_s
 
 
+def vins_failed(vitals: Vitals) -> bool:
+    """Has the VINS failed (lost, reset in flight, or blind past the timeout)? Its pose and
+    velocity are then no longer the vehicle's, so the stop must not be flown on them: a stop
+    tracked on a dead-reckoning VINS follows its drift (docs/results.md: a realistic mine
+    flight flew its stop after "VINS blind" into a wall, 12 m off by the VINS)."""
+    return vitals.vins_problem != "" or vitals.blind_expired
+
+
 def failsafe_reason(vitals: Vitals, options) -> str:
     """The first failed check's reason ("" when all pass); ``options`` the
     :class:`~autonomy.navigation.mission.FlightOptions`. Depth may lapse over flown ground

@@ -3,7 +3,7 @@
 
 A setpoint is the ``plan`` channel's plan sampled now, its velocity corrected toward the plan's
 position (:func:`tracked`), turned into PX4's local frame; zero velocity while entering
-Offboard; a turn in place while aligning. The :class:`~companion.flight.watchdog.
+Offboard and in a failsafe's stop after the VINS failed; a turn in place while aligning. The :class:`~companion.flight.watchdog.
 SetpointWatchdog` thread replaces a late setpoint by the ``checked_stop`` channel's plan, from
 outside the event loop.
 """
@@ -106,7 +106,8 @@ class Command:
         state, plan = self.context.state, self.context.channels.plan.value
         if state == FlightState.ALIGNING:
             return still(turn_rate(self.navigation.heading_error(), self.context.options))
-        if state == FlightState.ENTERING_OFFBOARD or plan is None:
+        if state == FlightState.ENTERING_OFFBOARD or plan is None \
+                or self.navigation.stopping_on_px4:
             return still()
         return plan.setpoint(now)
 
@@ -128,7 +129,7 @@ class Command:
         plan, T_L_W = channels.plan.value, self.context.T_L_W
         if plan is not None and plan.kind != "stop":
             plan = channels.checked_stop.value
-        if plan is None or T_L_W is None:
+        if plan is None or T_L_W is None or self.navigation.stopping_on_px4:
             self.context.autopilot.send_velocity(np.zeros(3), 0.0)
             return
         self._send(plan.setpoint(now), T_L_W)

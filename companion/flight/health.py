@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import logging
 
-from autonomy.navigation.failsafes import Vitals, age, failsafe_reason, vins_problem
+from autonomy.navigation.failsafes import (Vitals, age, failsafe_reason, vins_failed,
+                                           vins_problem)
 from autonomy.navigation.mission import (DISARMED_STATES, GUARDED_STATES, OFFBOARD_STATES,
                                          FlightState)
 from companion.flight.context import FlightContext
@@ -70,9 +71,10 @@ class Health:
                        state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
         if state not in GUARDED_STATES:
             return
-        reason = failsafe_reason(self.vitals(now, lag), c.options)
+        vitals = self.vitals(now, lag)
+        reason = failsafe_reason(vitals, c.options)
         if reason and c.mission.failsafe(now, reason):
-            self.navigation.stop(reason)
+            self.navigation.stop(reason, vins_failed(vitals))
 
     def vitals(self, now: float, lag: float) -> Vitals:
         c, perception = self.context, self.perception

@@ -22,7 +22,7 @@ from autonomy.messages import Odometry
 from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, TURN_STOP_REASON,
                                             Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
                                             approach_targets, must_turn, on_glide,
-                                            still_turning)
+                                            still_turning, view_starved)
 from autonomy.navigation.failsafes import age
 from autonomy.navigation.mission import FlightState
 from autonomy.navigation.route import Route, heading_error
@@ -48,6 +48,7 @@ class Navigation:
         self.trail = Trail()
         self.corner_pending = False  # a stop waypoint was just passed: stop and turn
         self.parallax, self.backoff, self.no_path = ParallaxGlide(), Backoff(), NoPathClock()
+        self._vins_failed = False  # the failsafe's stop is flown on PX4's estimate
 
     # ------------------------------------------------------------------ for the other stages
 
@@ -64,9 +65,22 @@ class Navigation:
             return 0.0
         return heading_error(odometry.T_W_B, self.route.next_W(c.T_L_W), self.no_path.aim)
 
+    @property
+    def stopping_on_px4(self) -> bool:
+        """A failsafe's stop after the VINS failed: flown as zero velocity on PX4's own
+        estimate, untracked (:meth:`stop`)."""
+        return self._vins_failed and self.context.state == FlightState.FAILSAFE_STOP
+
     def stopped(self) -> bool:
-        odometry = self.context.channels.odometry.value
-        return odometry is not None and float(np.linalg.norm(odometry.velocity_W)) < \
+        """At rest: slower than ``stopped_speed`` by the VINS, or by PX4's estimate while
+        :attr:`stopping_on_px4`."""
+        if self.stopping_on_px4:
+            state = self.context.autopilot.state
+            velocity = None if state is None else state.velocity_L
+        else:
+            odometry = self.context.channels.odometry.value
+            velocity = None if odometry is None else odometry.velocity_W
+        return velocity is not None and float(np.linalg.norm(velocity)) < \
             self.context.options.stopped_speed
 
     def on_flown_ground(self) -> bool:
@@ -87,8 +101,16 @@ class Navigation:
             return self.plan
         return self.planner.stop_plan(odometry.t, odometry.T_W_B, odometry.velocity_W, reason)
 
-    def stop(self, reason: str) -> None:
-        """Fly :meth:`stop_plan` from now on."""
+    def stop(self, reason: str, vins_failed: bool = False) -> None:
+        """Fly :meth:`stop_plan` from now on. With the VINS failed (lost, reset, or blind:
+        :func:`~autonomy.navigation.failsafes.vins_failed`) its position and velocity are no
+        longer the vehicle's, and a stop tracked on them follows their drift: the stop is
+        then zero velocity, untracked, braked by PX4 on its own estimate (the plan is still
+        published, for the record of what the VINS believed)."""
+        self._vins_failed = vins_failed
+        if vins_failed:
+            log.warning("the VINS has failed: stopping on PX4's estimate (zero velocity, "
+                        "untracked)")
         self.context.channels.plan.publish(self.stop_plan(reason))
 
     # ------------------------------------------------------------------ the loop
@@ -160,13 +182,16 @@ class Navigation:
         return True
 
     def _parallax_step(self, odometry: Odometry, now: float) -> bool:
-        """Glide back along the trail after a turn and return to the turning point, until a
-        fresh fit comes. True while doing so."""
-        step = self.parallax.step(self.plan, now, age(self.perception.last_fit_t, now))
+        """Glide back along the trail after a turn and return to the turning point, unless a
+        fresh fit and the VINS's landmarks came back first. True while doing so."""
+        update = self.context.channels.vins.value
+        starved = view_starved(age(self.perception.last_fit_t, now),
+                               None if update is None else update.health.landmarks)
+        step = self.parallax.step(self.plan, now, starved)
         if isinstance(step, Step):
             return step == Step.KEEP
         self._follow(self.planner.glide(odometry.t, odometry.T_W_B, step, PARALLAX_REASON))
-        log.info("no depth after turning; gliding %s along the flown trail",
+        log.info("no depth or few landmarks after turning; gliding %s along the flown trail",
                  "back" if self.parallax.active else "to the turning point")
         return True
 

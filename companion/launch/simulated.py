@@ -29,6 +29,7 @@ import dataclasses
 import gc
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Callable
 
@@ -249,11 +250,22 @@ def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthT
             "t": round(collision.time, 3),
             "position": [round(float(v), 3) for v in collision.position]},
         **truth,
+        "failsafe_stop_m": _failsafe_stop_length(track, summary["transitions"]),
         # the application's own judgement, confirmed by the truth (with room for VINS drift)
         "reached_goal": bool(summary["reached_goal"] and truth["closest_to_goal_m"] is not None
                              and truth["closest_to_goal_m"]
                              <= config.flight.goal_tolerance + GOAL_DRIFT_ALLOWANCE),
     }
+
+
+def _failsafe_stop_length(track: TruthTrack, transitions: list[dict]) -> float | None:
+    """Metres flown in truth during the first failsafe's stop, from its start to the next
+    state (None without a failsafe stop): what a stop must keep short."""
+    for k, transition in enumerate(transitions):
+        if transition["to"] == "failsafe_stop":
+            end = transitions[k + 1]["t"] if k + 1 < len(transitions) else math.inf
+            return round(track.path_length_between(transition["t"], end), 3)
+    return None
 
 
 def _plot(world, mission: SimMission, track: TruthTrack, route, sim, out: Path,

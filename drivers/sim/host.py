@@ -199,6 +199,12 @@ class TruthTrack:
         k = min(int(np.searchsorted(self.t, t)), len(self.positions) - 1)
         return self.positions[k]
 
+    def path_length_between(self, t0: float, t1: float) -> float:
+        """Metres flown in truth from ``t0`` to ``t1`` (application clock)."""
+        t = np.asarray(self.t)
+        path = np.array(self.positions).reshape(-1, 3)[(t >= t0) & (t <= t1)]
+        return float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+
     def _progress_line(self, sim, goal: np.ndarray) -> str:
         position = self.positions[-1]
         speed = float(np.linalg.norm(sim.vehicle.state.velocity))
