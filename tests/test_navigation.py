@@ -13,8 +13,9 @@ from autonomy.geometry import PinholeCamera, make_pose, rot_z
 from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX_LANDMARKS,
                                             PARALLAX_REASON, PARALLAX_WAIT_S, TURN_STOP_REASON,
                                             Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
-                                            approach_targets, facing, must_turn, on_glide,
-                                            still_turning, turn_rate, view_starved)
+                                            TURN_STEP, approach_targets, facing, must_turn,
+                                            on_glide, pause_turn, still_turning, turn_rate,
+                                            view_starved)
 from autonomy.navigation.failsafes import (BlindClock, Vitals, failsafe_reason, vins_failed,
                                            vins_problem)
 from autonomy.navigation.mission import FlightOptions, FlightState, Mission
@@ -197,6 +198,17 @@ def test_the_view_after_a_turn_is_starved_by_a_lapsed_fit_or_too_few_landmarks(
     """True depth never lacks a fit, so after a turn in place that left the VINS no landmark
     (a realistic mine flight, docs/results.md) only the landmark count starts the glide."""
     assert view_starved(fit_age_s, landmarks) is starved
+
+
+@pytest.mark.parametrize("turned, landmarks, paused", [
+    (TURN_STEP, PARALLAX_LANDMARKS - 1, True),  # the VINS running out of landmarks
+    (TURN_STEP, PARALLAX_LANDMARKS, False),
+    (TURN_STEP - 0.01, 0, False),  # began starved: a step of the turn before the next glide
+    (math.pi, None, False),  # no VINS update yet
+])
+def test_a_long_turn_is_paused_for_parallax_when_the_landmarks_run_low(turned, landmarks,
+                                                                       paused):
+    assert pause_turn(turned, landmarks) is paused
 
 
 def test_no_parallax_glide_without_half_a_metre_of_trail_behind():

@@ -5,7 +5,8 @@
 - **Parallax glide.** After the turn the view is new, and a monocular VINS has no landmarks in
   it until the camera moves sideways: no anchors, no metric depth, no arc checked, and a pose
   that is the IMU's alone. The vehicle glides back to the trail point half a metre behind and
-  returns to the corner, the camera moving across its view.
+  returns to the corner, the camera moving across its view. A long turn is paused for the
+  glide when the landmarks run low, and goes on after it.
 - **Approach.** Near a stop waypoint and slow, it glides straight to the point when that is
   checked safe (the arcs cannot stop on a point, and a narrow passage leaves no room off its
   axis).
@@ -44,6 +45,9 @@ PARALLAX_WAIT_S = 0.3
 #: mine flight on true depth turned 126 degrees in place, flew on with 0-8 landmarks, and
 #: dead-reckoned 4.6 m off before "VINS blind" (docs/results.md).
 PARALLAX_LANDMARKS = 20
+#: A corner's turn in place is paused for the parallax glide once it has turned this far and
+#: the VINS's landmarks are starved (:func:`pause_turn`), radians.
+TURN_STEP = math.radians(30.0)
 #: The reasons the glides' plans carry (what the failsafe checks and the logs read).
 PARALLAX_REASON = "gliding for parallax"
 BACKOFF_REASON = "backing off along the trail"
@@ -134,6 +138,17 @@ def view_starved(fit_age_s: float, landmarks: int | None) -> bool:
     :data:`PARALLAX_LANDMARKS` VINS landmarks (None: no VINS update yet, not counted)?"""
     return fit_age_s > PARALLAX_WAIT_S or (landmarks is not None
                                            and landmarks < PARALLAX_LANDMARKS)
+
+
+def pause_turn(turned: float, landmarks: int | None) -> bool:
+    """Pause a corner's turn in place, ``turned`` radians into it, for the parallax glide:
+    at least :data:`TURN_STEP` turned and fewer than :data:`PARALLAX_LANDMARKS` VINS
+    landmarks. A turn in place gives new tracks no parallax, so a long one leaves the VINS no
+    landmark: a 126-degree turn in a realistic mine flight did, and once the VINS had
+    dead-reckoned for a second its drifting poses triangulated none, glide or not
+    (docs/results.md). Paused while it still holds some, the glide rebuilds them; the step
+    keeps the turn going when it began starved."""
+    return turned >= TURN_STEP and landmarks is not None and landmarks < PARALLAX_LANDMARKS
 
 
 class ParallaxGlide(GlideSequence):

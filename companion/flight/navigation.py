@@ -22,7 +22,7 @@ from autonomy.messages import Odometry
 from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, TURN_STOP_REASON,
                                             Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
                                             approach_targets, must_turn, on_glide,
-                                            still_turning, view_starved)
+                                            pause_turn, still_turning, view_starved)
 from autonomy.navigation.failsafes import age
 from autonomy.navigation.mission import FlightState
 from autonomy.navigation.route import Route, heading_error
@@ -49,6 +49,7 @@ class Navigation:
         self.corner_pending = False  # a stop waypoint was just passed: stop and turn
         self.parallax, self.backoff, self.no_path = ParallaxGlide(), Backoff(), NoPathClock()
         self._vins_failed = False  # the failsafe's stop is flown on PX4's estimate
+        self.turn_began: float | None = None  # |heading error| as a corner's turn began
 
     # ------------------------------------------------------------------ for the other stages
 
@@ -64,6 +65,18 @@ class Navigation:
         if odometry is None or c.T_L_W is None:
             return 0.0
         return heading_error(odometry.T_W_B, self.route.next_W(c.T_L_W), self.no_path.aim)
+
+    def landmarks(self) -> int | None:
+        """The VINS's landmarks at its newest update (None before the first)."""
+        update = self.context.channels.vins.value
+        return None if update is None else update.health.landmarks
+
+    def turn_paused(self, heading_error: float) -> bool:
+        """Pause a corner's turn in place (its parallax glide armed) for the glide
+        (:func:`~autonomy.navigation.behaviours.pause_turn`)."""
+        if self.turn_began is None or not self.parallax.active:
+            return False
+        return pause_turn(self.turn_began - abs(heading_error), self.landmarks())
 
     @property
     def stopping_on_px4(self) -> bool:
@@ -144,10 +157,11 @@ class Navigation:
             return
         if self._back_off_step(odometry, now):
             return
+        # the glide first: a corner's turn paused for it goes on after it
+        if self._parallax_step(odometry, now):
+            return
         if must_turn(self.corner_pending, self.heading_error(), self.plan, c.options):
             await self._turn_at_corner()
-            return
-        if self._parallax_step(odometry, now):
             return
         if await self._approach(odometry):
             return
@@ -184,9 +198,7 @@ class Navigation:
     def _parallax_step(self, odometry: Odometry, now: float) -> bool:
         """Glide back along the trail after a turn and return to the turning point, unless a
         fresh fit and the VINS's landmarks came back first. True while doing so."""
-        update = self.context.channels.vins.value
-        starved = view_starved(age(self.perception.last_fit_t, now),
-                               None if update is None else update.health.landmarks)
+        starved = view_starved(age(self.perception.last_fit_t, now), self.landmarks())
         step = self.parallax.step(self.plan, now, starved)
         if isinstance(step, Step):
             return step == Step.KEEP
@@ -207,7 +219,9 @@ class Navigation:
             return
         self.corner_pending = False
         self.parallax.start(self.trail, c.channels.odometry.value.T_W_B[:3, 3])
-        if still_turning(self.heading_error(), c.options):
+        error = self.heading_error()
+        if still_turning(error, c.options):
+            self.turn_began = abs(error)
             c.go(FlightState.ALIGNING, "at a corner; turning to face the next waypoint")
 
     async def _approach(self, odometry: Odometry) -> bool:

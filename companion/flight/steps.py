@@ -176,11 +176,14 @@ class MissionSteps:
         if state in (FlightState.STOPPING, FlightState.FAILSAFE_STOP):
             if self.navigation.stopped() or c.mission.elapsed(now) > c.options.stop_timeout_s:
                 await self._after_stop(state)
-        elif state == FlightState.ALIGNING and facing(self.navigation.heading_error(),
-                                                      c.options):
-            looking = self.navigation.no_path.aim != 0.0
-            c.go(FlightState.NAVIGATING,
-                 "facing the look aside" if looking else "facing the next waypoint")
+        elif state == FlightState.ALIGNING:
+            error = self.navigation.heading_error()
+            if facing(error, c.options):
+                looking = self.navigation.no_path.aim != 0.0
+                c.go(FlightState.NAVIGATING,
+                     "facing the look aside" if looking else "facing the next waypoint")
+            elif self.navigation.turn_paused(error):
+                c.go(FlightState.NAVIGATING, "few VINS landmarks; the turn paused for parallax")
 
     async def _after_stop(self, state: FlightState) -> None:
         c = self.context
