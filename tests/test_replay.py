@@ -132,17 +132,18 @@ def test_a_top_view_of_a_damaged_mission_record_says_what_is_wrong(recording, mi
     assert not (tmp_path / "top.png").exists()
 
 
-def log_vins(path, *options) -> tuple[int, str, str]:
+def companion_log(action: str, path, *options) -> tuple[int, str, str]:
+    """``companion log ACTION PATH OPTIONS``'s exit code, stdout and stderr."""
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = cli.main(["log", "vins", str(path), *options])
+        code = cli.main(["log", action, str(path), *options])
     return code, out.getvalue(), err.getvalue()
 
 
 def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(recording):
     """A simulated flight records the true pose with each frame; `log vins` puts the VINS's
     estimate beside it, frame by frame, in PX4's local frame."""
-    code, out, _ = log_vins(recording["recording"]["path"], "--json")
+    code, out, _ = companion_log("vins", recording["recording"]["path"], "--json")
     assert code == 0
     samples = json.loads(out)
     times = [sample["t"] for sample in samples]
@@ -152,7 +153,7 @@ def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(re
     errors = np.array([sample["error_m"] for sample in samples])
     assert np.isfinite(errors).all() and errors.max() < 0.5  # 12 s in the dome
     assert {sample["state"] for sample in samples} <= {"ok", "degraded", "lost", "initialising"}
-    code, table, _ = log_vins(recording["recording"]["path"], "--every", "4")
+    code, table, _ = companion_log("vins", recording["recording"]["path"], "--every", "4")
     assert code == 0 and "VINS error at the end" in table
     assert len(table.splitlines()) >= 2 + 3  # a row at least every 4 s of the flight
 
@@ -160,14 +161,14 @@ def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(re
 def test_log_vins_map_scale_is_the_landmarks_depth_over_the_true_depth(recording):
     """The map scale of each frame: 1 for a map at the true scale (this one, to a percent or
     two); None before the VINS has landmarks."""
-    code, out, _ = log_vins(recording["recording"]["path"], "--json", "--map")
+    code, out, _ = companion_log("vins", recording["recording"]["path"], "--json", "--map")
     assert code == 0
     samples = json.loads(out)
     scales = np.array([s["map_scale"] for s in samples if s["map_scale"] is not None])
     assert len(scales) > 0.8 * len(samples)
     assert abs(np.median(scales) - 1.0) < 0.02 and np.abs(scales - 1.0).max() < 0.1
     assert samples[0]["landmarks"] == 0 and samples[0]["map_scale"] is None
-    code, table, _ = log_vins(recording["recording"]["path"], "--map")
+    code, table, _ = companion_log("vins", recording["recording"]["path"], "--map")
     assert code == 0 and "map scale" in table.splitlines()[1]
 
 
@@ -177,7 +178,36 @@ def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recor
         writer = mcap.writer.Writer(file)
         writer.start()
         writer.finish()
-    code, _, err = log_vins(path)
+    code, _, err = companion_log("vins", path)
     assert code == 1 and "no true pose" in err and "only simulated flights" in err
-    code, _, err = log_vins(recording["recording"]["path"], "--every", "0")
+    code, _, err = companion_log("vins", recording["recording"]["path"], "--every", "0")
     assert code == 1 and "--every must be above 0" in err
+
+
+def test_log_time_splits_the_navigation_phase_over_what_the_vehicle_was_doing(recording):
+    """The 12 s dome flight: its navigation phase (the summary's navigation_time_s) is spent
+    on the planner's arcs, by speed tier, and on the stop at the goal; the arc rounds are the
+    flight's planner rounds, which the summary counts too."""
+    code, out, _ = companion_log("time", recording["recording"]["path"], "--json")
+    assert code == 0
+    spent = json.loads(out)
+    assert spent["seconds"] == pytest.approx(recording["navigation_time_s"], abs=0.1)
+    assert sum(spent["activities"].values()) == pytest.approx(spent["seconds"])
+    arcs = {label: s for label, s in spent["activities"].items() if label.startswith("arcs at")}
+    assert arcs and sum(arcs.values()) > 0.5 * spent["seconds"], spent["activities"]
+    rounds = recording["planning_rounds"]
+    assert rounds - recording["stop_rounds"] <= spent["arc_rounds"] <= rounds
+    assert 0.0 < spent["arc_round_gap_s"] < 0.5
+    code, table, _ = companion_log("time", recording["recording"]["path"])
+    assert code == 0 and "s of navigation" in table
+    assert any("arcs at" in line for line in table.splitlines()[2:])
+
+
+def test_log_time_refuses_a_recording_that_never_navigated(tmp_path):
+    path = tmp_path / "ground.mcap"
+    with open(path, "wb") as file:
+        writer = mcap.writer.Writer(file)
+        writer.start()
+        writer.finish()
+    code, out, err = companion_log("time", path)
+    assert code == 1 and out == "" and "never navigated" in err and len(err.splitlines()) == 1

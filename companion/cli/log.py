@@ -1,6 +1,6 @@
 """``companion log``: what a flight recording holds (``info``), a simulated flight's VINS
-against its truth (``vins``), and a recording cut short by a crash or a power cut made a
-complete file again (``recover``); docs/recording.md."""
+against its truth (``vins``), where the navigation time went (``time``), and a recording cut
+short by a crash or a power cut made a complete file again (``recover``); docs/recording.md."""
 
 from __future__ import annotations
 
@@ -45,6 +45,18 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                            "depth over the true depth there (reads the true depth images)")
     common.add_json_flag(vins, instead_of="the table (every frame)")
     vins.set_defaults(command=_vins, config_path=None, overrides=[])
+    time = actions.add_parser(
+        "time", help="where a flight's navigation time went",
+        description="Over a recording, the navigation phase (from the switch to Offboard until "
+                    "the flight comes down) split by what the vehicle was doing: the planner's "
+                    "arcs by speed tier, each glide and stop by its reason (no safe primitive, "
+                    "gliding for parallax, backing off, the approach to a waypoint, stopping "
+                    "to turn), turning in place, and the stops after the goal or a failsafe; "
+                    "with the plans published and the median time between arc rounds. Exits 1 "
+                    "with one line when FILE cannot be read or never navigated.")
+    time.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
+    common.add_json_flag(time, instead_of="the table")
+    time.set_defaults(command=_time, config_path=None, overrides=[])
     recover = actions.add_parser(
         "recover", help="rewrite a truncated recording as a complete one",
         description="Write every readable message of FILE (a recording cut short by a crash, "
@@ -102,6 +114,33 @@ def _vins(args: argparse.Namespace, config: Config) -> int:
     else:
         print(_vins_table(args.file, samples, args.every, args.map))
     return common.EXIT_OK
+
+
+def _time(args: argparse.Namespace, config: Config) -> int:
+    from dataclasses import asdict
+
+    from companion.recording.replay import ReplayError, navigation_time
+
+    try:
+        spent = navigation_time(args.file)
+    except ReplayError as error:
+        print(f"log time: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    print(json.dumps(asdict(spent)) if args.json else _time_table(args.file, spent))
+    return common.EXIT_OK
+
+
+def _time_table(path: Path, spent) -> str:
+    """The activities, longest first, with their share of the navigation phase."""
+    gap = spent.arc_round_gap_s
+    rate = f"every {gap:.3f} s ({1.0 / gap:.1f} Hz)" if gap else "-"
+    lines = [f"{path}: {spent.seconds:.1f} s of navigation; {spent.plans} plans, "
+             f"{spent.arc_rounds} of them arc rounds, median {rate}",
+             "  seconds  share  activity"]
+    for label, seconds in sorted(spent.activities.items(), key=lambda item: -item[1]):
+        share = seconds / spent.seconds if spent.seconds > 0 else 0.0
+        lines.append(f"  {seconds:7.1f}  {share:5.0%}  {label}")
+    return "\n".join(lines)
 
 
 def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:

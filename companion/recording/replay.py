@@ -693,6 +693,77 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
     return samples
 
 
+#: The states of the navigation phase (from Offboard until the flight comes down), with the
+#: activity their time is counted as; NAVIGATING's time goes to the plan being flown.
+_PHASE_ACTIVITY = {FlightState.NAVIGATING.value: None,
+                   FlightState.ALIGNING.value: "turning in place",
+                   FlightState.STOPPING.value: "stopping at the goal",
+                   FlightState.FAILSAFE_STOP.value: "the failsafe's stop"}
+
+
+@dataclass
+class NavigationTime:
+    """Where a flight's navigation phase went: ``seconds`` from the switch to Offboard until
+    the flight left the phase (the summary's ``navigation_time_s``), split over
+    ``activities`` (label -> seconds: the arcs by tier speed, each glide and stop by its
+    reason, turning in place, the stops after the goal and a failsafe); ``plans`` published,
+    ``arc_rounds`` of them arcs, and the median seconds between consecutive arc rounds."""
+
+    seconds: float
+    activities: dict[str, float]
+    plans: int
+    arc_rounds: int
+    arc_round_gap_s: float | None
+
+
+def _activity(plan: dict) -> str:
+    """What flying ``plan`` (a ``/planner/plan`` record) is counted as."""
+    if plan["kind"] == "arc":
+        return f"arcs at {float(plan.get('speed', math.nan)):.1f} m/s"
+    return plan["reason"] or plan["kind"]
+
+
+def navigation_time(path: Path) -> NavigationTime:
+    """:class:`NavigationTime` of the recording at ``path``, from its state transitions
+    (``/flight/events``) and plans (``/planner/plan``), each plan in charge from its time until
+    the next one. ReplayError when the recording never reached Offboard."""
+    timeline, plans, arc_times = [], 0, []
+    for topic, t, decoded in _read(path, [topics.EVENTS.name, topics.PLAN.name]):
+        if topic == topics.PLAN.name:
+            _check_record(topic, decoded, _RECORDS[topic])
+            plans += 1
+            if decoded["kind"] == "arc":
+                arc_times.append(t * 1e-9)
+            timeline.append((t * 1e-9, "plan", _activity(decoded)))
+            continue
+        try:
+            timeline.append((t * 1e-9, "state", topics.parse_transition(decoded.message)[1]))
+        except ValueError as error:
+            raise ReplayError(f"{topics.EVENTS.name}: {error}") from None
+    start = next((t for t, what, value in timeline
+                  if what == "state" and value == FlightState.NAVIGATING.value), None)
+    if start is None:
+        raise ReplayError(f"{path}: the flight never navigated (no transition to "
+                          f"{FlightState.NAVIGATING.value} on {topics.EVENTS.name})")
+    activities: dict[str, float] = defaultdict(float)
+    state, plan, since = None, "waiting for the first plan", start
+    for t, what, value in timeline:
+        if t >= start and state is not None:
+            label = _PHASE_ACTIVITY[state] or plan
+            activities[label] += t - since
+            since = t
+        if what == "plan":
+            plan = value
+        elif t >= start:
+            if value not in _PHASE_ACTIVITY:
+                break
+            state = value
+    gaps = np.diff(arc_times)
+    return NavigationTime(seconds=since - start, activities=dict(activities), plans=plans,
+                          arc_rounds=len(arc_times),
+                          arc_round_gap_s=float(np.median(gaps)) if len(gaps) else None)
+
+
 def _transform(message) -> np.ndarray:
     """A ``foxglove.FrameTransform`` as the 4x4 pose of its child in its parent; ReplayError
     when it is not a pose (a translation not finite, a rotation not a unit quaternion)."""
