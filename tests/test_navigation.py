@@ -13,7 +13,8 @@ from autonomy.geometry import PinholeCamera, make_pose, rot_z
 from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX_LANDMARKS,
                                             PARALLAX_REASON, PARALLAX_WAIT_S, TURN_STOP_REASON,
                                             Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
-                                            TURN_STEP, approach_targets, facing, must_turn,
+                                            TURN_STEP, approach_targets, depth_lapsed,
+                                            facing, must_turn,
                                             on_glide, pause_turn, still_turning, turn_rate,
                                             view_starved)
 from autonomy.navigation.failsafes import (BlindClock, Vitals, failsafe_reason, vins_failed,
@@ -209,6 +210,14 @@ def test_the_view_after_a_turn_is_starved_by_a_lapsed_fit_or_too_few_landmarks(
 def test_a_long_turn_is_paused_for_parallax_when_the_landmarks_run_low(turned, landmarks,
                                                                        paused):
     assert pause_turn(turned, landmarks) is paused
+
+
+def test_depth_lapsed_on_the_arcs_half_way_to_the_staleness_failsafe():
+    """Half of depth_timeout_s leaves the other half for braking on the checked stop before
+    the glide, while the failsafe waits."""
+    half = 0.5 * OPTIONS.depth_timeout_s
+    assert not depth_lapsed(half, OPTIONS) and depth_lapsed(half + 0.01, OPTIONS)
+    assert failsafe_reason(vitals(depth_age_s=half + 0.01), OPTIONS) == ""
 
 
 def test_no_parallax_glide_without_half_a_metre_of_trail_behind():

@@ -7,6 +7,9 @@
   that is the IMU's alone. The vehicle glides back to the trail point half a metre behind and
   returns to the corner, the camera moving across its view. A long turn is paused for the
   glide when the landmarks run low, and goes on after it.
+- **Regaining depth.** With no fresh fit for half the staleness timeout on the arcs, the
+  vehicle brakes on the stop checked at the last round and glides for parallax, once per
+  lapse, the staleness failsafe waiting meanwhile.
 - **Approach.** Near a stop waypoint and slow, it glides straight to the point when that is
   checked safe (the arcs cannot stop on a point, and a narrow passage leaves no room off its
   axis).
@@ -58,6 +61,10 @@ BACKOFF_REASON = "backing off along the trail"
 #: without landmarks before the vehicle is at rest); once it has run out, it no longer waits
 #: for a vehicle that does not come to rest.
 TURN_STOP_REASON = "stopping to turn to the next waypoint"
+#: The reason of the stop begun when the depth fit lapses on the arcs (:func:`depth_lapsed`):
+#: like the corner's, it brakes on the stop the last round checked, and the staleness failsafe
+#: waits while it lasts and through the parallax glide after it.
+DEPTH_STOP_REASON = "stopping to regain metric depth"
 
 
 def on_glide(plan, reason: str, now: float) -> bool:
@@ -130,6 +137,14 @@ class GlideSequence:
     @property
     def active(self) -> bool:
         return bool(self.targets)
+
+
+def depth_lapsed(fit_age_s: float, options) -> bool:
+    """No fresh fit for half ``depth_timeout_s`` on the arcs: a corner flown on an arc swung
+    the view to one with too few anchors, and flying on, the staleness failsafe would come
+    (four realistic estimated-depth flights ended so, docs/results.md). Time to stop and glide
+    for parallax, as after a turn in place."""
+    return fit_age_s > 0.5 * options.depth_timeout_s
 
 
 def view_starved(fit_age_s: float, landmarks: int | None) -> bool:

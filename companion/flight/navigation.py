@@ -19,9 +19,10 @@ import math
 import numpy as np
 
 from autonomy.messages import Odometry
-from autonomy.navigation.behaviours import (BACKOFF_REASON, PARALLAX_REASON, TURN_STOP_REASON,
-                                            Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
-                                            approach_targets, must_turn, on_glide,
+from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON, PARALLAX_REASON,
+                                            TURN_STOP_REASON, Backoff, Blocked, NoPathClock,
+                                            ParallaxGlide, Step, approach_targets, depth_lapsed,
+                                            must_turn, on_glide,
                                             pause_turn, still_turning, view_starved)
 from autonomy.navigation.failsafes import age
 from autonomy.navigation.mission import FlightState
@@ -50,6 +51,7 @@ class Navigation:
         self.parallax, self.backoff, self.no_path = ParallaxGlide(), Backoff(), NoPathClock()
         self._vins_failed = False  # the failsafe's stop is flown on PX4's estimate
         self.turn_began: float | None = None  # |heading error| as a corner's turn began
+        self.regained_after: float | None = None  # the fit that lapsed at the last regaining
 
     # ------------------------------------------------------------------ for the other stages
 
@@ -104,7 +106,8 @@ class Navigation:
         now, plan = self.context.clock.now(), self.plan
         return self.context.state == FlightState.ALIGNING or self.parallax.active \
             or self.backoff.active or on_glide(plan, PARALLAX_REASON, now) \
-            or on_glide(plan, BACKOFF_REASON, now) or on_glide(plan, TURN_STOP_REASON, now)
+            or on_glide(plan, BACKOFF_REASON, now) or on_glide(plan, TURN_STOP_REASON, now) \
+            or on_glide(plan, DEPTH_STOP_REASON, now)
 
     def stop_plan(self, reason: str) -> Plan | None:
         """The stop checked at the last planning round while it lasts (braking from the
@@ -162,6 +165,8 @@ class Navigation:
             return
         if must_turn(self.corner_pending, self.heading_error(), self.plan, c.options):
             await self._turn_at_corner()
+            return
+        if await self._regain_depth(odometry, now):
             return
         if await self._approach(odometry):
             return
@@ -223,6 +228,26 @@ class Navigation:
         if still_turning(error, c.options):
             self.turn_began = abs(error)
             c.go(FlightState.ALIGNING, "at a corner; turning to face the next waypoint")
+
+    async def _regain_depth(self, odometry: Odometry, now: float) -> bool:
+        """The fit lapsed on the arcs (:func:`~autonomy.navigation.behaviours.depth_lapsed`):
+        come to rest on the stop checked at the last round, then glide for parallax; once per
+        lapse (a fit that came and lapsed again gets another). True while braking, and when
+        the glide is armed."""
+        c, fit_t = self.context, self.perception.last_fit_t
+        if fit_t is None or fit_t == self.regained_after \
+                or not depth_lapsed(age(fit_t, now), c.options):
+            return False
+        if not self.stopped():
+            stop = await c.workers["planner"].run(self.stop_plan, DEPTH_STOP_REASON)
+            if c.state == FlightState.NAVIGATING:  # else a failsafe's stop is in charge
+                c.channels.plan.publish(stop)
+            return True
+        self.regained_after = fit_t
+        self.parallax.start(self.trail, odometry.T_W_B[:3, 3])
+        log.warning("no metric depth for %.1f s on the arcs; at rest, gliding for parallax",
+                    age(fit_t, now))
+        return self.parallax.active
 
     async def _approach(self, odometry: Odometry) -> bool:
         """Glide straight to a near stop waypoint when the planner finds that safe (True)."""
