@@ -22,8 +22,8 @@ from autonomy.messages import Odometry
 from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON, PARALLAX_REASON,
                                             TURN_STOP_REASON, Backoff, Blocked, NoPathClock,
                                             ParallaxGlide, Step, approach_targets, depth_lapsed,
-                                            must_turn, on_glide,
-                                            pause_turn, still_turning, view_starved)
+                                            must_turn, on_glide, pause_turn, still_turning,
+                                            view_starved)
 from autonomy.navigation.failsafes import age
 from autonomy.navigation.mission import FlightState
 from autonomy.navigation.route import Route, heading_error
@@ -218,9 +218,7 @@ class Navigation:
         c = self.context
         self.no_path.since = None
         if not self.stopped():
-            stop = await c.workers["planner"].run(self.stop_plan, TURN_STOP_REASON)
-            if c.state == FlightState.NAVIGATING:  # else a failsafe's stop is in charge
-                c.channels.plan.publish(stop)
+            await self._brake(TURN_STOP_REASON)
             return
         self.corner_pending = False
         self.parallax.start(self.trail, c.channels.odometry.value.T_W_B[:3, 3])
@@ -228,6 +226,14 @@ class Navigation:
         if still_turning(error, c.options):
             self.turn_began = abs(error)
             c.go(FlightState.ALIGNING, "at a corner; turning to face the next waypoint")
+
+    async def _brake(self, reason: str) -> None:
+        """Fly :meth:`stop_plan` for ``reason``, a stop by choice, unless a failsafe's stop
+        took over while it was computed."""
+        c = self.context
+        stop = await c.workers["planner"].run(self.stop_plan, reason)
+        if c.state == FlightState.NAVIGATING:
+            c.channels.plan.publish(stop)
 
     async def _regain_depth(self, odometry: Odometry, now: float) -> bool:
         """The fit lapsed on the arcs (:func:`~autonomy.navigation.behaviours.depth_lapsed`):
@@ -239,9 +245,7 @@ class Navigation:
                 or not depth_lapsed(age(fit_t, now), c.options):
             return False
         if not self.stopped():
-            stop = await c.workers["planner"].run(self.stop_plan, DEPTH_STOP_REASON)
-            if c.state == FlightState.NAVIGATING:  # else a failsafe's stop is in charge
-                c.channels.plan.publish(stop)
+            await self._brake(DEPTH_STOP_REASON)
             return True
         self.regained_after = fit_t
         self.parallax.start(self.trail, odometry.T_W_B[:3, 3])
