@@ -155,12 +155,14 @@ class Navigation:
             return
         now, position = c.clock.now(), odometry.T_W_B[:3, 3]
         self.trail.record(position)
+        if c.state != FlightState.NAVIGATING:
+            return  # a failsafe took over while the odometry was read: its stop is in charge
         self._advance(position)
         if c.state != FlightState.NAVIGATING:
             return
         if self._back_off_step(odometry, now):
             return
-        # the glide first: a corner's turn paused for it goes on after it
+        # the glide first: a corner's turn paused for it turns on after it, when still due
         if self._parallax_step(odometry, now):
             return
         if must_turn(self.corner_pending, self.heading_error(), self.plan, c.options):

@@ -182,9 +182,11 @@ def _unreadable(path: Path, error: Exception) -> ReplayError:
                        "recover`")
 
 
-def _read(path: Path, topics_read) -> Iterator[tuple[str, int, object]]:
-    """``(topic, publish time in ns, decoded message)`` of the recording's messages on
-    ``topics_read``, in log-time order. Whatever the MCAP reader or a decoder (zstd, protobuf,
+def _read(path: Path, topics_read, *, stamp: str = "publish_time") \
+        -> Iterator[tuple[str, int, object]]:
+    """``(topic, time in ns, decoded message)`` of the recording's messages on ``topics_read``,
+    in log-time order; the time is the message's ``stamp``: ``publish_time`` (when it was
+    measured) or ``log_time`` (when the flight handled it). Whatever the MCAP reader or a decoder (zstd, protobuf,
     JSON) raises on bytes it cannot read is a :class:`ReplayError`: the file is damaged."""
     with open(path, "rb") as file:
         messages = _decoded(file, topics_read)
@@ -199,7 +201,7 @@ def _read(path: Path, topics_read) -> Iterator[tuple[str, int, object]]:
             if getattr(schema, "name", None) != expected:
                 raise ReplayError(f"{path}: {channel.topic} holds {getattr(schema, 'name', None)}"
                                   f" messages, not the recorder's {expected}")
-            yield channel.topic, message.publish_time, decoded
+            yield channel.topic, getattr(message, stamp), decoded
 
 
 class _Replayer:
@@ -725,10 +727,13 @@ def _activity(plan: dict) -> str:
 
 def navigation_time(path: Path) -> NavigationTime:
     """:class:`NavigationTime` of the recording at ``path``, from its state transitions
-    (``/flight/events``) and plans (``/planner/plan``), each plan in charge from its time until
-    the next one. ReplayError when the recording never reached Offboard."""
+    (``/flight/events``) and plans (``/planner/plan``), each plan in charge from when the
+    flight published it until the next one: log times, since a stop continuing the one the
+    last round checked carries that round's time. ReplayError when the recording never
+    reached Offboard."""
     timeline, plans, arc_times = [], 0, []
-    for topic, t, decoded in _read(path, [topics.EVENTS.name, topics.PLAN.name]):
+    for topic, t, decoded in _read(path, [topics.EVENTS.name, topics.PLAN.name],
+                                   stamp="log_time"):
         if topic == topics.PLAN.name:
             _check_record(topic, decoded, _RECORDS[topic])
             plans += 1
