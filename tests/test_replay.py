@@ -132,6 +132,15 @@ def test_a_top_view_of_a_damaged_mission_record_says_what_is_wrong(recording, mi
     assert not (tmp_path / "top.png").exists()
 
 
+def empty_recording(path):
+    """``path``, made a valid MCAP file with no message in it."""
+    with open(path, "wb") as file:
+        writer = mcap.writer.Writer(file)
+        writer.start()
+        writer.finish()
+    return path
+
+
 def companion_log(action: str, path, *options) -> tuple[int, str, str]:
     """``companion log ACTION PATH OPTIONS``'s exit code, stdout and stderr."""
     out, err = io.StringIO(), io.StringIO()
@@ -173,12 +182,7 @@ def test_log_vins_map_scale_is_the_landmarks_depth_over_the_true_depth(recording
 
 
 def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recording, tmp_path):
-    path = tmp_path / "real.mcap"
-    with open(path, "wb") as file:
-        writer = mcap.writer.Writer(file)
-        writer.start()
-        writer.finish()
-    code, _, err = companion_log("vins", path)
+    code, _, err = companion_log("vins", empty_recording(tmp_path / "real.mcap"))
     assert code == 1 and "no true pose" in err and "only simulated flights" in err
     code, _, err = companion_log("vins", recording["recording"]["path"], "--every", "0")
     assert code == 1 and "--every must be above 0" in err
@@ -208,10 +212,5 @@ def test_log_time_splits_the_navigation_phase_over_what_the_vehicle_was_doing(re
 
 
 def test_log_time_refuses_a_recording_that_never_navigated(tmp_path):
-    path = tmp_path / "ground.mcap"
-    with open(path, "wb") as file:
-        writer = mcap.writer.Writer(file)
-        writer.start()
-        writer.finish()
-    code, out, err = companion_log("time", path)
+    code, out, err = companion_log("time", empty_recording(tmp_path / "ground.mcap"))
     assert code == 1 and out == "" and "never navigated" in err and len(err.splitlines()) == 1

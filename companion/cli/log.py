@@ -18,18 +18,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                                 description="Read the MCAP recordings the flight recorder "
                                             "writes (docs/recording.md).")
     actions = common.add_command_group(group)
-    info = actions.add_parser(
-        "info", help="summarise a recording",
-        description="Summarise a recording: complete or truncated, its duration, each "
-                    "channel's topic, schema and message count, the metadata, the messages "
-                    "the recorder dropped and why, and the flight events and failsafes. A "
-                    "truncated recording is summarised as far as it is readable. Exits 1 with "
-                    "one line when FILE is missing or not MCAP.")
-    info.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
-    common.add_json_flag(info, instead_of="the summary")
-    info.set_defaults(command=_info, config_path=None, overrides=[])
-    vins = actions.add_parser(
-        "vins", help="the VINS's error against the truth over a simulated flight",
+    _action(actions, "info", _info, "the summary", help="summarise a recording",
+            description="Summarise a recording: complete or truncated, its duration, each "
+                        "channel's topic, schema and message count, the metadata, the "
+                        "messages the recorder dropped and why, and the flight events and "
+                        "failsafes. A truncated recording is summarised as far as it is "
+                        "readable. Exits 1 with one line when FILE is missing or not MCAP.")
+    vins = _action(
+        actions, "vins", _vins, "the table (every frame)",
+        help="the VINS's error against the truth over a simulated flight",
         description="Over a simulated flight's recording, the VINS's position error (metres) "
                     "and heading error (degrees) against where the simulator truly had the "
                     "vehicle, in PX4's local frame, at every --every seconds and wherever the "
@@ -37,37 +34,40 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "a drift began and what the VINS said of itself then; with --map, the "
                     "map's scale too. Exits 1 with one line when FILE cannot be read or holds "
                     "no truth (a real flight).")
-    vins.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
     vins.add_argument("--every", type=float, default=2.0, metavar="SECONDS",
                       help="seconds between the table's rows (default: 2)")
     vins.add_argument("--map", action="store_true",
                       help="also each frame's map scale: the median of its tracked landmarks' "
                            "depth over the true depth there (reads the true depth images)")
-    common.add_json_flag(vins, instead_of="the table (every frame)")
-    vins.set_defaults(command=_vins, config_path=None, overrides=[])
-    time = actions.add_parser(
-        "time", help="where a flight's navigation time went",
-        description="Over a recording, the navigation phase (from the switch to Offboard until "
-                    "the flight comes down) split by what the vehicle was doing: the planner's "
-                    "arcs by speed tier, each glide and stop by its reason (no safe primitive, "
-                    "gliding for parallax, backing off, the approach to a waypoint, stopping "
-                    "to turn), turning in place, and the stops after the goal or a failsafe; "
-                    "with the plans published and the median time between arc rounds. Exits 1 "
-                    "with one line when FILE cannot be read or never navigated.")
-    time.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
-    common.add_json_flag(time, instead_of="the table")
-    time.set_defaults(command=_time, config_path=None, overrides=[])
-    recover = actions.add_parser(
-        "recover", help="rewrite a truncated recording as a complete one",
+    _action(actions, "time", _time, "the table", help="where a flight's navigation time went",
+            description="Over a recording, the navigation phase (from the switch to Offboard "
+                        "until the flight comes down) split by what the vehicle was doing: the "
+                        "planner's arcs by speed tier, each glide and stop by its reason (no "
+                        "safe primitive, gliding for parallax, backing off, the approach to a "
+                        "waypoint, stopping to turn), turning in place, and the stops after "
+                        "the goal or a failsafe; with the plans published and the median time "
+                        "between arc rounds. Exits 1 with one line when FILE cannot be read or "
+                        "never navigated.")
+    recover = _action(
+        actions, "recover", _recover, "one line",
+        help="rewrite a truncated recording as a complete one",
         description="Write every readable message of FILE (a recording cut short by a crash, "
                     "a power cut or a full disk: everything up to its last complete chunk) "
                     "into OUT, a new, complete MCAP file that Foxglove and replay open. Exits "
                     "1 with one line when FILE cannot be read or OUT exists or cannot be "
                     "written.")
-    recover.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
     recover.add_argument("out", type=Path, metavar="OUT", help="new file to write (.mcap)")
-    common.add_json_flag(recover, instead_of="one line")
-    recover.set_defaults(command=_recover, config_path=None, overrides=[])
+
+
+def _action(actions, name: str, command, json_instead_of: str,
+            **texts) -> argparse.ArgumentParser:
+    """A ``log`` action on a recording FILE, with ``--json`` printing instead of
+    ``json_instead_of``; ``texts``: the parser's help and description."""
+    action = actions.add_parser(name, **texts)
+    action.add_argument("file", type=Path, metavar="FILE", help="recording (.mcap)")
+    common.add_json_flag(action, instead_of=json_instead_of)
+    action.set_defaults(command=command, config_path=None, overrides=[])
+    return action
 
 
 def _info(args: argparse.Namespace, config: Config) -> int:

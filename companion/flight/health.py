@@ -66,8 +66,7 @@ class Health:
         if in_the_air and not c.autopilot.armed:
             c.motors_stopped()
             return
-        update = c.channels.vins.value
-        c.blind.update(now, None if update is None else update.health.landmarks,
+        c.blind.update(now, self.navigation.landmarks(),
                        state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
         if state not in GUARDED_STATES:
             return
