@@ -182,7 +182,37 @@ def test_a_healthy_image_passes_the_check():
 
 
 @pytest.mark.parametrize("key, value", [("hold_s", -0.1), ("max_map_offset_s", 1.0),
-                                        ("tracked_only", 1)])
+                                        ("tracked_only", 1), ("scale_field_nodes", 1),
+                                        ("scale_field_nodes", -1), ("scale_field_sigma", 0.0)])
 def test_bad_stage_options_are_named(key, value):
     with pytest.raises(OptionError, match=key):
         DepthStageOptions(**{key: value})
+
+
+def _network_reading_the_left_half_near(depth: np.ndarray) -> np.ndarray:
+    """:func:`_network` with the left half of the image 15 % more disparate than the right:
+    the spatially varying error no single curve removes."""
+    left = np.arange(CAMERA.width) < CAMERA.width // 2
+    return (_network(depth) * np.where(left, 1.15, 1.0)[None, :]).astype(np.float32)
+
+
+def test_the_scale_field_removes_an_error_that_varies_over_the_image():
+    depth, pixels = _scene_depth(), _grid_pixels(4)
+    relative = RelativeDepth(1.0, _network_reading_the_left_half_near(depth))
+    errors = {}
+    for nodes in (0, 4):
+        stage = _stage(scale_field_nodes=nodes)
+        result = stage.process(relative, _sparse_map(1.0, depth, pixels))
+        assert result.ok
+        errors[nodes] = metrics.abs_rel(result.depth, depth)
+    assert errors[4] < 0.6 * errors[0], errors
+
+
+def test_a_held_fit_keeps_its_scale_field():
+    depth, pixels = _scene_depth(), _grid_pixels(4)
+    relative = _network_reading_the_left_half_near(depth)
+    stage = _stage(scale_field_nodes=4)
+    fresh = stage.process(RelativeDepth(1.0, relative), _sparse_map(1.0, depth, pixels))
+    held = stage.process(RelativeDepth(1.2, relative), _sparse_map(1.2, depth, pixels[:3]))
+    assert held.ok and held.held
+    np.testing.assert_allclose(held.depth, fresh.depth, rtol=1e-6)

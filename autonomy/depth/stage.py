@@ -30,9 +30,10 @@ import numpy as np
 
 from autonomy.depth.anchors import sample_nearest_surface
 from autonomy.depth.rescale import RescaleModel, RescaleOptions, TemporalBlend, fit
+from autonomy.depth.scale_field import ScaleField, fit_scale_field
 from autonomy.messages import (DepthDiagnostics, FitSamples, MetricDepth, RelativeDepth,
                                SparseMap)
-from autonomy.options import option, validate
+from autonomy.options import OptionError, option, validate
 
 
 @dataclass(frozen=True)
@@ -46,9 +47,17 @@ class DepthStageOptions:
                                 "(a landmark merely projected into view may be occluded)")
     max_map_offset_s: float = option(0.002, ge=0.0, le=0.1, doc="largest difference between "
                                      "a frame's time and its sparse map's time, seconds")
+    scale_field_nodes: int = option(0, ge=0, le=16, doc="nodes a side of the smooth scale "
+                                    "field fitted to the anchors' residuals after the curve "
+                                    "(scale_field.py); 0: none, the curve alone (the paper)")
+    scale_field_sigma: float = option(0.1, gt=0.0, le=1.0, doc="prior spread of the scale "
+                                      "field's nodes and of their neighbours' differences, log "
+                                      "disparity")
 
     def __post_init__(self) -> None:
         validate(self)
+        if self.scale_field_nodes == 1:
+            raise OptionError("scale_field_nodes", "must be 0 (no field) or at least 2, got 1")
 
 
 #: The :attr:`MetricDepthStage.no_fit` key of frames that came without their sparse map.
@@ -94,6 +103,7 @@ def check_relative_disparity(disparity: np.ndarray) -> tuple[Rejection, str] | N
 class _GoodFit:
     t: float
     model: RescaleModel
+    field: ScaleField | None
 
 
 class MetricDepthStage:
@@ -129,14 +139,28 @@ class MetricDepthStage:
         if sparse_map is None:
             self.no_fit[NO_SPARSE_MAP] += 1
             return self._hold(t, disparity, 0, "no VINS sparse map for this frame")
-        x, z = self.anchors(sparse_map, disparity)
+        x, z, pixels = self._anchor_samples(sparse_map, disparity)
         result = self._blend.update(fit(x, z, options=self.rescale))
         if not result.ok:
             self.no_fit[result.reason.value] += 1
             return self._hold(t, disparity, len(x),
                               f"no fit ({result.reason.value}): {result.detail}")
-        self._last_good = _GoodFit(t, result)
-        return _apply(t, disparity, result, (x, z), fit_age_s=0.0, reason="")
+        field = self._scale_field(result, x, z, pixels, disparity.shape)
+        self._last_good = _GoodFit(t, result, field)
+        return _apply(t, disparity, result, (x, z), field, fit_age_s=0.0, reason="")
+
+    def _scale_field(self, model: RescaleModel, x: np.ndarray, z: np.ndarray,
+                     pixels: np.ndarray, shape: tuple[int, int]) -> ScaleField | None:
+        """The field of the curve's residuals at the anchors (scale_field.py), None when
+        ``scale_field_nodes`` is 0."""
+        n = self.options.scale_field_nodes
+        if n == 0:
+            return None
+        with np.errstate(divide="ignore", invalid="ignore"):
+            residuals = np.log(1.0 / (z * model.metric_disparity(x)))
+        usable = np.isfinite(residuals)
+        return fit_scale_field(pixels[usable], residuals[usable], shape, n,
+                               self.options.scale_field_sigma)
 
     def _hold(self, t: float, disparity: np.ndarray, anchors: int, reason: str) -> MetricDepth:
         """The last good fit applied to this frame while it is at most ``hold_s`` old, else
@@ -145,20 +169,26 @@ class MetricDepthStage:
         if held is None or not 0.0 <= t - held.t <= self.options.hold_s:
             return _no_depth(t, reason, disparity, anchors)
         empty = np.empty(0)
-        return _apply(t, disparity, held.model, (empty, empty), fit_age_s=t - held.t,
-                      reason=reason, sampled=anchors)
+        return _apply(t, disparity, held.model, (empty, empty), held.field,
+                      fit_age_s=t - held.t, reason=reason, sampled=anchors)
 
     def anchors(self, sparse_map: SparseMap,
                 disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(relative disparity, metric depth)`` of the landmarks of ``sparse_map`` that fall
         on the image (only those tracked in this frame with ``tracked_only``)."""
+        x, z, _ = self._anchor_samples(sparse_map, disparity)
+        return x, z
+
+    def _anchor_samples(self, sparse_map: SparseMap, disparity: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`anchors` with their pixels (N, 2)."""
         use = np.asarray(sparse_map.tracked, dtype=bool) if self.options.tracked_only \
             else np.ones(len(sparse_map), dtype=bool)
         pixels = np.asarray(sparse_map.pixels, dtype=float).reshape(-1, 2)[use]
         depth = np.asarray(sparse_map.points_C, dtype=float).reshape(-1, 3)[use, 2]
         x = sample_nearest_surface(disparity, pixels)
         on_image = np.isfinite(x)
-        return x[on_image], depth[on_image]
+        return x[on_image], depth[on_image], pixels[on_image]
 
 
 #: Points the curve is sampled at for :class:`~autonomy.messages.FitSamples`.
@@ -166,12 +196,14 @@ CURVE_SAMPLES = 32
 
 
 def _apply(t: float, disparity: np.ndarray, model: RescaleModel,
-           anchors: tuple[np.ndarray, np.ndarray], *, fit_age_s: float, reason: str,
-           sampled: int | None = None) -> MetricDepth:
-    """``model`` applied to the frame; a non-empty ``reason`` marks a held fit. ``anchors``:
-    the (relative, depth) pairs of this frame's fit; ``sampled``: how many anchors the frame
-    had, when not those (a held fit)."""
+           anchors: tuple[np.ndarray, np.ndarray], field: ScaleField | None, *,
+           fit_age_s: float, reason: str, sampled: int | None = None) -> MetricDepth:
+    """``model`` applied to the frame, then ``field`` if any; a non-empty ``reason`` marks a
+    held fit. ``anchors``: the (relative, depth) pairs of this frame's fit; ``sampled``: how
+    many anchors the frame had, when not those (a held fit)."""
     depth, confidence = model.depth_and_confidence(disparity)
+    if field is not None:
+        depth = depth * field.depth_factor(depth.shape)
     count = len(anchors[0]) if sampled is None else sampled
     diagnostics = DepthDiagnostics(count, model.anchors.used, model.residual_rms,
                                    model.method, fit_age_s, reason)

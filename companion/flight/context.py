@@ -60,6 +60,7 @@ class FlightStats:
     navigation_start: float | None = None
     navigation_end: float | None = None
     navigation_end_L: dict | None = None  # t and the VINS position in PX4's local frame then
+    # (or at its first position after, in the hold: Steps._note_navigation_end)
     takeoff_t: float | None = None
     landed_t: float | None = None
     vins_reinitialisations_at_takeoff: int = 0

@@ -68,6 +68,12 @@ class Health:
             return
         c.blind.update(now, self.navigation.landmarks(),
                        state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
+        if state == FlightState.FAILSAFE_STOP and not self.navigation.stopping_on_px4:
+            # another failsafe's stop is tracked on the VINS: if the VINS fails under it, the
+            # rest of the stop is flown on PX4's estimate
+            if vins_failed(self.vitals(now, lag)):
+                self.navigation.stop_on_px4()
+            return
         if state not in GUARDED_STATES:
             return
         vitals = self.vitals(now, lag)

@@ -123,11 +123,17 @@ class Navigation:
         longer the vehicle's, and a stop tracked on them follows their drift: the stop is
         then zero velocity, untracked, braked by PX4 on its own estimate (the plan is still
         published, for the record of what the VINS believed)."""
-        self._vins_failed = vins_failed
+        self._vins_failed = False
         if vins_failed:
-            log.warning("the VINS has failed: stopping on PX4's estimate (zero velocity, "
-                        "untracked)")
+            self.stop_on_px4()
         self.context.channels.plan.publish(self.stop_plan(reason))
+
+    def stop_on_px4(self) -> None:
+        """Fly the failsafe's stop, from now on, as zero velocity on PX4's estimate: the VINS
+        failed at the failsafe or during its stop (:meth:`stop`)."""
+        self._vins_failed = True
+        log.warning("the VINS has failed: stopping on PX4's estimate (zero velocity, "
+                    "untracked)")
 
     # ------------------------------------------------------------------ the loop
 

@@ -166,9 +166,22 @@ class MissionSteps:
             await self._navigation_step()
             await c.clock.sleep(POLL_S)
         c.stats.navigation_end = c.clock.now()
+        self._note_navigation_end()
+
+    def _note_navigation_end(self) -> None:
+        """Where the VINS put the vehicle when navigation ended or, when it was restarting
+        then (a stop flown on PX4's estimate may end first), at its first position after,
+        during the hold: the simulator scores the VINS's drift there."""
+        c = self.context
         position = self.navigation.position_L()
-        if position is not None:
-            c.stats.navigation_end_L = {"t": c.stats.navigation_end, "position_L": position}
+        if c.stats.navigation_end_L is None and position is not None:
+            c.stats.navigation_end_L = {"t": c.clock.now(), "position_L": position}
+
+    def _holding(self) -> bool:
+        """The hold's wait condition: never over early (PX4 disarming the vehicle ends it
+        through the mission: Health); meanwhile :meth:`_note_navigation_end`."""
+        self._note_navigation_end()
+        return False
 
     async def _navigation_step(self) -> None:
         c = self.context
@@ -190,7 +203,8 @@ class MissionSteps:
         if state == FlightState.STOPPING:
             c.go(FlightState.LANDING, "stopped at the goal")
             return
-        c.go(FlightState.HOLDING, "stopped after a failsafe")
+        on_px4 = ", on PX4's estimate (the VINS failed)" if self.navigation.stopping_on_px4 else ""
+        c.go(FlightState.HOLDING, f"stopped after a failsafe{on_px4}")
         await c.autopilot.hold()
 
     async def _come_down(self) -> None:
@@ -204,8 +218,7 @@ class MissionSteps:
             c.go(FlightState.HOLDING, "link back")
             await autopilot.hold()
         if c.state == FlightState.HOLDING:
-            # the hold ends early only if the mission does (PX4 disarmed the vehicle: Health)
-            await self._wait(lambda: False, o.hold_before_land_s)
+            await self._wait(self._holding, o.hold_before_land_s)
             if c.mission.done:
                 return
             c.go(FlightState.LANDING, "hold time over")
