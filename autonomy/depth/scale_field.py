@@ -62,10 +62,6 @@ class ScaleField:
                            interpolation=cv2.INTER_LINEAR)
         return np.exp(-field)
 
-    def at(self, pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-        """``F`` at ``pixels`` (N, 2) ``(u, v)`` of an image of ``shape``."""
-        return node_weights(pixels, shape, len(self.nodes)) @ self.nodes.ravel()
-
 
 def node_weights(pixels: np.ndarray, shape: tuple[int, int], n: int) -> np.ndarray:
     """(N, n²) bilinear weights of the grid's nodes at ``pixels`` (N, 2) ``(u, v)``: node
