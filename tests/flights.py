@@ -8,7 +8,7 @@ from companion.launch import simulated
 SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
                 "min_clearance_m", "failsafes", "depth_rate_hz", "loop_lag_ms_p99", "backoffs",
                 "navigation_end", "position_error_m", "vins_time_offset",
-                "vins_correction_m", "failsafe_stop_m"}
+                "vins_correction_m", "failsafe_stop_m", "landing_glide_m"}
 
 _LOCKSTEP_FLIGHTS: dict[simulated.SimMission, dict] = {}
 

@@ -80,6 +80,28 @@ def test_blocked_at_take_off_with_no_way_back_it_looks_aside_and_flies_on():
     assert summary["path_length_m"] > 10.0 and summary["closest_to_goal_m"] < 50.0
 
 
+def test_after_a_mission_timeout_it_glides_to_a_landing_site_seen_clear_and_lands_there():
+    """The dome's pair 1 cut short by an 8 s mission timeout, 2.8 m up over open ground. The
+    column under where the stop ended was never seen to the floor, so the vehicle glides to
+    the nearest site ahead whose column it sees clear (autonomy/planning/landing.py): 4 m
+    ahead, where it sees the foot of a 0.5 m column from that height. (It used to land where
+    the stop ended: in a realistic sewer that was 0.6 m from a tripod's head, and a splayed
+    leg met it at 0.25 m, docs/results.md.)"""
+    config = load_config(None, ["flight.mission_timeout_s=8"])
+    summary = simulated.run(config, simulated.SimMission(world="dome", pair=1, depth="truth"))
+    assert_safe_landing(summary)
+    assert summary["failsafes"] == ["mission timeout"], summary["failsafes"]
+    states = [t["to"] for t in summary["transitions"]]
+    assert states[-5:] == ["failsafe_stop", "to_landing_site", "holding", "landing", "landed"]
+    glide, held = summary["transitions"][-4:-2]
+    assert glide["reason"] == ("stopped after a failsafe; gliding 4.0 m to a landing site seen "
+                               "clear"), glide
+    assert held["reason"] == "at the landing site", held
+    assert summary["landing_glide_m"] == pytest.approx(4.0, abs=0.3)
+    # the mission timeout's stop brakes on the checked stop, not on to the arc's end
+    assert summary["failsafe_stop_m"] < 2.6
+
+
 def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_newest():
     """The realistic profile charges the Orin's compute times to simulated time (network
     1/15 s, VINS 17 ms, [sim_latency]) with the camera at 20 Hz. Every frame goes through the

@@ -713,6 +713,52 @@ def test_an_approach_through_a_wall_is_refused():
     assert planner.approach(1.0, body(), body()[:3, 3]) is None  # already there
 
 
+# ---------------------------------------------------------------- landing sites
+
+
+def test_over_an_open_floor_the_landing_site_is_the_nearest_one_ahead():
+    planner, T_W_B, _ = floor_scene(1.5)
+    glide = planner.landing_glide(0.05, T_W_B, floor_z=0.0)
+    assert glide is not None and glide.reason == "landing site" and glide.kind == "stop"
+    np.testing.assert_allclose(glide.setpoint(glide.end_time).position_W, [2.0, 0.0, 1.5],
+                               atol=1e-9)
+    # the glide is what the watchdog falls back to, and what later stops continue
+    assert planner.stop_plan(0.1, T_W_B, np.zeros(3), "x").primitive is glide.primitive
+
+
+def test_a_crate_under_the_nearest_site_moves_the_site_clear_of_it():
+    """A 0.35 m crate 2 m ahead: out of reach of the glide's spheres at 1.5 m (radius 1 m
+    reaches down to 0.5 m), so only the column check can see it."""
+    crate = ((1.8, -0.2, -1.0), (2.2, 0.2, 0.35))
+    planner, T_W_B, _ = floor_scene(1.5, [crate])
+    assert planner.approach(0.05, T_W_B, np.array([2.0, 0.0, 1.5])) is not None
+    glide = planner.landing_glide(0.05, T_W_B, floor_z=0.0)
+    assert glide is not None
+    site = glide.setpoint(glide.end_time).position_W
+    gap = np.linalg.norm(np.maximum(np.abs(site[:2] - [2.0, 0.0]) - 0.2, 0.0))
+    assert gap >= planner.options.landing_radius, site
+    # no farther than needed: the sites nearer than 3 m have the crate within their column's
+    # radius, or (1 m aside) a glide whose spheres reach the floor's near rays
+    assert np.hypot(*site[:2]) <= 3.0 + 1e-9, site
+
+
+def test_no_landing_site_without_room_to_glide_a_seen_floor_or_the_option():
+    wall = ((2.5, -50.0, -1.0), (3.0, 50.0, 50.0))
+    planner, T_W_B, _ = floor_scene(1.5, [wall])
+    assert planner.landing_glide(0.05, T_W_B, floor_z=0.0) is None  # every glide meets it
+    planner, T_W_B, depth = floor_scene(1.5)
+    assert planner.landing_glide(5.0, T_W_B, floor_z=0.0) is None  # the frame is too old
+    unseen = Planner(WIDE)
+    unseen.add_depth(metric(np.where(WIDE.rays()[..., 1] > 0.0, np.nan, depth), 0.0),
+                     camera_pose(T_W_B))
+    assert unseen.landing_glide(0.05, T_W_B, floor_z=0.0) is None  # no floor seen
+    off = Planner(WIDE, PlannerOptions(landing_radius=0.0))
+    off.add_depth(metric(depth, 0.0), camera_pose(T_W_B))
+    assert off.landing_glide(0.05, T_W_B, floor_z=0.0) is None
+    with pytest.raises(ValueError, match="floor_z"):
+        planner.landing_glide(0.05, T_W_B, floor_z=math.nan)
+
+
 def test_the_chosen_primitives_stop_branch_was_checked_free():
     planner = planner_seeing([WALL_LEFT, *ROOM])
     plan = planner.plan(0.05, body(), FORWARD, AHEAD)
@@ -792,7 +838,8 @@ def test_bad_inputs_raise_clear_errors():
 
 @pytest.mark.parametrize("key, value", [("period_s", 2.0), ("max_range", 0.5),
                                         ("max_yaw_rate_deg", 0.0), ("robot_radius", 0.0),
-                                        ("escape_radius", 1.5), ("history_frames", 0)])
+                                        ("escape_radius", 1.5), ("history_frames", 0),
+                                        ("landing_radius", 1.5)])
 def test_bad_options_are_named(key, value):
     with pytest.raises(OptionError, match=key):
         PlannerOptions(**{key: value})

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from autonomy.navigation.mission import NO_SAFE_PRIMITIVE
 from autonomy.vins.health import HealthState
 
 
@@ -105,6 +106,6 @@ def failsafe_reason(vitals: Vitals, options) -> str:
          f"VINS blind (< {o.blind_landmarks} landmarks for {vitals.blind_s:.1f} s)"),
         (vitals.depth_age_s > o.depth_timeout_s and not vitals.on_flown_ground,
          f"no metric depth ({vitals.depth_reason or 'none yet'})"),
-        (vitals.no_path_expired, "no safe primitive"),
+        (vitals.no_path_expired, NO_SAFE_PRIMITIVE),
     )
     return next((reason for failed, reason in checks if failed), "")

@@ -9,10 +9,12 @@ goes
 and whatever goes wrong in the air takes the safe way down:
 
     any airborne state --failsafe--> FAILSAFE_STOP (follow the stop primitive checked at the
-    last planning round) -> HOLDING (PX4 Hold) -> LANDING -> LANDED
+    last planning round) [-> TO_LANDING_SITE] -> HOLDING (PX4 Hold) -> LANDING -> LANDED
 
 A failsafe is terminal for the mission: the vehicle stops, holds for ``hold_before_land_s``
-and lands where it is. On the ground, a failed step ends in ABORTED. Every transition is kept
+and lands. After a failsafe that leaves the vehicle and its sensing sound
+(:data:`SITE_SEEKING_FAILSAFES`) it first glides to a landing site ahead seen clear to the
+floor, when there is one (:mod:`autonomy.planning.landing`); else it lands where it is. On the ground, a failed step ends in ABORTED. Every transition is kept
 with its time and reason, and logged.
 """
 
@@ -152,6 +154,7 @@ class FlightState(enum.Enum):
     NAVIGATING = "navigating"
     STOPPING = "stopping"
     FAILSAFE_STOP = "failsafe_stop"
+    TO_LANDING_SITE = "to_landing_site"
     HOLDING = "holding"
     LINK_LOST = "link_lost"
     LANDING = "landing"
@@ -167,7 +170,15 @@ DISARMED_STATES = GROUND_STATES | {FlightState.LANDED}
 #: States in which the application commands the vehicle with offboard setpoints.
 OFFBOARD_STATES = frozenset({FlightState.ENTERING_OFFBOARD, FlightState.ALIGNING,
                              FlightState.NAVIGATING, FlightState.STOPPING,
-                             FlightState.FAILSAFE_STOP})
+                             FlightState.FAILSAFE_STOP, FlightState.TO_LANDING_SITE})
+#: States after a failsafe in which the application still commands the vehicle.
+FAILSAFE_OFFBOARD_STATES = frozenset({FlightState.FAILSAFE_STOP, FlightState.TO_LANDING_SITE})
+#: Failsafes after which only the mission has failed, not the vehicle or its sensing: the
+#: stop is followed by a glide to a landing site seen clear (module docstring). Not after an
+#: operator's stop (which may be for something ahead), nor a stalled loop or failed sensor.
+MISSION_TIMEOUT = "mission timeout"
+NO_SAFE_PRIMITIVE = "no safe primitive"
+SITE_SEEKING_FAILSAFES = frozenset({MISSION_TIMEOUT, NO_SAFE_PRIMITIVE})
 #: States in which a failsafe check applies (in the air, on our setpoints).
 GUARDED_STATES = frozenset({FlightState.ALIGNING, FlightState.NAVIGATING,
                             FlightState.STOPPING})
@@ -191,6 +202,7 @@ class Mission:
         self.since = t
         self.transitions: list[Transition] = []
         self.failsafes: list[str] = []
+        self.stopped_by = ""  # the failsafe that stopped the flight ("" while none has)
 
     def go(self, t: float, target: FlightState, reason: str) -> None:
         """Enter ``target`` at ``t`` for ``reason`` (logged; a no-op when already there)."""
@@ -210,6 +222,7 @@ class Mission:
             self.failsafes.append(reason)
         if self.state in GUARDED_STATES:
             log.warning("t=%.2f failsafe: %s", t, reason)
+            self.stopped_by = reason
             self.go(t, FlightState.FAILSAFE_STOP, f"failsafe: {reason}")
             return True
         return False

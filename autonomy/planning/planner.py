@@ -58,6 +58,7 @@ from autonomy.geometry import PinholeCamera, make_pose, rot_z, yaw_of
 from autonomy.messages import MetricDepth
 from autonomy.options import OptionError, option
 from autonomy.planning.history import DepthHistory, as_pose, check_camera
+from autonomy.planning.landing import candidate_sites, column_points
 from autonomy.planning.primitives import (
     Primitive, PrimitiveOptions, forward_arc, library, stop_primitive, tier_speeds,
 )
@@ -65,6 +66,9 @@ from autonomy.planning.primitives import (
 
 #: The reason an approach glide's plan carries (:meth:`Planner.approach`).
 APPROACH_REASON = "approach"
+
+#: The reason a landing site's glide carries (:meth:`Planner.landing_glide`).
+LANDING_REASON = "landing site"
 
 #: Steps of the sphere's radius a hemmed-in vehicle's arcs are checked with, metres.
 ESCAPE_STEP_M = 0.1
@@ -102,6 +106,10 @@ class PlannerOptions(PrimitiveOptions):
                                      "observed surfaces")
     clearance_wanted: float = option(2.0, gt=0.0, le=100.0, doc="clearance beyond the robot "
                                      "radius that costs nothing, metres")
+    landing_radius: float = option(0.5, ge=0.0, le=10.0, doc="after a mission timeout or no "
+                                   "safe primitive, the vehicle glides to a site ahead seen "
+                                   "free this far round its column down to the floor before "
+                                   "landing (landing.py); 0: it lands where it stopped, metres")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -111,6 +119,9 @@ class PlannerOptions(PrimitiveOptions):
         if self.escape_radius > self.robot_radius:
             raise OptionError("escape_radius", f"must be <= robot_radius "
                               f"({self.robot_radius:g}), got {self.escape_radius:g}")
+        if self.landing_radius > self.robot_radius:
+            raise OptionError("landing_radius", f"must be <= robot_radius "
+                              f"({self.robot_radius:g}), got {self.landing_radius:g}")
         if self.max_range <= self.robot_radius:
             raise OptionError("max_range", f"must be > robot_radius ({self.robot_radius:g}), "
                               f"got {self.max_range:g}")
@@ -354,6 +365,46 @@ class Planner:
         plan = replace(plan, safe_count=1, clearance=float(np.min(result.clearance)))
         self._checked_stop = plan
         return plan
+
+    def landing_glide(self, t: float, T_W_B, floor_z: float) -> Plan | None:
+        """The :meth:`approach` glide to the nearest landing site ahead (landing.py) whose
+        column, from the body's height down to the floor at height ``floor_z`` (frame W), the
+        history judges free for spheres of ``landing_radius``; None when no site passes, or
+        ``landing_radius`` is 0."""
+        radius = self.options.landing_radius
+        if radius == 0.0:
+            return None
+        T_W_B = as_pose(T_W_B, "T_W_B")
+        if not math.isfinite(floor_z):
+            raise ValueError(f"floor_z must be finite, got {floor_z!r}")
+        sites = candidate_sites(T_W_B[:3, 3], yaw_of(T_W_B[:3, :3]))
+        columns = [column_points(site, floor_z, radius) for site in sites]
+        if not any(len(column) for column in columns):
+            return None  # the vehicle is lower than a column's lowest sphere
+        groups = np.repeat(np.arange(len(sites)), [len(column) for column in columns])
+        free = self.history.check(np.vstack(columns), now=t, groups=groups, radius=radius).free
+        clear = np.bincount(groups, weights=~free, minlength=len(sites)) == 0
+        for site in sites[clear]:
+            glide = self.glide(t, T_W_B, site, LANDING_REASON)
+            if self._glide_free_from_rest(glide):
+                self._checked_stop = glide
+                return glide
+        return None
+
+    def _glide_free_from_rest(self, glide: Plan) -> bool:
+        """Every point of ``glide`` (a glide begun at rest) beyond ``robot_radius`` from its
+        start free, by the history's rule near the vehicle or, where that cannot tell, by
+        the ring rule (each is conservative, history.py). The points nearer lie in the
+        vehicle's own sphere, free as the arcs' starts are (it stands there, on the stop the
+        last round checked). The rule near the vehicle reads every pixel block the sphere
+        meets, so a hovering vehicle's frames, all from where it stands, leave it unknown
+        wherever a block holds one unknown pixel (the sky over the dome)."""
+        start = glide.T_W_S[:3, 3]
+        points_S = np.vstack([glide.primitive.points_S[1:], glide.primitive.stop_points_S])
+        points = points_S @ glide.T_W_S[:3, :3].T + start
+        points = points[np.linalg.norm(points - start, axis=1) > self.options.robot_radius]
+        near = self.history.check(points, start_W=start, now=glide.t).free
+        return bool(self.history.check(points[~near], now=glide.t).free.all())
 
     def glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
         """A straight glide from the body at ``T_W_B`` (at rest) to come to rest at

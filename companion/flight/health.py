@@ -8,8 +8,8 @@ import logging
 
 from autonomy.navigation.failsafes import (Vitals, age, failsafe_reason, vins_failed,
                                            vins_problem)
-from autonomy.navigation.mission import (DISARMED_STATES, GUARDED_STATES, OFFBOARD_STATES,
-                                         FlightState)
+from autonomy.navigation.mission import (DISARMED_STATES, FAILSAFE_OFFBOARD_STATES,
+                                         GUARDED_STATES, OFFBOARD_STATES, FlightState)
 from companion.flight.context import FlightContext
 from companion.flight.navigation import Navigation
 from companion.flight.perception import Perception
@@ -68,9 +68,9 @@ class Health:
             return
         c.blind.update(now, self.navigation.landmarks(),
                        state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
-        if state == FlightState.FAILSAFE_STOP and not self.navigation.stopping_on_px4:
-            # another failsafe's stop is tracked on the VINS: if the VINS fails under it, the
-            # rest of the stop is flown on PX4's estimate
+        if state in FAILSAFE_OFFBOARD_STATES and not self.navigation.stopping_on_px4:
+            # another failsafe's stop (or the glide to a landing site after it) is tracked on
+            # the VINS: if the VINS fails under it, the rest is flown on PX4's estimate
             if vins_failed(self.vitals(now, lag)):
                 self.navigation.stop_on_px4()
             return

@@ -25,7 +25,7 @@ from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON, P
                                             must_turn, on_glide, pause_turn, still_turning,
                                             view_starved)
 from autonomy.navigation.failsafes import age
-from autonomy.navigation.mission import FlightState
+from autonomy.navigation.mission import FAILSAFE_OFFBOARD_STATES, FlightState
 from autonomy.navigation.route import Route, heading_error
 from autonomy.navigation.trail import Trail
 from autonomy.planning.planner import Plan, Planner
@@ -82,9 +82,39 @@ class Navigation:
 
     @property
     def stopping_on_px4(self) -> bool:
-        """A failsafe's stop after the VINS failed: flown as zero velocity on PX4's own
-        estimate, untracked (:meth:`stop`)."""
-        return self._vins_failed and self.context.state == FlightState.FAILSAFE_STOP
+        """A failsafe's stop, or the glide to a landing site after it, after the VINS failed:
+        flown as zero velocity on PX4's own estimate, untracked (:meth:`stop`)."""
+        return self._vins_failed and self.context.state in FAILSAFE_OFFBOARD_STATES
+
+    async def to_landing_site(self) -> float | None:
+        """At rest after a failsafe: fly the planner's glide to a landing site seen clear
+        (:meth:`~autonomy.planning.planner.Planner.landing_glide`); its horizontal length,
+        metres, or None when no site passes."""
+        c = self.context
+        odometry = c.channels.odometry.value
+        if odometry is None or c.T_L_W is None:
+            return None
+        floor_z = c.channels.alignment.value.home_z - float(c.T_L_W[2, 3])  # the take-off's
+        glide = await c.workers["planner"].run(self.planner.landing_glide, odometry.t,
+                                               odometry.T_W_B, floor_z)
+        if glide is None:
+            return None
+        self._follow(glide)
+        end = glide.setpoint(glide.end_time).position_W
+        return float(np.hypot(*(end - odometry.T_W_B[:3, 3])[:2]))
+
+    def at_landing_site(self) -> bool:
+        """The landing site's glide is over and the vehicle at rest (or, the VINS having
+        failed on the way, at rest on PX4's estimate)."""
+        plan = self.plan
+        over = self.stopping_on_px4 or plan is None or self.context.clock.now() >= plan.end_time
+        return over and self.stopped()
+
+    def glide_left(self) -> float:
+        """Seconds the landing site's glide has left, plus ``stop_timeout_s`` to come to rest."""
+        plan, now = self.plan, self.context.clock.now()
+        left = 0.0 if plan is None else max(0.0, plan.end_time - now)
+        return left + self.context.options.stop_timeout_s
 
     def stopped(self) -> bool:
         """At rest: slower than ``stopped_speed`` by the VINS, or by PX4's estimate while

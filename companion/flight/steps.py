@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 
 from autonomy.navigation.behaviours import facing
-from autonomy.navigation.mission import FlightState
+from autonomy.navigation.mission import MISSION_TIMEOUT, SITE_SEEKING_FAILSAFES, FlightState
 from companion.flight.context import FlightContext
 from companion.flight.go import OperatorGate
 from companion.flight.navigation import Navigation
@@ -161,8 +161,8 @@ class MissionSteps:
         c = self.context
         deadline = c.clock.now() + c.options.mission_timeout_s
         while c.state in NAVIGATION_PHASE:
-            if c.clock.now() > deadline:
-                c.mission.failsafe(c.clock.now(), "mission timeout")
+            if c.clock.now() > deadline and c.mission.failsafe(c.clock.now(), MISSION_TIMEOUT):
+                self.navigation.stop(MISSION_TIMEOUT)
             await self._navigation_step()
             await c.clock.sleep(POLL_S)
         c.stats.navigation_end = c.clock.now()
@@ -204,12 +204,27 @@ class MissionSteps:
             c.go(FlightState.LANDING, "stopped at the goal")
             return
         on_px4 = ", on PX4's estimate (the VINS failed)" if self.navigation.stopping_on_px4 else ""
+        if c.mission.stopped_by in SITE_SEEKING_FAILSAFES and not on_px4 \
+                and self.navigation.stopped():
+            distance = await self.navigation.to_landing_site()
+            if distance is not None:
+                c.go(FlightState.TO_LANDING_SITE, f"stopped after a failsafe; gliding "
+                                                  f"{distance:.1f} m to a landing site seen clear")
+                return
+            log.warning("no landing site seen clear ahead: landing where the stop ended")
         c.go(FlightState.HOLDING, f"stopped after a failsafe{on_px4}")
         await c.autopilot.hold()
 
     async def _come_down(self) -> None:
         c = self.context
         o, autopilot = c.options, c.autopilot
+        if c.state == FlightState.TO_LANDING_SITE:
+            await self._wait(lambda: c.state != FlightState.TO_LANDING_SITE
+                             or self.navigation.at_landing_site(), self.navigation.glide_left())
+            if c.state == FlightState.TO_LANDING_SITE:
+                c.go(FlightState.HOLDING, "at the landing site" if self.navigation.at_landing_site()
+                     else "the glide to the landing site ran out of time")
+                await autopilot.hold()
         if c.state == FlightState.LINK_LOST:
             await self._wait(lambda: autopilot.connected, o.land_timeout_s)
             if not autopilot.connected:

@@ -250,7 +250,8 @@ def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthT
             "t": round(collision.time, 3),
             "position": [round(float(v), 3) for v in collision.position]},
         **truth,
-        "failsafe_stop_m": _failsafe_stop_length(track, summary["transitions"]),
+        "failsafe_stop_m": _path_length_in(track, summary["transitions"], "failsafe_stop"),
+        "landing_glide_m": _path_length_in(track, summary["transitions"], "to_landing_site"),
         # the application's own judgement, confirmed by the truth (with room for VINS drift)
         "reached_goal": bool(summary["reached_goal"] and truth["closest_to_goal_m"] is not None
                              and truth["closest_to_goal_m"]
@@ -258,11 +259,12 @@ def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthT
     }
 
 
-def _failsafe_stop_length(track: TruthTrack, transitions: list[dict]) -> float | None:
-    """Metres flown in truth during the first failsafe's stop, from its start to the next
-    state (None without a failsafe stop): what a stop must keep short."""
+def _path_length_in(track: TruthTrack, transitions: list[dict], state: str) -> float | None:
+    """Metres flown in truth during the first time in ``state``, from its start to the next
+    state (None when never in it): the failsafe's stop, which must be short, and the glide to
+    a landing site after it."""
     for k, transition in enumerate(transitions):
-        if transition["to"] == "failsafe_stop":
+        if transition["to"] == state:
             end = transitions[k + 1]["t"] if k + 1 < len(transitions) else math.inf
             return round(track.path_length_between(transition["t"], end), 3)
     return None
