@@ -19,7 +19,8 @@ from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX
                                             view_starved)
 from autonomy.navigation.failsafes import (BlindClock, Vitals, failsafe_reason, vins_failed,
                                            vins_problem)
-from autonomy.navigation.mission import FlightOptions, FlightState, Mission
+from autonomy.navigation.mission import (MISSION_TIMEOUT, SITE_SEEKING_FAILSAFES, FlightOptions,
+                                         FlightState, Mission)
 from autonomy.navigation.route import Route, heading_error, stop_waypoints
 from autonomy.navigation.trail import Trail
 from autonomy.planning.planner import Candidates, Planner, PlannerOptions
@@ -338,6 +339,17 @@ def test_each_failsafe_rule_names_its_reason(changes, reason):
     assert failsafe_reason(vitals(**changes), OPTIONS) == reason
 
 
+def test_only_the_missions_own_failures_glide_to_a_landing_site_before_landing():
+    """docs/flight.md, "Where it lands": after an operator's stop (maybe for something
+    ahead), a stalled loop or a failed sensor the vehicle lands where it stopped."""
+    seeking = {failsafe_reason(vitals(no_path_expired=True), OPTIONS), MISSION_TIMEOUT}
+    assert seeking == SITE_SEEKING_FAILSAFES
+    for changes in ({"stop_requested": "stop requested (SIGTERM)"}, {"loop_lag_s": 0.45},
+                    {"watchdog_in_charge": True}, {"camera_age_s": 0.6},
+                    {"vins_problem": "VINS lost (no tracks)"}, {"depth_age_s": 1.2}):
+        assert failsafe_reason(vitals(**changes), OPTIONS) not in SITE_SEEKING_FAILSAFES
+
+
 def test_the_most_basic_failure_is_the_one_reported():
     # a silent camera starves the depth too: the camera is the cause
     assert failsafe_reason(vitals(camera_age_s=2.0, depth_age_s=2.0), OPTIONS) == \
@@ -432,6 +444,7 @@ def test_a_failsafe_stops_navigation_once_and_records_every_reason():
     assert not mission.failsafe(2.1, "IMU silent")  # already stopping
     assert mission.failsafes == ["camera silent", "IMU silent"]
     assert mission.transitions[-1].reason == "failsafe: camera silent"
+    assert mission.stopped_by == "camera silent"  # what decides where it lands
 
 
 def test_a_failsafe_on_the_ground_changes_nothing():

@@ -66,8 +66,9 @@ class Health:
         if in_the_air and not c.autopilot.armed:
             c.motors_stopped()
             return
-        c.blind.update(now, self.navigation.landmarks(),
-                       state in GUARDED_STATES and state != FlightState.ALIGNING, c.options)
+        flown_on_vins = (state in GUARDED_STATES and state != FlightState.ALIGNING
+                         or state == FlightState.TO_LANDING_SITE)
+        c.blind.update(now, self.navigation.landmarks(), flown_on_vins, c.options)
         if state in FAILSAFE_OFFBOARD_STATES and not self.navigation.stopping_on_px4:
             # another failsafe's stop (or the glide to a landing site after it) is tracked on
             # the VINS: if the VINS fails under it, the rest is flown on PX4's estimate

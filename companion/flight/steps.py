@@ -203,17 +203,29 @@ class MissionSteps:
         if state == FlightState.STOPPING:
             c.go(FlightState.LANDING, "stopped at the goal")
             return
+        if await self._glide_to_landing_site() or c.state != FlightState.FAILSAFE_STOP:
+            return  # gliding; or the link or the motors were lost meanwhile (Health)
         on_px4 = ", on PX4's estimate (the VINS failed)" if self.navigation.stopping_on_px4 else ""
-        if c.mission.stopped_by in SITE_SEEKING_FAILSAFES and not on_px4 \
-                and self.navigation.stopped():
-            distance = await self.navigation.to_landing_site()
-            if distance is not None:
-                c.go(FlightState.TO_LANDING_SITE, f"stopped after a failsafe; gliding "
-                                                  f"{distance:.1f} m to a landing site seen clear")
-                return
-            log.warning("no landing site seen clear ahead: landing where the stop ended")
         c.go(FlightState.HOLDING, f"stopped after a failsafe{on_px4}")
         await c.autopilot.hold()
+
+    async def _glide_to_landing_site(self) -> bool:
+        """After a failsafe that leaves the vehicle sound (``SITE_SEEKING_FAILSAFES``), at rest
+        on the VINS: glide to a landing site seen clear (docs/flight.md, "Where it lands").
+        False when it does not: it then lands where it is."""
+        c, navigation = self.context, self.navigation
+        if c.mission.stopped_by not in SITE_SEEKING_FAILSAFES or navigation.stopping_on_px4 \
+                or not navigation.stopped():
+            return False
+        distance = await navigation.to_landing_site()
+        if c.state != FlightState.FAILSAFE_STOP or navigation.stopping_on_px4:
+            return False
+        if distance is None:
+            log.warning("no landing site seen clear ahead: landing where the stop ended")
+            return False
+        c.go(FlightState.TO_LANDING_SITE,
+             f"stopped after a failsafe; gliding {distance:.1f} m to a landing site seen clear")
+        return True
 
     async def _come_down(self) -> None:
         c = self.context
