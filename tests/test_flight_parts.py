@@ -449,3 +449,36 @@ def test_motors_stopped_after_the_arm_end_the_climb():
     watch = ClimbWatch(target_z=1.5)
     assert not watch.over(reported(True, px4_protocol.AUTO_TAKEOFF, True, 0.4))
     assert watch.over(reported(False, px4_protocol.AUTO_TAKEOFF, True, 0.4))
+
+
+# ---------------------------------------------------------------- the glide to a landing site
+
+def test_an_operators_stop_during_the_glide_to_a_landing_site_cuts_it_short():
+    """SIGTERM after a mission timeout, while the vehicle glides to its landing site: it holds
+    and lands now (systemd's stop timeout allows a stop, Hold and a landing, not a glide)."""
+    from autonomy.navigation.failsafes import BlindClock
+    from autonomy.navigation.mission import FlightOptions, FlightState
+    from companion.flight.health import Health
+    from companion.flight.navigation import Navigation
+    from companion.flight.steps import MissionSteps
+    from test_navigation import vitals
+
+    context = SimpleNamespace(clock=SimpleNamespace(now=lambda: 10.0),
+                              state=FlightState.TO_LANDING_SITE, options=FlightOptions(),
+                              autopilot=SimpleNamespace(connected=True, armed=True),
+                              blind=BlindClock(), channels=SimpleNamespace(
+                                  plan=SimpleNamespace(value=None)))
+    navigation = Navigation.__new__(Navigation)  # the parts the check and the glide's end read
+    navigation.context, navigation.glide_cut, navigation._vins_failed = context, "", False
+    navigation.landmarks = lambda: 50
+    navigation.stopped = lambda: False  # still gliding
+    health = Health(context, None, navigation, None)
+    health.vitals = lambda now, lag: vitals()
+    steps = MissionSteps(context, None, navigation, None)
+    health.check(0.0)
+    assert not navigation.at_landing_site()  # gliding on
+    health.stop_reason = "stop requested (SIGTERM)"
+    health.check(0.0)
+    assert navigation.at_landing_site()
+    assert steps._glide_end() == ("stop requested (SIGTERM): the glide to the landing site cut "
+                                  "short")

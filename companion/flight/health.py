@@ -69,6 +69,8 @@ class Health:
         flown_on_vins = (state in GUARDED_STATES and state != FlightState.ALIGNING
                          or state == FlightState.TO_LANDING_SITE)
         c.blind.update(now, self.navigation.landmarks(), flown_on_vins, c.options)
+        if state == FlightState.TO_LANDING_SITE and self.stop_reason:
+            self.navigation.glide_cut = self.stop_reason  # Hold, then land, now
         if state in FAILSAFE_OFFBOARD_STATES and not self.navigation.stopping_on_px4:
             # another failsafe's stop (or the glide to a landing site after it) is tracked on
             # the VINS: if the VINS fails under it, the rest is flown on PX4's estimate

@@ -50,6 +50,7 @@ class Navigation:
         self.corner_pending = False  # a stop waypoint was just passed: stop and turn
         self.parallax, self.backoff, self.no_path = ParallaxGlide(), Backoff(), NoPathClock()
         self._vins_failed = False  # the failsafe's stop is flown on PX4's estimate
+        self.glide_cut = ""  # an operator's stop that ends the glide to a landing site
         self.turn_began: float | None = None  # |heading error| as a corner's turn began
         self.regained_after: float | None = None  # the fit that lapsed at the last regaining
 
@@ -105,7 +106,9 @@ class Navigation:
 
     def at_landing_site(self) -> bool:
         """The landing site's glide is over and the vehicle at rest (or, the VINS having
-        failed on the way, at rest on PX4's estimate)."""
+        failed on the way, at rest on PX4's estimate), or an operator's stop cut it short."""
+        if self.glide_cut:
+            return True
         plan = self.plan
         over = self.stopping_on_px4 or plan is None or self.context.clock.now() >= plan.end_time
         return over and self.stopped()

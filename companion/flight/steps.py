@@ -227,6 +227,15 @@ class MissionSteps:
              f"stopped after a failsafe; gliding {distance:.1f} m to a landing site seen clear")
         return True
 
+    def _glide_end(self) -> str:
+        """Why the glide to a landing site ended."""
+        navigation = self.navigation
+        if navigation.glide_cut:
+            return f"{navigation.glide_cut}: the glide to the landing site cut short"
+        if navigation.at_landing_site():
+            return "at the landing site"
+        return "the glide to the landing site ran out of time"
+
     async def _come_down(self) -> None:
         c = self.context
         o, autopilot = c.options, c.autopilot
@@ -234,8 +243,7 @@ class MissionSteps:
             await self._wait(lambda: c.state != FlightState.TO_LANDING_SITE
                              or self.navigation.at_landing_site(), self.navigation.glide_left())
             if c.state == FlightState.TO_LANDING_SITE:
-                c.go(FlightState.HOLDING, "at the landing site" if self.navigation.at_landing_site()
-                     else "the glide to the landing site ran out of time")
+                c.go(FlightState.HOLDING, self._glide_end())
                 await autopilot.hold()
         if c.state == FlightState.LINK_LOST:
             await self._wait(lambda: autopilot.connected, o.land_timeout_s)
