@@ -205,7 +205,7 @@ def error_record(trial: Trial, trace: str, *, timeout_s: float,
 _SUMMARY_KEYS = ("start", "reached_goal", "collisions", "failsafes", "final_state",
                  "flight_time_s", "navigation_time_s", "path_length_m", "min_clearance_m",
                  "closest_to_goal_m", "vins_resets", "position_error_m", "backoffs",
-                 "vins_correction_m")
+                 "vins_correction_m", "landing_glide_m")
 
 
 def outcome(summary: dict) -> str:
