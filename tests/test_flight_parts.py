@@ -453,9 +453,15 @@ def test_motors_stopped_after_the_arm_end_the_climb():
 
 # ---------------------------------------------------------------- the glide to a landing site
 
-def test_an_operators_stop_during_the_glide_to_a_landing_site_cuts_it_short():
-    """SIGTERM after a mission timeout, while the vehicle glides to its landing site: it holds
-    and lands now (systemd's stop timeout allows a stop, Hold and a landing, not a glide)."""
+@pytest.mark.parametrize("failure, reason", [
+    ({"stop_requested": "stop requested (SIGTERM)"}, "stop requested (SIGTERM)"),
+    ({"camera_age_s": 0.6}, "camera silent"),
+])
+def test_a_failure_during_the_glide_to_a_landing_site_cuts_it_short(failure, reason):
+    """SIGTERM, or a sensor falling silent, after a mission timeout while the vehicle glides to
+    its landing site: it holds and lands now (the glide is for a sound vehicle, and systemd's
+    stop timeout allows a stop, Hold and a landing, not a glide). A failure during the stop
+    rules the glide out the same way."""
     from autonomy.navigation.failsafes import BlindClock
     from autonomy.navigation.mission import FlightOptions, FlightState
     from companion.flight.health import Health
@@ -466,19 +472,20 @@ def test_an_operators_stop_during_the_glide_to_a_landing_site_cuts_it_short():
     context = SimpleNamespace(clock=SimpleNamespace(now=lambda: 10.0),
                               state=FlightState.TO_LANDING_SITE, options=FlightOptions(),
                               autopilot=SimpleNamespace(connected=True, armed=True),
-                              blind=BlindClock(), channels=SimpleNamespace(
-                                  plan=SimpleNamespace(value=None)))
+                              blind=BlindClock(), mission=SimpleNamespace(
+                                  stopped_by="mission timeout"),
+                              channels=SimpleNamespace(plan=SimpleNamespace(value=None)))
     navigation = Navigation.__new__(Navigation)  # the parts the check and the glide's end read
     navigation.context, navigation.glide_cut, navigation._vins_failed = context, "", False
     navigation.landmarks = lambda: 50
     navigation.stopped = lambda: False  # still gliding
     health = Health(context, None, navigation, None)
-    health.vitals = lambda now, lag: vitals()
+    measured = {"no_path_expired": True}  # the mission's own failure does not cut it
+    health.vitals = lambda now, lag: vitals(**measured)
     steps = MissionSteps(context, None, navigation, None)
     health.check(0.0)
     assert not navigation.at_landing_site()  # gliding on
-    health.stop_reason = "stop requested (SIGTERM)"
+    measured.update(failure)
     health.check(0.0)
     assert navigation.at_landing_site()
-    assert steps._glide_end() == ("stop requested (SIGTERM): the glide to the landing site cut "
-                                  "short")
+    assert steps._glide_end() == f"{reason}: the glide to the landing site cut short"

@@ -11,6 +11,7 @@ from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, rot_z
 from autonomy.messages import DepthDiagnostics, MetricDepth
 from autonomy.options import OptionError
 from autonomy.planning.history import fill_small_holes, DepthHistory, min_table, window_min
+from autonomy.planning.landing import column_points
 from autonomy.planning.planner import Plan, Planner, PlannerOptions
 
 CAMERA = PinholeCamera.from_hfov(160, 120, math.radians(90.0))
@@ -740,6 +741,23 @@ def test_a_crate_under_the_nearest_site_moves_the_site_clear_of_it():
     # no farther than needed: the sites nearer than 3 m have the crate within their column's
     # radius, or (1 m aside) a glide whose spheres reach the floor's near rays
     assert np.hypot(*site[:2]) <= 3.0 + 1e-9, site
+
+
+def test_a_pole_beside_the_way_to_the_nearest_site_moves_the_site_to_a_free_glide():
+    """A pole 0.8 m left of the straight glide to the nearest site: the site's column is
+    clear of it (1.3 m away), but the robot's sphere on the way is not."""
+    pole = ((0.95, 0.75, -1.0), (1.05, 0.85, 50.0))
+    planner, T_W_B, _ = floor_scene(1.5, [pole])
+    column = column_points(np.array([2.0, 0.0, 1.5]), 0.0, planner.options.landing_radius)
+    assert planner.history.check(column, now=0.05, radius=0.5).free.all()
+    glide = planner.landing_glide(0.05, T_W_B, floor_z=0.0)
+    assert glide is not None
+    site = glide.setpoint(glide.end_time).position_W[:2]
+    assert not np.allclose(site, [2.0, 0.0])
+    # the glide's segment keeps the robot's radius from the pole's axis
+    axis, along = np.array([1.0, 0.8]), site / np.linalg.norm(site)
+    nearest = np.clip(axis @ along, 0.0, np.linalg.norm(site)) * along
+    assert np.linalg.norm(axis - nearest) >= planner.options.robot_radius
 
 
 def test_no_landing_site_without_room_to_glide_a_seen_floor_or_the_option():

@@ -9,13 +9,15 @@ goes
 and whatever goes wrong in the air takes the safe way down:
 
     any airborne state --failsafe--> FAILSAFE_STOP (follow the stop primitive checked at the
-    last planning round) [-> TO_LANDING_SITE] -> HOLDING (PX4 Hold) -> LANDING -> LANDED
+    last planning round) [-> TO_LANDING_SITE] -> HOLDING (PX4 Hold)
+    -> LANDING -> LANDED
 
 A failsafe is terminal for the mission: the vehicle stops, holds for ``hold_before_land_s``
 and lands. After a failsafe that leaves the vehicle and its sensing sound
 (:data:`SITE_SEEKING_FAILSAFES`) it first glides to a landing site ahead seen clear to the
-floor, when there is one (:mod:`autonomy.planning.landing`); else it lands where it is. On the ground, a failed step ends in ABORTED. Every transition is kept
-with its time and reason, and logged.
+floor, when there is one (:mod:`autonomy.planning.landing`); else it lands where it is. On
+the ground, a failed step ends in ABORTED. Every transition is kept with its time and reason,
+and logged.
 """
 
 from __future__ import annotations
@@ -203,6 +205,7 @@ class Mission:
         self.transitions: list[Transition] = []
         self.failsafes: list[str] = []
         self.stopped_by = ""  # the failsafe that stopped the flight ("" while none has)
+        self.stopped_from: FlightState | None = None  # the state it stopped the flight in
 
     def go(self, t: float, target: FlightState, reason: str) -> None:
         """Enter ``target`` at ``t`` for ``reason`` (logged; a no-op when already there)."""
@@ -222,7 +225,7 @@ class Mission:
             self.failsafes.append(reason)
         if self.state in GUARDED_STATES:
             log.warning("t=%.2f failsafe: %s", t, reason)
-            self.stopped_by = reason
+            self.stopped_by, self.stopped_from = reason, self.state
             self.go(t, FlightState.FAILSAFE_STOP, f"failsafe: {reason}")
             return True
         return False

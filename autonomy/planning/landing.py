@@ -2,9 +2,9 @@
 
 PX4's landing descends vertically where it is told to. After a failsafe the vehicle has braked
 wherever the failure found it, and the column below that spot was never looked at: the forward
-camera sees the floor only from about ``h / tan(vfov / 2)`` ahead (2 m at 1.5 m height with a
-74-degree vertical field, the simulated camera's), and what it saw of the spot before is gone from the planner's
-history by the end of the stop. A spot at flight height can be clear while the space below it
+camera sees the floor only from about ``h / tan(vfov / 2)`` ahead (2 m at 1.5 m height with
+the simulated camera's 74-degree vertical field), and what it saw of the spot before is gone
+from the planner's history by the end of the stop. A spot at flight height can be clear while the space below it
 is not: a tripod's legs splay out below its head (docs/results.md: a realistic sewer flight
 landed after a mission timeout 0.6 m from a tripod's head, at flight height beyond its reach,
 and met a leg at 0.25 m).
@@ -13,10 +13,12 @@ So the stop is followed by a short glide to a *landing site*: a point ahead whos
 the flight height down to :data:`FLOOR_MARGIN` radii above the floor, every sphere of radius
 ``r`` along it every :data:`COLUMN_STEP_M`, the depth history judges free (seen, and no
 surface within ``r`` of the column's axis above that height), and whose glide at flight
-height the planner checks as its approaches. The candidates lie on a grid ahead
+height the planner finds free for the robot's sphere. The candidates lie on a grid ahead
 (:data:`SITE_DISTANCES_M` by :data:`SITE_OFFSETS_M`), nearest first. Obstacles lower than the
-column's checked bottom (``(FLOOR_MARGIN - 1) r`` on its axis) and objects the depth misses
-are not seen: the check is as good as the depth it reads.
+column's checked bottom (``(FLOOR_MARGIN - 1) r`` on its axis above the floor height given)
+and objects the depth misses are not seen: the check is as good as the depth it reads. The
+application gives the floor as the body's height at take-off, so the landing gear's height and
+the VINS's height drift since widen that unchecked band.
 """
 
 from __future__ import annotations

@@ -392,19 +392,29 @@ class Planner:
         return None
 
     def _glide_free_from_rest(self, glide: Plan) -> bool:
-        """Every point of ``glide`` (a glide begun at rest) beyond ``robot_radius`` from its
-        start free, by the history's rule near the vehicle or, where that cannot tell, by
-        the ring rule (each is conservative, history.py). The points nearer lie in the
-        vehicle's own sphere, free as the arcs' starts are (it stands there, on the stop the
-        last round checked). The rule near the vehicle reads every pixel block the sphere
-        meets, so a hovering vehicle's frames, all from where it stands, leave it unknown
-        wherever a block holds one unknown pixel (the sky over the dome)."""
+        """The points of ``glide`` (a glide begun at rest) beyond ``robot_radius`` from its
+        start free, by the history's rule near the vehicle or, where that cannot tell
+        (neither free nor occupied), by the ring rule (each is conservative, history.py);
+        those nearer not occupied for spheres of ``landing_radius``. The vehicle stands
+        there, on the stop the last round checked, so the robot's spheres there overlap its
+        own, and a vehicle within ``2 robot_radius`` of a wall (any in a tunnel) finds them
+        occupied; the smaller spheres keep the first metre clear of what is near the
+        vehicle's body. The rule near the vehicle reads every pixel block its sphere meets,
+        so a hovering vehicle's frames, all from where it stands, leave it unknown wherever a
+        block holds one unknown pixel (the sky over the dome): hence the ring rule after it."""
         start = glide.T_W_S[:3, 3]
         points_S = np.vstack([glide.primitive.points_S[1:], glide.primitive.stop_points_S])
         points = points_S @ glide.T_W_S[:3, :3].T + start
-        points = points[np.linalg.norm(points - start, axis=1) > self.options.robot_radius]
-        near = self.history.check(points, start_W=start, now=glide.t).free
-        return bool(self.history.check(points[~near], now=glide.t).free.all())
+        own = np.linalg.norm(points - start, axis=1) <= self.options.robot_radius
+        body = self.history.check(points[own], start_W=start, now=glide.t,
+                                  radius=self.options.landing_radius)
+        if body.occupied.any():
+            return False
+        away = points[~own]
+        near = self.history.check(away, start_W=start, now=glide.t)
+        retry = ~near.free & ~near.occupied
+        return not near.occupied.any() and bool(
+            self.history.check(away[retry], now=glide.t).free.all())
 
     def glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
         """A straight glide from the body at ``T_W_B`` (at rest) to come to rest at

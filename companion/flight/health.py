@@ -9,7 +9,8 @@ import logging
 from autonomy.navigation.failsafes import (Vitals, age, failsafe_reason, vins_failed,
                                            vins_problem)
 from autonomy.navigation.mission import (DISARMED_STATES, FAILSAFE_OFFBOARD_STATES,
-                                         GUARDED_STATES, OFFBOARD_STATES, FlightState)
+                                         GUARDED_STATES, OFFBOARD_STATES,
+                                         SITE_SEEKING_FAILSAFES, FlightState)
 from companion.flight.context import FlightContext
 from companion.flight.navigation import Navigation
 from companion.flight.perception import Perception
@@ -69,13 +70,8 @@ class Health:
         flown_on_vins = (state in GUARDED_STATES and state != FlightState.ALIGNING
                          or state == FlightState.TO_LANDING_SITE)
         c.blind.update(now, self.navigation.landmarks(), flown_on_vins, c.options)
-        if state == FlightState.TO_LANDING_SITE and self.stop_reason:
-            self.navigation.glide_cut = self.stop_reason  # Hold, then land, now
-        if state in FAILSAFE_OFFBOARD_STATES and not self.navigation.stopping_on_px4:
-            # another failsafe's stop (or the glide to a landing site after it) is tracked on
-            # the VINS: if the VINS fails under it, the rest is flown on PX4's estimate
-            if vins_failed(self.vitals(now, lag)):
-                self.navigation.stop_on_px4()
+        if state in FAILSAFE_OFFBOARD_STATES:
+            self._check_after_failsafe(self.vitals(now, lag))
             return
         if state not in GUARDED_STATES:
             return
@@ -83,6 +79,20 @@ class Health:
         reason = failsafe_reason(vitals, c.options)
         if reason and c.mission.failsafe(now, reason):
             self.navigation.stop(reason, vins_failed(vitals))
+
+    def _check_after_failsafe(self, vitals: Vitals) -> None:
+        """During a failsafe's stop and the glide to a landing site after it. The glide is
+        for a sound vehicle after a mission-level failsafe: any other failure since (an
+        operator's stop, a silent sensor, a stalled loop) rules it out, or ends it at once in
+        Hold. Both are tracked on the VINS: if the VINS fails under them, the rest is flown
+        on PX4's estimate."""
+        c, navigation = self.context, self.navigation
+        if c.mission.stopped_by in SITE_SEEKING_FAILSAFES and not navigation.glide_cut:
+            reason = failsafe_reason(vitals, c.options)
+            if reason and reason not in SITE_SEEKING_FAILSAFES:
+                navigation.glide_cut = reason
+        if not navigation.stopping_on_px4 and vins_failed(vitals):
+            navigation.stop_on_px4()
 
     def vitals(self, now: float, lag: float) -> Vitals:
         c, perception = self.context, self.perception

@@ -50,7 +50,7 @@ class Navigation:
         self.corner_pending = False  # a stop waypoint was just passed: stop and turn
         self.parallax, self.backoff, self.no_path = ParallaxGlide(), Backoff(), NoPathClock()
         self._vins_failed = False  # the failsafe's stop is flown on PX4's estimate
-        self.glide_cut = ""  # an operator's stop that ends the glide to a landing site
+        self.glide_cut = ""  # a failure after the failsafe that rules out or ends the glide
         self.turn_began: float | None = None  # |heading error| as a corner's turn began
         self.regained_after: float | None = None  # the fit that lapsed at the last regaining
 
@@ -98,15 +98,16 @@ class Navigation:
         floor_z = c.channels.alignment.value.home_z - float(c.T_L_W[2, 3])  # the take-off's
         glide = await c.workers["planner"].run(self.planner.landing_glide, odometry.t,
                                                odometry.T_W_B, floor_z)
-        if glide is None:
-            return None
+        if glide is None or c.state != FlightState.FAILSAFE_STOP or self.stopping_on_px4 \
+                or self.glide_cut:
+            return None  # none, or the link, the motors, the VINS or the vehicle failed meanwhile
         self._follow(glide)
         end = glide.setpoint(glide.end_time).position_W
         return float(np.hypot(*(end - odometry.T_W_B[:3, 3])[:2]))
 
     def at_landing_site(self) -> bool:
         """The landing site's glide is over and the vehicle at rest (or, the VINS having
-        failed on the way, at rest on PX4's estimate), or an operator's stop cut it short."""
+        failed on the way, at rest on PX4's estimate), or a failure cut it short."""
         if self.glide_cut:
             return True
         plan = self.plan

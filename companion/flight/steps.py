@@ -24,8 +24,8 @@ POLL_S = 0.01
 OFFBOARD_STREAM_S = 1.2
 #: How far under the take-off height counts as there, metres.
 TAKEOFF_HEIGHT_MARGIN = 0.25
-#: The navigation phase: from Offboard until the vehicle is at rest and PX4 takes over
-#: (landing at the goal, or holding after a failsafe).
+#: The navigation phase: from Offboard until the vehicle is at rest, landing at the goal, or
+#: after a failsafe, holding or gliding to a landing site (not counted as navigation).
 NAVIGATION_PHASE = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
                               FlightState.STOPPING, FlightState.FAILSAFE_STOP})
 
@@ -214,14 +214,14 @@ class MissionSteps:
         on the VINS: glide to a landing site seen clear (docs/flight.md, "Where it lands").
         False when it does not: it then lands where it is."""
         c, navigation = self.context, self.navigation
-        if c.mission.stopped_by not in SITE_SEEKING_FAILSAFES or navigation.stopping_on_px4 \
-                or not navigation.stopped():
-            return False
+        if c.mission.stopped_by not in SITE_SEEKING_FAILSAFES \
+                or c.mission.stopped_from == FlightState.STOPPING \
+                or navigation.stopping_on_px4 or navigation.glide_cut or not navigation.stopped():
+            return False  # (stopping at the goal: it lands there)
         distance = await navigation.to_landing_site()
-        if c.state != FlightState.FAILSAFE_STOP or navigation.stopping_on_px4:
-            return False
         if distance is None:
-            log.warning("no landing site seen clear ahead: landing where the stop ended")
+            if c.state == FlightState.FAILSAFE_STOP and not navigation.glide_cut:
+                log.warning("no landing site seen clear ahead: landing where the stop ended")
             return False
         c.go(FlightState.TO_LANDING_SITE,
              f"stopped after a failsafe; gliding {distance:.1f} m to a landing site seen clear")
@@ -232,6 +232,8 @@ class MissionSteps:
         navigation = self.navigation
         if navigation.glide_cut:
             return f"{navigation.glide_cut}: the glide to the landing site cut short"
+        if navigation.stopping_on_px4:
+            return "the VINS failed: stopped short of the landing site, on PX4's estimate"
         if navigation.at_landing_site():
             return "at the landing site"
         return "the glide to the landing site ran out of time"
