@@ -4,10 +4,10 @@ PX4's landing descends vertically where it is told to. After a failsafe the vehi
 wherever the failure found it, and the column below that spot was never looked at: the forward
 camera sees the floor only from about ``h / tan(vfov / 2)`` ahead (2 m at 1.5 m height with
 the simulated camera's 74-degree vertical field), and what it saw of the spot before is gone
-from the planner's history by the end of the stop. A spot at flight height can be clear while the space below it
-is not: a tripod's legs splay out below its head (docs/results.md: a realistic sewer flight
-landed after a mission timeout 0.6 m from a tripod's head, at flight height beyond its reach,
-and met a leg at 0.25 m).
+from the planner's history by the end of the stop. A spot at flight height can be clear while
+the space below it is not: a tripod's legs splay out below its head (docs/results.md: a
+realistic sewer flight landed after a mission timeout 0.6 m from a tripod's head, at flight
+height beyond its reach, and met a leg at 0.25 m).
 
 So the stop is followed by a short glide to a *landing site*: a point ahead whose column, from
 the flight height down to :data:`FLOOR_MARGIN` radii above the floor, every sphere of radius

@@ -356,10 +356,8 @@ class Planner:
         plan = self.glide(t, T_W_B, goal_W, APPROACH_REASON)
         if plan is None:
             return None
-        start = plan.T_W_S[:3, 3]
-        points_S = np.vstack([plan.primitive.points_S[1:], plan.primitive.stop_points_S])
-        result = self.history.check(points_S @ plan.T_W_S[:3, :3].T + start, start_W=start,
-                                    now=plan.t)
+        start, points = _glide_points(plan)
+        result = self.history.check(points, start_W=start, now=plan.t)
         if not result.free.all():
             return None
         plan = replace(plan, safe_count=1, clearance=float(np.min(result.clearance)))
@@ -367,10 +365,11 @@ class Planner:
         return plan
 
     def landing_glide(self, t: float, T_W_B, floor_z: float) -> Plan | None:
-        """The :meth:`approach` glide to the nearest landing site ahead (landing.py) whose
-        column, from the body's height down to the floor at height ``floor_z`` (frame W), the
-        history judges free for spheres of ``landing_radius``; None when no site passes, or
-        ``landing_radius`` is 0."""
+        """The :meth:`glide` to the nearest landing site ahead (landing.py) whose column,
+        from the body's height down to the floor at height ``floor_z`` (frame W), the history
+        judges free for spheres of ``landing_radius``, and whose way there
+        :meth:`_glide_free_from_rest` frees; None when no site passes, or ``landing_radius``
+        is 0."""
         radius = self.options.landing_radius
         if radius == 0.0:
             return None
@@ -402,9 +401,7 @@ class Planner:
         vehicle's body. The rule near the vehicle reads every pixel block its sphere meets,
         so a hovering vehicle's frames, all from where it stands, leave it unknown wherever a
         block holds one unknown pixel (the sky over the dome): hence the ring rule after it."""
-        start = glide.T_W_S[:3, 3]
-        points_S = np.vstack([glide.primitive.points_S[1:], glide.primitive.stop_points_S])
-        points = points_S @ glide.T_W_S[:3, :3].T + start
+        start, points = _glide_points(glide)
         own = np.linalg.norm(points - start, axis=1) <= self.options.robot_radius
         body = self.history.check(points[own], start_W=start, now=glide.t,
                                   radius=self.options.landing_radius)
@@ -513,6 +510,14 @@ class PrimitiveTier:
         self.reach = speed * (options.duration_s + options.stop_duration_s / 2.0)
         self.yaw_rates = np.array([a.yaw_rate for a in self.library])
         self.vertical_speeds = np.array([a.vertical_speed for a in self.library])
+
+
+def _glide_points(glide: Plan) -> tuple[np.ndarray, np.ndarray]:
+    """``glide``'s start and the points it is checked at (frame W): the arc less its
+    start, the vehicle's own sphere, then its braking."""
+    start = glide.T_W_S[:3, 3]
+    points_S = np.vstack([glide.primitive.points_S[1:], glide.primitive.stop_points_S])
+    return start, points_S @ glide.T_W_S[:3, :3].T + start
 
 
 def _finite_time(t) -> float:
