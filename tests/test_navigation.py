@@ -165,70 +165,24 @@ def test_a_turn_in_place_turns_toward_the_waypoint_until_within_align_done():
 
 # ---------------------------------------------------------------- the parallax glide
 
-class ParallaxLegs:
-    """Flies a parallax sequence from ``at`` leg by leg on the planner's glides, each to rest,
-    checking that every glide is kept while it lasts (not cut by the next round)."""
-
-    def __init__(self, parallax: ParallaxGlide, planner: Planner, at: np.ndarray):
-        self.parallax, self.planner, self.at = parallax, planner, at
-        self.t, self.glide = 0.0, None
-
-    def next(self, starved: bool) -> np.ndarray | None:
-        """The next leg's end point, flown to rest; None when the sequence is done."""
-        target = self.parallax.step(self.glide, self.t, starved)
-        if target is Step.IDLE:
-            return None
-        self.glide = self.planner.glide(self.t, make_pose(np.eye(3), self.at), target,
-                                        PARALLAX_REASON)
-        assert self.parallax.step(self.glide, self.t + 0.1, starved) is Step.KEEP
-        self.t, self.at = self.glide.end_time, target
-        return target
-
-
-STARVED = view_starved(math.inf, None)  # no fit
-CORNER = np.array([3.0, 2.0, 1.5])  # the end of an_l_shaped_trail
-
-
-def test_after_a_turn_it_glides_back_half_a_metre_and_returns_even_when_depth_comes(planner):
+def test_after_a_turn_it_glides_back_half_a_metre_and_returns_until_depth_comes(planner):
+    trail = an_l_shaped_trail()
+    corner = np.array([3.0, 2.0, 1.5])
     parallax = ParallaxGlide()
-    parallax.start(an_l_shaped_trail(), CORNER, far=2.0)
-    legs = ParallaxLegs(parallax, planner, CORNER)
-    np.testing.assert_allclose(legs.next(STARVED), (3.0, 1.5, 1.5))  # half a metre back
-    # returns to the corner even when the fit came back on the way, and flies that glide to
-    # rest: a realistic mine flight's return was cut by the next round, and the staleness
-    # failsafe ended the flight (docs/results.md)
-    np.testing.assert_allclose(legs.next(starved=False), CORNER)
-    assert legs.next(starved=False) is None and not parallax.active  # fed: no farther legs
-
-
-def test_still_starved_at_the_turning_point_it_glides_on_back_along_the_trail(planner):
-    """The half metre's round trip gave the VINS too little baseline: on back ``far`` metres
-    of the trail, a trail point at a time, until the view is fed."""
-    parallax = ParallaxGlide()
-    parallax.start(an_l_shaped_trail(), CORNER, far=3.0)
-    legs = ParallaxLegs(parallax, planner, CORNER)
-    legs.next(STARVED), legs.next(STARVED)  # back and home
-    farther = [legs.next(STARVED) for _ in range(3)]
-    np.testing.assert_allclose(farther, [(3.0, 1.5, 1.5), (3.0, 1.0, 1.5), (3.0, 0.5, 1.5)])
-    assert legs.next(starved=False) is None and not parallax.active  # fed: the rest given up
-
-
-def test_the_farther_legs_end_far_back_along_the_trail_round_its_corner(planner):
-    parallax = ParallaxGlide()
-    parallax.start(an_l_shaped_trail(), CORNER, far=3.0)
-    legs = ParallaxLegs(parallax, planner, CORNER)
-    points = [legs.next(STARVED)]
-    while points[-1] is not None:
-        points.append(legs.next(STARVED))
-    points.pop()
-    assert len(points) == 2 + 6  # back, home, six half metres
-    np.testing.assert_allclose(points[-1], (2.0, 0.0, 1.5))  # 2 m south, then 1 m west
-    assert not parallax.active
+    parallax.start(trail, corner)
+    starved = view_starved(math.inf, None)  # no fit
+    back = parallax.step(None, 10.0, starved)
+    np.testing.assert_allclose(back, (3.0, 1.5, 1.5))  # half a metre back along the trail
+    glide = planner.glide(10.0, make_pose(np.eye(3), corner), back, PARALLAX_REASON)
+    assert parallax.step(glide, 10.5, starved) is Step.KEEP  # gliding back
+    # returns to the corner even when the fit came back on the way
+    np.testing.assert_allclose(parallax.step(glide, glide.end_time, False), corner)
+    assert not parallax.active and parallax.step(None, 20.0, starved) is Step.IDLE
 
 
 def test_the_parallax_glide_is_given_up_when_a_fresh_fit_and_landmarks_come_before_it_starts():
     parallax = ParallaxGlide()
-    parallax.start(an_l_shaped_trail(), CORNER, far=2.0)
+    parallax.start(an_l_shaped_trail(), np.array([3.0, 2.0, 1.5]))
     assert parallax.step(None, 10.0, view_starved(PARALLAX_WAIT_S, PARALLAX_LANDMARKS)) \
         is Step.IDLE
     assert not parallax.active
@@ -269,7 +223,7 @@ def test_depth_lapsed_on_the_arcs_half_way_to_the_staleness_failsafe():
 
 def test_no_parallax_glide_without_half_a_metre_of_trail_behind():
     parallax = ParallaxGlide()
-    parallax.start(Trail(), CORNER, far=2.0)
+    parallax.start(Trail(), np.array([3.0, 2.0, 1.5]))
     assert not parallax.active
 
 

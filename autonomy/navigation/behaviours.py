@@ -169,37 +169,29 @@ def pause_turn(turned: float, landmarks: int | None) -> bool:
 class ParallaxGlide(GlideSequence):
     """Back to the trail point :data:`~autonomy.navigation.trail.GLIDE_STEP_M` behind the
     turning point, then to the turning point again; given up before it starts when the view
-    is not :func:`view_starved` (the anchors and landmarks came back by themselves). Still
-    starved back at the turning point, it goes on back along the trail, ``far`` metres of it,
-    a trail point at a time, until the view is not starved: a longer baseline for the VINS's
-    new landmarks (a realistic mine flight had 5 of the fit's 10 anchors after the half
-    metre's round trip, docs/results.md). The return is flown even when the fit came back on
-    the way back; the legs beyond it only while starved. ``legs``: the glides begun."""
+    is not :func:`view_starved` (the anchors and landmarks came back by themselves)."""
 
     def __init__(self):
         super().__init__(PARALLAX_REASON)
-        self.legs = 0
 
-    def start(self, trail: Trail, position_W: np.ndarray, far: float) -> None:
+    def start(self, trail: Trail, position_W: np.ndarray) -> None:
         """Arm the glides from ``position_W`` at rest after a turn (none without a trail
         point far enough behind)."""
         back = trail.point_behind(position_W)
-        self.legs = 0
         if back is not None:
-            self.targets = [back, position_W.copy(), *trail.way_back(position_W, far)]
+            self.targets = [back, position_W.copy()]
 
     def step(self, plan, now: float, starved: bool) -> Step | np.ndarray:
         """The next target, :attr:`Step.KEEP` while gliding, :attr:`Step.IDLE` when done;
         ``starved``: :func:`view_starved` now."""
-        if self.legs > 0 and on_glide(plan, self.reason, now):
-            return Step.KEEP
         if not self.targets:
             return Step.IDLE
-        returning = self.legs == 1
-        if not returning and not starved:
+        started = len(self.targets) < 2
+        if not started and not starved:
             self.targets.clear()
             return Step.IDLE
-        self.legs += 1
+        if started and on_glide(plan, self.reason, now):
+            return Step.KEEP
         return self.targets.pop(0)
 
 

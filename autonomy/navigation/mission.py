@@ -64,8 +64,7 @@ class FlightOptions:
     backoff_distance: float = option(
         2.0, ge=0.0, le=5.0,
         doc="blocked at rest facing the next waypoint: glide back this far along the flown "
-            "trail and try again from there; still without depth or landmarks after a "
-            "parallax glide's round trip: glide on back this far, metres (0: never)")
+            "trail and try again from there, metres (0: never)")
     max_backoffs: int = option(2, ge=0, le=10,
                                doc="backings-off per waypoint before the no-path failsafe")
     align_threshold_deg: float = option(

@@ -250,10 +250,8 @@ class Navigation:
         if isinstance(step, Step):
             return step == Step.KEEP
         self._follow(self.planner.glide(odometry.t, odometry.T_W_B, step, PARALLAX_REASON))
-        leg = ("back", "to the turning point")[self.parallax.legs - 1] \
-            if self.parallax.legs <= 2 else "farther back"
         log.info("no depth or few landmarks after turning; gliding %s along the flown trail",
-                 leg)
+                 "back" if self.parallax.active else "to the turning point")
         return True
 
     async def _turn_at_corner(self) -> None:
@@ -265,8 +263,7 @@ class Navigation:
             await self._brake(TURN_STOP_REASON)
             return
         self.corner_pending = False
-        self.parallax.start(self.trail, c.channels.odometry.value.T_W_B[:3, 3],
-                            c.options.backoff_distance)
+        self.parallax.start(self.trail, c.channels.odometry.value.T_W_B[:3, 3])
         error = self.heading_error()
         if still_turning(error, c.options):
             self.turn_began = abs(error)
@@ -293,7 +290,7 @@ class Navigation:
             await self._brake(DEPTH_STOP_REASON)
             return True
         self.regained_after = fit_t
-        self.parallax.start(self.trail, odometry.T_W_B[:3, 3], c.options.backoff_distance)
+        self.parallax.start(self.trail, odometry.T_W_B[:3, 3])
         log.warning("no metric depth for %.1f s on the arcs; at rest, gliding for parallax",
                     age(fit_t, now))
         return self.parallax.active
