@@ -152,14 +152,32 @@ def _parse_toml_value(raw: str) -> Any:
 _Settings = dict[str, dict[str, tuple[Any, str]]]
 
 
-def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Config:
+#: The simulator commands' own defaults (``sim fly``, ``sim record``, ``eval rescale``,
+#: ``eval nav``; issue 23): the realistic profile's vehicle, with the application configured
+#: as the Orin presets configure a real one. ``config/sim-realistic.toml`` holds the same
+#: settings with the reasons (tests/test_config.py keeps the two equal). They lie under the
+#: config file and the ``--set`` overrides; ``--config config/sim.toml``, every key at its
+#: default, flies the ideal profile.
+SIMULATOR_DEFAULTS = (
+    "sim.profile=realistic",
+    "depth.scale_field_nodes=4",
+    "vins.estimate_time_offset=true",
+    "vins.estimate_gyro_alignment=true",
+    "planner.near_tail_share=0.9",
+)
+
+
+def load_config(path: str | Path | None, overrides: Sequence[str] = (),
+                defaults: Sequence[str] = ()) -> Config:
     """The configuration from a TOML file (None: all defaults) with overrides applied on top.
 
-    Later sources win: the file over the defaults, each override over the file and the
-    overrides before it. Raises :class:`ConfigError` for anything wrong.
+    Later sources win: ``defaults`` (``SECTION.KEY=VALUE`` settings, such as
+    :data:`SIMULATOR_DEFAULTS`) over the options' own defaults, the file over them, each
+    override over the file and the overrides before it. Raises :class:`ConfigError` for
+    anything wrong.
     """
     document = None if path is None else (_read_toml(Path(path)), str(path))
-    return _load(document, overrides)
+    return _load(document, overrides, defaults)
 
 
 def config_from_toml(text: str, source: str, overrides: Sequence[str] = ()) -> Config:
@@ -168,8 +186,13 @@ def config_from_toml(text: str, source: str, overrides: Sequence[str] = ()) -> C
     return _load((_parse_toml(text, source), source), overrides)
 
 
-def _load(document: tuple[dict[str, Any], str] | None, overrides: Sequence[str]) -> Config:
+def _load(document: tuple[dict[str, Any], str] | None, overrides: Sequence[str],
+          defaults: Sequence[str] = ()) -> Config:
     settings: _Settings = {}
+    for text in defaults:
+        default = parse_override(text)
+        _set(settings, f"the command's default {text}", default.section, default.key,
+             default.value)
     if document is not None:
         _add_document(settings, *document)
     for text in overrides:

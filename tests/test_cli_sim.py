@@ -52,8 +52,7 @@ def test_sim_fly_offers_the_udp_and_serial_links_only(capsys):
 def test_sim_fly_refuses_truth_tracks_through_the_realistic_camera(capsys):
     """The truth is projected through the configured camera: the realistic profile's lens,
     mounting error and late stamps would make it wrong, so the flight does not start."""
-    assert main(["sim", "fly", "--tracks", "truth", "--set", "sim.profile=realistic",
-                 "--no-plot", "--no-record"]) == 1
+    assert main(["sim", "fly", "--tracks", "truth", "--no-plot", "--no-record"]) == 1
     assert capsys.readouterr().err.startswith(
         "sim fly: truth tracks need the ideal profile ([sim] profile = \"ideal\")")
     assert main(["sim", "fly", "--tracks", "oracle"]) == 2
@@ -63,16 +62,20 @@ def test_sim_fly_refuses_truth_tracks_through_the_realistic_camera(capsys):
 def test_sim_fly_names_the_realistic_vehicles_errors_its_vins_does_not_estimate(caplog):
     """A realistic vehicle flown without the estimates every real vehicle's configuration runs
     gets a warning naming them and the preset that runs them; the preset and the ideal profile
-    get none. (Each flight stops at once on a camera the simulator cannot render.)"""
-    preset = str(Path(__file__).resolve().parent.parent / "config" / "sim-realistic.toml")
+    get none, nor does ``sim fly``'s own default, which is the preset. (Each flight stops at
+    once on a camera the simulator cannot render.)"""
+    config = Path(__file__).resolve().parent.parent / "config"
+    preset, defaults = str(config / "sim-realistic.toml"), str(config / "sim.toml")
     cannot_render = ["--set", "camera.calibration=device", "--no-plot", "--no-record"]
     flights = {
-        "time offset": ["--set", "sim.profile=realistic"],
-        "gyro": ["--set", "sim.profile=realistic", "--set", "vins.estimate_time_offset=true"],
+        "time offset": ["--config", defaults, "--set", "sim.profile=realistic"],
+        "gyro": ["--config", defaults, "--set", "sim.profile=realistic",
+                 "--set", "vins.estimate_time_offset=true"],
         "preset": ["--config", preset],
         "carried column": ["--config", preset, "--set", "vins.estimate_gyro_alignment=false",
                            "--set", "vins.gyro_alignment=[0.01, 0.0, 0.0]"],
-        "ideal": [],
+        "ideal": ["--config", defaults],
+        "default": [],
     }
     warned = {}
     for flight, argv in flights.items():
@@ -86,4 +89,5 @@ def test_sim_fly_names_the_realistic_vehicles_errors_its_vins_does_not_estimate(
     assert "estimate_time_offset" not in warned["gyro"]
     assert "estimate_gyro_alignment" in warned["gyro"]
     assert "config/sim-realistic.toml" in warned["gyro"]
-    assert warned["preset"] == warned["carried column"] == warned["ideal"] == ""
+    assert warned["preset"] == warned["carried column"] == warned["ideal"] \
+        == warned["default"] == ""

@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from autonomy.depth.options import RescaleOptions
 from autonomy.geometry import R_BODY_CAMERA
 from autonomy.options import OptionError, field_types
-from companion.config import Config, ConfigError, dump_toml, load_config, parse_override
+from companion.config import (SIMULATOR_DEFAULTS, Config, ConfigError, dump_toml, load_config,
+                              parse_override)
 from drivers.camera.options import CameraOptions
 from drivers.sim.camera import T_BODY_CAMERA
 
@@ -291,6 +292,40 @@ def test_vehicle_presets_pass_config_check_and_fly_their_camera_over_serial(pres
     assert config.mavlink.signing_key_file == "mavlink-signing.key"  # signing on
     assert config.mavlink.signing_key == ""  # the key itself never in the file
     assert config.go.required
+
+
+def test_the_simulator_commands_default_to_the_realistic_preset_under_the_file_and_set():
+    """``sim fly``, ``sim record``, ``eval rescale`` and ``eval nav`` fly the realistic vehicle
+    by default (issue 23): their defaults are config/sim-realistic.toml's settings, which a
+    config file and ``--set`` override (config/sim.toml, every key at its default, gives the
+    ideal profile back); the other commands keep the options' own defaults."""
+    from companion.cli import _build_parser
+    from companion.cli.common import load_effective_config
+
+    preset = load_config(SIM_TOML.parent / "sim-realistic.toml")
+    parser = _build_parser()
+    for argv in (["sim", "fly"], ["sim", "record", "--out", "x"], ["eval", "rescale"],
+                 ["eval", "nav"]):
+        assert load_effective_config(parser.parse_args(argv)) == preset, argv
+        ideal = load_effective_config(parser.parse_args([*argv, "--config", str(SIM_TOML)]))
+        assert ideal == Config() and ideal.sim.profile == "ideal", argv
+        overridden = load_effective_config(parser.parse_args([*argv, "--set",
+                                                              "planner.near_tail_share=0.5"]))
+        assert overridden.sim.profile == "realistic"
+        assert overridden.planner.near_tail_share == 0.5
+    for argv in (["sim", "soak"], ["sim", "serve"], ["eval", "vio", "x"]):
+        assert load_effective_config(parser.parse_args(argv)) == Config(), argv
+
+
+def test_a_bad_file_under_the_simulator_defaults_is_named_not_the_defaults(tmp_path):
+    """A clamped tail is refused beside a counted near tail; with the simulator's default near
+    tail under a file that clamps, the error names the file and says what to set."""
+    path = tmp_path / "clamp.toml"
+    path.write_text('[rescale]\nextrapolation = "clamp"\n')
+    with pytest.raises(ConfigError, match=rf"^{path}: rescale.extrapolation: .*near_tail_share = 0"):
+        load_config(path, (), SIMULATOR_DEFAULTS)
+    assert load_config(path, ["planner.near_tail_share=0"], SIMULATOR_DEFAULTS).sim.profile \
+        == "realistic"
 
 
 def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys, tmp_path,

@@ -127,6 +127,11 @@ def test_a_failed_rows_command_flies_that_row_again():
     fault = Fault("imu_gap", 0.5, 2.0, "obstacle")
     command = fault_matrix.rerun_command({"injected": str(fault)}, seed=3).split()
     assert command[:3] == ["companion", "sim", "fly"]
+    # the matrix on all defaults: sim fly's own defaults are the realistic vehicle
+    assert command[command.index("--config") + 1] == "config/sim.toml"
     assert command[command.index("--world") + 1] == fault_matrix.MATRIX_WORLD
     assert command[command.index("--seed") + 1] == "3"
     assert Fault.parse(command[command.index("--fault") + 1]) == fault
+    mine = fault_matrix.rerun_command({"injected": str(fault)}, 3, "my vehicle.toml",
+                                      ["vins.window=8"])
+    assert " --config 'my vehicle.toml' --set vins.window=8 " in mine

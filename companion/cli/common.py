@@ -13,7 +13,7 @@ from typing import Callable
 
 from autonomy.navigation.mission import parse_point
 from autonomy.options import OptionError
-from companion.config import Config, ConfigError, load_config
+from companion.config import SIMULATOR_DEFAULTS, Config, ConfigError, load_config
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -33,12 +33,19 @@ def overrides_parser() -> argparse.ArgumentParser:
     return overrides
 
 
-def configured_parser() -> argparse.ArgumentParser:
+def configured_parser(simulator: bool = False) -> argparse.ArgumentParser:
     """The parent parser of the commands that take the config file as an option: ``--set``
-    and ``--config``."""
+    and ``--config``. ``simulator``: the command's defaults are
+    :data:`~companion.config.SIMULATOR_DEFAULTS` (the realistic vehicle), under the file."""
     configured = argparse.ArgumentParser(add_help=False, parents=[overrides_parser()])
-    configured.add_argument("--config", dest="config_path", metavar="FILE",
-                            help="TOML config file (default: none, all defaults)")
+    defaults = SIMULATOR_DEFAULTS if simulator else ()
+    configured.add_argument(
+        "--config", dest="config_path", metavar="FILE",
+        help="TOML config file over the defaults (default: none; the defaults are the "
+             "realistic simulated vehicle, config/sim-realistic.toml's settings: --config "
+             "config/sim.toml flies the ideal profile)" if simulator else
+             "TOML config file (default: none, all defaults)")
+    configured.set_defaults(config_defaults=defaults)
     return configured
 
 
@@ -53,7 +60,8 @@ def load_effective_config(args: argparse.Namespace) -> Config | None:
     after one line on stderr, when it is bad, so every command reports a bad config the same
     way: exit status 2, never a traceback."""
     try:
-        return load_config(args.config_path, args.overrides)
+        return load_config(args.config_path, args.overrides,
+                           getattr(args, "config_defaults", ()))
     except ConfigError as error:
         print(error, file=sys.stderr)
         return None

@@ -43,8 +43,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "([depth], [rescale]); score every frame's metric depth against depth0 with "
                     "AbsRel, delta1, RMSE and the over-estimate rate, and time the stage.")
     depth.set_defaults(command=_eval_depth)
-    _add_eval_rescale(actions, configured)
-    _add_eval_nav(actions, configured)
+    simulated = common.configured_parser(simulator=True)
+    _add_eval_rescale(actions, simulated)
+    _add_eval_nav(actions, simulated)
 
 
 def _add_eval_rescale(actions: argparse._SubParsersAction,

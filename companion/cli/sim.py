@@ -25,6 +25,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     from drivers.sim.serve import LINKS
 
     configured = common.configured_parser()
+    simulated = common.configured_parser(simulator=True)
     group = commands.add_parser("sim", help="run the simulated vehicle",
                                 description="The simulated vehicle: a mock PX4 over real "
                                             "MAVLink, a rendered camera and a synthetic IMU.")
@@ -65,7 +66,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     serve.set_defaults(command=_sim_serve)
 
     record = actions.add_parser(
-        "record", parents=[configured, world], help="record a flight as a EuRoC dataset",
+        "record", parents=[simulated, world], help="record a flight as a EuRoC dataset",
         description="Fly a smooth collision-free path through the world and write camera "
                     "images, ground-truth depth, IMU and ground truth in the EuRoC/ASL "
                     "layout (mav0/cam0, depth0, imu0, state_groundtruth_estimate0).")
@@ -77,7 +78,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     record.set_defaults(command=_sim_record)
 
     fly = actions.add_parser(
-        "fly", parents=[configured, world, mission],
+        "fly", parents=[simulated, world, mission],
         help="fly the whole stack in the simulator",
         description="Start the simulator (mock PX4 over real MAVLink, rendered camera, "
                     "synthetic IMU) and fly the whole application against it: VINS, depth "
@@ -319,5 +320,7 @@ def _sim_faults(args: argparse.Namespace, config: Config) -> int:
         print(fault_matrix.markdown_table(result))
         for row in result["rows"]:
             if not row["passed"]:
-                print(f"failed: {fault_matrix.rerun_command(row, args.seed)}")
+                again = fault_matrix.rerun_command(row, args.seed, args.config_path,
+                                                   args.overrides)
+                print(f"failed: {again}")
     return common.EXIT_OK if result["passed"] else common.EXIT_FAILED

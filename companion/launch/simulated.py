@@ -81,7 +81,8 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     if mission.tracks == "truth" and config.sim.profile != "ideal":
         raise SimError("truth tracks need the ideal profile ([sim] profile = \"ideal\"): the "
                        "realistic camera's lens, mounting error and late stamps are not the "
-                       "configured camera the truth is projected through")
+                       "configured camera the truth is projected through (--config "
+                       "config/sim.toml flies the ideal profile)")
     if mission.link not in LINKS:
         raise SimError(f"link must be one of {', '.join(LINKS)}, got {mission.link!r}")
     for table in (config.mavlink, config.px4):

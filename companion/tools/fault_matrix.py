@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shlex
 import tempfile
 import traceback
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 from drivers.sim.faults import FAULT_KINDS, MOMENTS, Fault
 
@@ -179,8 +180,13 @@ def markdown_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def rerun_command(row: dict, seed: int) -> str:
-    """The ``sim fly`` command that flies ``row`` again, to look at it."""
+def rerun_command(row: dict, seed: int, config_path: str | None = None,
+                  overrides: Sequence[str] = ()) -> str:
+    """The ``sim fly`` command that flies ``row`` again, to look at it, with the matrix's
+    config file (``config_path``; None: all defaults, which ``sim fly`` reads from
+    config/sim.toml, its own defaults being the realistic vehicle) and ``overrides``."""
     goal = ",".join(f"{v:g}" for v in MATRIX_GOAL)
-    return (f"companion sim fly --world {MATRIX_WORLD} --seed {seed} --goal={goal} "
+    settings = "".join(f" --set {shlex.quote(text)}" for text in overrides)
+    return (f"companion sim fly --config {shlex.quote(config_path or 'config/sim.toml')}"
+            f"{settings} --world {MATRIX_WORLD} --seed {seed} --goal={goal} "
             f"--fault {row['injected']}")
