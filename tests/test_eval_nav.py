@@ -25,7 +25,7 @@ import cv2
 import pytest
 
 from companion.cli import main
-from companion.config import Config, load_config
+from companion.config import SIMULATOR_DEFAULTS, Config, load_config
 from companion.tools import plot
 from companion.tools.eval import nav, provenance
 from companion.tools.eval.vio import EvaluationError
@@ -504,7 +504,7 @@ def test_every_record_carries_the_code_revision_and_the_config_hash(short_run):
     names the code that flew it; the tree may have moved on since, so it is not compared
     with the checkout's revision now."""
     *_, records = short_run
-    flown = nav.trial_config(Config(), nav.TIMEOUT_S)
+    flown = nav.trial_config(load_config(None, (), SIMULATOR_DEFAULTS), nav.TIMEOUT_S)
     for record in records:
         commit, _, edit = record["revision"].partition("+dirty.")
         assert len(commit) == 40 and set(commit + edit) <= set("0123456789abcdef")

@@ -30,6 +30,9 @@ from flights import SUMMARY_KEYS, assert_safe_landing
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+
 def test_blocked_beside_a_door_it_backs_off_along_its_trail_and_goes_through():
     """The sewer's pair 2 on true depth, the vehicle standing at -175° (24° clockwise of the
     route's first leg, at -151°): the arcs bring it south of the hallway's east
@@ -68,7 +71,7 @@ def test_blocked_at_take_off_with_no_way_back_it_looks_aside_and_flies_on():
     vehicle now turns 45 degrees to the side its arcs found less blocked and flies on (to the
     goal in 54.6 s, round the pole's left). A 15 s mission timeout cuts it short: the look is
     what is tested."""
-    preset = Path(__file__).resolve().parent.parent / "config" / "sim-realistic.toml"
+    preset = CONFIG_DIR / "sim-realistic.toml"
     config = load_config(preset, ["flight.mission_timeout_s=15"])
     summary = simulated.run(config, simulated.SimMission(world="dome", seed=3, pair=4,
                                                          depth="truth"))
@@ -132,7 +135,8 @@ def test_sim_fly_standing_facing_away_turns_glides_for_parallax_and_flies_on(cap
     the no-metric-depth failsafe stopped it)."""
     start = build_world("sewer", 0).routes[4].start  # not the world's first start
     plot = tmp_path / "flight.png"
-    status = cli.main(["sim", "fly", "--world", "sewer", "--pair", "4", "--json", "--no-record",
+    status = cli.main(["sim", "fly", "--config", str(CONFIG_DIR / "sim.toml"), "--world",
+                       "sewer", "--pair", "4", "--json", "--no-record",
                        "--plot", str(plot), "--goal", f"{start[0]},{start[1] + 8.0},1.5",
                        "--start-yaw", "-90"])  # the goal is north, the vehicle faces south
     summary = json.loads(capsys.readouterr().out)
@@ -224,7 +228,10 @@ def test_first_pair_of_each_world_reaches_its_goal_without_collision(world, firs
     assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
     assert summary["closest_to_goal_m"] <= Config().flight.goal_tolerance + 1.0
     assert summary["min_clearance_m"] > Config().vehicle.collision_radius
-    assert summary["depth_rate_hz"] > 10.0  # metric depth for most frames of a 20 Hz camera
+    # metric depth into the planner for most of the network's frames (15 Hz on the realistic
+    # vehicle's Orin latency; a tunnel's corners lapse the fit for a moment)
+    network_hz = 1.0 / Config().sim_latency.network_s
+    assert summary["depth_rate_hz"] > 0.6 * network_hz
     assert first_pair_flights.returncode(world) == 0
 
 
