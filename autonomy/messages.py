@@ -100,7 +100,8 @@ class DepthDiagnostics:
     residual in metric disparity, 1/m (NaN without a fit). ``method``: the curve family applied
     (empty without one). ``fit_age_s``: the frame's time minus the time of the frame the
     applied fit was made on (0 for a fresh fit). ``reason``: why the frame got no fresh fit
-    (empty when it did).
+    of the configured method (empty when it did). ``fallback``: the map applied is the affine
+    one fitted to this frame's too few anchors (:func:`autonomy.depth.stage.affine_fallback`).
     """
 
     anchors: int
@@ -109,6 +110,7 @@ class DepthDiagnostics:
     method: str
     fit_age_s: float
     reason: str = ""
+    fallback: bool = False
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,6 +1,7 @@
 """Test-wide settings.
 
-The application's single OpenBLAS thread (companion/__init__.py) holds for every test.
+The application's single OpenBLAS thread and pinned kernels (companion/__init__.py) hold for
+every test.
 
 Under CI (the environment variable CI is set, as `.ci/run` runs) hypothesis draws the same
 examples every run, so a submission's result does not depend on the draw; a developer's runs
@@ -9,9 +10,9 @@ keep exploring new examples and its database replays any failure found.
 
 import os
 
-# Before anything imports numpy: one OpenBLAS thread, as the application runs
-# (companion/__init__.py says why); the simulated flights' subprocesses inherit it.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Before anything imports numpy: OpenBLAS's threads and kernels as the application runs them
+# (companion/__init__.py says why); the simulated flights' subprocesses inherit them.
+import companion  # noqa: F401
 
 import asyncio  # noqa: E402
 import threading  # noqa: E402

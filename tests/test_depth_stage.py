@@ -107,6 +107,65 @@ def test_the_last_good_fit_is_held_for_hold_s_then_there_is_no_depth():
     assert stage.no_fit["too_few_anchors"] == 3
 
 
+def _affine_network(depth: np.ndarray) -> np.ndarray:
+    """A network whose relative disparity is exactly affine in 1/z, as Depth Anything is
+    trained to be."""
+    return (2.0 / depth + 0.1).astype(np.float32)
+
+
+def _spread_pixels(count: int) -> np.ndarray:
+    """``count`` pixels spread over the floor, the wall and the box of :func:`_scene_depth`."""
+    pixels = _grid_pixels()
+    return pixels[np.linspace(0, len(pixels) - 1, count).astype(int)]
+
+
+def test_after_the_hold_too_few_anchors_for_the_curve_get_the_affine_fallback():
+    depth = _scene_depth()
+    stage = _stage(hold_s=0.5, fallback_min_anchors=5)
+    assert stage.process(RelativeDepth(0.0, _affine_network(depth)),
+                         _sparse_map(0.0, depth, _grid_pixels())).ok
+    six = _spread_pixels(6)
+    held = stage.process(RelativeDepth(0.3, _affine_network(depth)), _sparse_map(0.3, depth, six))
+    assert held.held and not held.diagnostics.fallback  # the hold comes first
+    result = stage.process(RelativeDepth(0.6, _affine_network(depth)),
+                           _sparse_map(0.6, depth, six))
+    assert result.ok and not result.held
+    d = result.diagnostics
+    assert d.fallback and d.method == "poly1" and d.fit_age_s == 0.0
+    assert d.anchors == 6 and d.anchors_used == 6
+    assert d.reason.startswith("affine fallback after no fit (too_few_anchors)")
+    assert metrics.abs_rel(result.depth, depth) < 1e-3
+    assert len(result.fit.anchor_relative) == 6
+    assert stage.fallbacks == 1 and stage.no_fit["too_few_anchors"] == 2
+    # the fallback is not held: the next frame without enough anchors has no depth
+    assert not stage.process(RelativeDepth(0.65, _affine_network(depth)),
+                             _sparse_map(0.65, depth, six[:3])).ok
+
+
+def test_the_fallback_is_trusted_less_than_the_curve():
+    """Confidence counts anchors near each disparity, so the planner's ``min_confidence``
+    keeps fewer of the fallback's pixels."""
+    depth = _scene_depth()
+    full = _stage().process(RelativeDepth(0.0, _affine_network(depth)),
+                            _sparse_map(0.0, depth, _grid_pixels()))
+    fallback = _stage().process(RelativeDepth(0.0, _affine_network(depth)),
+                                _sparse_map(0.0, depth, _spread_pixels(6)))
+    assert fallback.diagnostics.fallback and not full.diagnostics.fallback
+    assert np.mean(fallback.confidence >= 0.3) < np.mean(full.confidence >= 0.3)
+
+
+def test_the_fallback_is_refused_when_off_too_few_or_the_anchors_disagree():
+    depth = _scene_depth()
+    six = _spread_pixels(6)
+    relative = RelativeDepth(0.0, _affine_network(depth))
+    assert not _stage(fallback_min_anchors=0).process(relative, _sparse_map(0.0, depth, six)).ok
+    assert not _stage(fallback_min_anchors=7).process(relative, _sparse_map(0.0, depth, six)).ok
+    # metric depth that grows with the network's disparity: no map rises through it
+    backwards = RelativeDepth(0.0, (0.05 * depth).astype(np.float32))
+    result = _stage().process(backwards, _sparse_map(0.0, depth, six))
+    assert not result.ok and "too_few_anchors" in result.diagnostics.reason
+
+
 def test_without_any_fit_yet_there_is_no_depth():
     stage = _stage()
     result = stage.process(RelativeDepth(0.0, _network(_scene_depth())), None)
@@ -183,7 +242,9 @@ def test_a_healthy_image_passes_the_check():
 
 @pytest.mark.parametrize("key, value", [("hold_s", -0.1), ("max_map_offset_s", 1.0),
                                         ("tracked_only", 1), ("scale_field_nodes", 1),
-                                        ("scale_field_nodes", -1), ("scale_field_sigma", 0.0)])
+                                        ("scale_field_nodes", -1), ("scale_field_sigma", 0.0),
+                                        ("fallback_min_anchors", 3),
+                                        ("fallback_min_anchors", -1)])
 def test_bad_stage_options_are_named(key, value):
     with pytest.raises(OptionError, match=key):
         DepthStageOptions(**{key: value})

@@ -15,12 +15,17 @@ For the frame taken at ``t`` (Yang et al., Section III-B):
    pixel: a metric depth image with its per-pixel confidence and the fit's diagnostics.
 
 A frame whose fit fails (too few anchors, say) is given the last good fit while it is at most
-``hold_s`` old, marked ``held``; after that, and for a rejected network output, the result is
-"no depth", which the planner treats as stop.
+``hold_s`` old, marked ``held``. After that, a frame with at least ``fallback_min_anchors``
+anchors gets the affine map of relative to metric disparity fitted to them
+(:func:`affine_fallback`): the ambiguity a relative-depth network is trained to leave (Depth
+Anything's affine-invariant disparity loss; Yang et al., Section III-B), two parameters where
+the configured curve wants ``[rescale] min_anchors``. Otherwise, and for a rejected network
+output, the result is "no depth", which the planner treats as stop.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -53,11 +58,20 @@ class DepthStageOptions:
     scale_field_sigma: float = option(0.1, gt=0.0, le=1.0, doc="prior spread of the scale "
                                       "field's nodes and of their neighbours' differences, log "
                                       "disparity")
+    fallback_min_anchors: int = option(5, ge=0, doc="a frame the configured curve cannot "
+                                       "be fitted to (too few anchors, say), with no held fit "
+                                       "left, gets an affine map (poly1) fitted to its anchors "
+                                       "when at least this many remain, instead of no depth; "
+                                       "0: never")
 
     def __post_init__(self) -> None:
         validate(self)
         if self.scale_field_nodes == 1:
             raise OptionError("scale_field_nodes", "must be 0 (no field) or at least 2, got 1")
+        if 0 < self.fallback_min_anchors < 4:
+            raise OptionError("fallback_min_anchors", "must be 0 (no fallback) or at least 4 "
+                              "(two parameters and two anchors to judge them by), got "
+                              f"{self.fallback_min_anchors}")
 
 
 #: The :attr:`MetricDepthStage.no_fit` key of frames that came without their sparse map.
@@ -111,7 +125,8 @@ class MetricDepthStage:
 
     Feed each network output with the VINS sparse map of the same frame to :meth:`process`,
     in time order. ``rejected`` counts rejected network outputs by :class:`Rejection` value;
-    ``no_fit`` counts frames without a fresh fit by reason.
+    ``no_fit`` counts frames without a fresh fit of the configured method by reason,
+    ``fallbacks`` those of them given the affine fallback.
     """
 
     def __init__(self, rescale: RescaleOptions | None = None,
@@ -120,6 +135,7 @@ class MetricDepthStage:
         self.options = options or DepthStageOptions()
         self.rejected: Counter[str] = Counter()
         self.no_fit: Counter[str] = Counter()
+        self.fallbacks = 0
         self._blend = TemporalBlend(self.rescale.temporal_blend)
         self._last_good: _GoodFit | None = None
 
@@ -144,7 +160,8 @@ class MetricDepthStage:
         if not result.ok:
             self.no_fit[result.reason.value] += 1
             return self._hold(t, disparity, len(x),
-                              f"no fit ({result.reason.value}): {result.detail}")
+                              f"no fit ({result.reason.value}): {result.detail}",
+                              fallback_anchors=(x, z))
         field = self._scale_field(result, x, z, pixels, disparity.shape)
         self._last_good = _GoodFit(t, result, field)
         return _apply(t, disparity, result, (x, z), field, fit_age_s=0.0, reason="")
@@ -162,15 +179,22 @@ class MetricDepthStage:
         return fit_scale_field(pixels[usable], residuals[usable], shape, n,
                                self.options.scale_field_sigma)
 
-    def _hold(self, t: float, disparity: np.ndarray, anchors: int, reason: str) -> MetricDepth:
+    def _hold(self, t: float, disparity: np.ndarray, anchors: int, reason: str,
+              fallback_anchors: tuple[np.ndarray, np.ndarray] | None = None) -> MetricDepth:
         """The last good fit applied to this frame while it is at most ``hold_s`` old, else
-        no depth."""
+        the affine fallback on ``fallback_anchors`` (this frame's), else no depth."""
         held = self._last_good
         if held is None or not 0.0 <= t - held.t <= self.options.hold_s:
-            return _no_depth(t, reason, disparity, anchors)
+            fallback = None if fallback_anchors is None else affine_fallback(
+                *fallback_anchors, self.rescale, self.options.fallback_min_anchors)
+            if fallback is None:
+                return _no_depth(t, reason, disparity, anchors)
+            self.fallbacks += 1
+            return _apply(t, disparity, fallback, fallback_anchors, None, fit_age_s=0.0,
+                          reason=f"affine fallback after {reason}", fallback=True)
         empty = np.empty(0)
         return _apply(t, disparity, held.model, (empty, empty), held.field,
-                      fit_age_s=t - held.t, reason=reason, sampled=anchors)
+                      fit_age_s=t - held.t, reason=reason, held=True, sampled=anchors)
 
     def anchors(self, sparse_map: SparseMap,
                 disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -191,25 +215,49 @@ class MetricDepthStage:
         return x[on_image], depth[on_image], pixels[on_image]
 
 
+def affine_fallback(x: np.ndarray, z: np.ndarray, rescale: RescaleOptions,
+                    min_anchors: int) -> RescaleModel | None:
+    """The affine map 1/z = a x + b (a > 0) fitted to a frame's anchors ``x`` (relative
+    disparity) and ``z`` (metric depth), for a frame the configured curve could not be fitted
+    to: at least ``min_anchors`` of them valid and inliers (0: never), with the configured
+    outlier rejection and guards. None when they are fewer or no such map fits (a slope that
+    does not rise, say).
+
+    A relative-depth network's disparity is metric disparity up to an unknown scale and
+    shift (Depth Anything's affine-invariant loss), so two parameters are what few anchors
+    can pin; the curve's flexibility, which corrects the network's non-affine error, needs
+    more (the paper's monotone spline). The map's per-pixel confidence counts anchors near
+    each disparity (:meth:`RescaleModel.confidence`), so with few of them most pixels stay
+    below the planner's ``min_confidence``."""
+    if min_anchors == 0:
+        return None
+    model = fit(x, z, options=dataclasses.replace(rescale, method="poly1",
+                                                  min_anchors=min_anchors))
+    return model if model.ok else None
+
+
 #: Points the curve is sampled at for :class:`~autonomy.messages.FitSamples`.
 CURVE_SAMPLES = 32
 
 
 def _apply(t: float, disparity: np.ndarray, model: RescaleModel,
            anchors: tuple[np.ndarray, np.ndarray], field: ScaleField | None, *,
-           fit_age_s: float, reason: str, sampled: int | None = None) -> MetricDepth:
-    """``model`` applied to the frame, then ``field`` if any; a non-empty ``reason`` marks a
-    held fit. ``anchors``: the (relative, depth) pairs of this frame's fit; ``sampled``: how
-    many anchors the frame had, when not those (a held fit)."""
+           fit_age_s: float, reason: str, held: bool = False, fallback: bool = False,
+           sampled: int | None = None) -> MetricDepth:
+    """``model`` applied to the frame, then ``field`` if any; ``reason``: why the configured
+    fit was not made on this frame (empty when it was), ``held``: ``model`` is an earlier
+    frame's, ``fallback``: it is :func:`affine_fallback`'s. ``anchors``: the (relative, depth)
+    pairs of this frame's fit; ``sampled``: how many anchors the frame had, when not those (a
+    held fit)."""
     depth, confidence = model.depth_and_confidence(disparity)
     if field is not None:
         depth = depth * field.depth_factor(depth.shape)
     count = len(anchors[0]) if sampled is None else sampled
     diagnostics = DepthDiagnostics(count, model.anchors.used, model.residual_rms,
-                                   model.method, fit_age_s, reason)
+                                   model.method, fit_age_s, reason, fallback)
     curve_x = np.linspace(*model.anchor_range, CURVE_SAMPLES)
     fit = FitSamples(anchors[0], anchors[1], curve_x, model.metric_disparity(curve_x))
-    return MetricDepth(t, depth, confidence, held=bool(reason), diagnostics=diagnostics,
+    return MetricDepth(t, depth, confidence, held=held, diagnostics=diagnostics,
                        relative=disparity, fit=fit)
 
 

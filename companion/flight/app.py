@@ -197,6 +197,7 @@ class FlightApp:
             # metric depth frames the planner got per second of navigation
             "depth_rate_hz": s.depth_ok / navigation if navigation > 0 else 0.0,
             "depth_failures": dict(s.depth_reasons),
+            "depth_fallbacks": s.depth_fallbacks,
             "planning_rounds": s.planning_rounds,
             "stop_rounds": s.stop_rounds,
             "backoffs": s.backoffs,

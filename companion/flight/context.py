@@ -52,6 +52,7 @@ class FlightStats:
     frames: int = 0
     frames_out_of_order: int = 0  # dropped: not after the last frame taken
     depth_ok: int = 0
+    depth_fallbacks: int = 0  # of depth_ok: on the affine fallback (autonomy/depth/stage.py)
     depth_reasons: dict = field(default_factory=dict)
     planning_rounds: int = 0
     stop_rounds: int = 0

@@ -225,6 +225,7 @@ class Perception:
             self.last_fit_t = metric.t
         if c.stats.navigating:
             c.stats.depth_ok += 1
+            c.stats.depth_fallbacks += metric.diagnostics.fallback
 
     def _depth_failed(self, reason: str) -> None:
         self.last_depth_reason = reason

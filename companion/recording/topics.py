@@ -82,8 +82,8 @@ DEPTH_POINTS = Topic("/depth/points", fm.PointCloud.get_schema(), droppable=True
 #: replay measures depth accuracy against and feeds the synthetic network.
 TRUTH_DEPTH = Topic("/truth/depth", fm.RawImage.get_schema(), droppable=True)
 DEPTH_FIT = Topic("/depth/fit", _json_schema("companion.DepthFit", {
-    "t": _NUMBER, "ok": _BOOL, "held": _BOOL, "method": _STRING, "reason": _STRING,
-    "anchors": _NUMBER, "anchors_used": _NUMBER, "residual_rms": _NUMBER,
+    "t": _NUMBER, "ok": _BOOL, "held": _BOOL, "fallback": _BOOL, "method": _STRING,
+    "reason": _STRING, "anchors": _NUMBER, "anchors_used": _NUMBER, "residual_rms": _NUMBER,
     "fit_age_s": _NUMBER, "anchor_relative": _VECTOR, "anchor_depth": _VECTOR,
     "curve_relative": _VECTOR, "curve_metric_disparity": _VECTOR}))
 PLAN_LINES = Topic("/planner/primitives", fm.SceneUpdate.get_schema())
@@ -275,8 +275,8 @@ def encode_depth_fit(depth: MetricDepth) -> bytes:
     """The frame's fit (Yang et al., Section III-B): its anchors, the curve from relative to
     metric disparity over their range, and the diagnostics."""
     d, fit = depth.diagnostics, depth.fit
-    record = _clean({"t": depth.t, "ok": depth.ok, "held": depth.held, "method": d.method,
-                     "reason": d.reason, "anchors": d.anchors, "anchors_used": d.anchors_used,
+    record = _clean({"t": depth.t, "ok": depth.ok, "held": depth.held,
+                     "fallback": d.fallback, "method": d.method, "reason": d.reason, "anchors": d.anchors, "anchors_used": d.anchors_used,
                      "residual_rms": float(d.residual_rms), "fit_age_s": float(d.fit_age_s)})
     if fit is not None:
         record.update(anchor_relative=fit.anchor_relative, anchor_depth=fit.anchor_depth,

@@ -60,7 +60,7 @@ class DepthEvalOptions:
 class DepthTrace:
     """What the stage produced over a dataset: one entry per frame with metric depth in the
     per-frame lists (``t``, ``metrics``, ``anchors``, ``residual_rms``, ``fit_age_s``,
-    ``held``), the stage's time for every frame in ``stage_ms``; ``no_fit`` and ``rejected``
+    ``held``, ``fallback``), the stage's time for every frame in ``stage_ms``; ``no_fit`` and ``rejected``
     are the stage's counts of frames without a fresh fit and of rejected network outputs, by
     reason."""
 
@@ -74,6 +74,7 @@ class DepthTrace:
     residual_rms: list[float] = field(default_factory=list)
     fit_age_s: list[float] = field(default_factory=list)
     held: list[bool] = field(default_factory=list)
+    fallback: list[bool] = field(default_factory=list)
     stage_ms: list[float] = field(default_factory=list)
     no_fit: dict[str, int] = field(default_factory=dict)
     rejected: dict[str, int] = field(default_factory=dict)
@@ -155,6 +156,7 @@ def _record(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,
     trace.residual_rms.append(result.diagnostics.residual_rms)
     trace.fit_age_s.append(result.diagnostics.fit_age_s)
     trace.held.append(result.held)
+    trace.fallback.append(result.diagnostics.fallback)
 
 
 def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
@@ -169,8 +171,9 @@ def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
     network's own error on the same frames, the floor of any affine rescaling: AbsRel after the
     best affine fit of its output to the true disparity at every pixel
     (:func:`~autonomy.depth.synthetic.affine_fit_abs_rel`). ``frames_with_depth`` counts
-    those frames and ``frames_held`` those among them that used an earlier frame's fit;
-    ``no_fit`` counts the frames without a fresh fit by reason (held or not).
+    those frames and ``frames_held`` those among them that used an earlier frame's fit,
+    ``frames_fallback`` those given the affine fallback on their few anchors, with their
+    ``fallback_abs_rel`` (their mean AbsRel); ``no_fit`` counts the frames without a fresh fit by reason (held or not).
     """
     per_frame = trace.metrics
     near = [m.overestimate_rate for m in per_frame if m.near_pixels > 0]
@@ -181,6 +184,9 @@ def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
         "frames": trace.frames,
         "frames_with_depth": len(per_frame),
         "frames_held": int(sum(trace.held)),
+        "frames_fallback": int(sum(trace.fallback)),
+        "fallback_abs_rel": mean_or_none([m.abs_rel for m, fallback
+                                          in zip(per_frame, trace.fallback) if fallback]),
         "no_fit": trace.no_fit,
         "rejected": trace.rejected,
         "abs_rel": mean_or_none([m.abs_rel for m in per_frame]),
@@ -212,7 +218,9 @@ def format_depth_report(result: dict) -> str:
     rejected = ", ".join(f"{reason} {count}" for reason, count in result["rejected"].items())
     return "\n".join([
         f"{result['dataset']}: {result['frames']} frames, {result['frames_with_depth']} with "
-        f"metric depth ({result['frames_held']} on a held fit), method {result['method']}",
+        f"metric depth ({result['frames_held']} on a held fit, {result['frames_fallback']} on "
+        f"the affine fallback, AbsRel {show(result['fallback_abs_rel'], '.3f')}), method "
+        f"{result['method']}",
         f"accuracy: AbsRel {show(result['abs_rel'], '.3f')}, delta1 "
         f"{show(result['delta1'], '.3f')}, RMSE {show(result['rmse_m'], '.2f', ' m')}, "
         f"over-estimate rate {show(result['overestimate_rate'], '.3f')}",

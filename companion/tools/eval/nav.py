@@ -13,7 +13,9 @@ pillars, tunnel bends and room sizes), the sensor noise and the stand-in network
 the trials of a pair are different draws of its world; both depth sources fly the same seeds
 (a paired comparison), and trial k is exactly ``companion sim fly --world W --pair P
 --seed S+k --depth truth|estimated``. Lockstep flights do not depend on the machine's speed
-or on how many run side by side, so the result depends only on the arguments and the config.
+or on how many run side by side, so on one machine the result depends only on the arguments
+and the config; on another CPU the floating-point rounding of its libraries may fly other
+flights (docs/simulator.md, "Reproducible flights").
 
 Time limit. ``timeout_s`` (120 s) of simulated navigation, from the switch to Offboard (after
 the take-off) to the goal: it is the application's own ``[flight] mission_timeout_s``, set to
@@ -205,7 +207,7 @@ def error_record(trial: Trial, trace: str, *, timeout_s: float,
 _SUMMARY_KEYS = ("start", "reached_goal", "collisions", "failsafes", "final_state",
                  "flight_time_s", "navigation_time_s", "path_length_m", "min_clearance_m",
                  "closest_to_goal_m", "vins_resets", "position_error_m", "backoffs",
-                 "vins_correction_m", "landing_glide_m")
+                 "vins_correction_m", "landing_glide_m", "depth_fallbacks")
 
 
 def outcome(summary: dict) -> str:
