@@ -83,10 +83,11 @@ def test_a_worse_rescaling_method_replays_to_worse_depth(recording, own):
 
 def test_a_config_that_starves_the_planner_of_depth_replays_to_its_failsafe(recording, own):
     """The flight's own failsafe was its 12 s mission timeout; with fits that need more
-    anchors than a frame ever has, the replay has no metric depth, and the depth rule fires
-    once the flight is guarded."""
+    anchors than a frame ever has and no affine fallback, the replay has no metric depth, and
+    the depth rule fires once the flight is guarded."""
     own_report, _ = own
-    starved = replay(recording["recording"]["path"], "--set", "rescale.min_anchors=5000")
+    starved = replay(recording["recording"]["path"], "--set", "rescale.min_anchors=5000",
+                     "--set", "depth.fallback_min_anchors=0")
     recorded = [f["reason"] for f in own_report["failsafes"]["recorded"]]
     assert recording["failsafes"] == ["mission timeout"]
     assert recorded == ["failsafe: mission timeout"]  # the transition into failsafe_stop

@@ -65,6 +65,15 @@ TURN_STOP_REASON = "stopping to turn to the next waypoint"
 #: like the corner's, it brakes on the stop the last round checked, and the staleness failsafe
 #: waits while it lasts and through the parallax glide after it.
 DEPTH_STOP_REASON = "stopping to regain metric depth"
+#: The reason of the stop at the goal (and of the transition to STOPPING). It brakes on the
+#: stop the last round checked, so it needs no new depth either: a realistic mine flight (pair
+#: 3, seed 0, estimated depth) reached its goal with the view starved and got "no metric depth"
+#: 0.02 s into this stop, a failsafe's hold before the landing instead of the landing.
+GOAL_STOP_REASON = "goal reached"
+#: The glides and stops over ground flown or checked, on which depth may lapse
+#: (:meth:`companion.flight.navigation.Navigation.on_flown_ground`).
+FLOWN_GROUND_REASONS = (PARALLAX_REASON, BACKOFF_REASON, TURN_STOP_REASON, DEPTH_STOP_REASON,
+                        GOAL_STOP_REASON)
 
 
 def on_glide(plan, reason: str, now: float) -> bool:

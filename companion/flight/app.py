@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from autonomy.geometry import PinholeCamera
+from autonomy.navigation.behaviours import GOAL_STOP_REASON
 from autonomy.navigation.mission import GROUND_STATES, FlightState
 from autonomy.navigation.route import Route
 from autonomy.planning.planner import Planner
@@ -182,7 +183,7 @@ class FlightApp:
         lag = np.asarray(s.loop_lag_s) if s.loop_lag_s else np.zeros(1)
         return {
             "final_state": mission.state.value,
-            "reached_goal": any(t.reason == "goal reached" for t in mission.transitions),
+            "reached_goal": any(t.reason == GOAL_STOP_REASON for t in mission.transitions),
             "failsafes": list(mission.failsafes),
             "transitions": [{"t": round(t.t, 3), "from": t.source.value, "to": t.target.value,
                              "reason": t.reason} for t in mission.transitions],

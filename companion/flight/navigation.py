@@ -19,11 +19,12 @@ import math
 import numpy as np
 
 from autonomy.messages import Odometry
-from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON, PARALLAX_REASON,
-                                            TURN_STOP_REASON, Backoff, Blocked, NoPathClock,
-                                            ParallaxGlide, Step, approach_targets, depth_lapsed,
-                                            must_turn, on_glide, pause_turn, still_turning,
-                                            view_starved)
+from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON,
+                                            FLOWN_GROUND_REASONS, GOAL_STOP_REASON,
+                                            PARALLAX_REASON, TURN_STOP_REASON, Backoff, Blocked,
+                                            NoPathClock, ParallaxGlide, Step, approach_targets,
+                                            depth_lapsed, must_turn, on_glide, pause_turn,
+                                            still_turning, view_starved)
 from autonomy.navigation.failsafes import age
 from autonomy.navigation.mission import FAILSAFE_OFFBOARD_STATES, FlightState
 from autonomy.navigation.route import Route, heading_error
@@ -134,14 +135,13 @@ class Navigation:
 
     def on_flown_ground(self) -> bool:
         """Braking to a corner's turn on the stop checked before it, turning in place there,
-        gliding for parallax after it, or backing off along the trail: the vehicle stays on
-        ground it has flown or checked, so depth may lapse (new depth is what the turn and
-        the glides are for)."""
+        gliding for parallax after it, backing off along the trail, or braking at the goal:
+        the vehicle stays on ground it has flown or checked, so depth may lapse (new depth is
+        what the turn and the glides are for; at the goal none is needed)."""
         now, plan = self.context.clock.now(), self.plan
         return self.context.state == FlightState.ALIGNING or self.parallax.active \
-            or self.backoff.active or on_glide(plan, PARALLAX_REASON, now) \
-            or on_glide(plan, BACKOFF_REASON, now) or on_glide(plan, TURN_STOP_REASON, now) \
-            or on_glide(plan, DEPTH_STOP_REASON, now)
+            or self.backoff.active \
+            or any(on_glide(plan, reason, now) for reason in FLOWN_GROUND_REASONS)
 
     def stop_plan(self, reason: str) -> Plan | None:
         """The stop checked at the last planning round while it lasts (braking from the
@@ -222,8 +222,8 @@ class Navigation:
             self.backoff.count = 0
             log.info("waypoint %d of %d", route.index + 1, len(route.waypoints_L))
         if progress.goal_reached:
-            self.stop("goal reached")
-            c.go(FlightState.STOPPING, "goal reached")
+            self.stop(GOAL_STOP_REASON)
+            c.go(FlightState.STOPPING, GOAL_STOP_REASON)
 
     def _follow(self, glide: Plan | None) -> None:
         """Fly ``glide`` (none: nothing changes); a glide ends at rest, so it is also the

@@ -44,7 +44,7 @@ from autonomy.depth.stage import MetricDepthStage
 from autonomy.depth.synthetic import SyntheticNetwork
 from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, yaw_of
 from autonomy.messages import Frame, ImuSample, RelativeDepth
-from autonomy.navigation.behaviours import BACKOFF_REASON, PARALLAX_REASON
+from autonomy.navigation.behaviours import FLOWN_GROUND_REASONS
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
 from autonomy.navigation.mission import DISARMED_STATES, GUARDED_STATES, FlightState
 from autonomy.planning.planner import Planner
@@ -403,8 +403,7 @@ class _Replayer:
                           if health is not None and health.state == HealthState.LOST else ""),
             depth_age_s=age(self.last_depth_t, now), depth_reason="",
             blind_s=self.blind.blind_s, blind_expired=self.blind.expired(self.config.flight),
-            on_flown_ground=self.state == _ALIGNING or record["reason"] in (PARALLAX_REASON,
-                                                                             BACKOFF_REASON),
+            on_flown_ground=self.state == _ALIGNING or record["reason"] in FLOWN_GROUND_REASONS,
             no_path_expired=self.no_path_since is not None
             and now - self.no_path_since > self.config.flight.no_path_timeout_s)
         reason = failsafe_reason(vitals, self.config.flight)
