@@ -154,12 +154,12 @@ class MetricDepthStage:
             sparse_map = None  # another frame's map: its landmarks are not at these pixels
         if sparse_map is None:
             self.no_fit[NO_SPARSE_MAP] += 1
-            return self._hold(t, disparity, 0, "no VINS sparse map for this frame")
+            return self._bridge(t, disparity, 0, "no VINS sparse map for this frame")
         x, z, pixels = self._anchor_samples(sparse_map, disparity)
         result = self._blend.update(fit(x, z, options=self.rescale))
         if not result.ok:
             self.no_fit[result.reason.value] += 1
-            return self._hold(t, disparity, len(x),
+            return self._bridge(t, disparity, len(x),
                               f"no fit ({result.reason.value}): {result.detail}",
                               fallback_anchors=(x, z))
         field = self._scale_field(result, x, z, pixels, disparity.shape)
@@ -179,10 +179,11 @@ class MetricDepthStage:
         return fit_scale_field(pixels[usable], residuals[usable], shape, n,
                                self.options.scale_field_sigma)
 
-    def _hold(self, t: float, disparity: np.ndarray, anchors: int, reason: str,
+    def _bridge(self, t: float, disparity: np.ndarray, anchors: int, reason: str,
               fallback_anchors: tuple[np.ndarray, np.ndarray] | None = None) -> MetricDepth:
-        """The last good fit applied to this frame while it is at most ``hold_s`` old, else
-        the affine fallback on ``fallback_anchors`` (this frame's), else no depth."""
+        """A frame without a fresh fit of the configured method: the last good fit applied
+        to it while that is at most ``hold_s`` old, else the affine fallback on
+        ``fallback_anchors`` (this frame's), else no depth."""
         held = self._last_good
         if held is None or not 0.0 <= t - held.t <= self.options.hold_s:
             fallback = None if fallback_anchors is None else affine_fallback(
