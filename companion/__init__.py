@@ -22,7 +22,7 @@ import os
 import platform
 
 
-def _runs_haswell_kernels() -> bool:
+def cpu_runs_haswell_kernels() -> bool:
     """Is this an x86-64 CPU with AVX2 and FMA (its ``/proc/cpuinfo`` flags)?"""
     if platform.machine() not in ("x86_64", "AMD64"):
         return False
@@ -35,7 +35,7 @@ def _runs_haswell_kernels() -> bool:
 
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-if _runs_haswell_kernels():
+if cpu_runs_haswell_kernels():
     os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
 from importlib.metadata import PackageNotFoundError, version  # noqa: E402

@@ -3,20 +3,12 @@ every x86-64 machine with AVX2 (companion/__init__.py): checked in a fresh inter
 the setting must precede numpy's first import."""
 
 import os
-import platform
 import subprocess
 import sys
 
 import pytest
 
-
-def _has_avx2_and_fma() -> bool:
-    try:
-        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as cpuinfo:
-            text = cpuinfo.read()
-    except OSError:
-        return False
-    return " avx2" in text and " fma" in text
+from companion import cpu_runs_haswell_kernels
 
 
 def _env_after_import(**env) -> dict:
@@ -29,7 +21,7 @@ def _env_after_import(**env) -> dict:
     return {"OPENBLAS_CORETYPE": out[0], "OPENBLAS_NUM_THREADS": out[1]}
 
 
-@pytest.mark.skipif(platform.machine() != "x86_64" or not _has_avx2_and_fma(),
+@pytest.mark.skipif(not cpu_runs_haswell_kernels(),
                     reason="the pin applies to x86-64 CPUs with AVX2 and FMA only")
 def test_an_x86_cpu_with_avx2_runs_openblas_haswell_kernels_on_one_thread():
     assert _env_after_import() == {"OPENBLAS_CORETYPE": "Haswell", "OPENBLAS_NUM_THREADS": "1"}

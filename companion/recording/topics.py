@@ -276,7 +276,8 @@ def encode_depth_fit(depth: MetricDepth) -> bytes:
     metric disparity over their range, and the diagnostics."""
     d, fit = depth.diagnostics, depth.fit
     record = _clean({"t": depth.t, "ok": depth.ok, "held": depth.held,
-                     "fallback": d.fallback, "method": d.method, "reason": d.reason, "anchors": d.anchors, "anchors_used": d.anchors_used,
+                     "fallback": d.fallback, "method": d.method, "reason": d.reason,
+                     "anchors": d.anchors, "anchors_used": d.anchors_used,
                      "residual_rms": float(d.residual_rms), "fit_age_s": float(d.fit_age_s)})
     if fit is not None:
         record.update(anchor_relative=fit.anchor_relative, anchor_depth=fit.anchor_depth,

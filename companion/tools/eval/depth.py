@@ -60,9 +60,9 @@ class DepthEvalOptions:
 class DepthTrace:
     """What the stage produced over a dataset: one entry per frame with metric depth in the
     per-frame lists (``t``, ``metrics``, ``anchors``, ``residual_rms``, ``fit_age_s``,
-    ``held``, ``fallback``), the stage's time for every frame in ``stage_ms``; ``no_fit`` and ``rejected``
-    are the stage's counts of frames without a fresh fit and of rejected network outputs, by
-    reason."""
+    ``held``, ``fallback``), the stage's time for every frame in ``stage_ms``; ``no_fit`` and
+    ``rejected`` are the stage's counts of frames without a fresh fit and of rejected network
+    outputs, by reason."""
 
     frames: int = 0
     t: list[float] = field(default_factory=list)
@@ -173,7 +173,8 @@ def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
     (:func:`~autonomy.depth.synthetic.affine_fit_abs_rel`). ``frames_with_depth`` counts
     those frames and ``frames_held`` those among them that used an earlier frame's fit,
     ``frames_fallback`` those given the affine fallback on their few anchors, with their
-    ``fallback_abs_rel`` (their mean AbsRel); ``no_fit`` counts the frames without a fresh fit by reason (held or not).
+    ``fallback_abs_rel`` (their mean AbsRel); ``no_fit`` counts the frames without a fresh
+    fit by reason (held, on the fallback or without depth).
     """
     per_frame = trace.metrics
     near = [m.overestimate_rate for m in per_frame if m.near_pixels > 0]
