@@ -164,6 +164,7 @@ SIMULATOR_DEFAULTS = (
     "vins.estimate_time_offset=true",
     "vins.estimate_gyro_alignment=true",
     "planner.near_tail_share=0.9",
+    "planner.far_tail_share=0.9",
 )
 
 

@@ -350,3 +350,4 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
         assert realistic.vins.estimate_gyro_alignment == first_flight.estimate_gyro_alignment \
             is True
         assert realistic.planner.near_tail_share == vehicle.planner.near_tail_share > 0.0
+        assert realistic.planner.far_tail_share == vehicle.planner.far_tail_share > 0.0

@@ -10,7 +10,9 @@ import pytest
 from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, rot_z
 from autonomy.messages import DepthDiagnostics, MetricDepth
 from autonomy.options import OptionError
-from autonomy.planning.history import fill_small_holes, DepthHistory, min_table, window_min
+from autonomy.planning.history import (
+    fill_small_holes, DepthHistory, min_table, read_depth, window_min,
+)
 from autonomy.planning.landing import column_points
 from autonomy.planning.planner import Plan, Planner, PlannerOptions
 
@@ -235,10 +237,83 @@ def test_a_thin_pole_nearer_than_every_landmark_is_kept_only_by_the_near_tail():
     assert verdicts[0.9].occupied[0] and not verdicts[0.9].free[0]
 
 
+def test_low_confidence_farther_than_every_confident_depth_counts_as_a_share_of_itself():
+    """The rescaling's far tail (no landmark that far): a wall 8 m ahead whose only
+    confident pixels are a strip at 3 m. At a share of 0 the wall counts as the farthest
+    confident depth, 3 m, and the sphere 5 m ahead is occupied (L + R = 6 m); at 0.9 it counts
+    as 7.2 m and the sphere is free. A share never puts the tail nearer than that floor: at
+    0.3 (2.4 m) it is still 3 m."""
+    T_W_C = camera_pose(body())
+    ahead = [[5.0, 0.0, ALTITUDE]]
+    depth = np.full((CAMERA.height, CAMERA.width), 8.0, np.float32)  # the wall, unsure
+    confidence = np.full_like(depth, 0.1)
+    depth[:10], confidence[:10] = 3.0, 1.0  # landmarks on a beam overhead
+    results = {}
+    for share in (0.0, 0.3, 0.9):
+        history = DepthHistory(far_tail_share=share)
+        history.add(depth, confidence, T_W_C, CAMERA, 0.0)
+        results[share] = history.check(ahead)
+    assert results[0.0].occupied.all() and not results[0.0].free.any()
+    assert results[0.9].free.all()
+    assert results[0.9].clearance[0] == pytest.approx(8.0 * 0.9 - 6.0, abs=1e-3)
+    assert results[0.3].clearance[0] == pytest.approx(results[0.0].clearance[0], abs=1e-6)
+
+
+def test_a_far_tail_share_leaves_pixels_between_confident_depths_at_their_floor():
+    """Only pixels farther than every confident one are the far tail: an unsure patch at 8 m
+    with a confident wall at 9 m beside it is bounded by the confident depth nearer than it,
+    as without a share (docs/planner.md, low confidence)."""
+    T_W_C = camera_pose(body())
+    depth = np.full((CAMERA.height, CAMERA.width), 9.0, np.float32)  # a wall, confident
+    confidence = np.ones_like(depth)
+    depth[:, 40:120], confidence[:, 40:120] = 8.0, 0.1  # the middle, unsure
+    depth[:10, :40] = 3.0  # a confident beam at 3 m
+    ahead = [[5.0, 0.0, ALTITUDE]]
+    clearances = []
+    for share in (0.0, 0.9):
+        history = DepthHistory(far_tail_share=share)
+        history.add(depth, confidence, T_W_C, CAMERA, 0.0)
+        clearances.append(history.check(ahead).clearance[0])
+    assert clearances[0] == clearances[1] < 0.0
+
+
+def test_a_view_whose_landmarks_lie_near_is_flown_fast_on_its_far_tail():
+    """A wall 9.5 m ahead with landmarks only on a beam 3 m ahead: bounded at 3 m, no arc of
+    the fastest tier (2 m/s: 6 m of arc and braking) is free and a slower one is flown; with
+    the far tail at 0.9 the wall counts as 8.55 m and the straight arc at 2 m/s is."""
+    T_W_C = camera_pose(body())
+    depth = render(T_W_C, [((9.5, -50.0, -50.0), (10.0, 50.0, 50.0))])
+    confidence = np.full_like(depth, 0.1)
+    depth[:10], confidence[:10] = 3.0, 1.0
+    speeds = {}
+    for share in (0.0, 0.9):
+        planner = Planner(CAMERA, PlannerOptions(far_tail_share=share))
+        planner.add_depth(metric(depth, 0.0, confidence), T_W_C)
+        plan = planner.plan(0.05, body(), FORWARD, AHEAD)
+        assert plan.kind == "arc"
+        speeds[share] = plan.primitive.speed
+    assert speeds[0.0] < speeds[0.9] == PlannerOptions().speed
+
+
+def test_the_reading_sorts_pixels_into_confident_the_tails_and_beyond_range():
+    depth = np.array([[3.0, 6.0, 2.0, 5.0, 8.0, 12.0, np.nan, -1.0, 60.0]], np.float32)
+    confidence = np.array([[1.0, 1.0, 0.1, 0.1, 0.1, 0.1, 1.0, 1.0, 1.0]], np.float32)
+    reading = read_depth(depth, confidence, 0.3, 10.0)
+    assert reading.in_range.tolist() == [[1, 1, 0, 0, 0, 0, 0, 0, 0]]
+    assert reading.confident.tolist() == [[1, 1, 0, 0, 0, 0, 0, 0, 1]]
+    assert reading.unsure.tolist() == [[0, 0, 1, 1, 1, 0, 0, 0, 0]]
+    assert reading.beyond.tolist() == [[0, 0, 0, 0, 0, 1, 0, 0, 0]]
+    assert reading.near_tail.tolist() == [[0, 0, 1, 0, 0, 0, 0, 0, 0]]
+    assert reading.far_tail.tolist() == [[0, 0, 0, 0, 1, 0, 0, 0, 0]]
+    alone = read_depth(depth, np.zeros_like(confidence), 0.3, 10.0)  # no confident pixel
+    assert not alone.near_tail.any() and not alone.far_tail.any()
+
+
+@pytest.mark.parametrize("name", ["near_tail_share", "far_tail_share"])
 @pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
-def test_a_near_tail_share_outside_0_to_1_is_refused(share):
-    with pytest.raises(ValueError, match="near_tail_share must be in"):
-        DepthHistory(near_tail_share=share)
+def test_a_tail_share_outside_0_to_1_is_refused(name, share):
+    with pytest.raises(ValueError, match=f"{name} must be in"):
+        DepthHistory(**{name: share})
 
 
 def test_an_older_frame_decides_where_the_newest_cannot_tell():

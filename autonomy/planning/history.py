@@ -61,10 +61,10 @@ One frame's verdict on a point:
   sphere it sees;
 - *unknown* when any pixel of any window (the outer window holds the others, unless one was
   widened, below) is NaN, non-positive or of low confidence (:func:`_known_range`: one less
-  disparate than every confident pixel counts as the farthest confident depth); *free* by the
-  ring rule; *occupied* otherwise. Depths beyond ``max_range`` count as ``max_range``: the
-  farthest point of the sphere has ``z + R <= max_range``, so such a pixel's ray is free past
-  the sphere (its range ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z``
+  disparate than every confident pixel counts as the farthest confident depth, or as
+  ``far_tail_share`` of its own where more); *free* by the ring rule; *occupied* otherwise.
+  Depths beyond ``max_range`` count as ``max_range``: the farthest point of the sphere has
+  ``z + R <= max_range``, so such a pixel's ray is free past the sphere (its range ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z``
   on that ray). So a sky rendered as ``max_range`` or beyond is free, but a NaN sky is unknown,
   and unknown is unsafe: in the simulator NaN means "nothing within range", from a network it
   means "no answer", and the history cannot tell which, so the renderer or the depth stage
@@ -118,6 +118,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -188,7 +189,7 @@ class DepthHistory:
 
     def __init__(self, *, robot_radius: float = 1.0, min_confidence: float = 0.3,
                  max_range: float = 10.0, max_frames: int = 8, max_age_s: float = 2.0,
-                 rings: int = 4, near_tail_share: float = 0.0):
+                 rings: int = 4, near_tail_share: float = 0.0, far_tail_share: float = 0.0):
         if not robot_radius > 0.0:
             raise ValueError(f"robot_radius must be > 0, got {robot_radius}")
         if not 0.0 <= min_confidence <= 1.0:
@@ -203,12 +204,15 @@ class DepthHistory:
             raise ValueError(f"rings must be in [1, 16], got {rings}")
         if not 0.0 <= near_tail_share <= 1.0:
             raise ValueError(f"near_tail_share must be in [0, 1], got {near_tail_share}")
+        if not 0.0 <= far_tail_share <= 1.0:
+            raise ValueError(f"far_tail_share must be in [0, 1], got {far_tail_share}")
         self.robot_radius = float(robot_radius)
         self.min_confidence = float(min_confidence)
         self.max_range = float(max_range)
         self.max_frames = int(max_frames)
         self.max_age_s = float(max_age_s)
         self.near_tail_share = float(near_tail_share)
+        self.far_tail_share = float(far_tail_share)
         #: The impact fractions q_0 = 1 > ... > q_{n-1} of the windows and q_1 .. q_n = 0 of
         #: their thresholds (module docstring: rings).
         k = np.arange(rings + 1) / rings
@@ -247,7 +251,7 @@ class DepthHistory:
             raise ValueError(f"frame time must be finite, got {t!r}")
         T_W_C = as_pose(T_W_C, "T_W_C")
         image = _known_range(depth, confidence, self.min_confidence, self.max_range,
-                             self._norms(camera), self.near_tail_share)
+                             self._norms(camera), self.near_tail_share, self.far_tail_share)
         image = fill_small_holes(image, HOLE_FILL_PX)
         frame = _Frame(min_table(image), T_W_C, camera, float(t))
         bisect.insort(self._frames, frame, key=lambda f: f.t)
@@ -619,8 +623,8 @@ def ray_norms(camera: PinholeCamera) -> np.ndarray:
 
 
 def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
-                 max_range: float, norms: np.ndarray, near_tail_share: float = 0.0
-                 ) -> np.ndarray:
+                 max_range: float, norms: np.ndarray, near_tail_share: float = 0.0,
+                 far_tail_share: float = 0.0) -> np.ndarray:
     """float32 range along each pixel's ray of the depth clipped to ``max_range``, -1 where
     unknown (NaN, <= 0, or low confidence and nearer than every confident pixel while
     ``near_tail_share`` is 0 or no confident pixel lies within ``max_range``).
@@ -641,20 +645,61 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
     with a share of 0, or when no confident pixel lies within range (the whole image is then a
     guess).
     Without it a hallway whose near walls carry no landmark (no texture the tracker can
-    hold) leaves every sphere near the vehicle unknown."""
+    hold) leaves every sphere near the vehicle unknown.
+
+    The far tail, a low-confidence pixel farther than every confident one in range, is the
+    curve's straight tail past the farthest landmark. With ``far_tail_share`` above 0 it
+    counts as that share of its own depth where that is more than the farthest confident
+    depth: without it a view whose landmarks lie within 5 m bounds everything beyond at 5 m,
+    and the arcs that need more room ahead (the fastest tier's) are never free. The share is
+    measured as the near tail's is (docs/planner.md, the far tail)."""
     d = depth.astype(np.float32, copy=False)
-    with np.errstate(invalid="ignore"):
-        valid = d > 0.0  # NaN: False
-        confident = valid & (confidence >= min_confidence)
-        far = valid & ~confident & (d >= max_range)
-        unsure = valid & ~confident & ~far
-    in_range = confident & (d < max_range)
+    reading = read_depth(d, confidence, min_confidence, max_range)
+    unsure, in_range = reading.unsure, reading.in_range
     floor = _confident_floor(d, in_range, unsure, max_range)
     if near_tail_share > 0.0 and in_range.any():  # no confident depth in range: no tail
         floor = np.where(floor > 0.0, floor, d * np.float32(near_tail_share))
+    if far_tail_share > 0.0:
+        floor = np.where(reading.far_tail, np.maximum(floor, d * np.float32(far_tail_share)),
+                         floor)
     d = np.where(unsure, floor, d)
-    known = confident | far | (unsure & (floor > 0.0))
+    known = reading.confident | reading.beyond | (unsure & (floor > 0.0))
     return np.where(known, np.minimum(d, np.float32(max_range)) * norms, _UNKNOWN)
+
+
+class DepthReading(NamedTuple):
+    """How the check reads a metric depth frame's pixels (:func:`_known_range`), as masks:
+    ``confident`` (valid, at least ``min_confidence``), ``beyond`` (valid, less confident, at
+    or beyond ``max_range``: counts as ``max_range``), ``unsure`` (valid, less confident,
+    within it), ``in_range`` (confident within it), and among the unsure the ``near_tail``
+    and ``far_tail``: nearer or farther than every in-range confident pixel (none where there
+    is none). The check finds the near tail by its floor's bins, to within one bin."""
+
+    confident: np.ndarray
+    beyond: np.ndarray
+    unsure: np.ndarray
+    in_range: np.ndarray
+    near_tail: np.ndarray
+    far_tail: np.ndarray
+
+
+def read_depth(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
+               max_range: float) -> DepthReading:
+    """The :class:`DepthReading` of ``depth`` (H, W) metres (NaN or <= 0: invalid) with its
+    ``confidence`` (H, W)."""
+    d = np.asarray(depth)
+    with np.errstate(invalid="ignore"):
+        valid = d > 0.0  # NaN: False
+        confident = valid & (confidence >= min_confidence)
+        beyond = valid & ~confident & (d >= max_range)
+        unsure = valid & ~confident & ~beyond
+    in_range = confident & (d < max_range)
+    if in_range.any():
+        near_tail = unsure & (d < d[in_range].min())
+        far_tail = unsure & (d > d[in_range].max())
+    else:
+        near_tail = far_tail = np.zeros_like(unsure)
+    return DepthReading(confident, beyond, unsure, in_range, near_tail, far_tail)
 
 
 #: Log-spaced depth bins over (``max_range`` / 1000, ``max_range``) in which

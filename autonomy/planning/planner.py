@@ -98,6 +98,12 @@ class PlannerOptions(PrimitiveOptions):
                                     "past the nearest landmark) counts as this share of its "
                                     "depth, 0.9 measured; 0: unknown (docs/planner.md, the "
                                     "near tail)")
+    far_tail_share: float = option(0.0, ge=0.0, le=1.0, doc="a low-confidence pixel farther "
+                                   "than every confident one (the rescaling's straight tail "
+                                   "past the farthest landmark) counts as this share of its "
+                                   "depth where that exceeds the farthest confident depth; 0: "
+                                   "as the farthest confident depth (docs/planner.md, the far "
+                                   "tail)")
     progress_weight: float = option(1.0, ge=0.0, le=100.0, doc="cost weight of progress toward "
                                     "the goal")
     smoothness_weight: float = option(0.3, ge=0.0, le=100.0, doc="cost weight of changing yaw "
@@ -237,7 +243,8 @@ class Planner:
         self.options = o
         self.history = DepthHistory(robot_radius=o.robot_radius, min_confidence=o.min_confidence,
                                     max_range=o.max_range, max_frames=o.history_frames,
-                                    max_age_s=o.history_s, near_tail_share=o.near_tail_share)
+                                    max_age_s=o.history_s, near_tail_share=o.near_tail_share,
+                                    far_tail_share=o.far_tail_share)
         self.tiers = [PrimitiveTier(speed, o) for speed in tier_speeds(o.primitives)]
         self._previous: Plan | None = None
         self._checked_stop: Plan | None = None

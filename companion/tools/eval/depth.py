@@ -24,6 +24,7 @@ from autonomy.depth.synthetic import (
     SyntheticDepthOptions, SyntheticNetwork, affine_fit_abs_rel,
 )
 from autonomy.messages import MetricDepth, RelativeDepth
+from autonomy.planning.history import read_depth
 from companion.report import finite_or_none, mean_or_none, median_or_none, show
 from companion.tools.eval.vio import (
     EvaluationError, ImuFeed, VioDataset, VioFrame, build_vins, read_frame_depth, read_vio_dataset,
@@ -40,6 +41,13 @@ if TYPE_CHECKING:
 #: knot spacing of their relative disparity (:meth:`RescaleModel.confidence`).
 SUPPORTED = 0.5
 
+#: The planner's classes of pixels (:class:`~autonomy.planning.history.DepthReading`) whose
+#: true over estimated depth ``true_over_estimated`` reports: confident within range, and the
+#: rescaling's straight tails nearer and farther than every confident pixel.
+READING_CLASSES = ("in_range", "near_tail", "far_tail")
+#: Every this many pixels of a class (row-major) are kept for its percentiles.
+RATIO_STRIDE = 16
+
 #: A depth network as the evaluation drives it: (frame, its ground-truth depth) -> relative
 #: disparity at the camera's resolution.
 RelativeDepthSource = Callable[[VioFrame, np.ndarray], np.ndarray]
@@ -54,6 +62,10 @@ class DepthEvalOptions:
     stage: DepthStageOptions = field(default_factory=DepthStageOptions)
     frontend: FrontendOptions | None = None
     static: StaticInitOptions | None = None
+    #: the planner's ``min_confidence`` and ``max_range``: how its check reads the depth
+    #: (``true_over_estimated``'s classes)
+    min_confidence: float = 0.3
+    max_range: float = 10.0
 
 
 @dataclass
@@ -76,6 +88,8 @@ class DepthTrace:
     held: list[bool] = field(default_factory=list)
     fallback: list[bool] = field(default_factory=list)
     stage_ms: list[float] = field(default_factory=list)
+    ratios: dict[str, list[np.ndarray]] = field(
+        default_factory=lambda: {name: [] for name in READING_CLASSES})
     no_fit: dict[str, int] = field(default_factory=dict)
     rejected: dict[str, int] = field(default_factory=dict)
     method: str = ""
@@ -119,7 +133,7 @@ def run_depth(data: VioDataset, options: DepthEvalOptions, network: RelativeDept
         start = time.perf_counter()
         result = stage.process(relative, update.sparse_map)
         trace.stage_ms.append(1e3 * (time.perf_counter() - start))
-        _record(trace, result, truth, relative.disparity)
+        _record(trace, result, truth, relative.disparity, options)
     trace.no_fit, trace.rejected = dict(stage.no_fit), dict(stage.rejected)
     return trace
 
@@ -139,7 +153,7 @@ def tracked_frames(data: VioDataset, options: DepthEvalOptions, max_frames: int 
 
 
 def _record(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,
-            relative: np.ndarray) -> None:
+            relative: np.ndarray, options: DepthEvalOptions) -> None:
     trace.frames += 1
     if not result.ok:
         return
@@ -157,6 +171,29 @@ def _record(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,
     trace.fit_age_s.append(result.diagnostics.fit_age_s)
     trace.held.append(result.held)
     trace.fallback.append(result.diagnostics.fallback)
+    _record_ratios(trace, result, truth, options)
+
+
+def _record_ratios(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,
+                   options: DepthEvalOptions) -> None:
+    """Every :data:`RATIO_STRIDE`-th true over estimated depth of each of the planner's
+    :data:`READING_CLASSES` of the frame's pixels, where the truth has a surface."""
+    reading = read_depth(result.depth, result.confidence, options.min_confidence,
+                         options.max_range)
+    surface = np.isfinite(truth) & (truth > 0.0)
+    for name in READING_CLASSES:
+        pixels = np.flatnonzero(getattr(reading, name) & surface)[::RATIO_STRIDE]
+        trace.ratios[name].append(truth.flat[pixels] / result.depth.flat[pixels])
+
+
+def ratio_percentiles(ratios: list[np.ndarray]) -> dict:
+    """``pixels`` (those sampled) and the 1st, 5th and 50th percentiles of true over
+    estimated depth (None without pixels): below 1 the depth was read too far."""
+    both = np.concatenate(ratios) if ratios else np.empty(0)
+    if both.size == 0:
+        return {"pixels": 0, "p1": None, "p5": None, "p50": None}
+    p1, p5, p50 = np.percentile(both, [1, 5, 50])
+    return {"pixels": int(both.size), "p1": float(p1), "p5": float(p5), "p50": float(p50)}
 
 
 def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
@@ -174,7 +211,11 @@ def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
     those frames and ``frames_held`` those among them that used an earlier frame's fit,
     ``frames_fallback`` those given the affine fallback on their few anchors, with their
     ``fallback_abs_rel`` (their mean AbsRel); ``no_fit`` counts the frames without a fresh
-    fit by reason (held, on the fallback or without depth).
+    fit by reason (held, on the fallback or without depth). ``true_over_estimated``: for the
+    planner's reading of the frames (:data:`READING_CLASSES`: confident within range, the
+    near tail and the far tail), the percentiles of true over estimated depth
+    (:func:`ratio_percentiles`); a tail that errs toward the vehicle no more often than
+    confident depth does has the same low percentiles (docs/planner.md, the tails).
     """
     per_frame = trace.metrics
     near = [m.overestimate_rate for m in per_frame if m.near_pixels > 0]
@@ -206,10 +247,9 @@ def score_depth(trace: DepthTrace, data: VioDataset) -> dict:
         "residual_rms_median": median_or_none(trace.residual_rms),
         "stage_ms_median": median_or_none(stage_ms),
         "stage_ms_p95": finite_or_none(np.percentile(stage_ms, 95)) if stage_ms.size else None,
+        "true_over_estimated": {name: ratio_percentiles(trace.ratios[name])
+                                for name in READING_CLASSES},
     }
-
-
-
 
 
 def format_depth_report(result: dict) -> str:
@@ -236,4 +276,8 @@ def format_depth_report(result: dict) -> str:
         f"{show(result['stage_ms_p95'], '.2f', ' ms')} p95 (network excluded)",
         "frames without a fresh fit: " + (no_fit or "none") + "; rejected network outputs: "
         + (rejected or "none"),
+        "true over estimated depth, 1st / 5th percentile: " + ", ".join(
+            f"{label} {show(ratios['p1'], '.3f')} / {show(ratios['p5'], '.3f')}"
+            for label, ratios in zip(("confident", "near tail", "far tail"),
+                                     result["true_over_estimated"].values())),
     ])
