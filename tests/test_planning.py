@@ -303,10 +303,11 @@ def test_the_reading_sorts_pixels_into_confident_the_tails_and_beyond_range():
     assert reading.confident.tolist() == [[1, 1, 0, 0, 0, 0, 0, 0, 1]]
     assert reading.unsure.tolist() == [[0, 0, 1, 1, 1, 0, 0, 0, 0]]
     assert reading.beyond.tolist() == [[0, 0, 0, 0, 0, 1, 0, 0, 0]]
-    assert reading.near_tail.tolist() == [[0, 0, 1, 0, 0, 0, 0, 0, 0]]
-    assert reading.far_tail.tolist() == [[0, 0, 0, 0, 1, 0, 0, 0, 0]]
+    assert reading.near_tail(depth).tolist() == [[0, 0, 1, 0, 0, 0, 0, 0, 0]]
+    assert reading.far_tail(depth).tolist() == [[0, 0, 0, 0, 1, 0, 0, 0, 0]]
     alone = read_depth(depth, np.zeros_like(confidence), 0.3, 10.0)  # no confident pixel
-    assert not alone.near_tail.any() and not alone.far_tail.any()
+    assert alone.unsure.any()
+    assert not alone.near_tail(depth).any() and not alone.far_tail(depth).any()
 
 
 @pytest.mark.parametrize("name", ["near_tail_share", "far_tail_share"])

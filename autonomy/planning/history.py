@@ -64,8 +64,8 @@ One frame's verdict on a point:
   disparate than every confident pixel counts as the farthest confident depth, or as
   ``far_tail_share`` of its own where more); *free* by the ring rule; *occupied* otherwise.
   Depths beyond ``max_range`` count as ``max_range``: the farthest point of the sphere has
-  ``z + R <= max_range``, so such a pixel's ray is free past the sphere (its range ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z``
-  on that ray). So a sky rendered as ``max_range`` or beyond is free, but a NaN sky is unknown,
+  ``z + R <= max_range``, so such a pixel's ray is free past the sphere (its range
+  ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z`` on that ray). So a sky rendered as ``max_range`` or beyond is free, but a NaN sky is unknown,
   and unknown is unsafe: in the simulator NaN means "nothing within range", from a network it
   means "no answer", and the history cannot tell which, so the renderer or the depth stage
   must write ``max_range`` (confident) where it knows the sky is empty.
@@ -649,8 +649,8 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
 
     The far tail, a low-confidence pixel farther than every confident one in range, is the
     curve's straight tail past the farthest landmark. With ``far_tail_share`` above 0 it
-    counts as that share of its own depth where that is more than the farthest confident
-    depth: without it a view whose landmarks lie within 5 m bounds everything beyond at 5 m,
+    counts as that share of its own depth where that is more than its floor (the farthest
+    confident depth, to within a bin): without it a view whose landmarks lie within 5 m bounds everything beyond at 5 m,
     and the arcs that need more room ahead (the fastest tier's) are never free. The share is
     measured as the near tail's is (docs/planner.md, the far tail)."""
     d = depth.astype(np.float32, copy=False)
@@ -660,8 +660,8 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
     if near_tail_share > 0.0 and in_range.any():  # no confident depth in range: no tail
         floor = np.where(floor > 0.0, floor, d * np.float32(near_tail_share))
     if far_tail_share > 0.0:
-        floor = np.where(reading.far_tail, np.maximum(floor, d * np.float32(far_tail_share)),
-                         floor)
+        floor = np.where(reading.far_tail(d),
+                         np.maximum(floor, d * np.float32(far_tail_share)), floor)
     d = np.where(unsure, floor, d)
     known = reading.confident | reading.beyond | (unsure & (floor > 0.0))
     return np.where(known, np.minimum(d, np.float32(max_range)) * norms, _UNKNOWN)
@@ -671,16 +671,25 @@ class DepthReading(NamedTuple):
     """How the check reads a metric depth frame's pixels (:func:`_known_range`), as masks:
     ``confident`` (valid, at least ``min_confidence``), ``beyond`` (valid, less confident, at
     or beyond ``max_range``: counts as ``max_range``), ``unsure`` (valid, less confident,
-    within it), ``in_range`` (confident within it), and among the unsure the ``near_tail``
-    and ``far_tail``: nearer or farther than every in-range confident pixel (none where there
-    is none). The check finds the near tail by its floor's bins, to within one bin."""
+    within it) and ``in_range`` (confident within it); the unsure pixels' tails on demand."""
 
     confident: np.ndarray
     beyond: np.ndarray
     unsure: np.ndarray
     in_range: np.ndarray
-    near_tail: np.ndarray
-    far_tail: np.ndarray
+
+    def near_tail(self, depth: np.ndarray) -> np.ndarray:
+        """The unsure pixels nearer than every in-range confident one (none without one). The
+        check finds them by their floor's bins, to within one bin."""
+        if not self.in_range.any():
+            return np.zeros_like(self.unsure)
+        return self.unsure & (depth < np.min(depth, where=self.in_range, initial=np.inf))
+
+    def far_tail(self, depth: np.ndarray) -> np.ndarray:
+        """The unsure pixels farther than every in-range confident one (none without one)."""
+        if not self.in_range.any():
+            return np.zeros_like(self.unsure)
+        return self.unsure & (depth > np.max(depth, where=self.in_range, initial=-np.inf))
 
 
 def read_depth(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
@@ -693,13 +702,7 @@ def read_depth(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
         confident = valid & (confidence >= min_confidence)
         beyond = valid & ~confident & (d >= max_range)
         unsure = valid & ~confident & ~beyond
-    in_range = confident & (d < max_range)
-    if in_range.any():
-        near_tail = unsure & (d < d[in_range].min())
-        far_tail = unsure & (d > d[in_range].max())
-    else:
-        near_tail = far_tail = np.zeros_like(unsure)
-    return DepthReading(confident, beyond, unsure, in_range, near_tail, far_tail)
+    return DepthReading(confident, beyond, unsure, confident & (d < max_range))
 
 
 #: Log-spaced depth bins over (``max_range`` / 1000, ``max_range``) in which

@@ -174,7 +174,8 @@ def _eval_depth(args: argparse.Namespace, config: Config) -> int:
             seed=config.sim.seed)
         options = depth.DepthEvalOptions(config.vins, config.rescale, config.depth,
                                          config.vins_frontend, config.vins_init,
-                                         config.planner.min_confidence, config.planner.max_range)
+                                         min_confidence=config.planner.min_confidence,
+                                         max_range=config.planner.max_range)
         result = depth.evaluate_depth(args.dataset, options, network,
                                       max_frames=args.max_frames)
     except (NetworkError, EvaluationError) as error:

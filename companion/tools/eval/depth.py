@@ -181,8 +181,10 @@ def _record_ratios(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,
     reading = read_depth(result.depth, result.confidence, options.min_confidence,
                          options.max_range)
     surface = np.isfinite(truth) & (truth > 0.0)
+    masks = {"in_range": reading.in_range, "near_tail": reading.near_tail(result.depth),
+             "far_tail": reading.far_tail(result.depth)}
     for name in READING_CLASSES:
-        pixels = np.flatnonzero(getattr(reading, name) & surface)[::RATIO_STRIDE]
+        pixels = np.flatnonzero(masks[name] & surface)[::RATIO_STRIDE]
         trace.ratios[name].append(truth.flat[pixels] / result.depth.flat[pixels])
 
 
@@ -278,6 +280,7 @@ def format_depth_report(result: dict) -> str:
         + (rejected or "none"),
         "true over estimated depth, 1st / 5th percentile: " + ", ".join(
             f"{label} {show(ratios['p1'], '.3f')} / {show(ratios['p5'], '.3f')}"
-            for label, ratios in zip(("confident", "near tail", "far tail"),
-                                     result["true_over_estimated"].values())),
+            for label, ratios in ((label, result["true_over_estimated"][name]) for label, name
+                                  in zip(("confident", "near tail", "far tail"),
+                                         READING_CLASSES))),
     ])
