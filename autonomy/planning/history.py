@@ -65,8 +65,9 @@ One frame's verdict on a point:
   ``far_tail_share`` of its own where more); *free* by the ring rule; *occupied* otherwise.
   Depths beyond ``max_range`` count as ``max_range``: the farthest point of the sphere has
   ``z + R <= max_range``, so such a pixel's ray is free past the sphere (its range
-  ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z`` on that ray). So a sky rendered as ``max_range`` or beyond is free, but a NaN sky is unknown,
-  and unknown is unsafe: in the simulator NaN means "nothing within range", from a network it
+  ``max_range / d_z`` exceeds every exit distance ``s2 <= (z + R) / d_z`` on that ray). So a
+  sky rendered as ``max_range`` or beyond is free, but a NaN sky is unknown, and unknown is
+  unsafe: in the simulator NaN means "nothing within range", from a network it
   means "no answer", and the history cannot tell which, so the renderer or the depth stage
   must write ``max_range`` (confident) where it knows the sky is empty.
 
@@ -650,9 +651,10 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
     The far tail, a low-confidence pixel farther than every confident one in range, is the
     curve's straight tail past the farthest landmark. With ``far_tail_share`` above 0 it
     counts as that share of its own depth where that is more than its floor (the farthest
-    confident depth, to within a bin): without it a view whose landmarks lie within 5 m bounds everything beyond at 5 m,
-    and the arcs that need more room ahead (the fastest tier's) are never free. The share is
-    measured as the near tail's is (docs/planner.md, the far tail)."""
+    confident depth, to within a bin): without it a view whose landmarks lie within 5 m
+    bounds everything beyond at 5 m, and the arcs that need more room ahead (the fastest
+    tier's) are never free. The share is measured as the near tail's is (docs/planner.md, the
+    far tail)."""
     d = depth.astype(np.float32, copy=False)
     reading = read_depth(d, confidence, min_confidence, max_range)
     unsure, in_range = reading.unsure, reading.in_range
@@ -681,15 +683,18 @@ class DepthReading(NamedTuple):
     def near_tail(self, depth: np.ndarray) -> np.ndarray:
         """The unsure pixels nearer than every in-range confident one (none without one). The
         check finds them by their floor's bins, to within one bin."""
-        if not self.in_range.any():
-            return np.zeros_like(self.unsure)
-        return self.unsure & (depth < np.min(depth, where=self.in_range, initial=np.inf))
+        return self._past_confident(depth, np.less, np.min, np.inf)
 
     def far_tail(self, depth: np.ndarray) -> np.ndarray:
         """The unsure pixels farther than every in-range confident one (none without one)."""
+        return self._past_confident(depth, np.greater, np.max, -np.inf)
+
+    def _past_confident(self, depth, beyond, extreme, initial) -> np.ndarray:
+        """The unsure pixels whose depth is ``beyond`` the ``extreme`` in-range confident
+        depth."""
         if not self.in_range.any():
             return np.zeros_like(self.unsure)
-        return self.unsure & (depth > np.max(depth, where=self.in_range, initial=-np.inf))
+        return self.unsure & beyond(depth, extreme(depth, where=self.in_range, initial=initial))
 
 
 def read_depth(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,

@@ -43,8 +43,9 @@ SUPPORTED = 0.5
 
 #: The planner's classes of pixels (:class:`~autonomy.planning.history.DepthReading`) whose
 #: true over estimated depth ``true_over_estimated`` reports: confident within range, and the
-#: rescaling's straight tails nearer and farther than every confident pixel.
-READING_CLASSES = ("in_range", "near_tail", "far_tail")
+#: rescaling's straight tails nearer and farther than every confident pixel; with the name
+#: the text report gives each.
+READING_CLASSES = {"in_range": "confident", "near_tail": "near tail", "far_tail": "far tail"}
 #: Every this many pixels of a class (row-major) are kept for its percentiles.
 RATIO_STRIDE = 16
 
@@ -183,8 +184,8 @@ def _record_ratios(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,
     surface = np.isfinite(truth) & (truth > 0.0)
     masks = {"in_range": reading.in_range, "near_tail": reading.near_tail(result.depth),
              "far_tail": reading.far_tail(result.depth)}
-    for name in READING_CLASSES:
-        pixels = np.flatnonzero(masks[name] & surface)[::RATIO_STRIDE]
+    for name, mask in masks.items():
+        pixels = np.flatnonzero(mask & surface)[::RATIO_STRIDE]
         trace.ratios[name].append(truth.flat[pixels] / result.depth.flat[pixels])
 
 
@@ -279,8 +280,10 @@ def format_depth_report(result: dict) -> str:
         "frames without a fresh fit: " + (no_fit or "none") + "; rejected network outputs: "
         + (rejected or "none"),
         "true over estimated depth, 1st / 5th percentile: " + ", ".join(
-            f"{label} {show(ratios['p1'], '.3f')} / {show(ratios['p5'], '.3f')}"
-            for label, ratios in ((label, result["true_over_estimated"][name]) for label, name
-                                  in zip(("confident", "near tail", "far tail"),
-                                         READING_CLASSES))),
+            _percentiles_text(label, result["true_over_estimated"][name])
+            for name, label in READING_CLASSES.items()),
     ])
+
+
+def _percentiles_text(label: str, ratios: dict) -> str:
+    return f"{label} {show(ratios['p1'], '.3f')} / {show(ratios['p5'], '.3f')}"
