@@ -27,7 +27,7 @@ import pytest
 from companion.cli import main
 from companion.config import SIMULATOR_DEFAULTS, Config, load_config
 from companion.tools import plot
-from companion.tools.eval import nav, provenance
+from companion.tools.eval import nav, nav_compare, provenance
 from companion.tools.eval.vio import EvaluationError
 from drivers.sim.world import build_world
 from ports import free_tcp_port
@@ -629,6 +629,91 @@ def test_a_runs_file_in_use_is_not_overwritten(tmp_path, capsys):
         f"eval nav: {runs} exists; --resume it, or choose a new --runs file"]
     assert main(["eval", "nav", "--quick", "--resume", str(runs), "--runs", str(runs)]) == 2
     assert "--resume adds to its own file; drop --runs" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- two runs compared
+
+def _changed_run() -> list[dict]:
+    """``_flown_records(0, 2)`` after a made-up change that touched only estimated depth:
+    dome pair 0 seed 0 now reaches the goal, dome pair 1 seed 1 takes 0.8 of its time and
+    passes 0.3 m from an obstacle, sewer pair 1 seed 1 collides."""
+    def changed(record):
+        trial = (record["world"], record["pair"], record["seed"])
+        if record["depth"] != "estimated":
+            return record
+        if trial == ("dome", 0, 0):
+            return {**record, "outcome": "success", "ended_early": False,
+                    "time_to_goal_s": 40.0}
+        if trial == ("dome", 1, 1):
+            return {**record, "time_to_goal_s": 0.8 * record["time_to_goal_s"],
+                    "flight_time_s": 26.0, "min_clearance_m": 0.3}
+        if trial == ("sewer", 1, 1):
+            return {**record, "outcome": "collision"}
+        return record
+    return [changed(r) for r in _flown_records(0, 2)]
+
+
+def test_a_comparison_counts_what_changed_on_the_trials_both_runs_flew():
+    comparison = nav_compare.compare_runs(_flown_records(0, 2), _changed_run())
+    assert comparison["trials_only_before"] == comparison["trials_only_after"] == 0
+    gt, estimated = comparison["sources"]["gt"], comparison["sources"]["estimated"]
+    assert gt == {"trials": 8, "success": [4, 4], "collision": [0, 0], "identical": 8,
+                  "changed": [], "least_clearance_m": [1.2, 1.2],
+                  "time_ratio": {"median": 1.0, "min": 1.0, "max": 1.0, "trials": 4}}
+    assert estimated["success"] == [4, 4] and estimated["collision"] == [0, 1]
+    assert estimated["identical"] == 5
+    assert estimated["changed"] == [
+        {"trial": "dome pair 0 estimated seed 0", "before": "timeout", "after": "success"},
+        {"trial": "sewer pair 1 estimated seed 1", "before": "success", "after": "collision"}]
+    assert estimated["least_clearance_m"] == [1.2, 0.3]
+    # of the three successes in both runs, one flew 0.8 of the time: the median is 1
+    assert estimated["time_ratio"] == {"median": 1.0, "min": 0.8, "max": 1.0, "trials": 3}
+
+
+def test_an_interrupted_run_is_compared_on_the_trials_it_flew():
+    interrupted = _changed_run()[:5]
+    comparison = nav_compare.compare_runs(_flown_records(0, 2), interrupted)
+    assert (comparison["trials_only_before"], comparison["trials_only_after"]) == (11, 0)
+    assert comparison["sources"]["gt"]["trials"] == 3
+    assert comparison["sources"]["estimated"]["changed"] == [
+        {"trial": "dome pair 0 estimated seed 0", "before": "timeout", "after": "success"}]
+
+
+def test_eval_nav_compare_reports_the_comparison_of_two_runs_files(tmp_path, capsys):
+    before = _write(tmp_path / "before.jsonl", _flown_records(0, 2))
+    after = _write(tmp_path / "after.jsonl", _changed_run())
+    markdown = tmp_path / "compare.md"
+    assert main(["eval", "nav", "--compare", str(before), str(after), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == nav_compare.compare_runs(
+        _flown_records(0, 2), _changed_run())
+    assert main(["eval", "nav", "--compare", str(before), str(after),
+                 "--markdown", str(markdown)]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("## Navigation runs compared: before.jsonl → after.jsonl")
+    assert "| estimated | 8 | 5 | 4 → 4 | 0 → 1 | 1.20 → 0.30 | 1.00 | 0.80–1.00 | 3 |" in text
+    assert "- sewer pair 1 estimated seed 1: success → collision" in text
+    assert markdown.read_text() == text
+
+
+@pytest.mark.parametrize("make_args, code, words", [
+    (lambda d, run: ["--compare", run, run, "--trials", "5", "--runs", str(d / "x.jsonl")],
+     2, "eval nav: --compare flies nothing; drop --trials, --runs"),
+    (lambda d, run: ["--compare", run, run, "--merge", run],
+     2, "eval nav: --compare flies nothing; drop --merge"),
+    (lambda d, run: ["--compare", run, str(d / "absent.jsonl")], 1, "absent.jsonl: cannot read"),
+    (lambda d, run: ["--compare", _record_file(d, _flown_records(0, 1) * 2), run], 1,
+     "bad.jsonl: dome pair 0 gt seed 0 is in more than one record"),
+    (lambda d, run: ["--compare", run, _record_file(
+        d, _stamped(_flown_records(0, 1)) + _stamped(_flown_records(1, 1), revision="def"))],
+     1, "bad.jsonl: the records come from different code revisions (abc, def)"),
+])
+def test_a_comparison_that_cannot_be_made_fails_with_one_line(tmp_path, capsys, make_args,
+                                                              code, words):
+    run = str(_write(tmp_path / "run.jsonl", _flown_records(0, 1)))
+    assert main(["eval", "nav", *make_args(tmp_path, run)]) == code
+    captured = capsys.readouterr()
+    assert len(captured.err.splitlines()) == 1 and words in captured.err
+    assert captured.out == ""
 
 
 # ---------------------------------------------------------------- on a Ray cluster

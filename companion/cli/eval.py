@@ -146,6 +146,11 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                          help="fly nothing: report the records of these --runs files (an "
                               "evaluation flown in parts, e.g. one --seed each) as one run; "
                               "takes none of the flight options")
+    command.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
+                         help="fly nothing: compare two --runs files (one may be interrupted) "
+                              "on the trials both flew: successes, collisions, changed "
+                              "outcomes, identical flights, least clearance, and the "
+                              "after/before ratio of navigation times")
     command.set_defaults(command=_eval_nav)
 
 
@@ -227,17 +232,17 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
     from companion.tools.eval import nav
     from companion.tools.eval.vio import EvaluationError
 
-    if args.merge:
-        flight_options = [f"--{name}" for name in _NAV_FLIGHT_OPTIONS
-                          if getattr(args, name) not in (None, False)]
-        if flight_options:
-            print(f"eval nav: --merge flies nothing; drop {', '.join(flight_options)}",
-                  file=sys.stderr)
-            return common.EXIT_USAGE
-        if args.resume:
-            print("eval nav: --merge flies nothing, so there is nothing to --resume",
-                  file=sys.stderr)
-            return common.EXIT_USAGE
+    for mode, refused in (("--compare", _NAV_FLIGHT_OPTIONS + ("resume", "runs", "merge",
+                                                               "plot")),
+                          ("--merge", _NAV_FLIGHT_OPTIONS + ("resume",))):
+        if getattr(args, mode[2:]):
+            given = [f"--{name}" for name in refused if getattr(args, name) not in (None, False)]
+            if given:
+                print(f"eval nav: {mode} flies nothing; drop {', '.join(given)}",
+                      file=sys.stderr)
+                return common.EXIT_USAGE
+    if args.compare:
+        return _compare_nav(args)
     runs = args.resume or args.runs
     if args.resume and args.runs:
         print("eval nav: --resume adds to its own file; drop --runs", file=sys.stderr)
@@ -257,7 +262,23 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
                          (args.plot, lambda path: nav.plot_navigation(result, records, path)))
 
 
-#: The options of ``eval nav`` that choose what to fly, which ``--merge`` does not take.
+def _compare_nav(args: argparse.Namespace) -> int:
+    from companion.tools.eval import nav_compare
+    from companion.tools.eval.vio import EvaluationError
+
+    before, after = args.compare
+    try:
+        comparison = nav_compare.compare_runs(nav_compare.read_run(before),
+                                              nav_compare.read_run(after))
+    except EvaluationError as error:
+        print(f"eval nav: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    return common.report("eval nav", args, comparison,
+                         nav_compare.format_markdown(comparison, before.name, after.name))
+
+
+#: The options of ``eval nav`` that choose what to fly, which ``--merge`` and ``--compare``
+#: do not take.
 _NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers", "cluster",
                        "quick")
 

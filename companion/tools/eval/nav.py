@@ -80,6 +80,8 @@ from drivers.sim.world import build_world
 #: The report's depth sources and what each flies
 #: (:data:`companion.launch.simulated.DEPTH_SOURCES`).
 DEPTH_SOURCES = {"gt": "truth", "estimated": "estimated"}
+#: How the reports name the depth sources.
+SOURCE_NAMES = {"gt": "GT", "estimated": "estimated"}
 #: A trial's outcomes, in the order they are counted and drawn.
 OUTCOMES = ("success", "collision", "timeout", "error")
 #: Trials per start/goal pair and depth source by default.
@@ -331,19 +333,19 @@ def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] |
     stamp = provenance.stamp(flown)
     done = list(done)
     check_provenance([*done, stamp])
-    finished = {_trial_key(r) for r in done}
+    finished = {trial_key(r) for r in done}
     if len(finished) < len(done):
         raise EvaluationError("a trial is recorded more than once in the records resumed")
-    keys = [_trial_key(dataclasses.asdict(t)) for t in planned]
+    keys = [trial_key(dataclasses.asdict(t)) for t in planned]
     foreign = finished - set(keys)
     if foreign:
-        raise EvaluationError(f"{_describe(min(foreign))} was flown but is not in this run's "
+        raise EvaluationError(f"{describe_trial(min(foreign))} was flown but is not in this run's "
                               "plan; resume with the options the run was started with")
     pending = [t for t, key in zip(planned, keys) if key not in finished]
     bar = None if progress is None else ProgressBar(len(pending), progress)
     new = run_trials(flown, pending, workers=workers, cluster=cluster, progress=bar,
                      provenance=stamp, on_record=on_record)
-    by_trial = {_trial_key(r): r for r in done + new}
+    by_trial = {trial_key(r): r for r in done + new}
     records = merge_records([by_trial[key] for key in keys])
     return summarise(records), records
 
@@ -425,11 +427,13 @@ def read_runs(paths: Iterable[Path]) -> list[dict]:
     read, or naming what keeps the parts from making one evaluation."""
     records = []
     for path in paths:
-        records += _read_run_file(Path(path))
+        records += read_records(Path(path))
     return merge_records(records)
 
 
-def _read_run_file(path: Path) -> list[dict]:
+def read_records(path: Path) -> list[dict]:
+    """The trial records of one ``--runs`` file, each checked as :func:`read_runs` says;
+    EvaluationError for a file without any."""
     records = [_parse_record(line, f"{path}:{n}") for n, line in _numbered_lines(path)]
     if not records:
         raise EvaluationError(f"{path}: no trial records (is it an 'eval nav --runs' file?)")
@@ -478,12 +482,9 @@ def merge_records(records: list[dict]) -> list[dict]:
     EvaluationError when a trial is in two records, when the parts flew different time
     limits, or when a seed of a pair was flown on one depth source only (the comparison is
     paired)."""
-    trials = collections.Counter(_trial_key(r) for r in records)
-    twice = [key for key, n in trials.items() if n > 1]
-    if twice:
-        raise EvaluationError(f"{_describe(twice[0])} is in more than one record "
-                              "(a part merged twice?)")
+    refuse_repeated_trials(records)
     check_provenance(records)
+    trials = {trial_key(r) for r in records}
     limits = sorted({r["timeout_s"] for r in records})
     if len(limits) > 1:
         raise EvaluationError("the runs flew different time limits ("
@@ -492,8 +493,8 @@ def merge_records(records: list[dict]) -> list[dict]:
     for world, pair, depth, seed in trials:
         other = next(d for d in DEPTH_SOURCES if d != depth)
         if (world, pair, other, seed) not in trials:
-            raise EvaluationError(f"{_describe((world, pair, depth, seed))} has no {other} "
-                                  "flight of the same seed (the comparison is paired)")
+            raise EvaluationError(f"{describe_trial((world, pair, depth, seed))} has no "
+                                  f"{other} flight of the same seed (the comparison is paired)")
     worlds = list(dict.fromkeys(r["world"] for r in records))
     ordered = sorted(records, key=lambda r: (worlds.index(r["world"]), r["pair"], r["seed"],
                                              list(DEPTH_SOURCES).index(r["depth"])))
@@ -502,6 +503,15 @@ def merge_records(records: list[dict]) -> list[dict]:
         seeds[record["world"], record["pair"], record["depth"]].append(record["seed"])
     return [{**r, "index": seeds[r["world"], r["pair"], r["depth"]].index(r["seed"])}
             for r in ordered]
+
+
+def refuse_repeated_trials(records: Iterable[dict]) -> None:
+    """EvaluationError naming the first trial that is in more than one of ``records``."""
+    trials = collections.Counter(trial_key(r) for r in records)
+    twice = [key for key, n in trials.items() if n > 1]
+    if twice:
+        raise EvaluationError(f"{describe_trial(twice[0])} is in more than one record "
+                              "(a part merged twice?)")
 
 
 def check_provenance(records: Iterable[dict]) -> None:
@@ -524,11 +534,12 @@ def _provenance(records: Iterable[dict]) -> dict[str, list[str]]:
             for key in ("revision", "config_hash")}
 
 
-def _trial_key(record: dict) -> tuple:
+def trial_key(record: dict) -> tuple:
+    """What identifies a trial across runs: (world, pair, depth source, seed)."""
     return record["world"], record["pair"], record["depth"], record["seed"]
 
 
-def _describe(key: tuple) -> str:
+def describe_trial(key: tuple) -> str:
     world, pair, depth, seed = key
     return f"{world} pair {pair} {depth} seed {seed}"
 
@@ -584,12 +595,9 @@ def _row(world: str, source: str, numbers: dict, records: list[dict]) -> str:
     early = sum(r["ended_early"] for r in records)
     path = mean_or_none([r["path_length_m"] for r in records if r["outcome"] == "success"])
     rate = numbers["success"] / numbers["trials"] if numbers["trials"] else None
-    cells = [world, _SOURCE_NAMES[source], numbers["trials"], *(numbers[o] for o in OUTCOMES),
+    cells = [world, SOURCE_NAMES[source], numbers["trials"], *(numbers[o] for o in OUTCOMES),
              early, show(rate, ".0%"), show(numbers["mean_time_s"], ".1f"), show(path, ".1f")]
     return "| " + " | ".join(str(c) for c in cells) + " |"
-
-
-_SOURCE_NAMES = {"gt": "GT", "estimated": "estimated"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -641,7 +649,7 @@ def navigation_figure(result: dict, records: list[dict]):
 
 def _label_bars(axes, x: np.ndarray, bars: list[tuple[str, str]], sources: int) -> None:
     """Each bar's depth source under it, each world's name under its bars."""
-    axes.set_xticks(x, [_SOURCE_NAMES[source] for _, source in bars])
+    axes.set_xticks(x, [SOURCE_NAMES[source] for _, source in bars])
     centres = x.reshape(-1, sources).mean(axis=1)
     axes.set_xticks(centres, [world for world, _ in bars[::sources]], minor=True)
     axes.tick_params(axis="x", which="minor", length=0, pad=18, labelsize=11)
