@@ -33,7 +33,8 @@ from drivers.sim.world import build_world
 from ports import free_tcp_port
 
 WORLD, PAIR = "sewer", 3  # a_far -> a_top: the shortest pair of the three worlds (seed 0)
-KEYS = {"trials", "success", "collision", "timeout", "error", "mean_time_s"}
+KEYS = {"trials", "success", "collision", "timeout", "error", "mean_time_s", "mean_speed_mps",
+        "least_clearance_m", "vins_error_median_m", "vins_error_worst_m"}
 
 
 @pytest.fixture(scope="module")
@@ -77,12 +78,13 @@ def test_stdout_is_the_json_shape_issue_7_gives_with_issue_26s_error_count(short
 
 def test_the_ground_truth_depth_trial_reaches_its_goal_without_collision(short_run):
     result, _, _, _, records = short_run
-    assert result["gt"][WORLD] | {"mean_time_s": None} == {
-        "trials": 1, "success": 1, "collision": 0, "timeout": 0, "error": 0,
-        "mean_time_s": None}
+    counts = {key: result["gt"][WORLD][key] for key in ("trials", *nav.OUTCOMES)}
+    assert counts == {"trials": 1, "success": 1, "collision": 0, "timeout": 0, "error": 0}
     gt = next(r for r in records if r["depth"] == "gt")
     assert gt["reached_goal"] and gt["collisions"] == 0 and gt["failsafes"] == [], gt
     assert result["gt"][WORLD]["mean_time_s"] == gt["flight_time_s"]
+    assert result["gt"][WORLD]["least_clearance_m"] == gt["min_clearance_m"] > 0
+    assert result["gt"][WORLD]["vins_error_worst_m"] == gt["position_error_m"] >= 0
     assert 0 < gt["time_to_goal_s"] < gt["flight_time_s"]
 
 
@@ -235,7 +237,8 @@ def test_workers_must_be_at_least_one():
 
 # ---------------------------------------------------------------- outcomes and counts
 
-def _summary(*, reached=False, collisions=0, failsafes=(), flight_time=30.0, path=20.0):
+def _summary(*, reached=False, collisions=0, failsafes=(), flight_time=30.0, path=20.0,
+             clearance=1.2, vins_error=0.5):
     transitions = [{"t": 10.0, "from": "entering_offboard", "to": "navigating",
                     "reason": "Offboard"}]
     if reached:
@@ -243,8 +246,8 @@ def _summary(*, reached=False, collisions=0, failsafes=(), flight_time=30.0, pat
                             "reason": "goal reached"})
     return {"reached_goal": reached, "collisions": collisions, "failsafes": list(failsafes),
             "final_state": "landed", "flight_time_s": flight_time, "navigation_time_s": 26.0,
-            "path_length_m": path, "min_clearance_m": 1.2, "closest_to_goal_m": 0.6,
-            "transitions": transitions}
+            "path_length_m": path, "min_clearance_m": clearance, "closest_to_goal_m": 0.6,
+            "position_error_m": vins_error, "transitions": transitions}
 
 
 @pytest.mark.parametrize("summary, expected, early", [
@@ -267,23 +270,29 @@ def test_time_to_goal_counts_from_offboard():
 
 def _records():
     trial = nav.Trial("dome", 0, "estimated", 0, 0)
-    summaries = [_summary(reached=True, flight_time=30.0, path=20.0),
-                 _summary(reached=True, flight_time=40.0, path=30.0),
-                 _summary(collisions=1),
-                 _summary(failsafes=["no safe primitive"])]
+    summaries = [_summary(reached=True, flight_time=30.0, path=20.0, vins_error=0.2),
+                 _summary(reached=True, flight_time=40.0, path=39.0, vins_error=0.4),
+                 _summary(collisions=1, clearance=0.0, vins_error=0.3),
+                 _summary(failsafes=["no safe primitive"], vins_error=2.5)]
     records = [nav.trial_record(nav.Trial("dome", 0, "gt", k, k), s, timeout_s=120.0)
                for k, s in enumerate(summaries)]
     timed_out = _summary(failsafes=["mission timeout"])
     return records + [nav.trial_record(trial, timed_out, timeout_s=120.0)]
 
 
-def test_counts_and_mean_time_of_the_successes():
+def test_counts_and_the_numbers_of_the_issues_goals():
+    """Mean time and speed (path over 26 s of navigation) of the successes; least clearance
+    and the VINS error at the end (median, worst) of every trial."""
     result = nav.summarise(_records())
     assert result == {
         "gt": {"dome": {"trials": 4, "success": 2, "collision": 1, "timeout": 1, "error": 0,
-                        "mean_time_s": 35.0}},
+                        "mean_time_s": 35.0, "mean_speed_mps": pytest.approx(59.0 / 52.0),
+                        "least_clearance_m": 0.0, "vins_error_median_m": pytest.approx(0.35),
+                        "vins_error_worst_m": 2.5}},
         "estimated": {"dome": {"trials": 1, "success": 0, "collision": 0, "timeout": 1,
-                               "error": 0, "mean_time_s": None}}}
+                               "error": 0, "mean_time_s": None, "mean_speed_mps": None,
+                               "least_clearance_m": 1.2, "vins_error_median_m": 0.5,
+                               "vins_error_worst_m": 0.5}}}
 
 
 def test_a_trial_that_raises_is_an_error_record_with_its_traceback_and_the_run_goes_on():
@@ -298,9 +307,11 @@ def test_a_trial_that_raises_is_an_error_record_with_its_traceback_and_the_run_g
         assert "99" in record["error"] and record["flight_time_s"] is None
     result = nav.summarise(records)
     assert result["gt"]["dome"] == {"trials": 1, "success": 0, "collision": 0, "timeout": 0,
-                                    "error": 1, "mean_time_s": None}
-    assert "| dome | GT | 1 | 0 | 0 | 0 | 1 | 0 | 0% | n/a | n/a |" in nav.format_markdown(
-        result, records)
+                                    "error": 1, "mean_time_s": None, "mean_speed_mps": None,
+                                    "least_clearance_m": None, "vins_error_median_m": None,
+                                    "vins_error_worst_m": None}
+    assert "| dome | GT | 1 | 0 | 0 | 0 | 1 | 0 | 0% | n/a | n/a | n/a | n/a | n/a / n/a |" \
+        in nav.format_markdown(result, records)
     assert nav.merge_records(records) == records  # an error is a result like the others
 
 
@@ -309,8 +320,11 @@ def test_markdown_counts_the_timeouts_that_ended_early():
     text = nav.format_markdown(nav.summarise(records), records)
     assert "(1 to 4 per start/goal pair and depth source, seeds 0..3, 120 s to reach the goal)" \
         in text
-    assert "| dome | GT | 4 | 2 | 1 | 1 | 0 | 1 | 50% | 35.0 | 25.0 |" in text
-    assert "| dome | estimated | 1 | 0 | 0 | 1 | 0 | 0 | 0% | n/a | n/a |" in text
+    assert "| dome | GT | 4 | 2 | 1 | 1 | 0 | 1 | 50% | 35.0 | 29.5 | 1.13 | 0.00 | 0.35 / 2.50 |" \
+        in text
+    assert "| dome | estimated | 1 | 0 | 0 | 1 | 0 | 0 | 0% | n/a | n/a | n/a | 1.20 | 0.50 / 0.50 |" \
+        in text
+    assert "**all**" not in text  # one world: its rows are the totals
 
 
 def test_the_plot_is_a_png_with_a_bar_per_world_and_source(tmp_path):
@@ -422,7 +436,12 @@ def test_the_merged_report_says_how_many_trials_of_which_seeds(tmp_path):
     records = nav.read_runs(parts)
     text = nav.format_markdown(nav.summarise(records), records)
     assert "(3 per start/goal pair and depth source, seeds 0, 1, 4, 120 s to reach" in text
-    assert "| dome | GT | 6 | 2 | 0 | 4 | 0 | 4 | 33% | 31.0 | 20.0 |" in text
+    assert "| dome | GT | 6 | 2 | 0 | 4 | 0 | 4 | 33% | 31.0 | 20.0 | 0.77 | 1.20 | 0.50 / 0.50 |" \
+        in text
+    # two worlds: each depth source's rows are followed by their totals
+    assert "| **all** | GT | 12 | 4 | 0 | 8 | 0 | 8 | 33% | 31.0 | 20.0 | 0.77 |" in text
+    assert text.index("| sewer | GT") < text.index("| **all** | GT") \
+        < text.index("| dome | estimated")
 
 
 def test_eval_nav_merge_reports_the_parts_as_one_run(tmp_path, capsys):
@@ -434,8 +453,10 @@ def test_eval_nav_merge_reports_the_parts_as_one_run(tmp_path, capsys):
     one_run = _flown_records(0, 2)
     assert result == nav.summarise(one_run)
     assert result["gt"]["sewer"] == {"trials": 4, "success": 2, "collision": 0, "timeout": 2,
-                                     "error": 0,
-                                     "mean_time_s": 31.0}
+                                     "error": 0, "mean_time_s": 31.0,
+                                     "mean_speed_mps": pytest.approx(20.0 / 26.0),
+                                     "least_clearance_m": 1.2, "vins_error_median_m": 0.5,
+                                     "vins_error_worst_m": 0.5}
     assert [json.loads(line) for line in merged.read_text().splitlines()] == one_run
     assert "seeds 0..1" in markdown.read_text()
 

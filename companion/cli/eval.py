@@ -101,10 +101,12 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                     "estimate (estimated), each trial a lockstep 'companion sim fly' in a "
                     "worker process; count successes (goal reached, no collision), collisions "
                     "and timeouts (neither within --timeout seconds of navigation, or ended "
-                    "early by a failsafe), with the successes' mean flight time. Progress on "
-                    "stderr; the result on stdout as a Markdown table, or JSON "
+                    "early by a failsafe), with the successes' mean flight time and speed, "
+                    "the least true clearance and the VINS error when navigation ended. "
+                    "Progress on stderr; the result on stdout as a Markdown table, or JSON "
                     '{"gt"|"estimated": {WORLD: {"trials", "success", "collision", "timeout", '
-                    '"mean_time_s"}}}.')
+                    '"error", "mean_time_s", "mean_speed_mps", "least_clearance_m", '
+                    '"vins_error_median_m", "vins_error_worst_m"}}}.')
     common.add_json_flag(command, instead_of="the Markdown report")
     command.add_argument("--trials", type=common.positive_int, metavar="N",
                          help="trials per start/goal pair and depth source (default: 5)")

@@ -37,7 +37,12 @@ Outcomes (:func:`outcome`), one per trial:
 The JSON keeps the four counts, which add up to ``trials``.
 
 ``mean_time_s`` is the mean ``flight_time_s`` (take-off to landed) of the successful trials,
-None without one.
+None without one. The issues' other goals are read off every trial's record too:
+``mean_speed_mps``, the successes' mean of path length (take-off to landed, in truth) over
+navigation time; ``least_clearance_m``, the least true clearance of any trial's flight; and
+``vins_error_median_m`` / ``vins_error_worst_m``, the median and the largest distance between
+the application's position and the truth when navigation ended (the VINS's drift over the
+flight). Each is None without a trial that has it.
 
 Parts. Since the result depends only on the arguments, an evaluation too long for one sitting
 can be flown in parts (one ``--seed S --trials 1`` or one ``--worlds W`` each, every part with
@@ -365,12 +370,28 @@ def summarise(records: list[dict]) -> dict:
 
 
 def count(records: list[dict]) -> dict:
-    """Trials, each outcome's count, and the mean flight time of the successes (None if
-    none)."""
-    successes = [r["flight_time_s"] for r in records if r["outcome"] == "success"]
+    """Trials, each outcome's count, the mean flight time and speed of the successes, the
+    least clearance, and the median and worst VINS error at the end of navigation (module
+    docstring; None where no trial has the number)."""
+    successes = [r for r in records if r["outcome"] == "success"]
+    clearances = _numbers(records, "min_clearance_m")
+    vins_errors = _numbers(records, "position_error_m")
     return {"trials": len(records),
             **{name: sum(r["outcome"] == name for r in records) for name in OUTCOMES},
-            "mean_time_s": mean_or_none(successes)}
+            "mean_time_s": mean_or_none([r["flight_time_s"] for r in successes]),
+            "mean_speed_mps": mean_or_none([r["path_length_m"] / r["navigation_time_s"]
+                                            for r in successes
+                                            if (r.get("navigation_time_s") or 0) > 0]),
+            "least_clearance_m": min(clearances, default=None),
+            "vins_error_median_m": float(np.median(vins_errors)) if vins_errors else None,
+            "vins_error_worst_m": max(vins_errors, default=None)}
+
+
+def _numbers(records: list[dict], key: str) -> list[float]:
+    """The finite values of ``key`` in ``records`` (records of trials that raised, or from
+    before the key was kept, have none)."""
+    return [r[key] for r in records
+            if isinstance(r.get(key), (int, float)) and math.isfinite(r[key])]
 
 
 def write_runs(records: list[dict], out: Path) -> Path:
@@ -550,7 +571,9 @@ def describe_trial(key: tuple) -> str:
 def format_markdown(result: dict, records: list[dict]) -> str:
     """Markdown: a heading with the trials per pair, their seeds and time limit (read off
     ``records``), then one row per world and depth source with the counts, the success rate,
-    the timeouts that ended early, and the successes' mean flight time and path length."""
+    the timeouts that ended early, the successes' mean flight time, path length and speed,
+    the least clearance and the VINS error at the end of navigation; with more than one
+    world, a row of all of them per depth source."""
     lines = [
         f"## Navigation in simulated flights ({_flown(records)})",
         "",
@@ -558,17 +581,22 @@ def format_markdown(result: dict, records: list[dict]) -> str:
         "the VINS map. Success: the goal reached without a collision within the time; "
         "collision: any collision; timeout: neither (of which *ended early*: stopped by a "
         "failsafe or landed away from the goal before the time ran out); error: the trial "
-        "raised (its record holds the traceback). Mean flight time (take-off to landed) and "
-        "path length over the successes.",
+        "raised (its record holds the traceback). Mean flight time (take-off to landed), "
+        "path length and speed (path over navigation time) over the successes; least true "
+        "clearance and VINS error when navigation ended (median / worst) over all trials.",
         "",
         "| world | depth | trials | success | collision | timeout | error | ended early | "
-        "success rate | mean flight s | mean path m |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "success rate | mean flight s | mean path m | mean speed m/s | least clearance m | "
+        "VINS error at end m |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for source, worlds in result.items():
         for world, numbers in worlds.items():
             lines.append(_row(world, source, numbers, [
                 r for r in records if r["depth"] == source and r["world"] == world]))
+        if len(worlds) > 1:
+            flown = [r for r in records if r["depth"] == source]
+            lines.append(_row("**all**", source, count(flown), flown))
     return "\n".join(lines)
 
 
@@ -596,7 +624,10 @@ def _row(world: str, source: str, numbers: dict, records: list[dict]) -> str:
     path = mean_or_none([r["path_length_m"] for r in records if r["outcome"] == "success"])
     rate = numbers["success"] / numbers["trials"] if numbers["trials"] else None
     cells = [world, SOURCE_NAMES[source], numbers["trials"], *(numbers[o] for o in OUTCOMES),
-             early, show(rate, ".0%"), show(numbers["mean_time_s"], ".1f"), show(path, ".1f")]
+             early, show(rate, ".0%"), show(numbers["mean_time_s"], ".1f"), show(path, ".1f"),
+             show(numbers["mean_speed_mps"], ".2f"), show(numbers["least_clearance_m"], ".2f"),
+             f"{show(numbers['vins_error_median_m'], '.2f')} / "
+             f"{show(numbers['vins_error_worst_m'], '.2f')}"]
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
