@@ -676,10 +676,13 @@ def _changed_run() -> list[dict]:
 
 def test_a_comparison_counts_what_changed_on_the_trials_both_runs_flew():
     comparison = nav_compare.compare_runs(_flown_records(0, 2), _changed_run())
+    assert comparison["timeout_s"] == 120.0
     assert comparison["trials_only_before"] == comparison["trials_only_after"] == 0
     gt, estimated = comparison["sources"]["gt"], comparison["sources"]["estimated"]
-    assert gt == {"trials": 8, "success": [4, 4], "collision": [0, 0], "identical": 8,
-                  "changed": [], "least_clearance_m": [1.2, 1.2],
+    speed = pytest.approx(20.0 / 26.0)
+    assert gt == {"trials": 8, "success": [4, 4], "collision": [0, 0],
+                  "mean_speed_mps": [speed, speed], "least_clearance_m": [1.2, 1.2],
+                  "vins_error_median_m": [0.5, 0.5], "identical": 8, "changed": [],
                   "time_ratio": {"median": 1.0, "min": 1.0, "max": 1.0, "trials": 4}}
     assert estimated["success"] == [4, 4] and estimated["collision"] == [0, 1]
     assert estimated["identical"] == 5
@@ -689,6 +692,26 @@ def test_a_comparison_counts_what_changed_on_the_trials_both_runs_flew():
     assert estimated["least_clearance_m"] == [1.2, 0.3]
     # of the three successes in both runs, one flew 0.8 of the time: the median is 1
     assert estimated["time_ratio"] == {"median": 1.0, "min": 0.8, "max": 1.0, "trials": 3}
+
+
+def test_a_run_compared_with_itself_is_identical_but_for_the_trials_that_raised():
+    run = _flown_records(0, 2)
+    run[0] = nav.error_record(nav.Trial(**{k: run[0][k] for k in
+                                           ("world", "pair", "depth", "index", "seed")}),
+                              "Traceback\nValueError: no such pair", timeout_s=120.0)
+    comparison = nav_compare.compare_runs(run, run)
+    assert comparison["sources"]["gt"]["identical"] == 7  # an error flew nothing to compare
+    assert comparison["sources"]["estimated"]["identical"] == 8
+    assert comparison["sources"]["estimated"]["time_ratio"]["median"] == 1.0
+
+
+@pytest.mark.parametrize("key", ["time_to_goal_s", "navigation_time_s", "position_error_m"])
+def test_a_flight_that_differs_in_any_of_its_numbers_is_not_identical(key):
+    after = _flown_records(1, 1)  # seed 1: every trial reaches the goal
+    after[1] = {**after[1], key: after[1][key] + 0.01}
+    comparison = nav_compare.compare_runs(_flown_records(1, 1), after)
+    assert comparison["sources"]["estimated"]["identical"] == 3  # of 4
+    assert comparison["sources"]["gt"]["identical"] == 4
 
 
 def test_an_interrupted_run_is_compared_on_the_trials_it_flew():
@@ -710,8 +733,9 @@ def test_eval_nav_compare_reports_the_comparison_of_two_runs_files(tmp_path, cap
     assert main(["eval", "nav", "--compare", str(before), str(after),
                  "--markdown", str(markdown)]) == 0
     text = capsys.readouterr().out
-    assert text.startswith("## Navigation runs compared: before.jsonl → after.jsonl")
-    assert "| estimated | 8 | 5 | 4 → 4 | 0 → 1 | 1.20 → 0.30 | 1.00 | 0.80–1.00 | 3 |" in text
+    assert text.startswith(f"## Navigation runs compared: {before} → {after}")
+    assert ("| estimated | 8 | 5 | 4 → 4 | 0 → 1 | 0.77 → 0.77 | 1.20 → 0.30 | 0.50 → 0.50 | "
+            "1.00 | 0.80–1.00 | 3 |") in text
     assert "- sewer pair 1 estimated seed 1: success → collision" in text
     assert markdown.read_text() == text
 
@@ -722,6 +746,10 @@ def test_eval_nav_compare_reports_the_comparison_of_two_runs_files(tmp_path, cap
     (lambda d, run: ["--compare", run, run, "--merge", run],
      2, "eval nav: --compare flies nothing; drop --merge"),
     (lambda d, run: ["--compare", run, str(d / "absent.jsonl")], 1, "absent.jsonl: cannot read"),
+    (lambda d, run: ["--compare", run, _record_file(d, _flown_records(1, 1))], 1,
+     "eval nav: no trial is in both runs (other worlds, pairs or seeds?)"),
+    (lambda d, run: ["--compare", run, _record_file(d, _flown_records(0, 1, timeout_s=60.0))],
+     1, "the runs flew different time limits (60 s, 120 s); compare runs of one --timeout"),
     (lambda d, run: ["--compare", _record_file(d, _flown_records(0, 1) * 2), run], 1,
      "bad.jsonl: dome pair 0 gt seed 0 is in more than one record"),
     (lambda d, run: ["--compare", run, _record_file(

@@ -150,9 +150,10 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                               "takes none of the flight options")
     command.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
                          help="fly nothing: compare two --runs files (one may be interrupted) "
-                              "on the trials both flew: successes, collisions, changed "
-                              "outcomes, identical flights, least clearance, and the "
-                              "after/before ratio of navigation times")
+                              "on the trials both flew: each run's successes, collisions, "
+                              "speed, least clearance and VINS error, the changed outcomes, "
+                              "the identical flights, and the after/before ratio of the "
+                              "times to the goal")
     command.set_defaults(command=_eval_nav)
 
 
@@ -276,7 +277,7 @@ def _compare_nav(args: argparse.Namespace) -> int:
         print(f"eval nav: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     return common.report("eval nav", args, comparison,
-                         nav_compare.format_markdown(comparison, before.name, after.name))
+                         nav_compare.format_markdown(comparison, str(before), str(after)))
 
 
 #: The options of ``eval nav`` that choose what to fly, which ``--merge`` and ``--compare``

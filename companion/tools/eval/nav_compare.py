@@ -3,18 +3,21 @@
 A change to the stack is judged on the trials both runs flew: the same world, start/goal pair,
 depth source and seed (:func:`compare_runs`). Lockstep flights are deterministic on one machine
 (docs/simulator.md, "Reproducible flights"), so a trial flown to the same numbers in both runs
-(same outcome, flight time, path length and least clearance) was untouched by the change, and
-every other difference is the change's. Flown on different machines, two runs may differ by
-floating-point rounding alone; the count of identical trials shows which case a comparison is.
+(:data:`SAME_FLIGHT_KEYS`: outcome, times, path length, least clearance, VINS error) was
+untouched by the change, and every other difference is the change's. Flown on different
+machines, two runs may differ by floating-point rounding alone; the count of identical trials
+shows which case a comparison is. A trial that raised is never identical: it flew nothing.
 
-Per depth source, over the common trials: the successes and collisions of each run, the
-trials that changed outcome, the trials flown identically, the least true clearance of each
-run, and for the trials both runs brought to the goal the ratio after/before of their
-navigation times (``time_to_goal_s``, Offboard to goal): median, range and count. A ratio
-below 1 is a faster flight after the change.
+Per depth source, over the common trials: each run's numbers as ``eval nav`` counts them
+(:func:`companion.tools.eval.nav.count`: successes, collisions, mean speed, least clearance,
+VINS error at the end), the trials that changed outcome, the trials flown identically, and for
+the trials both runs brought to the goal the ratio after/before of their times to the goal
+(``time_to_goal_s``, Offboard to goal): median, range and count. A ratio below 1 is a faster
+flight after the change.
 
 Either run may be partial (an interrupted ``--runs`` file): only common trials are compared,
-and the trials one run flew alone are counted, not compared.
+and the trials one run flew alone are counted, not compared. Runs with no trial in common, or
+flown to different time limits (an outcome depends on the limit), are not compared.
 """
 
 from __future__ import annotations
@@ -29,7 +32,11 @@ from companion.tools.eval import nav
 from companion.tools.eval.vio import EvaluationError
 
 #: The numbers two flights of one trial must share to count as the same flight.
-SAME_FLIGHT_KEYS = ("outcome", "flight_time_s", "path_length_m", "min_clearance_m")
+SAME_FLIGHT_KEYS = ("outcome", "time_to_goal_s", "navigation_time_s", "flight_time_s",
+                    "path_length_m", "min_clearance_m", "position_error_m")
+#: The numbers of :func:`~companion.tools.eval.nav.count` a comparison gives for each run.
+COMPARED_COUNTS = ("success", "collision", "mean_speed_mps", "least_clearance_m",
+                   "vins_error_median_m")
 
 
 def read_run(path: Path) -> list[dict]:
@@ -45,37 +52,42 @@ def read_run(path: Path) -> list[dict]:
 
 
 def compare_runs(before: list[dict], after: list[dict]) -> dict:
-    """``{"trials_only_before", "trials_only_after", "sources": {source: {...}}}``, the
-    comparison of the module docstring; ``sources`` in the order of
-    :data:`~companion.tools.eval.nav.DEPTH_SOURCES`, those with no common trial left out."""
+    """``{"timeout_s", "trials_only_before", "trials_only_after", "sources": {source:
+    {...}}}``, the comparison of the module docstring; ``sources`` in the order of
+    :data:`~companion.tools.eval.nav.DEPTH_SOURCES`, those with no common trial left out.
+    EvaluationError when no trial is in both runs or they flew different time limits."""
     earlier = {nav.trial_key(r): r for r in before}
     later = {nav.trial_key(r): r for r in after}
     common = [key for key in earlier if key in later]
+    if not common:
+        raise EvaluationError("no trial is in both runs (other worlds, pairs or seeds?)")
+    limits = sorted({r["timeout_s"] for r in before + after})
+    if len(limits) > 1:
+        raise EvaluationError("the runs flew different time limits ("
+                              + ", ".join(f"{t:g} s" for t in limits) + "); compare runs of "
+                              "one --timeout")
     by_source = collections.defaultdict(list)
     for key in common:
         by_source[key[2]].append((earlier[key], later[key]))
-    return {"trials_only_before": len(earlier) - len(common),
+    return {"timeout_s": limits[0],
+            "trials_only_before": len(earlier) - len(common),
             "trials_only_after": len(later) - len(common),
             "sources": {source: _compare_source(by_source[source])
                         for source in nav.DEPTH_SOURCES if by_source[source]}}
 
 
 def _compare_source(pairs: list[tuple[dict, dict]]) -> dict:
-    def each_run(value_of) -> list:
-        return [value_of([pair[k] for pair in pairs]) for k in (0, 1)]
-
+    counts = [nav.count([pair[k] for pair in pairs]) for k in (0, 1)]
     ratios = [a["time_to_goal_s"] / b["time_to_goal_s"] for b, a in pairs
               if b["outcome"] == a["outcome"] == "success"
               and _positive(b.get("time_to_goal_s")) and _positive(a.get("time_to_goal_s"))]
     return {
         "trials": len(pairs),
-        "success": each_run(lambda records: _count(records, "success")),
-        "collision": each_run(lambda records: _count(records, "collision")),
+        **{key: [c[key] for c in counts] for key in COMPARED_COUNTS},
         "identical": sum(_same_flight(b, a) for b, a in pairs),
         "changed": [{"trial": nav.describe_trial(nav.trial_key(b)), "before": b["outcome"],
                      "after": a["outcome"]}
                     for b, a in pairs if b["outcome"] != a["outcome"]],
-        "least_clearance_m": each_run(_least_clearance),
         "time_ratio": {"median": float(np.median(ratios)) if ratios else None,
                        "min": min(ratios, default=None), "max": max(ratios, default=None),
                        "trials": len(ratios)},
@@ -86,17 +98,9 @@ def _positive(seconds) -> bool:
     return isinstance(seconds, (int, float)) and seconds > 0
 
 
-def _count(records: list[dict], outcome: str) -> int:
-    return sum(r["outcome"] == outcome for r in records)
-
-
 def _same_flight(before: dict, after: dict) -> bool:
-    return all(before.get(key) == after.get(key) for key in SAME_FLIGHT_KEYS)
-
-
-def _least_clearance(records: list[dict]) -> float | None:
-    return min((r["min_clearance_m"] for r in records if r.get("min_clearance_m") is not None),
-               default=None)
+    return before["outcome"] != "error" and all(before.get(key) == after.get(key)
+                                                for key in SAME_FLIGHT_KEYS)
 
 
 def format_markdown(comparison: dict, before: str, after: str) -> str:
@@ -104,23 +108,27 @@ def format_markdown(comparison: dict, before: str, after: str) -> str:
     lines = [
         f"## Navigation runs compared: {before} → {after}",
         "",
-        "On the trials both runs flew (world, pair, depth source, seed); "
+        f"On the trials both runs flew (world, pair, depth source, seed; "
+        f"{comparison['timeout_s']:g} s to reach the goal); "
         f"{comparison['trials_only_before']} flown only before and "
-        f"{comparison['trials_only_after']} only after are left out. Identical: the same "
-        "outcome, flight time, path length and least clearance. Time ratio: navigation time "
-        "after over before, on the trials both runs brought to the goal (below 1: faster).",
+        f"{comparison['trials_only_after']} only after are left out. Each cell: before → "
+        "after. Identical: the same outcome, times, path length, least clearance and VINS "
+        "error. Speed: path over navigation time, the successes. Time-to-goal ratio: after "
+        "over before, on the trials both runs brought to the goal (below 1: faster).",
         "",
-        "| depth | trials | identical | success | collision | least clearance m | "
-        "time ratio median | range | over |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| depth | trials | identical | success | collision | mean speed m/s | "
+        "least clearance m | VINS error at end m (median) | time-to-goal ratio median | "
+        "range | over |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     changes = []
     for source, numbers in comparison["sources"].items():
         ratio = numbers["time_ratio"]
-        clearance = [show(c, ".2f") for c in numbers["least_clearance_m"]]
         cells = [nav.SOURCE_NAMES[source], numbers["trials"], numbers["identical"],
-                 _arrow(numbers["success"]), _arrow(numbers["collision"]), _arrow(clearance),
-                 show(ratio["median"], ".2f"),
+                 _arrow(numbers["success"], "d"), _arrow(numbers["collision"], "d"),
+                 _arrow(numbers["mean_speed_mps"], ".2f"),
+                 _arrow(numbers["least_clearance_m"], ".2f"),
+                 _arrow(numbers["vins_error_median_m"], ".2f"), show(ratio["median"], ".2f"),
                  f"{show(ratio['min'], '.2f')}–{show(ratio['max'], '.2f')}", ratio["trials"]]
         lines.append("| " + " | ".join(str(c) for c in cells) + " |")
         changes += [f"- {c['trial']}: {c['before']} → {c['after']}" for c in numbers["changed"]]
@@ -129,5 +137,5 @@ def format_markdown(comparison: dict, before: str, after: str) -> str:
     return "\n".join(lines)
 
 
-def _arrow(values: list) -> str:
-    return f"{values[0]} → {values[1]}"
+def _arrow(values: list, spec: str) -> str:
+    return " → ".join(show(value, spec) for value in values)
