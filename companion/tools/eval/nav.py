@@ -40,7 +40,8 @@ The JSON keeps the four counts, which add up to ``trials``.
 None without one. The issues' other goals are read off every trial's record too:
 ``mean_speed_mps``, the successes' mean of path length over navigation time (the path is
 the whole flight's, in truth, so the climb after take-off and the descent to land, about 3 m
-of a 50-80 m flight, make it a few percent more than the speed while navigating); ``least_clearance_m``, the least true clearance of any trial's flight; and
+of a 50-80 m flight, make it a few percent more than the speed while navigating);
+``least_clearance_m``, the least true clearance of any trial's flight; and
 ``vins_error_median_m`` / ``vins_error_worst_m``, the median and the largest distance between
 the application's position and the truth when navigation ended (the VINS's drift over the
 flight). Each is None without a trial that has it.
@@ -360,8 +361,8 @@ def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] |
 # Summaries
 
 def summarise(records: list[dict]) -> dict:
-    """The JSON result: ``{source: {world: count}}`` (:func:`count`), sources in the order of :data:`DEPTH_SOURCES`, worlds in the order
-    they were flown."""
+    """The JSON result: ``{source: {world: count}}`` (:func:`count`), sources in the order
+    of :data:`DEPTH_SOURCES`, worlds in the order they were flown."""
     worlds = list(dict.fromkeys(r["world"] for r in records))
     return {source: {world: count([r for r in records
                                    if r["depth"] == source and r["world"] == world])
