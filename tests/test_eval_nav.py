@@ -504,6 +504,9 @@ def test_a_record_that_cannot_be_read_is_named_by_file_and_line(tmp_path, line, 
     (dict(pair="2"), "pair must be a non-negative integer, got '2'"),
     (dict(seed=-1), "seed must be a non-negative integer, got -1"),
     (dict(timeout_s=None), "timeout_s must be a positive number of seconds, got None"),
+    (dict(min_clearance_m="0.5"), "min_clearance_m must be a number or null, got '0.5'"),
+    (dict(position_error_m=True), "position_error_m must be a number or null, got True"),
+    (dict(outcome="success", path_length_m=None), "a success without path_length_m"),
 ])
 def test_a_record_with_a_wrong_value_is_refused(tmp_path, change, words):
     path = _write(tmp_path / "bad.jsonl", [{**_flown_records(0, 1)[0], **change}])

@@ -493,7 +493,21 @@ def _parse_record(line: str, where: str) -> dict:
     if type(record["timeout_s"]) not in (int, float) or not record["timeout_s"] > 0:
         raise EvaluationError(f"{where}: timeout_s must be a positive number of seconds, "
                               f"got {record['timeout_s']!r}")
+    for key in FLIGHT_NUMBERS:
+        value = record.get(key)
+        if value is not None and type(value) not in (int, float):
+            raise EvaluationError(f"{where}: {key} must be a number or null, got {value!r}")
+    if record["outcome"] == "success":
+        unflown = [key for key in ("flight_time_s", "path_length_m") if record[key] is None]
+        if unflown:
+            raise EvaluationError(f"{where}: a success without {', '.join(unflown)}")
     return record
+
+
+#: The numbers of a record that the reports read (null where a trial has none, as one that
+#: raised).
+FLIGHT_NUMBERS = ("flight_time_s", "path_length_m", "navigation_time_s", "time_to_goal_s",
+                  "min_clearance_m", "position_error_m")
 
 
 def merge_records(records: list[dict]) -> list[dict]:
