@@ -520,7 +520,7 @@ def merge_records(records: list[dict]) -> list[dict]:
     paired)."""
     refuse_repeated_trials(records)
     check_provenance(records)
-    trials = {trial_key(r) for r in records}
+    trials = dict.fromkeys(trial_key(r) for r in records)  # in record order: the first named
     limits = sorted({r["timeout_s"] for r in records})
     if len(limits) > 1:
         raise EvaluationError("the runs flew different time limits ("
