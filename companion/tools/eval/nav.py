@@ -521,11 +521,7 @@ def merge_records(records: list[dict]) -> list[dict]:
     refuse_repeated_trials(records)
     check_provenance(records)
     trials = dict.fromkeys(trial_key(r) for r in records)  # in record order: the first named
-    limits = sorted({r["timeout_s"] for r in records})
-    if len(limits) > 1:
-        raise EvaluationError("the runs flew different time limits ("
-                              + ", ".join(f"{t:g} s" for t in limits) + "); merge runs of "
-                              "one --timeout")
+    refuse_mixed_time_limits(records, "merge")
     for world, pair, depth, seed in trials:
         other = next(d for d in DEPTH_SOURCES if d != depth)
         if (world, pair, other, seed) not in trials:
@@ -547,6 +543,18 @@ def refuse_repeated_trials(records: Iterable[dict]) -> None:
     twice = [key for key, n in trials.items() if n > 1]
     if twice:
         raise EvaluationError(f"{describe_trial(twice[0])} is in more than one record")
+
+
+def refuse_mixed_time_limits(records: Iterable[dict], verb: str) -> float:
+    """The one time limit ``records`` were flown to; EvaluationError naming them when they
+    were flown to several (an outcome depends on the limit), telling the user to ``verb``
+    runs of one ``--timeout``."""
+    limits = sorted({r["timeout_s"] for r in records})
+    if len(limits) > 1:
+        raise EvaluationError("the runs flew different time limits ("
+                              + ", ".join(f"{t:g} s" for t in limits) + f"); {verb} runs of "
+                              "one --timeout")
+    return limits[0]
 
 
 def check_provenance(records: Iterable[dict]) -> None:

@@ -61,15 +61,11 @@ def compare_runs(before: list[dict], after: list[dict]) -> dict:
     common = [key for key in earlier if key in later]
     if not common:
         raise EvaluationError("no trial is in both runs (other worlds, pairs or seeds?)")
-    limits = sorted({r["timeout_s"] for r in before + after})
-    if len(limits) > 1:
-        raise EvaluationError("the runs flew different time limits ("
-                              + ", ".join(f"{t:g} s" for t in limits) + "); compare runs of "
-                              "one --timeout")
+    timeout_s = nav.refuse_mixed_time_limits(before + after, "compare")
     by_source = collections.defaultdict(list)
     for key in common:
         by_source[key[2]].append((earlier[key], later[key]))
-    return {"timeout_s": limits[0],
+    return {"timeout_s": timeout_s,
             "trials_only_before": len(earlier) - len(common),
             "trials_only_after": len(later) - len(common),
             "sources": {source: _compare_source(by_source[source])
