@@ -223,6 +223,33 @@ def test_watchdog_stays_quiet_when_disarmed_and_survives_a_failing_send():
 
 # ---------------------------------------------------------------- frames
 
+def test_a_late_setpoint_on_a_glide_through_a_point_brakes_on_the_glide_to_rest_there():
+    """Backing off glides on through one trail point after another (Backoff): the loop
+    stalled, the watchdog must not fly on past the point and along the glide's stopping
+    extension off the trail, but come to rest on the point, as the round checked."""
+    from autonomy.geometry import PinholeCamera
+    from autonomy.navigation.behaviours import BACKOFF_REASON
+    from autonomy.planning.planner import Planner, PlannerOptions
+    from companion.flight.command import Command
+
+    planner = Planner(PinholeCamera.from_hfov(160, 120, math.radians(90.0)), PlannerOptions())
+    here, point = make_pose(np.eye(3), [0.0, 0.0, 1.5]), np.array([0.0, 0.5, 1.5])
+    through = planner.glide(0.0, here, point, BACKOFF_REASON, stop_at_goal=False)
+    to_rest = planner.glide(0.0, here, point, BACKOFF_REASON)
+    sent = []
+    command = Command.__new__(Command)  # the parts the watchdog's stop reads
+    command.navigation = SimpleNamespace(stopping_on_px4=False)
+    command.context = SimpleNamespace(
+        T_L_W=np.eye(4), autopilot=SimpleNamespace(
+            send_velocity=lambda velocity, yaw_rate, acceleration=None: sent.append(velocity)),
+        channels=SimpleNamespace(plan=SimpleNamespace(value=through),
+                                 checked_stop=SimpleNamespace(value=to_rest)))
+    for now in (0.5, 1.5, 3.0):
+        command._watchdog_stop(now)
+    np.testing.assert_allclose(sent, [to_rest.setpoint(t).velocity_W for t in (0.5, 1.5, 3.0)])
+    assert np.linalg.norm(sent[-1]) == 0.0  # at rest on the point
+
+
 def test_yaw_alignment_maps_the_body_pose_from_vins_world_to_px4_local():
     T_W_B = make_pose(rot_z(0.3), np.array([1.0, 2.0, 0.1]))
     T_L_B = make_pose(rot_z(1.9), np.array([-4.0, 7.0, 0.0]))

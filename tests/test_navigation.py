@@ -99,13 +99,14 @@ def test_a_malformed_route_is_refused(waypoints):
 def test_the_way_back_follows_the_flown_trail_and_never_descends_the_take_off_column():
     trail = an_l_shaped_trail()
     here = np.array([3.0, 2.0, 1.5])
-    # every 0.5 m of the trail back: up the north leg, round the corner, down the east leg
-    assert np.allclose(trail.way_back(here, 3.0),
-                       [(3.0, 1.5, 1.5), (3.0, 1.0, 1.5), (3.0, 0.5, 1.5),
-                        (3.0, 0.0, 1.5), (2.5, 0.0, 1.5), (2.0, 0.0, 1.5)], atol=1e-9)
+    # from here through every trail point back: down the north leg, round the corner, west
+    way = trail.way_back(here, 3.0)
+    expected = [(3.0, y, 1.5) for y in np.linspace(2.0, 0.0, 17)] + \
+        [(x, 0.0, 1.5) for x in np.linspace(2.875, 2.0, 8)]
+    np.testing.assert_allclose(way, [here] + expected, atol=1e-9)
     # farther than the trail above the column: its first point up there, never down the column
-    back = trail.way_back(here, 20.0)
-    assert np.allclose(back[-1], (0.125, 0.0, 1.5)) and min(p[2] for p in back) == 1.5
+    way = trail.way_back(here, 20.0)
+    assert np.allclose(way[-1], (0.125, 0.0, 1.5)) and way[:, 2].min() == 1.5
 
 
 def test_a_glide_back_and_forth_is_erased_from_the_trail():
@@ -116,16 +117,17 @@ def test_a_glide_back_and_forth_is_erased_from_the_trail():
     fly_trail(trail, [(2.0, 0.005, 1.5)] * 50)  # hovering adds nothing
     assert len(trail) == 17 and len(trail.climbing) == 17
     assert np.allclose(trail.points[-1], (2.0, 0.0, 1.5))
-    assert np.allclose(trail.way_back(np.array([2.0, 0.0, 1.5]), 1.0),
-                       [(1.5, 0.0, 1.5), (1.0, 0.0, 1.5)])
+    way = trail.way_back(np.array([2.0, 0.0, 1.5]), 1.0)
+    np.testing.assert_allclose(way[:, 0], [2.0, 2.0, 1.875, 1.75, 1.625, 1.5, 1.375, 1.25,
+                                           1.125, 1.0])
 
 
 def test_no_way_back_shorter_than_one_glide():
     trail = Trail()
     fly_trail(trail, [(0.0, 0.0, z) for z in np.linspace(0.0, 1.5, 13)], climbing=True)
-    assert trail.way_back(np.array([0.0, 0.0, 1.5]), 2.0) == []
+    assert trail.way_back(np.array([0.0, 0.0, 1.5]), 2.0) is None
     fly_trail(trail, [(0.125, 0.0, 1.5), (0.25, 0.0, 1.5), (0.375, 0.0, 1.5)])
-    assert trail.way_back(np.array([0.375, 0.0, 1.5]), 2.0) == []
+    assert trail.way_back(np.array([0.375, 0.0, 1.5]), 2.0) is None
 
 
 # ---------------------------------------------------------------- turning at a corner
@@ -288,20 +290,47 @@ def test_blocked_with_no_way_back_it_looks_to_the_freer_side_then_the_other(
     assert clock.aim == 0.0 and clock.look_aside(None) == LOOK_ASIDE
 
 
-def test_backing_off_glides_along_the_trail_at_most_max_backoffs_times(planner):
+def _fly_back(planner: Planner, backoff: Backoff, here: np.ndarray, period: float = 1.0 / 12.0):
+    """Fly a backing-off's glides, each round from where the last plan's setpoint is: the
+    time it took, the positions flown, and the kind of every plan."""
+    t, plan, flown, kinds = 0.0, None, [here], []
+    while (step := backoff.step(plan, t, flown[-1])) is not Step.IDLE:
+        if step is not Step.KEEP:
+            plan = planner.glide(t, make_pose(np.eye(3), flown[-1]), step.target,
+                                 BACKOFF_REASON, stop_at_goal=step.stop)
+            kinds.append(plan.kind)
+        t += period
+        flown.append(plan.setpoint(t).position_W)
+    return t, np.array(flown), kinds, plan
+
+
+def test_backing_off_is_one_run_along_the_trail_that_brakes_once_at_its_end(planner):
     trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
     backoff = Backoff()
-    assert backoff.start(trail, here, OPTIONS)  # 2 m back: four glides of half a metre
-    targets = list(backoff.targets)
-    np.testing.assert_allclose(targets, [(3.0, 1.5, 1.5), (3.0, 1.0, 1.5), (3.0, 0.5, 1.5),
-                                         (3.0, 0.0, 1.5)], atol=1e-9)
-    first = backoff.step(None, 0.0)
-    np.testing.assert_allclose(first, targets[0])
-    glide = planner.glide(0.0, make_pose(np.eye(3), here), first, BACKOFF_REASON)
-    assert backoff.step(glide, 0.5) is Step.KEEP
-    for target in targets[1:]:
-        np.testing.assert_allclose(backoff.step(glide, glide.end_time), target)
-    assert backoff.step(glide, glide.end_time) is Step.IDLE
+    assert backoff.start(trail, here, FlightOptions(backoff_distance=3.0))
+    seconds, flown, kinds, last = _fly_back(planner, backoff, here)
+    # through the corner at (3, 0) to the trail 3 m back, and at rest there
+    np.testing.assert_allclose(flown[-1], (2.0, 0.0, 1.5), atol=1e-6)
+    np.testing.assert_allclose(last.setpoint(seconds).velocity_W, 0.0, atol=1e-9)
+    # braked once: every plan before the last glides on through its point
+    assert kinds[-1] == "stop" and set(kinds[:-1]) == {"glide"}
+    # 2.5 m at the slowest tier's 0.5 m/s, then 2 s braking over the last 0.5 m (glides from
+    # rest to rest half a metre apart took 12 s)
+    assert seconds == pytest.approx(7.0, abs=0.2)
+    # never farther from the trail than the corner's cut, half the pursuit distance
+    from_north_leg = np.hypot(flown[:, 0] - 3.0, flown[:, 1] - np.clip(flown[:, 1], 0.0, 2.0))
+    from_east_leg = np.hypot(flown[:, 1], flown[:, 0] - np.clip(flown[:, 0], 0.0, 3.0))
+    assert np.minimum(from_north_leg, from_east_leg).max() <= Backoff.PURSUIT_M / 2.0
+    assert np.all(flown[:, 2] == pytest.approx(1.5))
+
+
+def test_backing_off_at_most_max_backoffs_times_and_only_with_a_way_back(planner):
+    trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
+    backoff = Backoff()
+    assert backoff.start(trail, here, OPTIONS) and backoff.active
+    seconds, flown, _, _ = _fly_back(planner, backoff, here)
+    np.testing.assert_allclose(flown[-1], (3.0, 0.0, 1.5), atol=1e-6)  # 2 m back
+    assert not backoff.active
     assert backoff.start(trail, here, OPTIONS)  # the second of max_backoffs = 2
     assert not backoff.start(trail, here, OPTIONS)
     backoff.count = 0  # a waypoint passed

@@ -784,6 +784,21 @@ def test_an_approach_glides_straight_to_rest_over_its_goal(distance):
     assert planner.stop_plan(1.5, body(), FORWARD, "vins lost").primitive is plan.primitive
 
 
+def test_a_glide_through_its_goal_passes_it_at_the_slowest_speed_and_brakes_after_it():
+    planner = planner_seeing(ROOM)
+    goal = np.array([1.2 * math.cos(0.4), 1.2 * math.sin(0.4), ALTITUDE + 0.1])
+    plan = planner.glide(1.0, body(), goal, "backing off", stop_at_goal=False)
+    assert plan.kind == "glide" and plan.reason == "backing off"
+    slowest = planner.tiers[-1].speed
+    at_goal = plan.setpoint(1.0 + 1.2 / slowest)
+    np.testing.assert_allclose(at_goal.position_W, goal, atol=1e-9)  # height included
+    np.testing.assert_allclose(np.linalg.norm(at_goal.velocity_W[:2]), slowest)
+    assert plan.setpoint(1.5).yaw_rate == 0.0  # heading held
+    # its stopping extension runs on past the goal: the next round's glide replaces it
+    beyond = plan.setpoint(plan.end_time).position_W - goal
+    assert np.hypot(*beyond[:2]) == pytest.approx(slowest * planner.options.stop_duration_s / 2)
+
+
 def test_an_approach_through_a_wall_is_refused():
     planner = planner_seeing([((1.5, -50, -50), (2.0, 50, 50))])
     assert planner.approach(1.0, body(), np.array([2.5, 0.0, ALTITUDE])) is None

@@ -1,8 +1,10 @@
 """The flown trail: where the vehicle has just been, the ground it knows to be free.
 
-Two behaviours fly back over it (docs/flight.md): the parallax glide after a turn in place,
-and backing off from a dead end. Both glide straight between trail points; with the points
-:data:`GLIDE_STEP_M` apart, a glide stays within centimetres of the path flown.
+Two behaviours fly back over it (docs/flight.md). The parallax glide after a turn in place
+glides straight to the trail point :data:`GLIDE_STEP_M` behind and back. Backing off from a
+dead end glides, every round, toward the trail point that far ahead of it on the way back, and
+brakes once, at the way's end (:class:`~autonomy.navigation.behaviours.Backoff`). Over half a
+metre of flown trail a straight line stays within centimetres of it.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import numpy as np
 #: ``[flight] backoff_distance`` may be).
 TRAIL_SPACING_M = 0.1
 TRAIL_LENGTH = 60
-#: Length of one straight glide back along the trail, metres (the parallax glide's too).
+#: How far back along the trail the parallax glide goes, and how far ahead on the way back the
+#: backing-off glides aim, metres.
 GLIDE_STEP_M = 0.5
 
 
@@ -50,22 +53,15 @@ class Trail:
         return next((p.copy() for p in reversed(self.points)
                      if np.linalg.norm(p - position_W) >= GLIDE_STEP_M), None)
 
-    def way_back(self, position_W: np.ndarray, distance: float) -> list[np.ndarray]:
-        """Points of the trail back from ``position_W`` about every GLIDE_STEP_M of it,
-        ending where it has run ``distance`` back, or at its oldest point above the take-off
-        column (backing off never descends it): the straight glides between them stay within
-        centimetres of the trail."""
-        points, run, previous, since_point = [], 0.0, position_W, 0.0
+    def way_back(self, position_W: np.ndarray, distance: float) -> np.ndarray | None:
+        """The trail back from ``position_W``: the polyline from it through the trail's
+        points, newest first, ending at the first one ``distance`` back along it, or at its
+        oldest point above the take-off column (backing off never descends it). None when
+        that is shorter than GLIDE_STEP_M."""
+        path, run = [position_W.copy()], 0.0
         for point, climbing in zip(reversed(self.points), reversed(self.climbing)):
-            if climbing:
+            if climbing or run >= distance:
                 break
-            step = float(np.linalg.norm(point - previous))
-            run, since_point, previous = run + step, since_point + step, point
-            if since_point >= GLIDE_STEP_M or run >= distance:
-                points.append(point.copy())
-                since_point = 0.0
-            if run >= distance:
-                break
-        if points and run < distance and since_point > 0.0:
-            points.append(previous.copy())  # the trail ran out: its oldest point
-        return points
+            run += float(np.linalg.norm(point - path[-1]))
+            path.append(point.copy())
+        return np.array(path) if run >= GLIDE_STEP_M else None

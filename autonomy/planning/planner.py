@@ -192,12 +192,14 @@ class Candidates:
 class Plan:
     """What to fly from time ``t``: ``primitive`` in the start frame whose pose is ``T_W_S``.
 
-    ``kind``: "arc" (a forward arc, its stopping extension after it) or "stop" (braking; the
-    previous round's checked branch, whose ``t`` and ``T_W_S`` are that round's, or braking
-    from the velocity at ``t``). ``reason``: "" for an arc, else why it stops. ``safe_count``:
-    primitives found safe this round. ``clearance``: metres between the robot's sphere and the
-    observed surfaces along the primitive (inf where none was measured, NaN for an unchecked
-    stop). ``stop_duration_s``: the braking time. ``candidates``: what an arc was chosen from,
+    ``kind``: "arc" (a forward arc, its stopping extension after it), "glide" (a straight
+    glide flown through its end, its stopping extension after it: :meth:`Planner.glide`) or
+    "stop" (braking; the previous round's checked branch, whose ``t`` and ``T_W_S`` are that
+    round's, or braking from the velocity at ``t``; a glide to rest). ``reason``: "" for an
+    arc, else why it stops or glides. ``safe_count``: primitives found safe this round.
+    ``clearance``: metres between the robot's sphere and the observed surfaces along the
+    primitive (inf where none was measured, NaN for an unchecked stop or glide).
+    ``stop_duration_s``: the braking time. ``candidates``: what an arc was chosen from,
     or for "no safe primitive" the slowest tier checked (None for another stop);
     ``request``: what the round asked (None for a plan not of :meth:`Planner.plan`); both for
     the flight recorder and replay.
@@ -420,13 +422,17 @@ class Planner:
         return not near.occupied.any() and bool(
             self.history.check(away[retry], now=glide.t).free.all())
 
-    def glide(self, t: float, T_W_B, goal_W, reason: str) -> Plan | None:
-        """A straight glide from the body at ``T_W_B`` (at rest) to come to rest at
-        ``goal_W``, heading held: horizontally at no more than the slowest tier's speed ``u``,
-        cruise then brake over ``stop_duration_s`` (``u T / 2``), slower when the goal is
-        nearer than that; vertically at the constant rate ``c`` (then braking with the rest)
-        that ends at the goal's height, at most ``max_vertical_speed``. None when already
-        there. Unchecked: :meth:`approach` checks it."""
+    def glide(self, t: float, T_W_B, goal_W, reason: str,
+              stop_at_goal: bool = True) -> Plan | None:
+        """A straight glide from the body at ``T_W_B`` to come to rest at ``goal_W``, heading
+        held: horizontally at no more than the slowest tier's speed ``u``, cruise then brake
+        over ``stop_duration_s`` (``u T / 2``), slower when the goal is nearer than that;
+        vertically at the constant rate ``c`` (then braking with the rest) that ends at the
+        goal's height, at most ``max_vertical_speed``. It starts at its speed: from rest, the
+        autopilot's velocity loop takes it up. With ``stop_at_goal`` False it cruises at
+        ``u`` through ``goal_W`` and brakes after it (kind "glide"): a run along a path,
+        replaced every round by the glide toward the next point of it, that brakes once, at
+        the path's end. None when already there. Unchecked: :meth:`approach` checks it."""
         t = _finite_time(t)
         T_W_B = as_pose(T_W_B, "T_W_B")
         start = T_W_B[:3, 3]
@@ -436,16 +442,18 @@ class Planner:
             return None
         o = self.options
         slowest = self.tiers[-1].speed
-        braking = slowest * o.stop_duration_s / 2.0
+        braking = slowest * o.stop_duration_s / 2.0 if stop_at_goal else 0.0
         speed = slowest if distance >= braking else 2.0 * distance / o.stop_duration_s
         cruise_s = max(0.0, distance - braking) / max(speed, 1e-9)
-        climb = float(np.clip(offset[2] / (cruise_s + o.stop_duration_s / 2.0),
+        climb_s = cruise_s + (o.stop_duration_s / 2.0 if stop_at_goal else 0.0)
+        climb = float(np.clip(offset[2] / max(climb_s, 1e-9),
                               -o.max_vertical_speed, o.max_vertical_speed))
         heading = math.atan2(offset[1], offset[0]) if distance >= 1e-3 else yaw_of(T_W_B[:3, :3])
         T_W_S = make_pose(rot_z(heading), start)
         primitive = (forward_arc(speed, 0.0, climb, o.primitives, cruise_s) if cruise_s > 0.0
                      else stop_primitive(np.array([speed, 0.0, climb]), o.primitives))
-        return Plan(t, T_W_S, primitive, "stop", reason, 0, math.nan, o.stop_duration_s)
+        return Plan(t, T_W_S, primitive, "stop" if stop_at_goal else "glide", reason, 0,
+                    math.nan, o.stop_duration_s)
 
     def stop_plan(self, t: float, T_W_B, velocity_W, reason: str) -> Plan:
         """The stop for the application's failsafes: the stop checked at the last round,

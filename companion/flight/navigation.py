@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+from functools import partial
 
 import numpy as np
 
@@ -234,12 +235,17 @@ class Navigation:
         self.context.channels.checked_stop.publish(glide)
 
     def _back_off_step(self, odometry: Odometry, now: float) -> bool:
-        """Fly the glides of a backing-off, one trail point after the other. True while
-        doing so."""
-        step = self.backoff.step(self.plan, now)
+        """Fly this round's glide of a backing-off (:class:`Backoff`). True while doing so.
+        A glide through its point carries, as the watchdog's stop, the glide that comes to
+        rest on the point."""
+        step = self.backoff.step(self.plan, now, odometry.T_W_B[:3, 3])
         if isinstance(step, Step):
             return step == Step.KEEP
-        self._follow(self.planner.glide(odometry.t, odometry.T_W_B, step, BACKOFF_REASON))
+        glide = partial(self.planner.glide, odometry.t, odometry.T_W_B, step.target,
+                        BACKOFF_REASON)
+        to_rest = glide() or self.stop_plan(BACKOFF_REASON)  # None: at the way's end already
+        self.context.channels.plan.publish(to_rest if step.stop else glide(stop_at_goal=False))
+        self.context.channels.checked_stop.publish(to_rest)
         return True
 
     def _parallax_step(self, odometry: Odometry, now: float) -> bool:
