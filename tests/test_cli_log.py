@@ -168,3 +168,57 @@ def test_a_missing_or_foreign_file_is_one_line_and_exit_1(tmp_path, capsys, cont
     assert main(["log", "recover", str(path), str(tmp_path / "out.mcap")]) == 1
     assert capsys.readouterr().err == f"log recover: {path}: {error}\n"
     assert not (tmp_path / "out.mcap").exists()
+
+
+def test_log_time_says_why_the_vehicle_flew_a_slower_tier(tmp_path, capsys):
+    """Each plan records, for every faster tier that had nothing safe, how many of its arcs an
+    observed surface blocked and how many met only unseen space; `log time` gives the median
+    share blocked per tier, over the rounds it failed (docs/recording.md)."""
+    from autonomy.navigation.mission import FlightState, Transition
+    from companion.recording import topics
+
+    path = tmp_path / "flight.mcap"
+    writer = RecordingWriter(path, RecorderOptions(), metadata={},
+                             free_bytes=lambda directory: 10**15)
+    for topic in (topics.EVENTS, topics.PLAN):
+        writer.add_channel(topic.name, topic.schema)
+    states = [FlightState.ENTERING_OFFBOARD, FlightState.NAVIGATING, FlightState.LANDING]
+    for k, (source, target) in enumerate(zip(states, states[1:])):
+        transition = Transition(10.0 * k, source, target, "test")
+        writer.put(topics.EVENTS.name, START_NS + k * 10**10,
+                   lambda transition=transition: topics.encode_transition(transition))
+    faster = [[], [(2.0, 60, 15)], [(2.0, 30, 45)], [(2.0, 75, 0), (1.0, 50, 25)]]
+    for k, tiers in enumerate(faster):
+        record = {"t": 1.0 + k, "kind": "arc", "reason": "", "speed": 2.0 / 2 ** len(tiers),
+                  "faster": [{"speed": s, "blocked": b, "unseen": u} for s, b, u in tiers]}
+        writer.put(topics.PLAN.name, START_NS + (1 + k) * 10**9,
+                   lambda record=record: json.dumps(record).encode())
+    writer.close()
+
+    assert main(["log", "time", str(path), "--json"]) == 0
+    spent = json.loads(capsys.readouterr().out)
+    assert spent["faster_tiers"] == {"2.0 m/s": {"rounds": 3, "blocked_share": 0.8},
+                                     "1.0 m/s": {"rounds": 1, "blocked_share": 50 / 75}}
+    assert main(["log", "time", str(path)]) == 0
+    table = capsys.readouterr().out
+    assert "why not faster" in table and "80%  2.0 m/s" in table
+
+
+@pytest.mark.parametrize("faster, words", [
+    ([{"speed": 2.0, "blocked": "many", "unseen": 0}], "faster record whose 'blocked' is 'many'"),
+    (7, "/planner/plan record whose 'faster' is 7"),
+])
+def test_log_time_refuses_a_plan_whose_faster_tiers_are_malformed(tmp_path, capsys, faster,
+                                                                  words):
+    from companion.recording import topics
+
+    path = tmp_path / "flight.mcap"
+    writer = RecordingWriter(path, RecorderOptions(), metadata={},
+                             free_bytes=lambda directory: 10**15)
+    writer.add_channel(topics.PLAN.name, topics.PLAN.schema)
+    record = {"t": 1.0, "kind": "arc", "reason": "", "faster": faster}
+    writer.put(topics.PLAN.name, START_NS, lambda: json.dumps(record).encode())
+    writer.close()
+    assert main(["log", "time", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert words in err and len(err.strip().splitlines()) == 1

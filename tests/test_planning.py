@@ -563,6 +563,17 @@ def test_a_wall_3_m_ahead_is_approached_by_a_slower_tier():
     assert plan.kind == "arc" and plan.primitive.speed == pytest.approx(0.5)
     safe = planner.check(0.05, plan.T_W_S, planner.tiers[0]).safe
     assert not safe.any()
+    # the record says why not faster: each faster tier's arcs blocked by the wall, or (the
+    # sharpest turns, which leave the view) meeting only unseen space
+    faster = plan.candidates.faster
+    assert [tier.speed for tier in faster] == [2.0, 1.0]
+    for tier, checked in zip(faster, planner.tiers):
+        check = planner.check(0.05, plan.T_W_S, checked)
+        assert tier.blocked == check.blocked.sum() > 0
+        assert tier.blocked + tier.unseen == len(checked.library)
+    # nothing safe at all: the slowest tier's own masks say why, the faster tiers as above
+    stop = planner_seeing([((1.8, -50, -50), (2.3, 50, 50))]).plan(0.05, body(), FORWARD, AHEAD)
+    assert [tier.speed for tier in stop.candidates.faster] == [2.0, 1.0]
 
 
 def test_a_wall_on_the_left_turns_the_choice_right():

@@ -100,6 +100,7 @@ def test_a_plan_records_its_choice_and_draws_every_candidate():
     record = json.loads(topics.encode_plan(plan))
     assert record["kind"] == "arc" and record["safe"][record["chosen"]]
     assert record["radius"] == planner.options.robot_radius  # the sphere it was checked with
+    assert record["faster"] == []  # the fastest tier flown: none had nothing safe
     scene = decoded(SceneUpdate, topics.encode_plan_lines(plan))
     lines = scene.entities[0].lines
     assert len(lines) == len(plan.candidates.primitives)
@@ -119,6 +120,10 @@ def test_a_stop_for_want_of_a_safe_primitive_records_why_each_was_unsafe():
     assert (record["kind"], record["reason"], record["chosen"]) == ("stop", "no safe primitive",
                                                                    -1)
     assert not any(record["safe"]) and 0 < sum(record["blocked"]) < len(record["blocked"])
+    # and each faster tier's arcs: blocked by the wall, or meeting only unseen space
+    assert [tier["speed"] for tier in record["faster"]] == [2.0, 1.0]
+    assert all(tier["blocked"] > 0 and tier["blocked"] + tier["unseen"] == len(record["safe"])
+               for tier in record["faster"])
     lines = decoded(SceneUpdate, topics.encode_plan_lines(plan)).entities[0].lines
     assert len(lines) == len(record["safe"]) + 1  # every candidate red, then the stop green
     assert lines[-1].color.g > 0.5 and all(line.color.g < 0.5 for line in lines[:-1])

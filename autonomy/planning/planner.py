@@ -172,13 +172,29 @@ class TierCheck(NamedTuple):
     blocked: np.ndarray
 
 
+class FasterTier(NamedTuple):
+    """A tier checked before the one a round chose from, with nothing safe: its ``speed``, and
+    of its primitives how many an observed surface ``blocked`` and how many met only
+    ``unseen`` space (out of view, or beyond the depth's range)."""
+
+    speed: float
+    blocked: int
+    unseen: int
+
+    @classmethod
+    def of(cls, speed: float, check: TierCheck) -> "FasterTier":
+        blocked = int(check.blocked.sum())
+        return cls(speed, blocked, int((~check.safe).sum()) - blocked)
+
+
 @dataclass(frozen=True, eq=False)
 class Candidates:
     """One round's choice: the tier's ``primitives`` (in ``Plan.T_W_S``'s start frame), which
     were ``safe`` and which ``blocked`` by an observed surface (:class:`TierCheck`), and the
     index of the one ``chosen``, -1 when none was safe (the slowest tier's, on a stop), and
     the ``radius`` of the sphere they were checked with (less than the robot's when hemmed
-    in: module docstring)."""
+    in: module docstring); ``faster``: why each faster tier checked had nothing safe, fastest
+    first (the flight record says why the vehicle flew slower)."""
 
     speed: float
     primitives: Sequence[Primitive]
@@ -186,6 +202,7 @@ class Candidates:
     chosen: int
     blocked: np.ndarray
     radius: float
+    faster: tuple[FasterTier, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,26 +308,30 @@ class Planner:
         if stop_at_goal:
             room = float(np.hypot(*(goal - start)[:2]))
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
-        radius = self.options.robot_radius
+        radius, faster = self.options.robot_radius, []
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
-            safe, clearance, blocked = self.check(t, T_W_S, tier)
+            check = self.check(t, T_W_S, tier)
+            safe, clearance, blocked = check
             if safe.any():
                 break
+            faster.append(FasterTier.of(tier.speed, check))
         else:
+            faster.pop()  # the slowest tier's own candidates say why
             escape = self._escape(t, T_W_S, tier) if self._hemmed_in(t, T_W_S, tier) else None
             if escape is not None:
                 radius, (safe, clearance, blocked) = escape
             if not safe.any():  # why each primitive failed goes into the flight record
                 return replace(self._stop(t, T_W_S, velocity, "no safe primitive"),
                                candidates=Candidates(tier.speed, tier.library, safe, -1,
-                                                     blocked, radius))
+                                                     blocked, radius, tuple(faster)))
         count = int(safe.sum())
         cost = np.where(safe, self._cost(tier, start, R, goal, clearance), np.inf)
         i = int(np.argmin(cost))
         chosen = float(clearance[i])
         plan = Plan(t, T_W_S, tier.library[i], "arc", "", count, chosen,
                     self.options.stop_duration_s,
-                    Candidates(tier.speed, tier.library, safe, i, blocked, radius))
+                    Candidates(tier.speed, tier.library, safe, i, blocked, radius,
+                               tuple(faster)))
         self._previous = plan
         self._checked_stop = Plan(t, T_W_S, tier.branches[i], "stop", "", count, chosen,
                                   self.options.stop_duration_s)

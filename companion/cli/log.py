@@ -140,6 +140,12 @@ def _time_table(path: Path, spent) -> str:
     for label, seconds in sorted(spent.activities.items(), key=lambda item: -item[1]):
         share = seconds / spent.seconds if spent.seconds > 0 else 0.0
         lines.append(f"  {seconds:7.1f}  {share:5.0%}  {label}")
+    if spent.faster_tiers:
+        lines += ["why not faster: the rounds that found nothing safe in a tier, and the "
+                  "median share of its arcs blocked by an observed surface (the rest met "
+                  "only unseen space)", "   rounds  blocked  tier"]
+        lines += [f"  {tier['rounds']:7d}  {tier['blocked_share']:7.0%}  {speed}"
+                  for speed, tier in spent.faster_tiers.items()]
     return "\n".join(lines)
 
 

@@ -708,13 +708,18 @@ class NavigationTime:
     the flight left the phase (the summary's ``navigation_time_s``), split over
     ``activities`` (label -> seconds: the arcs by tier speed, each glide and stop by its
     reason, turning in place, the stops after the goal and a failsafe); ``plans`` published,
-    ``arc_rounds`` of them arcs, and the median seconds between consecutive arc rounds."""
+    ``arc_rounds`` of them arcs, and the median seconds between consecutive arc rounds;
+    ``faster_tiers``: for each tier speed (label "2.0 m/s"), the planning rounds that found
+    nothing safe in it and went slower or stopped, ``rounds``, and the median share of its
+    primitives an observed surface blocked, ``blocked_share`` (the rest met only unseen
+    space). Recordings made before the plans said why carry none."""
 
     seconds: float
     activities: dict[str, float]
     plans: int
     arc_rounds: int
     arc_round_gap_s: float | None
+    faster_tiers: dict[str, dict]
 
 
 def _activity(plan: dict) -> str:
@@ -730,7 +735,7 @@ def navigation_time(path: Path) -> NavigationTime:
     flight published it until the next one: log times, since a stop continuing the one the
     last round checked carries that round's time. ReplayError when the recording never
     reached Offboard."""
-    timeline, plans, arc_times = [], 0, []
+    timeline, plans, arc_times, blocked_shares = [], 0, [], defaultdict(list)
     for topic, t, decoded in _read(path, [topics.EVENTS.name, topics.PLAN.name],
                                    stamp="log_time"):
         if topic == topics.PLAN.name:
@@ -738,6 +743,9 @@ def navigation_time(path: Path) -> NavigationTime:
             plans += 1
             if decoded["kind"] == "arc":
                 arc_times.append(t * 1e-9)
+            for tier in _faster_tiers(topic, decoded):
+                blocked_shares[f"{tier['speed']:.1f} m/s"].append(
+                    tier["blocked"] / max(1, tier["blocked"] + tier["unseen"]))
             timeline.append((t * 1e-9, "plan", _activity(decoded)))
             continue
         try:
@@ -763,9 +771,12 @@ def navigation_time(path: Path) -> NavigationTime:
                 break
             state = value
     gaps = np.diff(arc_times)
+    faster = {speed: {"rounds": len(shares), "blocked_share": float(np.median(shares))}
+              for speed, shares in blocked_shares.items()}
     return NavigationTime(seconds=since - start, activities=dict(activities), plans=plans,
                           arc_rounds=len(arc_times),
-                          arc_round_gap_s=float(np.median(gaps)) if len(gaps) else None)
+                          arc_round_gap_s=float(np.median(gaps)) if len(gaps) else None,
+                          faster_tiers=faster)
 
 
 def _transform(message) -> np.ndarray:
@@ -802,10 +813,23 @@ _RECORDS = {
     topics.DEPTH_FIT.name: {"t": _number},
     topics.PLAN.name: {"t": _number, "kind": _of(str), "reason": _of(str)},
 }
+#: A faster tier's record in a plan (``/planner/plan``'s ``faster``).
+_FASTER_TIER = {"speed": _number, "blocked": _number, "unseen": _number}
 #: A planner round's request (``/planner/plan``'s ``request``), and the odometry top_view draws.
 _REQUEST = {"T_W_B": _vector(16), "velocity": _vector(3), "goal": _vector(3),
             "stop_at_goal": _of(bool)}
 _ODOMETRY = {"t": _number, "position": _vector(3)}
+
+
+def _faster_tiers(topic: str, plan: dict) -> list[dict]:
+    """A plan record's ``faster`` tiers (none in recordings made before plans carried them);
+    ReplayError when malformed."""
+    faster = plan.get("faster", [])
+    if not isinstance(faster, list):
+        raise ReplayError(f"a {topic} record whose 'faster' is {faster!r:.80}")
+    for tier in faster:
+        _check_record(f"{topic} faster", tier, _FASTER_TIER)
+    return faster
 
 
 def _check_record(topic: str, record, fields: dict) -> None:

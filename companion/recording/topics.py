@@ -90,7 +90,10 @@ PLAN_LINES = Topic("/planner/primitives", fm.SceneUpdate.get_schema())
 PLAN = Topic("/planner/plan", _json_schema("companion.Plan", {
     "t": _NUMBER, "kind": _STRING, "reason": _STRING, "safe_count": _NUMBER,
     "clearance": _NUMBER, "speed": _NUMBER, "yaw_rate": _NUMBER, "vertical_speed": _NUMBER,
-    "chosen": _NUMBER, "safe": {"type": "array", "items": _BOOL}, "radius": _NUMBER,
+    "chosen": _NUMBER, "safe": {"type": "array", "items": _BOOL},
+    "blocked": {"type": "array", "items": _BOOL}, "radius": _NUMBER,
+    "faster": {"type": "array", "items": {"type": "object", "properties": {
+        "speed": _NUMBER, "blocked": _NUMBER, "unseen": _NUMBER}}},
     "start": _VECTOR, "start_yaw": _NUMBER, "request": {"type": "object", "properties": {
         "T_W_B": _VECTOR, "velocity": _VECTOR, "goal": _VECTOR, "stop_at_goal": _BOOL}}}))
 SETPOINT = Topic("/command/setpoint", _json_schema("companion.Setpoint", {
@@ -289,7 +292,8 @@ def encode_depth_fit(depth: MetricDepth) -> bytes:
 def encode_plan(plan: Plan) -> bytes:
     """The planner's decision: the primitive flown; for an arc, the tier it was chosen from
     (which were safe, which blocked by an observed surface, which one was chosen, the sphere's
-    radius they were checked with; for "no safe primitive" the slowest tier, chosen -1); for a
+    radius they were checked with; for "no safe primitive" the slowest tier, chosen -1; why
+    each faster tier had nothing safe, ``faster``: its primitives blocked and unseen); for a
     round of the planner, what it was asked (the body's pose as 16 row-major numbers,
     velocity, goal), which replay asks again."""
     p, candidates = plan.primitive, plan.candidates
@@ -301,7 +305,8 @@ def encode_plan(plan: Plan) -> bytes:
                      "start_yaw": math.atan2(plan.T_W_S[1, 0], plan.T_W_S[0, 0])})
     if candidates is not None:
         record.update(chosen=candidates.chosen, safe=candidates.safe.tolist(),
-                      blocked=candidates.blocked.tolist(), radius=candidates.radius)
+                      blocked=candidates.blocked.tolist(), radius=candidates.radius,
+                      faster=[tier._asdict() for tier in candidates.faster])
     if plan.request is not None:
         request = plan.request
         record["request"] = {"T_W_B": request.T_W_B, "velocity": request.velocity_W,
