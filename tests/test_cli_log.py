@@ -187,9 +187,10 @@ def test_log_time_says_why_the_vehicle_flew_a_slower_tier(tmp_path, capsys):
         transition = Transition(10.0 * k, source, target, "test")
         writer.put(topics.EVENTS.name, START_NS + k * 10**10,
                    lambda transition=transition: topics.encode_transition(transition))
-    faster = [[], [(2.0, 60, 15)], [(2.0, 30, 45)], [(2.0, 75, 0), (1.0, 50, 25)]]
+    # the first round's faster tier is the middle one (the fastest too long to stop in)
+    faster = [[(1.0, 50, 25)], [], [(2.0, 60, 15)], [(2.0, 30, 45)], [(2.0, 75, 0)]]
     for k, tiers in enumerate(faster):
-        record = {"t": 1.0 + k, "kind": "arc", "reason": "", "speed": 2.0 / 2 ** len(tiers),
+        record = {"t": 1.0 + k, "kind": "arc", "reason": "", "speed": 0.5,
                   "faster": [{"speed": s, "blocked": b, "unseen": u} for s, b, u in tiers]}
         writer.put(topics.PLAN.name, START_NS + (1 + k) * 10**9,
                    lambda record=record: json.dumps(record).encode())
@@ -199,6 +200,7 @@ def test_log_time_says_why_the_vehicle_flew_a_slower_tier(tmp_path, capsys):
     spent = json.loads(capsys.readouterr().out)
     assert spent["faster_tiers"] == {"2.0 m/s": {"rounds": 3, "blocked_share": 0.8},
                                      "1.0 m/s": {"rounds": 1, "blocked_share": 50 / 75}}
+    assert list(spent["faster_tiers"]) == ["2.0 m/s", "1.0 m/s"]  # fastest first
     assert main(["log", "time", str(path)]) == 0
     table = capsys.readouterr().out
     assert "why not faster" in table and "80%  2.0 m/s" in table

@@ -294,7 +294,8 @@ def _fly_back(planner: Planner, backoff: Backoff, here: np.ndarray, period: floa
     """Fly a backing-off's glides, each round from where the last plan's setpoint is: the
     time it took, the positions flown, and the kind of every plan."""
     t, plan, flown, kinds = 0.0, None, [here], []
-    while (step := backoff.step(plan, t, flown[-1])) is not Step.IDLE:
+    slowest = planner.tiers[-1].speed
+    while (step := backoff.step(plan, t, flown[-1], slowest)) is not Step.IDLE:
         if step is not Step.KEEP:
             plan = planner.glide(t, make_pose(np.eye(3), flown[-1]), step.target,
                                  BACKOFF_REASON, stop_at_goal=step.stop)
@@ -328,13 +329,39 @@ def test_backing_off_at_most_max_backoffs_times_and_only_with_a_way_back(planner
     trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
     backoff = Backoff()
     assert backoff.start(trail, here, OPTIONS) and backoff.active
-    seconds, flown, _, _ = _fly_back(planner, backoff, here)
+    _, flown, _, _ = _fly_back(planner, backoff, here)
     np.testing.assert_allclose(flown[-1], (3.0, 0.0, 1.5), atol=1e-6)  # 2 m back
     assert not backoff.active
     assert backoff.start(trail, here, OPTIONS)  # the second of max_backoffs = 2
     assert not backoff.start(trail, here, OPTIONS)
     backoff.count = 0  # a waypoint passed
     assert not backoff.start(Trail(), here, OPTIONS)  # no trail, no way back
+
+
+def test_a_backing_off_held_back_comes_to_rest_on_the_way_in_twice_its_time(planner):
+    """The vehicle does not move (held back, or its estimate drifting): the run does not go
+    on for ever, keeping the staleness failsafe waiting; after twice the way's time at the
+    glides' speed it glides to rest on the nearest point of the way."""
+    trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
+    backoff, slowest = Backoff(), planner.tiers[-1].speed
+    assert backoff.start(trail, here, OPTIONS)
+    t = 0.0
+    while not isinstance(step := backoff.step(None, t, here, slowest), Step) and not step.stop:
+        t += 1.0 / 12.0
+    assert t == pytest.approx(2.0 * 2.0 / slowest, abs=0.1)  # 2 m at 0.5 m/s, twice over
+    np.testing.assert_allclose(step.target, here)  # the nearest point: where it is
+    # already there, no glide: the application brakes where it is for the backing-off
+    assert planner.glide(t, make_pose(np.eye(3), here), step.target, BACKOFF_REASON) is None
+    stop = planner.stop_plan(t, make_pose(np.eye(3), here), np.zeros(3), BACKOFF_REASON)
+    assert backoff.step(stop, t + 0.1, here, slowest) is Step.KEEP
+    assert backoff.step(stop, stop.end_time, here, slowest) is Step.IDLE
+
+
+def test_a_backoff_distance_under_half_a_metre_still_backs_off_that_far(planner):
+    trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
+    way = trail.way_back(here, 0.3)
+    np.testing.assert_allclose(way[-1], (3.0, 1.625, 1.5))  # the first point 0.3 m back
+    assert trail.way_back(here, 0.0) is None  # 0: never
 
 
 # ---------------------------------------------------------------- failsafe rules

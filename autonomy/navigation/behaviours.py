@@ -234,6 +234,7 @@ class Backoff:
         self.run = np.zeros(0)
         self.nearest = 0
         self.braking = False
+        self.deadline: float | None = None
 
     @property
     def active(self) -> bool:
@@ -248,14 +249,18 @@ class Backoff:
         if way is None:
             return False
         self.count += 1
-        self.way, self.nearest, self.braking = way, 0, False
+        self.way, self.nearest, self.braking, self.deadline = way, 0, False, None
         self.run = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(way, axis=0),
                                                                    axis=1))])
         return True
 
-    def step(self, plan, now: float, position_W: np.ndarray) -> Step | BackoffMove:
+    def step(self, plan, now: float, position_W: np.ndarray,
+             speed: float) -> Step | BackoffMove:
         """This round's glide from ``position_W``, :attr:`Step.KEEP` while braking to the
-        way's end, :attr:`Step.IDLE` when not backing off (any more)."""
+        way's end, :attr:`Step.IDLE` when not backing off (any more). ``speed``: the glides'
+        (the slowest tier's). A run that has taken twice as long as the way at ``speed``
+        (the vehicle held back, or its estimate drifting) comes to rest on the nearest point
+        of the way instead: the staleness failsafe waits while it lasts."""
         if self.way is None:
             return Step.IDLE
         if self.braking:
@@ -263,12 +268,17 @@ class Backoff:
                 return Step.KEEP
             self.way = None
             return Step.IDLE
+        if self.deadline is None:
+            self.deadline = now + 2.0 * self.run[-1] / speed
         way = self.way
         window = way[self.nearest:self.nearest + self.SEARCH_POINTS + 1]
         self.nearest += int(np.argmin(np.linalg.norm(window - position_W, axis=1)))
         distances = np.linalg.norm(way[self.nearest:] - position_W, axis=1)
         left = distances[0] + self.run[-1] - self.run[self.nearest]
         ahead = np.flatnonzero(distances >= self.PURSUIT_M)
+        if now > self.deadline:
+            self.braking = True
+            return BackoffMove(way[self.nearest].copy(), stop=True)
         if left <= GLIDE_STEP_M or not len(ahead):
             self.braking = True
             return BackoffMove(way[-1].copy(), stop=True)

@@ -2,9 +2,9 @@
 
 Two behaviours fly back over it (docs/flight.md). The parallax glide after a turn in place
 glides straight to the trail point :data:`GLIDE_STEP_M` behind and back. Backing off from a
-dead end glides, every round, toward the trail point that far ahead of it on the way back, and
-brakes once, at the way's end (:class:`~autonomy.navigation.behaviours.Backoff`). Over half a
-metre of flown trail a straight line stays within centimetres of it.
+dead end glides, every round, toward the trail point a quarter metre ahead of it on the way
+back, and brakes once, over the way's last :data:`GLIDE_STEP_M`
+(:class:`~autonomy.navigation.behaviours.Backoff`).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import numpy as np
 #: ``[flight] backoff_distance`` may be).
 TRAIL_SPACING_M = 0.1
 TRAIL_LENGTH = 60
-#: How far back along the trail the parallax glide goes, and how far ahead on the way back the
-#: backing-off glides aim, metres.
+#: How far back along the trail the parallax glide goes, and the last stretch of a backing-off,
+#: glided to rest, metres.
 GLIDE_STEP_M = 0.5
 
 
@@ -57,11 +57,11 @@ class Trail:
         """The trail back from ``position_W``: the polyline from it through the trail's
         points, newest first, ending at the first one ``distance`` back along it, or at its
         oldest point above the take-off column (backing off never descends it). None when
-        that is shorter than GLIDE_STEP_M."""
+        that is shorter than GLIDE_STEP_M, or than ``distance`` when that is shorter."""
         path, run = [position_W.copy()], 0.0
         for point, climbing in zip(reversed(self.points), reversed(self.climbing)):
             if climbing or run >= distance:
                 break
             run += float(np.linalg.norm(point - path[-1]))
             path.append(point.copy())
-        return np.array(path) if run >= GLIDE_STEP_M else None
+        return np.array(path) if run >= min(distance, GLIDE_STEP_M) and run > 0.0 else None

@@ -744,7 +744,7 @@ def navigation_time(path: Path) -> NavigationTime:
             if decoded["kind"] == "arc":
                 arc_times.append(t * 1e-9)
             for tier in _faster_tiers(topic, decoded):
-                blocked_shares[f"{tier['speed']:.1f} m/s"].append(
+                blocked_shares[tier["speed"]].append(
                     tier["blocked"] / max(1, tier["blocked"] + tier["unseen"]))
             timeline.append((t * 1e-9, "plan", _activity(decoded)))
             continue
@@ -771,8 +771,9 @@ def navigation_time(path: Path) -> NavigationTime:
                 break
             state = value
     gaps = np.diff(arc_times)
-    faster = {speed: {"rounds": len(shares), "blocked_share": float(np.median(shares))}
-              for speed, shares in blocked_shares.items()}
+    faster = {f"{speed:.1f} m/s": {"rounds": len(shares),
+                                   "blocked_share": float(np.median(shares))}
+              for speed, shares in sorted(blocked_shares.items(), reverse=True)}
     return NavigationTime(seconds=since - start, activities=dict(activities), plans=plans,
                           arc_rounds=len(arc_times),
                           arc_round_gap_s=float(np.median(gaps)) if len(gaps) else None,
