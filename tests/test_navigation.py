@@ -357,7 +357,7 @@ def test_a_backing_off_held_back_comes_to_rest_on_the_way_in_twice_its_time(plan
     assert backoff.step(stop, stop.end_time, here, slowest) is Step.IDLE
 
 
-def test_a_backoff_distance_under_half_a_metre_still_backs_off_that_far(planner):
+def test_a_backoff_distance_under_half_a_metre_still_backs_off_that_far():
     trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
     way = trail.way_back(here, 0.3)
     np.testing.assert_allclose(way[-1], (3.0, 1.625, 1.5))  # the first point 0.3 m back

@@ -273,12 +273,12 @@ class Backoff:
         way = self.way
         window = way[self.nearest:self.nearest + self.SEARCH_POINTS + 1]
         self.nearest += int(np.argmin(np.linalg.norm(window - position_W, axis=1)))
-        distances = np.linalg.norm(way[self.nearest:] - position_W, axis=1)
-        left = distances[0] + self.run[-1] - self.run[self.nearest]
-        ahead = np.flatnonzero(distances >= self.PURSUIT_M)
         if now > self.deadline:
             self.braking = True
             return BackoffMove(way[self.nearest].copy(), stop=True)
+        distances = np.linalg.norm(way[self.nearest:] - position_W, axis=1)
+        left = distances[0] + self.run[-1] - self.run[self.nearest]
+        ahead = np.flatnonzero(distances >= self.PURSUIT_M)
         if left <= GLIDE_STEP_M or not len(ahead):
             self.braking = True
             return BackoffMove(way[-1].copy(), stop=True)
