@@ -290,12 +290,17 @@ def test_blocked_with_no_way_back_it_looks_to_the_freer_side_then_the_other(
     assert clock.aim == 0.0 and clock.look_aside(None) == LOOK_ASIDE
 
 
+def _glides(planner: Planner) -> tuple[float, float]:
+    """A backing-off's glides: the slowest tier's speed and its braking distance."""
+    slowest = planner.tiers[-1].speed
+    return slowest, slowest * planner.options.stop_duration_s / 2.0
+
+
 def _fly_back(planner: Planner, backoff: Backoff, here: np.ndarray, period: float = 1.0 / 12.0):
     """Fly a backing-off's glides, each round from where the last plan's setpoint is: the
     time it took, the positions flown, and the kind of every plan."""
     t, plan, flown, kinds = 0.0, None, [here], []
-    slowest = planner.tiers[-1].speed
-    while (step := backoff.step(plan, t, flown[-1], slowest)) is not Step.IDLE:
+    while (step := backoff.step(plan, t, flown[-1], *_glides(planner))) is not Step.IDLE:
         if step is not Step.KEEP:
             plan = planner.glide(t, make_pose(np.eye(3), flown[-1]), step.target,
                                  BACKOFF_REASON, stop_at_goal=step.stop)
@@ -305,19 +310,24 @@ def _fly_back(planner: Planner, backoff: Backoff, here: np.ndarray, period: floa
     return t, np.array(flown), kinds, plan
 
 
-def test_backing_off_is_one_run_along_the_trail_that_brakes_once_at_its_end(planner):
+@pytest.mark.parametrize("stop_duration, seconds", [(2.0, 7.0), (1.0, 6.25)])
+def test_backing_off_is_one_run_along_the_trail_that_brakes_once_at_its_end(stop_duration,
+                                                                          seconds):
+    planner = Planner(PinholeCamera.from_hfov(160, 120, math.radians(90.0)),
+                      PlannerOptions(stop_duration_s=stop_duration))
     trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
     backoff = Backoff()
     assert backoff.start(trail, here, FlightOptions(backoff_distance=3.0))
-    seconds, flown, kinds, last = _fly_back(planner, backoff, here)
+    flown_s, flown, kinds, last = _fly_back(planner, backoff, here)
     # through the corner at (3, 0) to the trail 3 m back, and at rest there
     np.testing.assert_allclose(flown[-1], (2.0, 0.0, 1.5), atol=1e-6)
-    np.testing.assert_allclose(last.setpoint(seconds).velocity_W, 0.0, atol=1e-9)
+    np.testing.assert_allclose(last.setpoint(flown_s).velocity_W, 0.0, atol=1e-9)
     # braked once: every plan before the last glides on through its point
     assert kinds[-1] == "stop" and set(kinds[:-1]) == {"glide"}
-    # 2.5 m at the slowest tier's 0.5 m/s, then 2 s braking over the last 0.5 m (glides from
-    # rest to rest half a metre apart took 12 s)
-    assert seconds == pytest.approx(7.0, abs=0.2)
+    # about 2.8 m (the corner cut) at the slowest tier's 0.5 m/s until its braking distance
+    # is left, then braking over it: 0.5 m in 2 s, or 0.25 m in 1 s (glides from rest to
+    # rest half a metre apart took 12 s)
+    assert flown_s == pytest.approx(seconds, abs=0.2)
     # never farther from the trail than the corner's cut, half the pursuit distance
     from_north_leg = np.hypot(flown[:, 0] - 3.0, flown[:, 1] - np.clip(flown[:, 1], 0.0, 2.0))
     from_east_leg = np.hypot(flown[:, 1], flown[:, 0] - np.clip(flown[:, 0], 0.0, 3.0))
@@ -343,18 +353,19 @@ def test_a_backing_off_held_back_comes_to_rest_on_the_way_in_twice_its_time(plan
     on for ever, keeping the staleness failsafe waiting; after twice the way's time at the
     glides' speed it glides to rest on the nearest point of the way."""
     trail, here = an_l_shaped_trail(), np.array([3.0, 2.0, 1.5])
-    backoff, slowest = Backoff(), planner.tiers[-1].speed
+    backoff, (slowest, braking) = Backoff(), _glides(planner)
     assert backoff.start(trail, here, OPTIONS)
     t = 0.0
-    while not isinstance(step := backoff.step(None, t, here, slowest), Step) and not step.stop:
+    while not isinstance(step := backoff.step(None, t, here, slowest, braking),
+                         Step) and not step.stop:
         t += 1.0 / 12.0
     assert t == pytest.approx(2.0 * 2.0 / slowest, abs=0.1)  # 2 m at 0.5 m/s, twice over
     np.testing.assert_allclose(step.target, here)  # the nearest point: where it is
     # already there, no glide: the application brakes where it is for the backing-off
     assert planner.glide(t, make_pose(np.eye(3), here), step.target, BACKOFF_REASON) is None
     stop = planner.stop_plan(t, make_pose(np.eye(3), here), np.zeros(3), BACKOFF_REASON)
-    assert backoff.step(stop, t + 0.1, here, slowest) is Step.KEEP
-    assert backoff.step(stop, stop.end_time, here, slowest) is Step.IDLE
+    assert backoff.step(stop, t + 0.1, here, slowest, braking) is Step.KEEP
+    assert backoff.step(stop, stop.end_time, here, slowest, braking) is Step.IDLE
 
 
 def test_a_backoff_distance_under_half_a_metre_still_backs_off_that_far():

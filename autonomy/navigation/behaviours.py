@@ -214,8 +214,8 @@ class Backoff:
     The way back is one run that brakes once, at its end. Every round glides on, without
     braking, toward the first point of the way at least :data:`PURSUIT_M` from the vehicle
     (pure pursuit, from the point of the way nearest it); with no more than
-    :data:`~autonomy.navigation.trail.GLIDE_STEP_M` of the way left, it glides to the end
-    and comes to rest there. Every stop costs ``stop_duration_s`` whatever the distance before
+    the glides' braking distance of the way left, it glides to the end and comes to rest
+    there. Every stop costs ``stop_duration_s`` whatever the distance before
     it: the half-metre glides from rest to rest this replaced took 8 s for 2 m, one run takes
     5 s (docs/results.md, "Where mine pair 2's time goes"). Unchecked: the ground is the
     vehicle's own trail, behind the camera."""
@@ -254,11 +254,11 @@ class Backoff:
                                                                    axis=1))])
         return True
 
-    def step(self, plan, now: float, position_W: np.ndarray,
-             speed: float) -> Step | BackoffMove:
+    def step(self, plan, now: float, position_W: np.ndarray, speed: float,
+             braking_m: float) -> Step | BackoffMove:
         """This round's glide from ``position_W``, :attr:`Step.KEEP` while braking to the
         way's end, :attr:`Step.IDLE` when not backing off (any more). ``speed``: the glides'
-        (the slowest tier's). A run that has taken twice as long as the way at ``speed``
+        (the slowest tier's); ``braking_m``: their braking distance (``speed T / 2``). A run that has taken twice as long as the way at ``speed``
         (the vehicle held back, or its estimate drifting) comes to rest on the nearest point
         of the way instead: the staleness failsafe waits while it lasts."""
         if self.way is None:
@@ -279,7 +279,7 @@ class Backoff:
         distances = np.linalg.norm(way[self.nearest:] - position_W, axis=1)
         left = distances[0] + self.run[-1] - self.run[self.nearest]
         ahead = np.flatnonzero(distances >= self.PURSUIT_M)
-        if left <= GLIDE_STEP_M or not len(ahead):
+        if left <= braking_m or not len(ahead):
             self.braking = True
             return BackoffMove(way[-1].copy(), stop=True)
         return BackoffMove(way[self.nearest + ahead[0]].copy(), stop=False)

@@ -3,7 +3,7 @@
 Two behaviours fly back over it (docs/flight.md). The parallax glide after a turn in place
 glides straight to the trail point :data:`GLIDE_STEP_M` behind and back. Backing off from a
 dead end glides, every round, toward the trail point a quarter metre ahead of it on the way
-back, and brakes once, over the way's last :data:`GLIDE_STEP_M`
+back, and brakes once, over the way's last braking distance
 (:class:`~autonomy.navigation.behaviours.Backoff`).
 """
 
@@ -17,8 +17,8 @@ import numpy as np
 #: ``[flight] backoff_distance`` may be).
 TRAIL_SPACING_M = 0.1
 TRAIL_LENGTH = 60
-#: How far back along the trail the parallax glide goes, and the last stretch of a backing-off,
-#: glided to rest, metres.
+#: How far back along the trail the parallax glide goes, and the shortest way a backing-off
+#: flies, metres.
 GLIDE_STEP_M = 0.5
 
 

@@ -238,8 +238,9 @@ class Navigation:
         """Fly this round's glide of a backing-off (:class:`Backoff`). True while doing so.
         A glide through its point carries, as the watchdog's stop, the glide that comes to
         rest on the point."""
-        step = self.backoff.step(self.plan, now, odometry.T_W_B[:3, 3],
-                                 self.planner.tiers[-1].speed)
+        slowest = self.planner.tiers[-1].speed
+        step = self.backoff.step(self.plan, now, odometry.T_W_B[:3, 3], slowest,
+                                 slowest * self.planner.options.stop_duration_s / 2.0)
         if isinstance(step, Step):
             return step == Step.KEEP
         glide = partial(self.planner.glide, odometry.t, odometry.T_W_B, step.target,
