@@ -780,6 +780,24 @@ def test_when_nothing_is_safe_the_previous_rounds_checked_stop_is_continued():
     assert late.t == first.t + 10.0 and late.primitive.duration == 0.0
 
 
+def test_a_failsafe_during_a_glide_continues_the_glide_held_not_the_older_rounds_stop():
+    """A backing-off flies glides and holds each one's glide to rest as the checked stop;
+    the last round's stop lies at the dead end behind it."""
+    planner = planner_seeing(ROOM)
+    planner.plan(0.05, body(), FORWARD, AHEAD)
+    back = body(x=-1.0)
+    to_rest = planner.glide(0.5, back, np.array([-2.0, 0.0, ALTITUDE]), "backing off")
+    failsafe = planner.stop_plan(0.6, back, -0.5 * FORWARD, "vins lost", held=to_rest)
+    assert failsafe.primitive is to_rest.primitive and failsafe.reason == "vins lost"
+    np.testing.assert_allclose(failsafe.setpoint(9.0).position_W, (-2.0, 0.0, ALTITUDE),
+                               atol=1e-9)
+    # a newer round's stop is not replaced by the older glide held
+    again = planner.plan(0.9, body(), FORWARD, AHEAD)
+    assert again.kind == "arc"
+    later = planner.stop_plan(1.0, back, np.zeros(3), "vins lost", held=to_rest)
+    assert later.t == again.t and later.primitive is not to_rest.primitive
+
+
 @pytest.mark.parametrize("distance", [0.3, 2.5])
 def test_an_approach_glides_straight_to_rest_over_its_goal(distance):
     planner = planner_seeing(ROOM)

@@ -476,11 +476,17 @@ class Planner:
         return Plan(t, T_W_S, primitive, "stop" if stop_at_goal else "glide", reason, 0,
                     math.nan, o.stop_duration_s)
 
-    def stop_plan(self, t: float, T_W_B, velocity_W, reason: str) -> Plan:
+    def stop_plan(self, t: float, T_W_B, velocity_W, reason: str,
+                  held: Plan | None = None) -> Plan:
         """The stop for the application's failsafes: the stop checked at the last round,
-        continued, while it has not run out; else braking from ``velocity_W``."""
+        continued, while it has not run out; else braking from ``velocity_W``. ``held``: the
+        stop the application holds as its checked one, taken when newer than the last
+        round's (a glide to rest that a behaviour flies: after a backing-off's glides, the
+        last round's stop lies at the dead end it left)."""
         if not isinstance(reason, str) or not reason:
             raise ValueError(f"a stop needs a reason, got {reason!r}")
+        if held is not None and (self._checked_stop is None or held.t > self._checked_stop.t):
+            self._checked_stop = held
         return self._stop(_finite_time(t), _start_pose(T_W_B),
                           _vector(velocity_W, "velocity_W"), reason)
 

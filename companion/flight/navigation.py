@@ -145,12 +145,15 @@ class Navigation:
             or any(on_glide(plan, reason, now) for reason in FLOWN_GROUND_REASONS)
 
     def stop_plan(self, reason: str) -> Plan | None:
-        """The stop checked at the last planning round while it lasts (braking from the
-        newest state's velocity after it, or when there was no round)."""
-        odometry = self.context.channels.odometry.value
+        """The stop checked at the last planning round, or the newer glide to rest a
+        behaviour holds on ``checked_stop``, while it lasts (braking from the newest state's
+        velocity after it, or when there was neither)."""
+        c = self.context
+        odometry = c.channels.odometry.value
         if odometry is None:
             return self.plan
-        return self.planner.stop_plan(odometry.t, odometry.T_W_B, odometry.velocity_W, reason)
+        return self.planner.stop_plan(odometry.t, odometry.T_W_B, odometry.velocity_W, reason,
+                                      c.channels.checked_stop.value)
 
     def stop(self, reason: str, vins_failed: bool = False) -> None:
         """Fly :meth:`stop_plan` from now on. With the VINS failed (lost, reset, or blind:
