@@ -40,9 +40,11 @@ class PrimitiveOptions:
                                   "evenly over [-max_vertical_speed, max_vertical_speed]")
     max_vertical_speed: float = option(0.5, ge=0.0, le=5.0, doc="largest climb or sink rate of "
                                        "an arc, m/s")
-    speed_tiers: int = option(3, ge=1, le=5, doc="speeds of the library: speed, speed / 2, "
-                              "speed / 4, ...; a slower tier is tried only when no arc of the "
-                              "faster ones is safe (a narrow passage, a corner)")
+    speed_tiers: int = option(3, ge=1, le=5, doc="speeds of the library: speed, speed r, "
+                              "speed r², ... (r: tier_ratio); a slower tier is tried only when "
+                              "no arc of the faster ones is safe (a narrow passage, a corner)")
+    tier_ratio: float = option(0.5, gt=0.0, lt=1.0, doc="each speed tier's speed over the next "
+                               "faster one's")
     stop_duration_s: float = option(2.0, gt=0.0, le=10.0, doc="time to brake to rest, seconds")
     sample_spacing: float = option(0.25, gt=0.0, le=5.0, doc="largest distance between the "
                                    "points an arc is checked at, metres")
@@ -109,9 +111,9 @@ class Primitive:
 
 
 def tier_speeds(options: PrimitiveOptions | None = None) -> list[float]:
-    """The horizontal speed of each tier, fastest first: ``speed / 2^k``."""
+    """The horizontal speed of each tier, fastest first: ``speed r^k`` (r: ``tier_ratio``)."""
     o = options or PrimitiveOptions()
-    return [o.speed / 2.0**k for k in range(o.speed_tiers)]
+    return [o.speed * o.tier_ratio**k for k in range(o.speed_tiers)]
 
 
 def library(options: PrimitiveOptions | None = None, speed: float | None = None
