@@ -576,6 +576,18 @@ def test_a_wall_3_m_ahead_is_approached_by_a_slower_tier():
     assert [tier.speed for tier in stop.candidates.faster] == [2.0, 1.0]
 
 
+def test_a_middle_tier_flies_where_the_fastest_does_not_fit():
+    # a tunnel 3.2 m wide ending 5.5 m ahead: 2 s at 2 m/s (4 m of arc, 2 m of braking and
+    # the 1 m radius) reach past its end; at 1.41 m/s, 2.8 m and 1.4 m stop 0.3 m short of it
+    tunnel = [((5.5, -50, -50), (6.0, 50, 50)), ((-5.0, 1.6, -50), (20.0, 2.1, 50)),
+              ((-5.0, -2.1, -50), (20.0, -1.6, 50))]
+    assert planner_seeing(tunnel).plan(0.05, body(), FORWARD, AHEAD).primitive.speed == 1.0
+    finer = PlannerOptions(speed_tiers=5, tier_ratio=math.sqrt(0.5))
+    plan = planner_seeing(tunnel, options=finer).plan(0.05, body(), FORWARD, AHEAD)
+    assert plan.kind == "arc" and plan.primitive.speed == pytest.approx(math.sqrt(2.0))
+    assert [tier.speed for tier in plan.candidates.faster] == [2.0]
+
+
 def test_a_wall_on_the_left_turns_the_choice_right():
     planner = planner_seeing([WALL_LEFT, *ROOM])
     plan = planner.plan(0.05, body(), FORWARD, AHEAD)

@@ -28,9 +28,12 @@ def test_the_default_library_is_the_papers_75_arcs_at_2_m_s_for_2_s():
     assert any(a.yaw_rate == 0.0 and a.vertical_speed == 0.0 for a in arcs)
 
 
-def test_slower_tiers_halve_the_speed_and_keep_the_turn_rates():
+def test_slower_tiers_are_a_ratio_slower_and_keep_the_turn_rates():
     assert tier_speeds() == [2.0, 1.0, 0.5]
     assert tier_speeds(PrimitiveOptions(speed_tiers=1)) == [2.0]
+    # a finer ladder: a tier between each two of the default ones
+    finer = tier_speeds(PrimitiveOptions(speed_tiers=5, tier_ratio=math.sqrt(0.5)))
+    assert finer == pytest.approx([2.0, math.sqrt(2.0), 1.0, math.sqrt(0.5), 0.5])
     slow = library(speed=0.5)
     assert len(slow) == 75 and {a.speed for a in slow} == {0.5}
     assert {a.yaw_rate for a in slow} == {a.yaw_rate for a in library()}
@@ -126,7 +129,8 @@ def test_a_single_yaw_rate_and_vertical_speed_give_the_straight_level_arc():
 
 
 @pytest.mark.parametrize("key, value", [("speed", 0.0), ("duration_s", -1.0), ("yaw_rates", 0),
-                                        ("sample_spacing", 0.0), ("max_yaw_rate_deg", 0.0)])
+                                        ("sample_spacing", 0.0), ("max_yaw_rate_deg", 0.0),
+                                        ("tier_ratio", 0.0), ("tier_ratio", 1.0)])
 def test_bad_options_are_named(key, value):
     with pytest.raises(OptionError, match=key):
         PrimitiveOptions(**{key: value})
