@@ -11,7 +11,7 @@ from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, rot_z
 from autonomy.messages import DepthDiagnostics, MetricDepth
 from autonomy.options import OptionError
 from autonomy.planning.history import (
-    fill_small_holes, DepthHistory, min_table, read_depth, window_min,
+    _known_range, fill_small_holes, DepthHistory, min_table, read_depth, window_min,
 )
 from autonomy.planning.landing import column_points
 from autonomy.planning.planner import Plan, Planner, PlannerOptions
@@ -308,6 +308,26 @@ def test_the_reading_sorts_pixels_into_confident_the_tails_and_beyond_range():
     alone = read_depth(depth, np.zeros_like(confidence), 0.3, 10.0)  # no confident pixel
     assert alone.unsure.any()
     assert not alone.near_tail(depth).any() and not alone.far_tail(depth).any()
+
+
+def test_each_kind_of_pixel_becomes_the_range_the_check_reads():
+    """The history's range image (``_known_range``) pixel by pixel, on unit ray norms: the
+    confident depth as it is (clipped to the range), a less confident one beyond the range at
+    the range, one between confident depths at the nearer one's bin floor (at most 1.4 %
+    under it), the near tail at its share, the far tail at its share or its floor, whichever
+    is farther; invalid pixels, and the tails without a confident depth in range, unknown."""
+    depth = np.array([[2.0, 6.0, np.inf, 12.0, np.nan, 0.0, 1.0, 4.0, 8.0, 7.0]], np.float32)
+    confidence = np.array([[1, 1, 1, 0, 1, 1, 0, 0, 0, 0]], np.float32)
+    ranges = _known_range(depth, confidence, 0.3, 10.0, np.ones_like(depth), 0.5, 0.8)
+    assert ranges.dtype == np.float32
+    assert ranges[0, :7].tolist() == [2.0, 6.0, 10.0, 10.0, -1.0, -1.0, 0.5]
+    between, far, far_floor = ranges[0, 7:]
+    assert 2.0 * (1 - 0.014) <= between <= 2.0
+    assert far == np.float32(8.0) * np.float32(0.8)  # its share, beyond its floor (6 m)
+    assert 6.0 * (1 - 0.014) <= far_floor <= 6.0  # its floor, beyond its share (5.6 m)
+    tails_alone = _known_range(depth, np.zeros_like(confidence), 0.3, 10.0,
+                               np.ones_like(depth), 0.5, 0.8)
+    assert tails_alone[0].tolist() == [-1.0] * 2 + [10.0] * 2 + [-1.0] * 6  # beyond: the range
 
 
 @pytest.mark.parametrize("name", ["near_tail_share", "far_tail_share"])

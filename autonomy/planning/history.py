@@ -654,19 +654,31 @@ def _known_range(depth: np.ndarray, confidence: np.ndarray, min_confidence: floa
     confident depth, to within a bin): without it a view whose landmarks lie within 5 m
     bounds everything beyond at 5 m, and the arcs that need more room ahead (the fastest
     tier's) are never free. The share is measured as the near tail's is (docs/planner.md, the
-    far tail)."""
+    far tail).
+
+    The unsure pixels are gathered once and worked on alone (in a view with landmarks most
+    pixels are confident); every value is what the same float32 operations give on the whole
+    image."""
     d = depth.astype(np.float32, copy=False)
     reading = read_depth(d, confidence, min_confidence, max_range)
-    unsure, in_range = reading.unsure, reading.in_range
-    floor = _confident_floor(d, in_range, unsure, max_range)
-    if near_tail_share > 0.0 and in_range.any():  # no confident depth in range: no tail
-        floor = np.where(floor > 0.0, floor, d * np.float32(near_tail_share))
-    if far_tail_share > 0.0:
-        floor = np.where(reading.far_tail(d),
-                         np.maximum(floor, d * np.float32(far_tail_share)), floor)
-    d = np.where(unsure, floor, d)
-    known = reading.confident | reading.beyond | (unsure & (floor > 0.0))
-    return np.where(known, np.minimum(d, np.float32(max_range)) * norms, _UNKNOWN)
+    top = np.float32(max_range)
+    ranges = np.where(reading.confident | reading.beyond, np.minimum(d, top) * norms, _UNKNOWN)
+    unsure = np.flatnonzero(reading.unsure)
+    if len(unsure) == 0:
+        return ranges
+    flat = d.reshape(-1)
+    confident = flat[reading.in_range.reshape(-1)]  # the in-range confident depths
+    own = flat[unsure]
+    floor = _confident_floor(own, confident, max_range)
+    if len(confident):  # none in range: no tail
+        if near_tail_share > 0.0:
+            floor = np.where(floor > 0.0, floor, own * np.float32(near_tail_share))
+        if far_tail_share > 0.0:
+            floor = np.where(own > confident.max(),
+                             np.maximum(floor, own * np.float32(far_tail_share)), floor)
+    ranges.reshape(-1)[unsure] = np.where(floor > 0.0, np.minimum(floor, top)
+                                          * norms.reshape(-1)[unsure], _UNKNOWN)
+    return ranges
 
 
 class DepthReading(NamedTuple):
@@ -713,30 +725,32 @@ def read_depth(depth: np.ndarray, confidence: np.ndarray, min_confidence: float,
 #: Log-spaced depth bins over (``max_range`` / 1000, ``max_range``) in which
 #: :func:`_confident_floor` looks up the confident depths: 0.7 % wide.
 FLOOR_BINS = 1024
+FLOOR_STEP = math.log(1000.0) / FLOOR_BINS
 
 
-def _confident_floor(depth: np.ndarray, confident: np.ndarray, unsure: np.ndarray,
-                     max_range: float) -> np.ndarray:
-    """float32 image, at each ``unsure`` pixel the greatest depth ``e`` with a ``confident``
-    pixel at a depth in ``[e, own depth)``, 0 where there is none (and off ``unsure``): the
-    lower edge of the farthest of the :data:`FLOOR_BINS` bins below the pixel's own that holds
-    a confident depth. Up to two bins (1.4 %) below the exact farthest confident depth not
-    beyond the pixel's, so still a lower bound, at one histogram's cost."""
-    floor = np.zeros(depth.shape, np.float32)
-    if not unsure.any():
-        return floor
+def _confident_floor(depths: np.ndarray, confident: np.ndarray, max_range: float) -> np.ndarray:
+    """float32, for each of the unsure pixels' ``depths`` (valid, within ``max_range``) the
+    greatest depth ``e`` with a ``confident`` depth (the in-range confident pixels') in ``[e,
+    own depth)``, 0 where there is none: the lower edge of the farthest of the
+    :data:`FLOOR_BINS` bins below the pixel's own that holds a confident depth. Up to two bins
+    (1.4 %) below the exact farthest confident depth not beyond the pixel's, so still a lower
+    bound, at one histogram's cost."""
+    held = np.bincount(_floor_bin(confident, max_range), minlength=FLOOR_BINS) > 0
     low = max_range / 1000.0
-    step = math.log(1000.0) / FLOOR_BINS
-    bins = np.log(np.maximum(depth, np.float32(low)) * np.float32(1.0 / low)) \
-        * np.float32(1.0 / step)  # NaN where the depth is
-    bins = np.minimum(np.nan_to_num(bins), FLOOR_BINS - 1).astype(np.intp)
-    held = np.bincount(bins[confident], minlength=FLOOR_BINS) > 0
-    edges = (low * np.exp(step * np.arange(FLOOR_BINS))).astype(np.float32)
+    edges = (low * np.exp(FLOOR_STEP * np.arange(FLOOR_BINS))).astype(np.float32)
     edges[0] = 0.0  # the first bin also holds every depth below ``low``
     # the floor of bin b: the lower edge of the farthest held bin below b
     below = np.concatenate([[0.0], np.maximum.accumulate(np.where(held, edges, 0.0))[:-1]])
-    floor[unsure] = below.astype(np.float32)[bins[unsure]]
-    return floor
+    return below.astype(np.float32)[_floor_bin(depths, max_range)]
+
+
+def _floor_bin(depths: np.ndarray, max_range: float) -> np.ndarray:
+    """The :data:`FLOOR_BINS` bin of each depth (finite, > 0; the first bin holds every depth
+    below ``max_range / 1000``, the last every one beyond the range)."""
+    low = max_range / 1000.0
+    bins = np.log(np.maximum(depths, np.float32(low)) * np.float32(1.0 / low)) \
+        * np.float32(1.0 / FLOOR_STEP)
+    return np.minimum(bins, FLOOR_BINS - 1).astype(np.intp)
 
 
 def fill_small_holes(image: np.ndarray, reach_px: int) -> np.ndarray:
