@@ -280,14 +280,17 @@ class GyroTrack:
         w = self._w[k]
         return self._R[k] @ exp_so3(w * (times - t[k])[:, None]), w
 
-    def mean_rates(self, times: np.ndarray, span_s: float) -> np.ndarray:
-        """Body rates (n, 3) averaged over ``span_s`` centred on each of ``times``: the secant
-        ``Log(R(t - h)^T R(t + h)) / 2h``, ``h = span_s / 2`` (an end past the newest sample is
-        held at its rate, as :meth:`at` holds it)."""
-        half = 0.5 * span_s
-        R_before, _ = self.at(times - half)
-        R_after, _ = self.at(times + half)
-        return log_so3(np.swapaxes(R_before, 1, 2) @ R_after) / span_s
+    def orientations_and_mean_rates(self, times: np.ndarray,
+                                    span_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`at`'s orientations (n, 3, 3) at ``times``, and the body rates (n, 3)
+        averaged over ``span_s`` centred on each: the secant ``Log(R(t - h)^T R(t + h)) / 2h``,
+        ``h = span_s / 2`` (an end past the newest sample is held at its rate, as :meth:`at`
+        holds it). One look-up for the three instants of every time: the window's fit asks
+        for them at each of its iterations, and on a few hundred times numpy's per-call cost
+        is most of the work."""
+        half, n = 0.5 * span_s, len(times)
+        R, _ = self.at(np.concatenate([times, times - half, times + half]))
+        return R[:n], log_so3(np.swapaxes(R[n:2 * n], 1, 2) @ R[2 * n:]) / span_s
 
 
 # ---------------------------------------------------------------------- the camera's side
@@ -517,10 +520,9 @@ class TimeOffsetEstimator:
         bound = self.options.max_time_offset_s
         H = 0.0
         for _ in range(WINDOW_ITERATIONS):
-            R_a, _ = self._gyro.at(s_i - td)
-            R_b, _ = self._gyro.at(s_j - td)
-            w_a = self._gyro.mean_rates(s_i - td, RATE_SPAN_S)
-            w_b = self._gyro.mean_rates(s_j - td, RATE_SPAN_S)
+            R, w = self._gyro.orientations_and_mean_rates(np.concatenate([s_i - td, s_j - td]),
+                                                          RATE_SPAN_S)
+            (R_a, R_b), (w_a, w_b) = np.split(R, 2), np.split(w, 2)
             R_g = np.swapaxes(R_a, 1, 2) @ R_b
             R_c = self._R_C_B @ R_g @ self._R_B_C
             r = log_so3(np.swapaxes(R_c, 1, 2) @ R_vis)
