@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 
 import pytest
 
@@ -54,3 +55,29 @@ def test_serial_listing_adds_the_jetson_uarts_with_the_url_to_use(tmp_path):
     assert jetson.description == "on-board UART"
     assert jetson.modes == (f'[mavlink] url = "serial://{tmp_path}/ttyTHS1:921600" '
                             "(PX4: SER_TELn_BAUD)",)
+
+
+class _LoadFails:
+    """A meta path finder under which importing ``name`` fails as a wheel that misses a system
+    library does: an ImportError from loading it, not a ModuleNotFoundError."""
+
+    def __init__(self, name: str, message: str):
+        self.name, self.message = name, message
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname == self.name:
+            raise ImportError(self.message)
+        return None
+
+
+def test_an_sdk_installed_but_not_loading_is_named_with_its_cause(monkeypatch, capsys):
+    """pyrealsense2's wheel on a host without the system's libusb-1.0 (a fresh Debian): the
+    listing gives the loader's own words, not "not installed", which would send the user to
+    pip for nothing."""
+    missing = "libusb-1.0.so.0: cannot open shared object file: No such file or directory"
+    monkeypatch.delitem(sys.modules, "pyrealsense2", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [_LoadFails("pyrealsense2", missing), *sys.meta_path])
+    assert main(["devices", "--json"]) == 0
+    realsense = next(section for section in json.loads(capsys.readouterr().out)
+                     if section["heading"].startswith("RealSense"))
+    assert realsense["error"] == f"pyrealsense2 is installed but does not load: {missing}"

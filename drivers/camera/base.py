@@ -23,6 +23,7 @@ reader thread except :meth:`~ThreadedCamera._open` (called in a worker thread by
 from __future__ import annotations
 
 import asyncio
+import importlib
 import logging
 import threading
 from dataclasses import dataclass
@@ -252,3 +253,18 @@ class MissingExtra(CameraError):
     def __init__(self, sdk: str, extra: str):
         super().__init__(f"{sdk} is not installed: pip install 'companion[{extra}]'")
         self.sdk, self.extra = sdk, extra
+
+
+def import_sdk(module: str, extra: str):
+    """The vendor SDK ``module``, imported when first used so that a driver's module imports
+    without its extra. :class:`MissingExtra` when it is not installed; a :class:`CameraError`
+    with the loader's own words when it is but does not load (pyrealsense2's wheel without the
+    system's libusb-1.0: "not installed" would send the user to pip for nothing)."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as error:
+        if error.name == module:
+            raise MissingExtra(module, extra) from None
+        raise CameraError(f"{module} is installed but does not load: {error}") from error
+    except ImportError as error:
+        raise CameraError(f"{module} is installed but does not load: {error}") from error

@@ -25,7 +25,6 @@ depthai is the optional extra ``companion[oak]``; this module imports without it
 
 from __future__ import annotations
 
-import importlib
 import logging
 import time
 from dataclasses import dataclass
@@ -35,7 +34,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera
 from autonomy.lens import CameraModel
 from autonomy.options import option, validate
-from drivers.camera.base import CameraError, DeviceInfo, MissingExtra, RawFrame, ThreadedCamera
+from drivers.camera.base import CameraError, DeviceInfo, RawFrame, ThreadedCamera, import_sdk
 from drivers.camera.exposure import check_limit, longest_us
 from drivers.camera.options import CameraOptions
 from drivers.clock import Clock, MonotonicClock
@@ -53,10 +52,8 @@ EXTRA_TERMS = ("k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 
 
 def _sdk():
-    try:
-        return importlib.import_module("depthai")
-    except ImportError:
-        raise MissingExtra("depthai", "oak") from None
+    """depthai (:func:`~drivers.camera.base.import_sdk`)."""
+    return import_sdk("depthai", "oak")
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,6 @@ using the driver or :func:`list_devices` without it raises
 
 from __future__ import annotations
 
-import importlib
 import logging
 import math
 import os
@@ -72,8 +71,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera
 from autonomy.lens import CameraModel
 from autonomy.options import OptionError, option, validate
-from drivers.camera.base import (CameraError, DeviceInfo, MissingExtra, RawFrame,
-                                 ThreadedCamera)
+from drivers.camera.base import CameraError, DeviceInfo, RawFrame, ThreadedCamera, import_sdk
 from drivers.camera.exposure import (STEP_RATE, TARGET_LEVEL, ExposureLaw, check_limit,
                                      longest_us, mean_level)
 from drivers.camera.options import CameraOptions
@@ -103,11 +101,8 @@ SYNCER_QUEUE = 2
 
 
 def _sdk():
-    """pyrealsense2, imported when first used so that this module imports without the extra."""
-    try:
-        return importlib.import_module("pyrealsense2")
-    except ImportError as error:
-        raise MissingExtra("pyrealsense2", "realsense") from error
+    """pyrealsense2 (:func:`~drivers.camera.base.import_sdk`)."""
+    return import_sdk("pyrealsense2", "realsense")
 
 
 @dataclass(frozen=True)
