@@ -9,6 +9,7 @@ keep exploring new examples and its database replays any failure found.
 """
 
 import os
+from pathlib import Path
 
 # Before anything imports numpy: OpenBLAS's threads and kernels as the application runs them
 # (companion/__init__.py says why); the simulated flights' subprocesses inherit them.
@@ -23,6 +24,29 @@ from hypothesis import settings  # noqa: E402
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+#: The test files that fly the most simulated seconds, costliest first (CPU seconds measured
+#: 2026-12-01, README "Tests"). The workers take whole files in collection order (pyproject's
+#: ``--dist loadfile --no-loadscope-reorder``), so these go first: a run that ends on one of
+#: them keeps one worker flying for minutes while the other has nothing left to do. The
+#: other files follow in pytest's order.
+COSTLIEST_FILES = (
+    "test_flight_sim.py", "test_fault_matrix.py", "test_flight_failsafes.py",
+    "test_vins_depth_acceptance.py", "test_replay.py", "test_eval_nav.py", "test_flight_go.py",
+    "test_vins_gyro_alignment.py", "test_vins_time_offset.py", "test_flight_serial.py",
+    "test_vins_estimator.py", "test_eval_rescale.py", "test_recording_live.py",
+    "test_sim_world.py", "test_soak.py",
+)
+_renamed = [name for name in COSTLIEST_FILES if not (Path(__file__).parent / name).is_file()]
+if _renamed:  # a renamed file would silently go last again
+    raise ImportError(f"tests/conftest.py: COSTLIEST_FILES names no such file: {_renamed}")
+
+
+def pytest_collection_modifyitems(items):
+    """The costliest files first (:data:`COSTLIEST_FILES`); the sort is stable, so each
+    file's tests keep their order."""
+    rank = {name: k for k, name in enumerate(COSTLIEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 @pytest.fixture(scope="session")
