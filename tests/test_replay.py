@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 
 import mcap.writer
 import numpy as np
@@ -74,11 +75,20 @@ def test_a_replay_with_the_flights_own_config_is_the_flight(recording, own):
 
 
 def test_a_worse_rescaling_method_replays_to_worse_depth(recording, own):
+    """Over the flight's first 18 s (``--until``: the navigation up to its mission timeout),
+    against the flight's own depth over the same frames, which the own-config replay is."""
     own_report, _ = own
-    exponential = replay(recording["recording"]["path"], "--set", "rescale.method=exponential")
+    exponential = replay(recording["recording"]["path"], "--until", "18",
+                         "--set", "rescale.method=exponential")
     assert exponential["vins_same_frames"] == exponential["frames"]  # only the depth changed
-    assert exponential["abs_rel"]["replayed"] > own_report["abs_rel"]["replayed"] + 0.02
-    assert exponential["abs_rel"]["recorded"] == own_report["abs_rel"]["recorded"]
+    assert exponential["abs_rel"]["replayed"] > exponential["abs_rel"]["recorded"] + 0.02
+    # the span and the recorded side both cut at 18 s: 20 frames a second from the start
+    assert exponential["frames"] == pytest.approx(18 * 20, abs=2)
+    assert 0 < exponential["frames_with_depth"]["recorded"] \
+        < own_report["frames_with_depth"]["recorded"]
+    assert exponential["frames_with_depth"]["replayed"] == \
+        exponential["frames_with_depth"]["recorded"]
+    assert exponential["failsafes"]["recorded"] == []  # the timeout came at 18.2 s
 
 
 def test_a_config_that_starves_the_planner_of_depth_replays_to_its_failsafe(recording, own):
@@ -86,8 +96,8 @@ def test_a_config_that_starves_the_planner_of_depth_replays_to_its_failsafe(reco
     anchors than a frame ever has and no affine fallback, the replay has no metric depth, and
     the depth rule fires once the flight is guarded."""
     own_report, _ = own
-    starved = replay(recording["recording"]["path"], "--set", "rescale.min_anchors=5000",
-                     "--set", "depth.fallback_min_anchors=0")
+    starved = replay(recording["recording"]["path"], "--until", "10",  # guarded from 6.2 s
+                     "--set", "rescale.min_anchors=5000", "--set", "depth.fallback_min_anchors=0")
     recorded = [f["reason"] for f in own_report["failsafes"]["recorded"]]
     assert recording["failsafes"] == ["mission timeout"]
     assert recorded == ["failsafe: mission timeout"]  # the transition into failsafe_stop
@@ -103,6 +113,20 @@ def test_replay_refuses_what_it_cannot_read(tmp_path, capsys):
     junk.write_bytes(b"not an mcap file at all")
     assert cli.main(["replay", str(junk)]) == 1
     assert "not a readable MCAP recording" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("until", ["0", "-3", "nan", "inf", "soon"])
+def test_replay_refuses_a_span_that_is_not_a_positive_number(until, capsys):
+    assert cli.main(["replay", "flight.mcap", "--until", until]) == 2
+    assert f"--until: expected a positive number, got '{until}'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("until_s", [0.0, -3.0, math.nan, math.inf])
+def test_the_library_refuses_such_a_span_before_reading_anything(until_s):
+    from companion.recording.replay import replay as replay_recording
+
+    with pytest.raises(ValueError, match="until_s must be a number of seconds above 0"):
+        replay_recording("no such file.mcap", load_config(None), None, until_s)
 
 
 def test_replay_reports_a_bad_override_as_a_config_error(recording, capsys):

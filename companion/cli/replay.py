@@ -25,6 +25,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     replay.add_argument("--plot", type=common.png_path, metavar="PNG",
                         help="also draw the recorded flight's estimated path over its world, "
                              "as sim fly does (simulated flights)")
+    replay.add_argument("--until", type=common.positive_float, metavar="SECONDS", dest="until_s",
+                        help="replay only the recording's first SECONDS (from its first "
+                             "message), the recorded side compared over the same span")
     common.add_json_flag(replay, instead_of="the table")
     replay.set_defaults(command=_replay)
 
@@ -37,7 +40,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
                                           Path(args.config_path) if args.config_path else None)
         if args.plot is not None:
             plot(args.recording, mission, chosen, args.plot)
-        report = replay(args.recording, chosen, mission).as_dict()
+        report = replay(args.recording, chosen, mission, args.until_s).as_dict()
     except ConfigError as error:
         print(f"replay: {error}", file=sys.stderr)
         return common.EXIT_USAGE

@@ -511,10 +511,20 @@ class _Decoders:
         return None if own is None else self._protobuf.decoder_for(message_encoding, own)
 
 
-def replay(path: Path, config, mission: dict | None) -> ReplayReport:
-    """Replay the recording at ``path`` under ``config`` (module docstring)."""
+def replay(path: Path, config, mission: dict | None, until_s: float | None = None
+           ) -> ReplayReport:
+    """Replay the recording at ``path`` under ``config`` (module docstring); with ``until_s``,
+    only its first ``until_s`` seconds (by published time, from its first message replayed),
+    the recording's side of every comparison cut at the same instant."""
+    if until_s is not None and not (math.isfinite(until_s) and until_s > 0.0):
+        raise ValueError(f"until_s must be a number of seconds above 0, got {until_s}")
     replayer = _Replayer(config, mission)
+    end = None
     for topic, t, message in _read(path, _READ):
+        if until_s is not None:
+            end = t + round(until_s * 1e9) if end is None else end
+            if t > end:
+                continue  # log-time order: a message published earlier may still come
         replayer.on_message(topic, t, message)
     return replayer.finish()
 
