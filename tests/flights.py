@@ -10,6 +10,11 @@ SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
                 "navigation_end", "position_error_m", "vins_time_offset",
                 "vins_correction_m", "failsafe_stop_m", "landing_glide_m"}
 
+#: A short mission: 4 m east of the dome's first start (-23, -15) at take-off height, 3 m from
+#: the nearest trunk. Take-off, a few seconds of navigation and the landing: every phase of a
+#: flight, for the tests of what is not the route (the link, the go, the clock).
+SHORT_DOME_GOAL = (-19.0, -15.0, 1.5)
+
 _LOCKSTEP_FLIGHTS: dict[simulated.SimMission, dict] = {}
 
 

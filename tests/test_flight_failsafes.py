@@ -23,7 +23,7 @@ from drivers.sim.mock_px4 import Px4Options
 
 from drivers.sim.faults import Fault
 from drivers.sim.world import build_world
-from flights import assert_safe_landing, fly
+from flights import SHORT_DOME_GOAL, assert_safe_landing, fly
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -65,7 +65,7 @@ def test_the_wall_clock_stepping_an_hour_back_and_forth_mid_flight_changes_nothi
     key = bytes(range(32)).hex()
     config = dataclasses.replace(Config(), mavlink=MavlinkOptions(signing_key=key),
                                  px4=Px4Options(signing_key=key))
-    mission = simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5))
+    mission = simulated.SimMission(world="dome", goal=SHORT_DOME_GOAL)
     steady = simulated.run(config, mission)
     wall, reads = time.time, itertools.count()
     monkeypatch.setattr(time, "time",

@@ -23,6 +23,7 @@ from drivers.mavlink.autopilot import MavlinkOptions
 from drivers.mavlink.link import mavlink, open_link
 from drivers.sim.host import SimMission, free_udp_port
 from drivers.sim.mock_px4 import Px4Options
+from flights import SHORT_DOME_GOAL
 
 WAIT_WALL_S = 4.0
 
@@ -35,7 +36,7 @@ def test_a_simulated_vehicle_waits_disarmed_for_companion_go_then_flies(tmp_path
     config = dataclasses.replace(config, go=GoOptions(socket=str(socket_path)),
                                  mavlink=MavlinkOptions(signing_key=key),
                                  px4=Px4Options(signing_key=key))
-    mission = simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5))
+    mission = simulated.SimMission(world="dome", goal=SHORT_DOME_GOAL)
     sent = []
 
     def operator():  # another process's view: the CLI, once the socket exists, after a while
@@ -72,7 +73,7 @@ def test_a_vehicle_standing_for_a_late_go_flies_with_its_vins_at_rest_meanwhile(
     zero-velocity prior (autonomy/vins/stillness.py) the VINS rebuilt its smoother while it
     stood (2 rebuilds with a 10 s wait, 9 and a failsafe with 20 s; docs/vins.md)."""
     config = Config()
-    mission = SimMission(world="dome", goal=(4.0, 0.0, 1.5), go_after_s=8.0)
+    mission = SimMission(world="dome", goal=SHORT_DOME_GOAL, go_after_s=8.0)
     summary = asyncio.run(simulated.fly(config, mission))
     waiting, taking_off = summary["transitions"][1:3]
     assert (waiting["to"], taking_off["to"]) == ("awaiting_go", "taking_off")
@@ -85,7 +86,7 @@ def test_a_vehicle_standing_for_a_late_go_flies_with_its_vins_at_rest_meanwhile(
 
 
 def test_a_negative_go_after_is_refused_before_anything_starts(capsys):
-    mission = SimMission(world="dome", goal=(4.0, 0.0, 1.5), go_after_s=-1.0)
+    mission = SimMission(world="dome", goal=SHORT_DOME_GOAL, go_after_s=-1.0)
     with pytest.raises(simulated.SimError, match="--go-after must be 0 seconds or more"):
         asyncio.run(simulated.fly(Config(), mission))
     assert main(["sim", "fly", "--go-after", "-1"]) == 2

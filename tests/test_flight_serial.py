@@ -10,11 +10,11 @@ from __future__ import annotations
 
 from companion.config import Config
 from companion.launch import simulated
-from flights import assert_safe_landing
+from flights import SHORT_DOME_GOAL, assert_safe_landing
 
 
 def test_a_lockstep_mission_over_a_921600_baud_serial_link_reaches_the_goal():
-    summary = simulated.run(Config(), simulated.SimMission(world="dome", goal=(4.0, 0.0, 1.5),
+    summary = simulated.run(Config(), simulated.SimMission(world="dome", goal=SHORT_DOME_GOAL,
                                                              link="serial"))
     assert_safe_landing(summary)
     assert summary["reached_goal"] and summary["failsafes"] == []

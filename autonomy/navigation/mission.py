@@ -185,6 +185,9 @@ SITE_SEEKING_FAILSAFES = frozenset({MISSION_TIMEOUT, NO_SAFE_PRIMITIVE})
 GUARDED_STATES = frozenset({FlightState.ALIGNING, FlightState.NAVIGATING,
                             FlightState.STOPPING})
 FINAL_STATES = frozenset({FlightState.LANDED, FlightState.ABORTED})
+#: States in which nothing reads metric depth: PX4 lands the vehicle, or has landed it or
+#: stopped its motors; nothing the application commands depends on what the camera sees.
+DEPTH_UNUSED_STATES = FINAL_STATES | {FlightState.LANDING}
 
 
 @dataclass(frozen=True)
