@@ -109,7 +109,7 @@ def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_
     """The realistic profile charges the Orin's compute times to simulated time (network
     1/15 s, VINS 17 ms, [sim_latency]) with the camera at 20 Hz. Every frame goes through the
     VINS, while the slower network takes the newest frame whenever it is free and rescales it
-    with that frame's own sparse map, until PX4 lands the vehicle. When the VINS only saw the frames the network took, the
+    with that frame's own sparse map, until PX4 holds the vehicle after the stop. When the VINS only saw the frames the network took, the
     mine's first acceleration (pitch, motion blur in 50 lux) lost 134 of 150 tracks in one
     frame and the flight stopped 1.5 s into navigation on "no metric depth"."""
     config = load_config(None, ["sim.profile=realistic", "flight.mission_timeout_s=5"])
@@ -119,11 +119,12 @@ def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_
     frames = summary["frames"]
     # every frame through the VINS, but the last when the flight ends during its 17 ms
     assert frames - 1 <= summary["vins_frames"] <= frames and frames > 200
-    # the network busy from the camera's start until PX4 lands the vehicle, when nothing
-    # reads depth any more: one frame per inference, the rest skipped
-    camera_up, landing = (next(t["t"] for t in summary["transitions"] if t["to"] == state)
-                          for state in ("initialising", "landing"))
-    busy_network_frames = (landing - camera_up) / config.sim_latency.network_s
+    # the network busy from the camera's start until PX4 holds the vehicle after the
+    # failsafe's stop, when nothing reads depth any more: one frame per inference, the rest
+    # skipped
+    camera_up, holding = (next(t["t"] for t in summary["transitions"] if t["to"] == state)
+                          for state in ("initialising", "holding"))
+    busy_network_frames = (holding - camera_up) / config.sim_latency.network_s
     assert 0.9 * busy_network_frames <= summary["depth_frames"] <= busy_network_frames + 1
     assert summary["depth_rate_hz"] > 10.0  # fitted depth into the planner while navigating
 

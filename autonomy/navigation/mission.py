@@ -185,9 +185,11 @@ SITE_SEEKING_FAILSAFES = frozenset({MISSION_TIMEOUT, NO_SAFE_PRIMITIVE})
 GUARDED_STATES = frozenset({FlightState.ALIGNING, FlightState.NAVIGATING,
                             FlightState.STOPPING})
 FINAL_STATES = frozenset({FlightState.LANDED, FlightState.ABORTED})
-#: States in which nothing reads metric depth: PX4 lands the vehicle, or has landed it or
-#: stopped its motors; nothing the application commands depends on what the camera sees.
-DEPTH_UNUSED_STATES = FINAL_STATES | {FlightState.LANDING}
+#: States in which nothing reads metric depth: PX4 flies the vehicle on its own (Hold after a
+#: failsafe or while the link is lost, then the landing), or has landed it or stopped its
+#: motors. None of them leads back to the application's commands.
+DEPTH_UNUSED_STATES = FINAL_STATES | {FlightState.HOLDING, FlightState.LINK_LOST,
+                                      FlightState.LANDING}
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,11 @@ Two loops (DESIGN.md, "The process"):
   is slower than the camera: 15 Hz against 20-30 Hz on the paper's Orin), runs the depth
   source's inference beside the VINS, then makes the frame's metric depth with the sparse map
   of this very frame once the VINS has finished it, and puts it into the planner's history (on
-  the ``planner`` worker, in order with planning). Once PX4 lands the vehicle nothing reads
-  depth any more, so the depth loop lets the frames go by: on the Orin the network's GPU rests
-  for the landing (a simulated landing: a quarter of its CPU less on the realistic profile,
-  a half on the ideal).
+  the ``planner`` worker, in order with planning). Once PX4 flies the vehicle on its own for
+  good (its Hold after a failsafe, a lost link, the landing: ``DEPTH_UNUSED_STATES``) nothing
+  reads depth any more, so the depth loop lets the frames go by: on the Orin the network's GPU
+  rests, and in a simulated flight those seconds cost a quarter of their CPU less on the
+  realistic profile, a half on the ideal.
 
 The first VINS pose ties the VINS world to PX4's local frame.
 """
@@ -158,7 +159,7 @@ class Perception:
         while True:
             frame, update = await for_depth.take()
             if self.context.state in DEPTH_UNUSED_STATES:
-                continue  # PX4 lands: the network and the planner's history rest
+                continue  # PX4 flies on its own: the network and the planner's history rest
             inferred = await network.compute(self.depth.infer, frame)
             vins = await update  # the VINS of this very frame
             metric = await network.run(self.depth.metric, inferred, vins.sparse_map)
