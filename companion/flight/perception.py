@@ -16,8 +16,8 @@ Two loops (DESIGN.md, "The process"):
   the ``planner`` worker, in order with planning). Once PX4 flies the vehicle on its own for
   good (its Hold after a failsafe, a lost link, the landing: ``DEPTH_UNUSED_STATES``) nothing
   reads depth any more, so the depth loop lets the frames go by: on the Orin the network's GPU
-  rests, and in a simulated flight those seconds cost a quarter of their CPU less on the
-  realistic profile, a half on the ideal.
+  rests, and in a simulated flight those seconds cost about a quarter of their CPU less on
+  the realistic profile, two fifths on the ideal (docs/benchmarks.md).
 
 The first VINS pose ties the VINS world to PX4's local frame.
 """
