@@ -1,7 +1,7 @@
 """A whole mission flown over a serial link, as on the paper's vehicle (a Jetson Orin on a
 Pixracer's TELEM port at 921600 baud): the mock PX4 serves a pseudo-terminal and the application
 opens its other end as ``serial:///dev/pts/N:921600``, through the pyserial code a flight
-controller on a UART goes through. The mission is short (take-off, 4 m across the dome,
+controller on a UART goes through. The mission is short (take-off, 5 m across the dome,
 landing): what the link must carry is every phase's traffic, not a long route (the whole
 routes are flown over UDP in test_flight_sim.py). In its own module, so pytest-xdist flies it on a worker of
 its own beside the other flights."""

@@ -15,9 +15,10 @@ import pytest
 from companion.cli import main
 from companion.tools.soak import (SAMPLING, SoakOptions, rss_slope_mb_per_h, sample_process,
                                   verdict)
+from flights import SHORT_DOME_GOAL
 
-#: A short dome mission: 5 m along the first pair's first leg, clear of the trunks by 2.2 m.
-SHORT_GOAL = "-19.14,-11.82,1.5"
+#: ``--goal`` of :data:`flights.SHORT_DOME_GOAL`.
+SHORT_GOAL = ",".join(f"{v:g}" for v in SHORT_DOME_GOAL)
 
 
 def record(mission: int, *, rss_mb=500.0, threads=20, open_files=30, t_s=None, **changes):
