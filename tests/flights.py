@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from autonomy.navigation.mission import DEPTH_UNUSED_STATES
 from companion.config import Config
 from companion.launch import simulated
 
@@ -29,6 +30,13 @@ def fly(world: str, *, faults=(), goal=None, depth="estimated") -> dict:
 
 
 def assert_safe_landing(summary: dict) -> None:
-    """Whatever happened: no collision, landed and disarmed, no crash of the application."""
+    """Whatever happened: no collision, landed and disarmed, no crash of the application; and
+    once PX4 flew the vehicle on its own, the application never commanded it again (its
+    depth rests from then on: ``DEPTH_UNUSED_STATES``)."""
     assert summary["collisions"] == 0, summary["collision"]
     assert summary["final_state"] == "landed", summary["transitions"]
+    resting = {state.value for state in DEPTH_UNUSED_STATES}
+    first = next((k for k, t in enumerate(summary["transitions"]) if t["to"] in resting), None)
+    assert first is not None and all(t["to"] in resting
+                                     for t in summary["transitions"][first:]), \
+        summary["transitions"]
