@@ -30,6 +30,9 @@ import sys
 import time
 from pathlib import Path
 
+#: This checkout's root.
+ROOT = Path(__file__).resolve().parent.parent
+
 
 def fly(fly_args: list[str], env: dict, root: Path) -> tuple[float, float, dict]:
     """(wall s, CPU s, summary) of one flight in a child process run in ``root``."""
@@ -42,9 +45,6 @@ def fly(fly_args: list[str], env: dict, root: Path) -> tuple[float, float, dict]
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return wall, cpu, json.loads(run.stdout)
-
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def arms(args) -> dict[str, tuple[dict, Path]]:

@@ -109,9 +109,10 @@ def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_
     """The realistic profile charges the Orin's compute times to simulated time (network
     1/15 s, VINS 17 ms, [sim_latency]) with the camera at 20 Hz. Every frame goes through the
     VINS, while the slower network takes the newest frame whenever it is free and rescales it
-    with that frame's own sparse map, until PX4 holds the vehicle after the stop. When the VINS only saw the frames the network took, the
-    mine's first acceleration (pitch, motion blur in 50 lux) lost 134 of 150 tracks in one
-    frame and the flight stopped 1.5 s into navigation on "no metric depth"."""
+    with that frame's own sparse map, until PX4 holds the vehicle after the stop. When the
+    VINS only saw the frames the network took, the mine's first acceleration (pitch, motion
+    blur in 50 lux) lost 134 of 150 tracks in one frame and the flight stopped 1.5 s into
+    navigation on "no metric depth"."""
     config = load_config(None, ["sim.profile=realistic", "flight.mission_timeout_s=5"])
     summary = simulated.run(config, simulated.SimMission(world="mine", pair=0))
     assert_safe_landing(summary)
