@@ -112,6 +112,22 @@ def test_a_rigidly_moved_ground_truth_scores_zero_error_and_the_known_offsets(tm
     assert "ATE 0.000 m" in format_vio_report(result)
 
 
+def test_the_estimated_mounting_is_reported_as_its_offset_in_the_cameras_axes(tmp_path):
+    _write_dataset(tmp_path)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 81)
+    assert score_vio(trace, data)["camera_mounting"] is None  # not estimated
+    offset = make_pose(so3_exp(np.radians([0.3, 0.1, -0.2])), np.array([0.001, 0.002, -0.003]))
+    trace.camera_mounting = data.camera.T_B_C @ offset
+    result = score_vio(trace, data)
+    np.testing.assert_allclose(result["camera_mounting"]["rotation_deg"], [0.3, 0.1, -0.2],
+                               atol=1e-9)
+    np.testing.assert_allclose(result["camera_mounting"]["translation_mm"], [1.0, 2.0, -3.0],
+                               atol=1e-9)
+    assert "rotation (+0.300 +0.100 -0.200) deg, position (+1.0 +2.0 -3.0) mm" in \
+        format_vio_report(result)
+
+
 def _keyframes_in_a_yawed_world(errors_body, velocity_error, *, pose_sigma=0.01,
                                 velocity_sigma=0.01, count=20):
     """Keyframes every 0.1 s whose world is the truth's turned 0.7 rad about z and shifted

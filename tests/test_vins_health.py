@@ -116,6 +116,8 @@ def test_equal_limits_where_allowed_are_accepted(values):
     ({"smoother_lag_s": 0.0}, "smoother_lag_s"),
     ({"min_observations": 1}, "min_observations"),
     ({"lost_after_s": -1.0}, "lost_after_s"),
+    ({"mounting_rotation_sigma_deg": 0.0}, "mounting_rotation_sigma_deg"),
+    ({"mounting_rotation_sigma_deg": 20.0}, "mounting_rotation_sigma_deg"),
 ])
 def test_out_of_range_options_are_refused_naming_the_key(values, key):
     with pytest.raises(OptionError, match=f"^{key}: "):

@@ -8,7 +8,11 @@ Factors:
   manifold (Forster et al., TRO 2017) with the biases' random walk (GTSAM's combined form);
 - ``GenericProjectionFactor`` from every keyframe to every landmark it sees, on the undistorted
   feature position in pixels of the ideal pinhole, under a Huber loss, through the camera
-  mounting ``T_B_C``;
+  mounting ``T_B_C``; with ``estimate_camera_mounting``, the mounting is a variable of the
+  window (``MOUNTING``, gtsam_unstable's ``ProjectionFactorPPP``), its rotation held by a prior
+  of ``mounting_rotation_sigma_deg`` at the configured one and its position where configured;
+  it is restamped at every keyframe, so never marginalised, and eliminated last with the newest
+  keyframe, as VINS-Mono and OKVIS estimate it online;
 - priors on the first keyframe (from static initialisation) or, after a rebuild, on the last
   good estimate;
 - with ``hold_gauge`` (the default), the gauge hold: a prior on one keyframe inside the window
@@ -58,6 +62,7 @@ import math
 from dataclasses import dataclass, replace
 
 import gtsam
+import gtsam_unstable
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
@@ -263,6 +268,14 @@ def _variables(k: int) -> tuple[int, int, int]:
     return X(k), V(k), B(k)
 
 
+#: The camera's mounting ``T_B_C``, a variable of the window with ``estimate_camera_mounting``.
+MOUNTING = gtsam.symbol("c", 0)
+#: Its position's prior, metres: held where configured. A few millimetres of it move the
+#: projections less than the pixels' noise over the window's baselines, so the estimate only
+#: wanders (docs/vins.md, "The camera's mounting, estimated").
+MOUNTING_POSITION_SIGMA_M = 1e-5
+
+
 def _bias(bias_g: np.ndarray, bias_a: np.ndarray) -> gtsam.imuBias.ConstantBias:
     return gtsam.imuBias.ConstantBias(np.asarray(bias_a, float), np.asarray(bias_g, float))
 
@@ -276,8 +289,10 @@ class SlidingWindowSmoother:
         self.camera = camera
         self.params = imu_params(noise, options.imu_noise_scale)
         self._T_B_C = np.asarray(T_B_C, dtype=float)
-        self._T_C_B = invert_pose(self._T_B_C)
         self._body_P_camera = gtsam.Pose3(self._T_B_C)
+        self._mounting_prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[
+            [math.radians(options.mounting_rotation_sigma_deg)] * 3,
+            [MOUNTING_POSITION_SIGMA_M] * 3])
         self._K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
         self._pixel_noise = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k),
@@ -324,6 +339,12 @@ class SlidingWindowSmoother:
     def landmarks(self) -> Landmarks:
         return self._landmarks
 
+    @property
+    def camera_mounting(self) -> np.ndarray:
+        """``T_B_C``: the configured mounting, or with ``estimate_camera_mounting`` its latest
+        estimate."""
+        return self._T_B_C
+
     def preintegration(self) -> gtsam.PreintegratedCombinedMeasurements:
         """An empty preintegration at the latest keyframe's biases."""
         s = self.latest
@@ -351,8 +372,14 @@ class SlidingWindowSmoother:
         bias_sigmas = np.r_[[sigmas.accel_bias] * 3, [sigmas.gyro_bias] * 3]
         graph.add(gtsam.PriorFactorConstantBias(B(k), _bias(state.bias_g, state.bias_a),
                                                 gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
-        self._smoother.update(graph, values, {X(k): state.t, V(k): state.t, B(k): state.t},
-                              eliminate_last=_variables(k))
+        stamps = {X(k): state.t, V(k): state.t, B(k): state.t}
+        if self.options.estimate_camera_mounting:
+            mounting = gtsam.Pose3(self._T_B_C)
+            values.insert(MOUNTING, mounting)
+            graph.add(gtsam.PriorFactorPose3(MOUNTING, mounting, self._mounting_prior))
+            stamps[MOUNTING] = state.t
+        self._smoother.update(graph, values, stamps,
+                              eliminate_last=self._eliminated_last(k))
         self._latest = state
         self._hold = _GaugeHold(k)
         self._window = [self._keyframe(k, state.t, ids, normalised)]
@@ -397,7 +424,7 @@ class SlidingWindowSmoother:
             self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
             graph, values, stamps = self._imu_step(keyframe, pim, still, airborne)
             self._smoother.update(graph, values, stamps,
-                                  eliminate_last=_variables(keyframe.index))
+                                  eliminate_last=self._eliminated_last(keyframe.index))
             self._read_estimate(keyframe, self._window + [keyframe])
         except (RuntimeError, ValueError) as error:
             raise BackendError(f"the rebuilt smoother refused keyframe {keyframe.index} at "
@@ -502,7 +529,17 @@ class SlidingWindowSmoother:
             graph.add(drag_factor((X(i), V(i), V(k), B(i)), pim, self.options.drag_coefficient,
                                   self.options.drag_noise, self.options.huber_k))
         self._poses[k] = predicted.pose().matrix()
-        return graph, values, {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
+        stamps = {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
+        if self.options.estimate_camera_mounting:
+            stamps[MOUNTING] = keyframe.t  # never older than the lag: never marginalised
+        return graph, values, stamps
+
+    def _eliminated_last(self, k: int) -> tuple[int, ...]:
+        """The keys the smoother eliminates last (:mod:`autonomy.vins.fixed_lag`): keyframe
+        ``k``'s, and the mounting, which every landmark's factors share."""
+        if self.options.estimate_camera_mounting:
+            return (*_variables(k), MOUNTING)
+        return _variables(k)
 
     def _update_with_vision(self, keyframe: _Keyframe, pim, still: bool,
                             airborne: bool) -> None:
@@ -519,7 +556,7 @@ class SlidingWindowSmoother:
                                 stamps)
         removed, hold = self._gauge_move(keyframe.t, graph)
         slots = self._smoother.update(graph, values, stamps,
-                                      eliminate_last=_variables(keyframe.index), remove=removed)
+                                      eliminate_last=self._eliminated_last(keyframe.index), remove=removed)
         if hold is not self._hold:
             self._hold = None if hold is None else replace(hold, slot=slots[-1])
         for _ in range(self.options.extra_iterations):
@@ -584,7 +621,10 @@ class SlidingWindowSmoother:
 
     def _projection(self, index: int, track: int, pixel: np.ndarray):
         """The factor of keyframe ``index`` seeing landmark ``track`` at ideal-pinhole
-        ``pixel``."""
+        ``pixel``: through the mounting's estimate with ``estimate_camera_mounting``."""
+        if self.options.estimate_camera_mounting:
+            return gtsam_unstable.ProjectionFactorPPPCal3_S2(pixel, self._pixel_noise, X(index),
+                                                             MOUNTING, L(track), self._K)
         return gtsam.GenericProjectionFactorCal3_S2(pixel, self._pixel_noise, X(index),
                                                     L(track), self._K, False, False,
                                                     self._body_P_camera)
@@ -683,6 +723,8 @@ class SlidingWindowSmoother:
             k, keyframe.t, estimate.atPose3(X(k)).matrix(), np.asarray(estimate.atVector(V(k))),
             np.asarray(estimate.atConstantBias(B(k)).gyroscope()),
             np.asarray(estimate.atConstantBias(B(k)).accelerometer()))
+        if self.options.estimate_camera_mounting:
+            self._T_B_C = estimate.atPose3(MOUNTING).matrix()
         keys = np.array(estimate.keys(), dtype=np.uint64)
         kept = set(_symbol_indices(keys, "x").tolist())
         self._window = [kf for kf in window if kf.index in kept]

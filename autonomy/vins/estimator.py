@@ -123,7 +123,6 @@ class Vins:
         self.T_B_C = np.asarray(T_B_C, dtype=float)
         if self.T_B_C.shape != (4, 4) or not np.isfinite(self.T_B_C).all():
             raise ValueError(f"T_B_C must be a finite 4x4 pose, got shape {self.T_B_C.shape}")
-        self._T_C_B = invert_pose(self.T_B_C)
         self.static_options = static or StaticInitOptions()
         self.tracker = FeatureTracker(camera, self.distortion, frontend)
         self.backend = SlidingWindowSmoother(camera, self.T_B_C, noise, self.options)
@@ -366,7 +365,8 @@ class Vins:
             self._gap = ImuGap(self._imu.last_time, a.state.position, yaw_of(a.state.R_W_B),
                                a.bias_a, self.options, math.sqrt(self.camera.fx * self.camera.fy))
         landmarks = self.backend.landmarks
-        self._gap.observe(t, tracks, landmarks.ids, landmarks.points_W, self._T_C_B)
+        self._gap.observe(t, tracks, landmarks.ids, landmarks.points_W,
+                          invert_pose(self.backend.camera_mounting))
 
     def _restart_after_gap(self, t: float, tracks: Tracks) -> Restart | str | None:
         """Where to restart after an IMU gap (:mod:`autonomy.vins.imu_gap`): None to
@@ -526,7 +526,7 @@ class Vins:
     def _sparse_map(self, t: float, T_W_B: np.ndarray, tracks: Tracks) -> SparseMap:
         """The window's landmarks in the camera at ``t``: ``p_C = T_C_B T_B_W(t) p_W``."""
         landmarks = self.backend.landmarks
-        T_C_W = self._T_C_B @ invert_pose(T_W_B)
+        T_C_W = invert_pose(T_W_B @ self.backend.camera_mounting)
         points_C = landmarks.points_W @ T_C_W[:3, :3].T + T_C_W[:3, 3]
         sigma = self.backend.depth_sigma(points_C[:, 2])
         o = self.options

@@ -183,6 +183,13 @@ class VinsOptions:
         "calibrated on an earlier flight of this vehicle (eval vio's gyro_alignment column): "
         "the gyro is corrected by it from the first sample, and with estimate_gyro_alignment "
         "it is the estimate's prior mean")
+    # --- the camera's mounting (autonomy/vins/backend.py, docs/vins.md)
+    estimate_camera_mounting: bool = option(False, doc="estimate the rotation of the camera's "
+                                            "mounting on the body in the smoother, from the "
+                                            "configured one (its position stays as configured)")
+    mounting_rotation_sigma_deg: float = option(1.0, gt=0.0, le=10.0, doc="the estimate's "
+                                                "prior: the configured mounting's rotation "
+                                                "error, one sigma per axis, degrees")
     # --- health
     min_tracked_ok: int = option(40, ge=0, doc="fewer tracked features than this is DEGRADED")
     min_tracked_lost: int = option(10, ge=0, doc="fewer tracked features than this for "

@@ -21,7 +21,9 @@ from typing import TYPE_CHECKING, Iterator
 import cv2
 import numpy as np
 
-from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, yaw_alignment
+from autonomy.geometry import (
+    PinholeCamera, invert_pose, make_pose, quat_to_rot, so3_log, yaw_alignment,
+)
 from autonomy.messages import ImuSample, SparseMap
 from autonomy.trajectory import (
     align_umeyama, ate_rmse, interpolate_poses, nees, path_length, pose_error_body,
@@ -133,7 +135,8 @@ class VioTrace:
     one per frame). ``static_init``: the estimator's static initialisation (None if it never
     initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
     offset at the end; ``gyro_alignment``: the gyro's response to the yaw rate it was
-    corrected by at the end (None when none); ``corrections_m``: each keyframe's correction
+    corrected by at the end (None when none); ``camera_mounting``: the mounting ``T_B_C`` the
+    smoother estimated, at the end (None unless ``estimate_camera_mounting``); ``corrections_m``: each keyframe's correction
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
     keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
     each rebuild of the smoother; ``track_errors``: the front-end's tracks against the truth
@@ -151,6 +154,7 @@ class VioTrace:
     resets: int = 0
     time_offset: TimeOffset = field(default_factory=TimeOffset)
     gyro_alignment: GyroAlignmentEstimate | None = None
+    camera_mounting: np.ndarray | None = None
     corrections_m: list[float] = field(default_factory=list)
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
@@ -227,6 +231,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
     trace.time_offset = vins.time_offset
     trace.gyro_alignment = vins.gyro_alignment
+    if options.estimate_camera_mounting:
+        trace.camera_mounting = vins.backend.camera_mounting
     trace.track_errors = tracking.summary()
     return trace
 
@@ -283,7 +289,10 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     (:mod:`companion.tools.eval.drag_fit`; None when the flight is too short or too even).
     ``gyro_alignment``: the gyro's response to the yaw rate it was corrected by at the end
     (``column``, ``sigma``, ``pairs``; None when neither ``estimate_gyro_alignment`` nor a
-    ``gyro_alignment`` calibration is given).
+    ``gyro_alignment`` calibration is given). ``camera_mounting``: the mounting the smoother
+    estimated, as its offset from the configured one in the configured camera's frame
+    (``rotation_deg``, a rotation vector, and ``translation_mm``; None unless
+    ``estimate_camera_mounting``).
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
@@ -313,7 +322,17 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         "drag_fit": _drag_fit(trace.keyframes, data),
         "gyro_alignment": None if trace.gyro_alignment is None
         else trace.gyro_alignment.as_dict(),
+        "camera_mounting": None if trace.camera_mounting is None
+        else _mounting_offset(data.camera.T_B_C, trace.camera_mounting),
     }
+
+
+def _mounting_offset(configured: np.ndarray, estimated: np.ndarray) -> dict:
+    """``estimated`` in the frame of ``configured`` (``T_C_configured^-1 T_B_C``): its rotation
+    vector in degrees and its translation in millimetres."""
+    offset = invert_pose(np.asarray(configured, float)) @ estimated
+    return {"rotation_deg": np.degrees(so3_log(offset[:3, :3])).tolist(),
+            "translation_mm": (1e3 * offset[:3, 3]).tolist()}
 
 
 def _drag_fit(keyframes: list[KeyframeEstimate], data: VioDataset) -> dict | None:
@@ -596,6 +615,15 @@ def _alignment_text(alignment: dict | None) -> str:
     return f"{column} over {alignment['pairs']} frame pairs"
 
 
+def _mounting_text(mounting: dict | None) -> str:
+    """The mounting's line: not estimated, or the estimate's offset (camera axes)."""
+    if mounting is None:
+        return "not estimated"
+    rotation = " ".join(f"{c:+.3f}" for c in mounting["rotation_deg"])
+    translation = " ".join(f"{c:+.1f}" for c in mounting["translation_mm"])
+    return f"rotation ({rotation}) deg, position ({translation}) mm, in the camera's axes"
+
+
 def format_vio_report(result: dict) -> str:
     """The evaluation result as a few lines a person reads."""
     init = result["init"]
@@ -637,6 +665,7 @@ def format_vio_report(result: dict) -> str:
         + ("" if result["time_offset_sigma_ms"] is None
            else f" (sigma {result['time_offset_sigma_ms']:.2f} ms)"),
         "gyro's response to the yaw rate (x, y, z): " + _alignment_text(result["gyro_alignment"]),
+        "camera mounting off the configured one: " + _mounting_text(result["camera_mounting"]),
         "rotor drag fitted on the estimate: " + (
             "too few keyframes in flight" if result["drag_fit"] is None else
             f"{result['drag_fit']['coefficient_per_s']:.3f} 1/s over "
