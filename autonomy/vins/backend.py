@@ -556,7 +556,8 @@ class SlidingWindowSmoother:
                                 stamps)
         removed, hold = self._gauge_move(keyframe.t, graph)
         slots = self._smoother.update(graph, values, stamps,
-                                      eliminate_last=self._eliminated_last(keyframe.index), remove=removed)
+                                      eliminate_last=self._eliminated_last(keyframe.index),
+                                      remove=removed)
         if hold is not self._hold:
             self._hold = None if hold is None else replace(hold, slot=slots[-1])
         for _ in range(self.options.extra_iterations):

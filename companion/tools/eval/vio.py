@@ -136,7 +136,8 @@ class VioTrace:
     initialised); ``resets``: how many times it reset; ``time_offset``: the camera-IMU time
     offset at the end; ``gyro_alignment``: the gyro's response to the yaw rate it was
     corrected by at the end (None when none); ``camera_mounting``: the mounting ``T_B_C`` the
-    smoother estimated, at the end (None unless ``estimate_camera_mounting``); ``corrections_m``: each keyframe's correction
+    smoother estimated, at the end (None unless ``estimate_camera_mounting``);
+    ``corrections_m``: each keyframe's correction
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
     keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
     each rebuild of the smoother; ``track_errors``: the front-end's tracks against the truth
