@@ -10,7 +10,8 @@ Factors:
   feature position in pixels of the ideal pinhole, under a Huber loss, through the camera
   mounting ``T_B_C``; with ``estimate_camera_mounting``, the mounting is a variable of the
   window (``MOUNTING``, gtsam_unstable's ``ProjectionFactorPPP``), its rotation held by a prior
-  of ``mounting_rotation_sigma_deg`` at the configured one and its position where configured;
+  of ``mounting_rotation_sigma_deg`` at the configured one (after a rebuild or a
+  re-initialisation, at its last estimate) and its position where configured;
   it is restamped at every keyframe, so never marginalised, and eliminated last with the newest
   keyframe, as VINS-Mono and OKVIS estimate it online;
 - priors on the first keyframe (from static initialisation) or, after a rebuild, on the last
