@@ -272,6 +272,7 @@ def test_a_simulated_flight_mounts_the_camera_of_the_configured_vehicle():
         return camera_head(config, "dome", seed).T_B_C
 
     assert np.array_equal(mounting(4, "sim.vehicle_seed=9"), mounting(9))
+    assert np.array_equal(mounting(4, "sim.noise_seed=9"), mounting(4))  # noise alone
     assert not np.array_equal(mounting(4), mounting(9))
 
 

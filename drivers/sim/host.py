@@ -235,12 +235,12 @@ class TruthTrack:
 
 def camera_head(config, world: str, seed: int) -> CameraHead:
     """The simulated camera ``config`` describes in ``world``: ideal, or in the realistic
-    profile behind ``[sim_camera]``'s sensor, its errors drawn from ``seed`` (its mounting
-    from ``[sim] vehicle_seed``'s)."""
+    profile behind ``[sim_camera]``'s sensor, its errors drawn from ``seed`` (its noise from
+    ``[sim] noise_seed``'s, its mounting from ``[sim] vehicle_seed``'s)."""
     camera = config.camera
     return CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(),
                       config.sim_camera.for_profile(config.sim.profile), world,
-                      np.random.default_rng([seed, 3]),
+                      np.random.default_rng([config.sim.noise_for(seed), 3]),
                       np.random.default_rng([config.sim.vehicle_for(seed), 3]))
 
 
@@ -311,7 +311,7 @@ class Simulator:
     def _serve(self, clock_mode: str, stop, on_ready, sim_clock=None):
         c = self.config
         url = "pty" if self.port is None else f"udpin://127.0.0.1:{self.port}"
-        return serve(url, self.world, seed=self.mission.seed,
+        return serve(url, self.world, seed=c.sim.noise_for(self.mission.seed),
                      vehicle_seed=c.sim.vehicle_for(self.mission.seed),
                      clock_mode=clock_mode, vehicle_options=c.vehicle,
                      imu_options=c.imu.for_profile(c.sim.profile),

@@ -32,6 +32,13 @@ class SimOptions:
         "misalignment, the camera's mounting error), so that two seeds can fly one vehicle; "
         "-1: the run's seed",
     )
+    noise_seed: int = option(
+        -1, ge=-1,
+        doc="seed of the sensors' noise on one flight (white noise, bias walk and turn-on "
+        "bias, the camera's noise, stamps and lost frames, the link's losses), so that one "
+        "world, route and vehicle can be flown again with a fresh draw of noise alone; -1: "
+        "the run's seed",
+    )
     clock: str = option(
         "realtime",
         choices=CLOCK_MODES,
@@ -53,6 +60,11 @@ class SimOptions:
         """The seed of the vehicle's own errors on a flight of ``seed``: ``vehicle_seed``, or
         ``seed`` when that is -1."""
         return seed if self.vehicle_seed < 0 else self.vehicle_seed
+
+    def noise_for(self, seed: int) -> int:
+        """The seed of the sensors' noise on a flight of ``seed``: ``noise_seed``, or ``seed``
+        when that is -1."""
+        return seed if self.noise_seed < 0 else self.noise_seed
 
 
 @dataclass(frozen=True)

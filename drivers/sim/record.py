@@ -251,7 +251,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     or ideal.
 
     The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset;
-    ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting).
+    ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting),
+    ``sim.noise_seed`` the same flight with another draw of the sensors' noise.
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
@@ -265,7 +266,7 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     distortion = tuple(sensor.distortion) if sensor and sensor.distortion else (0.0,) * 4
     with EurocWriter(out, camera.pinhole(), camera.T_B_C(), camera.rate_hz,
                      _euroc_noise(imu), distortion=distortion) as writer:
-        return fly(world, route, writer, duration=duration, seed=sim.seed,
+        return fly(world, route, writer, duration=duration, seed=sim.noise_for(sim.seed),
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
                    vehicle_seed=sim.vehicle_for(sim.seed))
 
