@@ -118,6 +118,8 @@ def test_equal_limits_where_allowed_are_accepted(values):
     ({"lost_after_s": -1.0}, "lost_after_s"),
     ({"mounting_rotation_sigma_deg": 0.0}, "mounting_rotation_sigma_deg"),
     ({"mounting_rotation_sigma_deg": 20.0}, "mounting_rotation_sigma_deg"),
+    ({"imu_bias_walk_scale": 0.0}, "imu_bias_walk_scale"),
+    ({"imu_bias_walk_scale": 200.0}, "imu_bias_walk_scale"),
 ])
 def test_out_of_range_options_are_refused_naming_the_key(values, key):
     with pytest.raises(OptionError, match=f"^{key}: "):

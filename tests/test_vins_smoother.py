@@ -15,7 +15,8 @@ from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.trajectory import pose_error_body
 from autonomy.vins import ImuNoise, VinsOptions
 from autonomy.vins.backend import (
-    GaugeAnchor, KeyframeState, PriorSigmas, SlidingWindowSmoother, released_covariance,
+    GaugeAnchor, KeyframeState, PriorSigmas, SlidingWindowSmoother, imu_params,
+    released_covariance,
 )
 
 #: The estimator's noise model of the simulated vehicle's IMU (config/sim.toml [vins_imu]).
@@ -223,3 +224,24 @@ def test_the_anchor_covariance_is_that_of_the_rigid_motion_it_stands_for():
     expected = anchor.pose_covariance(keyframe)
     scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected))) + 1e-12
     assert np.allclose(np.cov(np.array(errors).T) / scale, expected / scale, atol=0.05)
+
+
+def test_the_white_noise_and_the_bias_walk_are_scaled_apart():
+    """``imu_noise_scale`` widens the white noise the rotors add to, ``imu_bias_walk_scale``
+    the bias walk (docs/vins.md, "The bias walk at its datasheet value"); the smoother's
+    preintegration takes both, by default each twice its density."""
+    params = imu_params(NOISE, 2.0, 1.0)
+    eye = np.eye(3)
+    assert np.allclose(params.getAccelerometerCovariance(), (2.0 * 6.865e-4) ** 2 * eye)
+    assert np.allclose(params.getGyroscopeCovariance(), (2.0 * 4.8869e-05) ** 2 * eye)
+    assert np.allclose(params.getBiasAccCovariance(), 3e-3 ** 2 * eye)
+    assert np.allclose(params.getBiasOmegaCovariance(), 1.9393e-05 ** 2 * eye)
+    smoother = SlidingWindowSmoother(
+        PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0), np.eye(4), NOISE,
+        VinsOptions(imu_noise_scale=3.0, imu_bias_walk_scale=0.5))
+    assert np.allclose(smoother.params.getAccelerometerCovariance(), (3.0 * 6.865e-4) ** 2 * eye)
+    assert np.allclose(smoother.params.getBiasAccCovariance(), (0.5 * 3e-3) ** 2 * eye)
+    default = SlidingWindowSmoother(
+        PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0), np.eye(4), NOISE, VinsOptions())
+    assert np.allclose(default.params.getBiasAccCovariance(), (2.0 * 3e-3) ** 2 * eye)
+    assert np.allclose(default.params.getAccelerometerCovariance(), (2.0 * 6.865e-4) ** 2 * eye)

@@ -241,19 +241,21 @@ class _Keyframe:
     normalised: np.ndarray
 
 
-def imu_params(noise: ImuNoise, scale: float) -> gtsam.PreintegrationCombinedParams:
-    """GTSAM preintegration parameters for a z-up world from continuous noise densities."""
+def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float
+               ) -> gtsam.PreintegrationCombinedParams:
+    """GTSAM preintegration parameters for a z-up world from continuous noise densities: the
+    white noise's times ``white_scale``, the bias random walk's times ``walk_scale``."""
     params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
     eye = np.eye(3)
     params.setGyroscopeCovariance(
-        (scale * max(noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye)
+        (white_scale * max(noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye)
     params.setAccelerometerCovariance(
-        (scale * max(noise.accel_noise_density, _DENSITY_FLOOR["accel"])) ** 2 * eye)
+        (white_scale * max(noise.accel_noise_density, _DENSITY_FLOOR["accel"])) ** 2 * eye)
     params.setIntegrationCovariance(1e-8 * eye)
     params.setBiasOmegaCovariance(
-        (scale * max(noise.gyro_random_walk, _DENSITY_FLOOR["gyro_walk"])) ** 2 * eye)
+        (walk_scale * max(noise.gyro_random_walk, _DENSITY_FLOOR["gyro_walk"])) ** 2 * eye)
     params.setBiasAccCovariance(
-        (scale * max(noise.accel_random_walk, _DENSITY_FLOOR["accel_walk"])) ** 2 * eye)
+        (walk_scale * max(noise.accel_random_walk, _DENSITY_FLOOR["accel_walk"])) ** 2 * eye)
     return params
 
 
@@ -288,7 +290,7 @@ class SlidingWindowSmoother:
                  options: VinsOptions):
         self.options = options
         self.camera = camera
-        self.params = imu_params(noise, options.imu_noise_scale)
+        self.params = imu_params(noise, options.imu_noise_scale, options.imu_bias_walk_scale)
         self._T_B_C = np.asarray(T_B_C, dtype=float)
         self._body_P_camera = gtsam.Pose3(self._T_B_C)
         self._mounting_prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[

@@ -52,8 +52,11 @@ class VinsOptions:
     huber_k: float = option(1.345, gt=0.0, doc="Huber threshold on the whitened "
                             "reprojection error (in pixel_sigma units)")
     imu_noise_scale: float = option(2.0, ge=1.0, le=100.0, doc="multiplies the IMU's white-noise"
-                                    " and random-walk densities (datasheet values are "
-                                    "optimistic on a vehicle with rotors)")
+                                    " densities (datasheet values are optimistic on a vehicle "
+                                    "with rotors)")
+    imu_bias_walk_scale: float = option(2.0, gt=0.0, le=100.0, doc="multiplies the IMU's bias "
+                                        "random-walk densities (docs/vins.md, \"The bias walk "
+                                        "at its datasheet value\": 1 measured, not adopted)")
     drag_coefficient: float = option(0.0, ge=0.0, le=5.0, doc="the vehicle's rotor drag "
                                      "per unit mass, 1/s (PX4's EKF2_MCOEF; the simulator's "
                                      "[vehicle] drag): the horizontal specific force then "
