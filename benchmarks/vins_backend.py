@@ -9,7 +9,7 @@ default options, exactly as ``companion eval vio`` does. The back-end time is
 ``Vins.add_frame`` on keyframe frames (the smoother update, landmark gate, map); the front-end
 time on the same frames is the baseline of the same run. Keyframes come at 10 Hz on these
 flights (``keyframe_interval_s``), with 150 tracks. The covariance time is that of one
-covariance the smoother computes, the newest keyframe's pose or velocity marginal
+covariance the smoother computes, the newest keyframe's pose and velocity marginal, jointly
 (``SlidingWindowSmoother._released_marginal``; a cached covariance is not timed), which the
 evaluation asks for at every keyframe and the odometry every ``covariance_period_s``. With
 ``--set`` (``[vins]`` keys, TOML

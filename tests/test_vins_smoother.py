@@ -10,6 +10,7 @@ rebuild, and each move of the hold, pins a keyframe, and its uncertainty is carr
 import math
 
 import numpy as np
+from gtsam.symbol_shorthand import V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.trajectory import pose_error_body
@@ -132,6 +133,17 @@ def test_the_held_window_reports_the_covariance_of_the_window_without_the_hold()
         assert_same_covariance(a.velocity_covariance(), b.velocity_covariance())
     assert len(holds) > 40  # a move with (nearly) every keyframe once the window is full
     assert np.all(np.sqrt(np.diag(a.pose_covariance())[3:]) > 1.0)
+
+
+def test_the_pose_and_velocity_covariances_are_the_marginals_of_each_alone():
+    """Both come from one joint marginal (the velocity's at no cost beside the pose's): each
+    block is the marginal iSAM2 computes for its variable alone, in the unheld window."""
+    for smoother in turning_in_place_unseeing(UNHELD, seconds=2.0):
+        k, isam = smoother.latest.index, smoother._smoother
+        assert_same_covariance(smoother.pose_covariance(), isam.marginalCovariance(X(k)), 1e-6)
+        assert_same_covariance(smoother.velocity_covariance(), isam.marginalCovariance(V(k)),
+                               1e-6)
+    assert smoother.resets == 0
 
 
 def test_a_keyframe_gap_longer_than_the_window_lets_the_hold_go_and_takes_it_up_again():

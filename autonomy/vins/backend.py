@@ -266,6 +266,14 @@ def _symbol_indices(keys: np.ndarray, char: str) -> np.ndarray:
     return (keys[chars == ord(char)] & index_mask).astype(np.int64)
 
 
+#: Tangent dimensions of the variables whose covariances are asked for: pose, velocity.
+_DIMENSIONS = {"x": 6, "v": 3}
+
+
+def _dimension(key: int) -> int:
+    return _DIMENSIONS[chr(gtsam.Symbol(key).chr())]
+
+
 def _variables(k: int) -> tuple[int, int, int]:
     """Keyframe ``k``'s pose, velocity and bias keys."""
     return X(k), V(k), B(k)
@@ -315,6 +323,7 @@ class SlidingWindowSmoother:
         self._poses: dict[int, np.ndarray] = {}
         self._retired = np.zeros(0, np.int64)
         self._pose_covariance: tuple[int, float, np.ndarray] | None = None
+        self._covariances: tuple[int, np.ndarray, np.ndarray] | None = None
         self._anchor: GaugeAnchor | None = None
         self._hold: _GaugeHold | None = None
         self._known_pose_covariance = np.full((6, 6), np.nan)
@@ -359,7 +368,7 @@ class SlidingWindowSmoother:
         that keyframe's observations (kept for later triangulation); ``anchor``, what a
         rebuild carries over of the old smoother's uncertainty (:class:`GaugeAnchor`)."""
         self._smoother = self._new_smoother()
-        self._pose_covariance = None
+        self._pose_covariance = self._covariances = None
         self._known_pose_covariance = np.full((6, 6), np.nan)
         self._anchor = anchor
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -436,16 +445,14 @@ class SlidingWindowSmoother:
     def pose_covariance(self, max_age_s: float = 0.0) -> np.ndarray:
         """The latest keyframe pose's covariance (6x6, rotation then position, body frame):
         its marginal in the smoother, plus what a rebuild's :class:`GaugeAnchor` carries; NaN
-        where GTSAM cannot compute it (:meth:`_marginal`). Computed once per keyframe, or,
-        with ``max_age_s``, kept for later keyframes until it is that old in keyframe time
+        where GTSAM cannot compute it (:meth:`_joint_marginal`). Computed once per keyframe,
+        or, with ``max_age_s``, kept for later keyframes until it is that old in keyframe time
         (never across a (re)start): iSAM2's marginal costs about twice its update (21 ms
         against 11 ms per keyframe here, docs/benchmarks.md)."""
         state, cached = self.latest, self._pose_covariance
         if cached is None or (cached[0] != state.index and
                               state.t - cached[1] >= max_age_s - 1e-9):
-            covariance = self._released_marginal(X(state.index), 6)
-            if self._anchor is not None:
-                covariance = covariance + self._anchor.pose_covariance(state.T_W_B)
+            covariance = self._newest_covariances()[0]
             self._pose_covariance = cached = (state.index, state.t, covariance)
             if np.isfinite(covariance).all():
                 self._known_pose_covariance = covariance
@@ -453,42 +460,46 @@ class SlidingWindowSmoother:
 
     def velocity_covariance(self) -> np.ndarray:
         """The latest keyframe velocity's covariance (3x3, world frame), as
-        :meth:`pose_covariance`."""
-        state = self.latest
-        covariance = self._released_marginal(V(state.index), 3)
-        if self._anchor is not None:
-            covariance = covariance + self._anchor.velocity_covariance(state.velocity)
-        return covariance
+        :meth:`pose_covariance` (computed with the pose's, at no extra cost)."""
+        return self._newest_covariances()[1]
 
-    def _released_marginal(self, key: int, size: int) -> np.ndarray:
-        """The marginal covariance of the newest keyframe's ``key`` with the gauge hold's
-        prior taken out (:func:`released_covariance`; the hold is never on the newest
+    def _newest_covariances(self) -> tuple[np.ndarray, np.ndarray]:
+        """The latest keyframe's pose and velocity covariances (:meth:`pose_covariance`,
+        :meth:`velocity_covariance`), from one joint marginal, kept for that keyframe: iSAM2's
+        joint marginal of the pose, the velocity and the gauge hold's pose costs what the
+        pose's alone does (8.1 ms each, docs/benchmarks.md), so the velocity's comes free."""
+        state = self.latest
+        if self._covariances is None or self._covariances[0] != state.index:
+            joint = self._released_marginal([X(state.index), V(state.index)])
+            pose, velocity = joint[:6, :6], joint[6:, 6:]
+            if self._anchor is not None:
+                pose = pose + self._anchor.pose_covariance(state.T_W_B)
+                velocity = velocity + self._anchor.velocity_covariance(state.velocity)
+            self._covariances = (state.index, pose, velocity)
+        return self._covariances[1], self._covariances[2]
+
+    def _released_marginal(self, keys: list[int]) -> np.ndarray:
+        """The joint marginal covariance of the newest keyframe's ``keys`` with the gauge
+        hold's prior taken out (:func:`released_covariance`; the hold is never on the newest
         keyframe); the start prior stays."""
         hold = self._hold
         if hold is None or hold.slot is None:
-            return self._marginal(key, size)
-        return released_covariance(self._joint_marginal(key, size, X(hold.index)),
-                                   hold.covariance)
+            return self._joint_marginal(keys)
+        hold_key = X(hold.index)
+        return released_covariance(self._joint_marginal([*keys, hold_key]), hold.covariance)
 
-    def _joint_marginal(self, key: int, size: int, pose_key: int) -> np.ndarray:
-        """The joint covariance of ``key`` (``size`` dims) and a pose (NaN where GTSAM cannot
-        compute it, as :meth:`_marginal`)."""
+    def _joint_marginal(self, keys: list[int]) -> np.ndarray:
+        """The joint covariance of ``keys`` (blocks in their order). iSAM2 can meet an
+        indeterminate linear system computing it on a window whose update went through (the
+        same ill-conditioning that rebuilds the smoother, docs/vins.md): the covariance is
+        then unknown, NaN, which the odometry sends as MAVLink's "unknown" and the evaluation
+        does not score."""
         try:
-            joint = self._smoother.jointMarginalCovariance([key, pose_key])
+            joint = self._smoother.jointMarginalCovariance(keys)
         except RuntimeError:
-            return np.full((size + 6, size + 6), np.nan)
-        return np.block([[joint.at(key, key), joint.at(key, pose_key)],
-                         [joint.at(pose_key, key), joint.at(pose_key, pose_key)]])
-
-    def _marginal(self, key: int, size: int) -> np.ndarray:
-        """The marginal covariance of ``key``. iSAM2 can meet an indeterminate linear system
-        computing it on a window whose update went through (the same ill-conditioning that
-        rebuilds the smoother, docs/vins.md): the covariance is then unknown, NaN, which the
-        odometry sends as MAVLink's "unknown" and the evaluation does not score."""
-        try:
-            return np.asarray(self._smoother.marginalCovariance(key))
-        except RuntimeError:
+            size = sum(_dimension(key) for key in keys)
             return np.full((size, size), np.nan)
+        return np.block([[joint.at(row, column) for column in keys] for row in keys])
 
     def depth_sigma(self, depths: np.ndarray) -> np.ndarray:
         """One-sigma depth uncertainty of the landmarks at ``depths`` (same order)."""
