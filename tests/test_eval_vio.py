@@ -7,6 +7,7 @@ import json
 import math
 
 import cv2
+import gtsam
 import numpy as np
 import pytest
 
@@ -17,8 +18,9 @@ from autonomy.vins.static_init import StaticInit
 from companion.cli import main
 from companion.tools.eval.vio import (
     EvaluationError, ImuFeed, KeyframeEstimate, Rebuild, VioTrace, build_vins, depth_relative_errors,
-    evaluate_vio, format_vio_report, read_vio_dataset, score_vio, vio_frames,
+    evaluate_vio, format_vio_report, read_vio_dataset, run_vins, score_vio, vio_frames,
 )
+from companion.tools.eval.vio_bound import FactorLog, batch_positions
 from drivers.dataset.euroc import EurocWriter, read_depth_png
 
 NOISE = {"rate_hz": 200.0, "gyroscope_noise_density": 1e-4, "gyroscope_random_walk": 1e-5,
@@ -380,6 +382,48 @@ def test_without_consistency_the_same_run_is_scored_without_the_nees(simulated):
         {k: v for k, v in full.items() if k not in nees | timing}
     assert quick["nees_keyframes"] == 0 and quick["nees_pose_median"] is None
     assert full["nees_keyframes"] > 0
+
+
+def test_the_bound_solves_the_smoothers_own_factors_under_the_starts_gauge_alone(simulated):
+    """The batches take every factor the smoother was given but the gauge hold's priors (each
+    held a keyframe at its estimate: several would pin distances, so the scale), and the
+    causal batch at the last keyframe is the whole-flight batch there: the same factors."""
+    log = FactorLog()
+    trace = run_vins(read_vio_dataset(simulated), VinsOptions(), consistency=False,
+                     factor_log=log)
+    assert trace.resets == 0
+    priors = [f for _, f in log.kept() if isinstance(f, gtsam.PriorFactorPose3)]
+    held = [f for i, f in enumerate(log.factors)
+            if i in log.removed and isinstance(f, gtsam.PriorFactorPose3)]
+    assert len(priors) == 1 and len(held) >= 2  # the start's; the hold moved along the flight
+    times = [t for t, _ in log.kept()]
+    assert times == sorted(times)
+    fixed_lag = {kf.t: kf.T_W_B[:3, 3] for kf in trace.keyframes}
+    keyframes = batch_positions(log, fixed_lag, every=7)
+    assert keyframes.t[-1] == max(fixed_lag) and len(keyframes.t) == len(keyframes.causal_batch)
+    np.testing.assert_allclose(keyframes.causal_batch[-1], keyframes.whole_flight_batch[-1],
+                               atol=1e-3)
+    np.testing.assert_array_equal(keyframes.fixed_lag[-1], fixed_lag[max(fixed_lag)])
+
+
+def test_eval_vio_bound_reports_the_smoother_beside_both_batches(simulated, capsys):
+    status, captured = _eval_vio(capsys, simulated, "--bound")
+    assert status == 0, captured.err
+    line = next(line for line in captured.out.splitlines() if "what the factors allow" in line)
+    assert all(name in line for name in ("the smoother", "causal batch", "whole-flight batch"))
+    status, captured = _eval_vio(capsys, simulated, "--bound", "--json")
+    bound = json.loads(captured.out)["bound"]
+    assert bound["keyframes"] >= 3
+    for name in ("fixed_lag", "causal_batch", "whole_flight_batch"):
+        assert 0.0 <= bound[name]["ate_over_distance"] < 0.05
+        assert abs(bound[name]["scale"] - 1.0) < 0.05
+
+
+def test_a_path_too_straight_to_align_is_not_bounded_and_says_why(simulated, capsys):
+    """The first 5 s are the still start and the climb: keyframes on one line."""
+    status, captured = _eval_vio(capsys, simulated, "--bound", "--max-frames", "100", "--json")
+    assert status == 0, captured.err
+    assert json.loads(captured.out)["bound"]["note"].startswith("not bounded on ")
 
 
 def test_a_scale_that_grows_through_the_flight_shows_window_by_window(tmp_path):

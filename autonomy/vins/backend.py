@@ -69,7 +69,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
 from autonomy.vins.drag import MAX_INTERVAL_S, drag_factor
-from autonomy.vins.fixed_lag import FixedLagSmoother
+from autonomy.vins.fixed_lag import FixedLagSmoother, UpdateListener
 from autonomy.vins.landmarks import (
     Gate, depth_sigma, gate_candidates, observation_limit_px, spread_choice, widest_ray_angle,
 )
@@ -317,6 +317,8 @@ class SlidingWindowSmoother:
                          options.min_depth, options.max_depth, options.max_reprojection_px, focal)
         self.resets = 0
         self.last_failure = ""
+        #: given to every smoother it starts (``fixed_lag.UpdateListener``): an evaluation listens
+        self.update_listener: UpdateListener | None = None
         self._smoother: FixedLagSmoother | None = None
         self._latest: KeyframeState | None = None
         self._window: list[_Keyframe] = []
@@ -340,6 +342,11 @@ class SlidingWindowSmoother:
         if self._latest is None:
             raise RuntimeError("the smoother has not been started")
         return self._latest
+
+    @property
+    def gauge_hold_slot(self) -> int | None:
+        """The iSAM2 slot of the gauge hold's prior, None while none holds the window."""
+        return None if self._hold is None else self._hold.slot
 
     @property
     def gauge_keyframe(self) -> int | None:
@@ -514,7 +521,7 @@ class SlidingWindowSmoother:
         params.relinearizeSkip = 1
         params.findUnusedFactorSlots = True
         params.setFactorization(self.options.factorization.upper())
-        return FixedLagSmoother(self.options.smoother_lag_s, params)
+        return FixedLagSmoother(self.options.smoother_lag_s, params, self.update_listener)
 
     @staticmethod
     def _keyframe(index: int, t: float, ids, normalised) -> _Keyframe:

@@ -31,21 +31,30 @@ re-eliminate nearly all of it anyway (docs/benchmarks.md, "VINS back-end").
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 
 import gtsam
 
 #: The elimination ordering's constraint groups: eliminated first, the rest, eliminated last.
 _MARGINALISED, _WINDOW, _LAST = 0, 1, 2
 
+#: Told of every update after it is solved, before the marginalisation: the factors added, their
+#: new variables' initial values and (re)stamps, the slots removed, the slots the new factors
+#: took, and the window's estimate. An evaluation's log of the factors
+#: (``companion/tools/eval/vio_bound.py``); nothing listens in flight.
+UpdateListener = Callable[[gtsam.NonlinearFactorGraph, gtsam.Values, Mapping[int, float],
+                           Collection[int], list[int], gtsam.Values], None]
+
 
 class FixedLagSmoother:
     """iSAM2 over the variables of the last ``lag`` seconds (module docstring)."""
 
-    def __init__(self, lag: float, params: gtsam.ISAM2Params):
+    def __init__(self, lag: float, params: gtsam.ISAM2Params,
+                 listener: UpdateListener | None = None):
         if not lag > 0.0:
             raise ValueError(f"the smoother's lag must be positive, got {lag}")
         self.lag = float(lag)
+        self.listener = listener
         self._isam = gtsam.ISAM2(params)
         self._stamps: dict[int, float] = {}
         self._last: frozenset[int] = frozenset()
@@ -82,6 +91,8 @@ class FixedLagSmoother:
         if remove:
             params.removeFactorIndices = list(remove)
         slots = list(self._isam.update(graph, values, params).getNewFactorsIndices())
+        if self.listener is not None:
+            self.listener(graph, values, stamps, remove, slots, self._isam.calculateEstimate())
         if old:
             self._isam.marginalizeLeaves(_key_list(old))
             for key in old:

@@ -33,6 +33,9 @@ from autonomy.vins.time_offset import TimeOffset
 from companion.report import finite_or_none, median_or_none, show
 from companion.tools.eval.drag_fit import fit_drag
 from companion.tools.eval.tracks import TrackErrors, track_error_summary
+from companion.tools.eval.vio_bound import (
+    BOUND_EVERY, FactorLog, batch_positions, bound_report,
+)
 from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
     read_groundtruth, read_imu, read_imu_noise,
@@ -185,24 +188,54 @@ def read_vio_dataset(root: Path) -> VioDataset:
 
 def evaluate_vio(root: Path, options: VinsOptions, *, frontend: FrontendOptions | None = None,
                  static: StaticInitOptions | None = None, max_frames: int | None = None,
-                 consistency: bool = True) -> dict:
+                 consistency: bool = True, bound: bool = False) -> dict:
     """Run the VINS over the dataset at ``root`` (:func:`run_vins`) and score it
     (:func:`score_vio`); ``consistency`` false skips the NEES and the marginal covariance it
-    needs at every keyframe (a quarter of the time)."""
+    needs at every keyframe (a quarter of the time); ``bound`` adds ``bound``, what the
+    smoother's own factors allow (:func:`bound_vio`)."""
     data = read_vio_dataset(root)
+    log = FactorLog() if bound else None
     trace = run_vins(data, options, frontend=frontend, static=static, max_frames=max_frames,
-                     consistency=consistency)
-    return score_vio(trace, data)
+                     consistency=consistency, factor_log=log)
+    result = score_vio(trace, data)
+    if log is not None:
+        result["bound"] = bound_vio(log, trace, data)
+    return result
+
+
+def bound_vio(log: FactorLog, trace: VioTrace, data: VioDataset) -> dict:
+    """The trajectory error and scale of the fixed-lag smoother, the causal batch and the
+    whole-flight batch over the same factors, on every :data:`BOUND_EVERY`-th keyframe
+    (:mod:`companion.tools.eval.vio_bound`); a ``note`` instead where there is nothing to
+    bound."""
+    if trace.resets:
+        return {"note": f"not bounded: the smoother was rebuilt {trace.resets} time(s), and a "
+                        "rebuild's priors would pin the batch's scale"}
+    truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
+    fixed_lag = {kf.t: kf.T_W_B[:3, 3] for kf in trace.keyframes
+                 if truth_t[0] <= kf.t <= truth_t[-1]}
+    if len(fixed_lag) < 3:
+        return {"note": f"not bounded: {len(fixed_lag)} keyframes with ground truth"}
+    keyframes = batch_positions(log, fixed_lag, BOUND_EVERY)
+    true_positions, _ = interpolate_poses(keyframes.t, truth_t, data.truth.position,
+                                          data.truth.q_W_B)
+    try:
+        return bound_report(keyframes, true_positions)
+    except ValueError as error:  # a path too short or too straight to align
+        return {"note": f"not bounded on {len(keyframes.t)} keyframes: {error}"}
 
 
 def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
              static: StaticInitOptions | None = None, max_frames: int | None = None,
-             consistency: bool = True) -> VioTrace:
+             consistency: bool = True, factor_log: FactorLog | None = None) -> VioTrace:
     """Run a :class:`Vins` built with ``options``, ``frontend`` and ``static`` over the frames
     of ``data`` (:func:`vio_frames`) and trace its output, timing each stage; each keyframe's
-    covariances are traced for the NEES only with ``consistency``."""
+    covariances are traced for the NEES only with ``consistency``; ``factor_log`` is given
+    every factor of the smoother's (the gauge hold's last prior left out at the end)."""
     stream = data.camera
     vins = build_vins(data, options, frontend=frontend, static=static)
+    if factor_log is not None:
+        vins.backend.update_listener = factor_log.record
     trace = VioTrace()
     imu = ImuFeed(data)
     tracking = TrackErrors(stream.camera, stream.distortion, stream.T_B_C)
@@ -235,6 +268,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     if options.estimate_camera_mounting:
         trace.camera_mounting = vins.backend.camera_mounting
     trace.track_errors = tracking.summary()
+    if factor_log is not None and not vins.backend.resets:
+        factor_log.drop_slot(vins.backend.gauge_hold_slot)
     return trace
 
 
@@ -625,6 +660,16 @@ def _mounting_text(mounting: dict | None) -> str:
     return f"rotation ({rotation}) deg, position ({translation}) mm, in the camera's axes"
 
 
+def _bound_text(bound: dict) -> str:
+    if "note" in bound:
+        return f"what the factors allow: {bound['note']}"
+    return f"what the factors allow, over {bound['keyframes']} keyframes: " + "; ".join(
+        f"{label} ATE {show(bound[name]['ate_over_distance'], '.2%')}, scale "
+        f"{show(bound[name]['scale'], '.4f')}"
+        for name, label in (("fixed_lag", "the smoother"), ("causal_batch", "causal batch"),
+                            ("whole_flight_batch", "whole-flight batch")))
+
+
 def format_vio_report(result: dict) -> str:
     """The evaluation result as a few lines a person reads."""
     init = result["init"]
@@ -673,6 +718,7 @@ def format_vio_report(result: dict) -> str:
             f"{result['drag_fit']['intervals']} keyframe intervals (residual "
             f"{result['drag_fit']['residual_std']:.3f} m/s^2, speeds spread "
             f"{result['drag_fit']['speed_spread']:.2f} m/s; [vins] drag_coefficient)"),
+        *([] if "bound" not in result else [_bound_text(result["bound"])]),
         *(f"rebuild at t={r['t']:.2f} s near {r['variable'] or '?'}: before it "
           f"{show(r['landmarks'], 'd')} landmarks, position sigma "
           f"{show(r['position_sigma_m'], '.3f', ' m')}, speed error "
