@@ -91,9 +91,10 @@ class BoundedKeyframes:
 def batch_positions(log: FactorLog, fixed_lag: dict[float, np.ndarray],
                     every: int) -> BoundedKeyframes:
     """Solve the causal batch at every ``every``-th keyframe of ``fixed_lag`` (the smoother's
-    newest keyframe position by keyframe time; and at the last), then the whole flight's. Each solve starts from the one before, and a variable
-    it has not solved yet from the smoother's estimate (a variable no factor of the batch
-    touches is carried along unchanged)."""
+    newest keyframe position by keyframe time; and at the last), then the whole flight's.
+    Each solve starts from the one before, and a variable it has not solved yet from the
+    smoother's estimate (a variable no factor of the batch touches is carried along
+    unchanged)."""
     poses = sorted((t, key) for key, t in log.stamps.items()
                    if _is_pose(key) and t in fixed_lag)
     chosen = poses[::every] + ([poses[-1]] if (len(poses) - 1) % every else [])
