@@ -32,8 +32,8 @@ import numpy as np
 from autonomy.trajectory import align_umeyama, ate_rmse, path_length
 from companion.report import finite_or_none
 
-#: The causal batch is solved at every this many keyframes (and the last): each solve costs
-#: about as much as the whole flight's, so at every keyframe it would take minutes.
+#: The causal batch is solved at every this many keyframes (and the last): a solve grows with
+#: the flight to about a second for 40 s, so at every keyframe it would take minutes.
 BOUND_EVERY = 5
 #: The Levenberg-Marquardt iterations of each batch; each starts from the last one's solution
 #: or the smoother's estimate, a few iterations from its optimum.
@@ -56,6 +56,8 @@ class FactorLog:
         self._at_slot: dict[int, int] = {}
 
     def record(self, graph, values, stamps, removed, slots, estimate) -> None:
+        """Keep one update's factors (``values``, the new variables' first guesses, are not
+        needed: the ``estimate`` after the update replaces them)."""
         for slot in removed:
             self.removed.add(self._at_slot[slot])
         for position, slot in enumerate(slots):
