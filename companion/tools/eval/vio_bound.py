@@ -3,7 +3,7 @@
 The fixed-lag smoother (``autonomy/vins/fixed_lag.py``) keeps 1.5 s of keyframes and folds
 what leaves the window into a linear marginal, linearised once, at the estimate of that
 moment. :class:`FactorLog` keeps every factor the smoother was given (the same IMU
-preintegrations, reprojections, priors, noise models and gates), and :func:`batch_bound`
+preintegrations, reprojections, priors, noise models and gates), and :func:`batch_positions`
 solves them again by Levenberg-Marquardt with nothing marginalised:
 
 - the *causal batch*: at a keyframe, the estimate from every factor up to that keyframe,
