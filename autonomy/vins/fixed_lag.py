@@ -38,12 +38,12 @@ import gtsam
 #: The elimination ordering's constraint groups: eliminated first, the rest, eliminated last.
 _MARGINALISED, _WINDOW, _LAST = 0, 1, 2
 
-#: Told of every update after it is solved, before the marginalisation: the factors added, their
-#: new variables' initial values and (re)stamps, the slots removed, the slots the new factors
-#: took, and the window's estimate. An evaluation's log of the factors
+#: Told of every update after it is solved, before the marginalisation: the factors added, the
+#: (re)stamps of their variables, the slots removed, the slots the new factors took, and the
+#: window's estimate. An evaluation's log of the factors
 #: (``companion/tools/eval/vio_bound.py``); nothing listens in flight.
-UpdateListener = Callable[[gtsam.NonlinearFactorGraph, gtsam.Values, Mapping[int, float],
-                           Collection[int], list[int], gtsam.Values], None]
+UpdateListener = Callable[[gtsam.NonlinearFactorGraph, Mapping[int, float], Collection[int],
+                           list[int], gtsam.Values], None]
 
 
 class FixedLagSmoother:
@@ -92,7 +92,7 @@ class FixedLagSmoother:
             params.removeFactorIndices = list(remove)
         slots = list(self._isam.update(graph, values, params).getNewFactorsIndices())
         if self.listener is not None:
-            self.listener(graph, values, stamps, remove, slots, self._isam.calculateEstimate())
+            self.listener(graph, stamps, remove, slots, self._isam.calculateEstimate())
         if old:
             self._isam.marginalizeLeaves(_key_list(old))
             for key in old:

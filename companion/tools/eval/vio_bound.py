@@ -55,9 +55,8 @@ class FactorLog:
         self.estimates = gtsam.Values()
         self._at_slot: dict[int, int] = {}
 
-    def record(self, graph, values, stamps, removed, slots, estimate) -> None:
-        """Keep one update's factors (``values``, the new variables' first guesses, are not
-        needed: the ``estimate`` after the update replaces them)."""
+    def record(self, graph, stamps, removed, slots, estimate) -> None:
+        """Keep one update's factors, stamps and the ``estimate`` after it."""
         for slot in removed:
             self.removed.add(self._at_slot[slot])
         for position, slot in enumerate(slots):
