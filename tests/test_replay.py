@@ -187,9 +187,47 @@ def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(re
     errors = np.array([sample["error_m"] for sample in samples])
     assert np.isfinite(errors).all() and errors.max() < 0.5  # 12 s in the dome
     assert {sample["state"] for sample in samples} <= {"ok", "degraded", "lost", "initialising"}
+    # the truth's heading is the one the error is taken against
+    assert all(abs(s["truth_yaw_deg"]) <= 180.0 for s in samples)
     code, table, _ = companion_log("vins", recording["recording"]["path"], "--every", "4")
     assert code == 0 and "VINS error at the end" in table
-    assert len(table.splitlines()) >= 2 + 3  # a row at least every 4 s of the flight
+    assert len(table.splitlines()) >= 3 + 3  # a row at least every 4 s of the flight
+    accrued = table.splitlines()[1]
+    assert accrued.startswith("heading error accrued turning (over 10°/s:"), accrued
+    turning, straight = (float(words.split("°")[0]) for words in accrued.split(") ")[1:])
+    assert turning + straight == pytest.approx(
+        samples[-1]["heading_deg"] - samples[0]["heading_deg"], abs=0.02)
+
+
+def _yaw_samples(truth_yaw_deg, heading_deg, dt=0.1):
+    from companion.recording.replay import VinsErrorSample
+
+    return [VinsErrorSample(t=k * dt, truth_position=(0.0, 0.0, 1.0), truth_yaw_deg=truth,
+                            error_m=0.0, heading_deg=heading, state="ok", landmarks=50)
+            for k, (truth, heading) in enumerate(zip(truth_yaw_deg, heading_deg))]
+
+
+def test_the_heading_error_is_split_between_turning_and_straight_flight():
+    """A 90 degree turn at 90 deg/s across the +-180 seam that adds half a degree of heading
+    error, then 2 s straight that take 0.2 degrees away (its yaw wandering at 2 deg/s, under
+    the turning rate), the error also across its own seam: each change goes to its kind."""
+    from companion.recording.replay import heading_accrual
+
+    turn = [135.0 + 9.0 * k for k in range(11)]  # 135 -> 225, stored within +-180
+    straight = [225.0 + 0.2 * (k % 2) for k in range(1, 21)]
+    truth = [(yaw + 180.0) % 360.0 - 180.0 for yaw in turn + straight]
+    error = [179.9 + 0.05 * k for k in range(11)] + [180.4 - 0.01 * k for k in range(1, 21)]
+    heading = [(e + 180.0) % 360.0 - 180.0 for e in error]
+    accrued = heading_accrual(_yaw_samples(truth, heading))
+    assert accrued["turning"].seconds == pytest.approx(1.0)
+    assert accrued["turning"].turned_deg == pytest.approx(90.0)
+    assert accrued["turning"].error_change_deg == pytest.approx(0.5)
+    assert accrued["straight"].seconds == pytest.approx(2.0)
+    assert accrued["straight"].error_change_deg == pytest.approx(-0.2)
+    # the same samples counted with a turning rate above the turn's: all of it straight
+    slow = heading_accrual(_yaw_samples(truth, heading), turning_rate_deg_s=100.0)
+    assert slow["turning"].seconds == 0.0
+    assert slow["straight"].error_change_deg == pytest.approx(0.3)
 
 
 def test_log_vins_map_scale_is_the_landmarks_depth_over_the_true_depth(recording):
@@ -203,7 +241,7 @@ def test_log_vins_map_scale_is_the_landmarks_depth_over_the_true_depth(recording
     assert abs(np.median(scales) - 1.0) < 0.02 and np.abs(scales - 1.0).max() < 0.1
     assert samples[0]["landmarks"] == 0 and samples[0]["map_scale"] is None
     code, table, _ = companion_log("vins", recording["recording"]["path"], "--map")
-    assert code == 0 and "map scale" in table.splitlines()[1]
+    assert code == 0 and "map scale" in table.splitlines()[2]
 
 
 def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recording, tmp_path):

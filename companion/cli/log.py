@@ -154,11 +154,19 @@ def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
     with the error at the end, the largest and the median; ``with_map``, the map scale too."""
     if not samples:
         return f"{path}: no frame with both a VINS pose and the truth"
+    from companion.recording.replay import TURNING_RATE_DEG_S, heading_accrual
+
     errors = [sample.error_m for sample in samples]
     largest = max(samples, key=lambda sample: sample.error_m)
+    accrued = heading_accrual(samples)
+    turning, straight = accrued["turning"], accrued["straight"]
     lines = [f"{path}: {len(samples)} frames, {samples[0].t:.1f}-{samples[-1].t:.1f} s; "
              f"VINS error at the end {samples[-1].error_m:.2f} m, largest {largest.error_m:.2f}"
              f" m (t {largest.t:.1f} s), median {sorted(errors)[len(errors) // 2]:.2f} m",
+             f"heading error accrued turning (over {TURNING_RATE_DEG_S:g}°/s: "
+             f"{turning.seconds:.1f} s, {turning.turned_deg:.0f}° turned) "
+             f"{turning.error_change_deg:+.2f}°, flying straight ({straight.seconds:.1f} s) "
+             f"{straight.error_change_deg:+.2f}°",
              "      t     error   heading  state        landmarks"
              + ("  map scale" if with_map else "")]
     next_row, state = samples[0].t, None

@@ -640,17 +640,63 @@ def _map_scale(points: np.ndarray, tracked: np.ndarray, pinhole: PinholeCamera,
 class VinsErrorSample:
     """The VINS against the simulator's truth at one frame: ``error_m`` the distance between
     the estimated and the true body position, ``heading_deg`` the yaw error (estimate less
-    truth, within +-180), ``truth_position`` where the body truly was (metres), all in PX4's
-    local frame; the VINS's health at that frame; ``map_scale`` (asked for, and where the true
-    depth was recorded) the median of its tracked landmarks' depth over the true depth."""
+    truth, within +-180), ``truth_position`` where the body truly was (metres) and
+    ``truth_yaw_deg`` its true heading (within +-180), all in PX4's local frame; the VINS's
+    health at that frame; ``map_scale`` (asked for, and where the true depth was recorded) the
+    median of its tracked landmarks' depth over the true depth."""
 
     t: float
     truth_position: tuple[float, float, float]
+    truth_yaw_deg: float
     error_m: float
     heading_deg: float
     state: str
     landmarks: int
     map_scale: float | None = None
+
+
+#: The true yaw rate above which `log vins` counts the vehicle as turning, degrees per second
+#: (the planner's turns in place and its curved arcs; a straight arc's heading wanders by a
+#: few degrees per second).
+TURNING_RATE_DEG_S = 10.0
+
+
+@dataclass(frozen=True)
+class HeadingAccrual:
+    """What the VINS's heading error did over the intervals of one kind of motion:
+    ``seconds`` of them, the true yaw ``turned_deg`` in them (the sum of its absolute changes)
+    and the heading error's change accrued over them, ``error_change_deg``."""
+
+    seconds: float
+    turned_deg: float
+    error_change_deg: float
+
+
+def heading_accrual(samples: list[VinsErrorSample],
+                    turning_rate_deg_s: float = TURNING_RATE_DEG_S) -> dict[str, HeadingAccrual]:
+    """The heading error's change split between ``turning`` and ``straight`` flight.
+
+    Each interval between consecutive samples is turning when the true yaw changed faster
+    than ``turning_rate_deg_s`` over it; its change of the heading error (wrapped to +-180)
+    goes to that kind, so the two add up to the heading error's change from the first sample
+    to the last (a reset's jump included, in its interval). Error accrued in turns points at
+    what the gyro alone measures there (its yaw scale, the time offset, tracks lost in a fast
+    turn); error accrued in straight flight at what the landmarks hand from keyframe to
+    keyframe."""
+    seconds, turned, change = ({"turning": 0.0, "straight": 0.0} for _ in range(3))
+    for before, after in zip(samples, samples[1:]):
+        dt = after.t - before.t
+        yaw_step = _wrapped_deg(after.truth_yaw_deg - before.truth_yaw_deg)
+        kind = "turning" if abs(yaw_step) > turning_rate_deg_s * dt else "straight"
+        seconds[kind] += dt
+        turned[kind] += abs(yaw_step)
+        change[kind] += _wrapped_deg(after.heading_deg - before.heading_deg)
+    return {kind: HeadingAccrual(seconds[kind], turned[kind], change[kind]) for kind in seconds}
+
+
+def _wrapped_deg(angle: float) -> float:
+    """``angle`` (degrees) within +-180."""
+    return (angle + 180.0) % 360.0 - 180.0
 
 
 def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
@@ -695,11 +741,13 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
     samples = []
     for t in sorted(set(estimates) & set(truths)):
         estimate, truth, vitals = estimates[t], truths[t], health.get(t, {})
-        heading = math.degrees(yaw_of(estimate[:3, :3]) - yaw_of(truth[:3, :3]))
+        truth_yaw = math.degrees(yaw_of(truth[:3, :3]))
         samples.append(VinsErrorSample(
             t=t / 1e9, truth_position=tuple(float(v) for v in truth[:3, 3]),
+            truth_yaw_deg=truth_yaw,
             error_m=float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3])),
-            heading_deg=(heading + 180.0) % 360.0 - 180.0, state=vitals.get("state", "?"),
+            heading_deg=_wrapped_deg(math.degrees(yaw_of(estimate[:3, :3])) - truth_yaw),
+            state=vitals.get("state", "?"),
             landmarks=int(vitals.get("landmarks", 0)), map_scale=scales.get(t)))
     return samples
 
