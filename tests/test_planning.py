@@ -812,6 +812,29 @@ def test_when_nothing_is_safe_the_previous_rounds_checked_stop_is_continued():
     assert late.t == first.t + 10.0 and late.primitive.duration == 0.0
 
 
+def test_a_stop_afresh_for_a_turn_holds_where_the_vehicle_came_to_rest():
+    """Blocked, the rounds continue the stop checked with the last arc: that arc for a period,
+    then braking along it. The vehicle at rest before that stop has run out, about to turn in
+    place: the stop afresh holds it where it is, and the stops after it (a failsafe's, a blocked
+    round's) continue it, not the older one that runs on toward the wall."""
+    planner = planner_seeing(ROOM)
+    first = planner.plan(0.05, body(), FORWARD, np.array([10.0, 10.0, ALTITUDE]))
+    T_W_B = body(x=0.15)
+    wall = render(camera_pose(T_W_B), [((1.5, -50, -50), (2.0, 50, 50))])
+    planner.add_depth(metric(wall, 0.1), camera_pose(T_W_B))
+    older = planner.plan(0.13, T_W_B, FORWARD, AHEAD)
+    assert older.kind == "stop" and older.t == first.t
+    at_rest = body(x=0.3)
+    hold = planner.stop_afresh(0.6, at_rest, np.zeros(3), "holding where it turns")
+    assert hold.t == 0.6 and hold.reason == "holding where it turns"
+    for t in (0.6, 1.0, older.end_time, hold.end_time + 1.0):
+        np.testing.assert_allclose(hold.setpoint(t).position_W, at_rest[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(hold.setpoint(t).velocity_W, 0.0, atol=1e-9)
+    assert np.linalg.norm(older.setpoint(1.0).position_W - at_rest[:3, 3]) > 0.1
+    failsafe = planner.stop_plan(1.0, at_rest, np.zeros(3), "vins lost")
+    assert failsafe.primitive is hold.primitive and failsafe.t == hold.t
+
+
 def test_a_failsafe_during_a_glide_continues_the_glide_held_not_the_older_rounds_stop():
     """A backing-off flies glides and holds each one's glide to rest as the checked stop;
     the last round's stop lies at the dead end behind it."""

@@ -62,6 +62,10 @@ BACKOFF_REASON = "backing off along the trail"
 #: without landmarks before the vehicle is at rest); once it has run out, it no longer waits
 #: for a vehicle that does not come to rest.
 TURN_STOP_REASON = "stopping to turn to the next waypoint"
+#: The reason of the stop in force through a turn in place and after it until the next plan:
+#: braking afresh from the velocity where the turn begins (at rest, or nearly), in place of
+#: the stop checked before (:meth:`~autonomy.planning.planner.Planner.stop_afresh`).
+TURN_HOLD_REASON = "holding where it turns"
 #: The reason of the stop begun when the depth fit lapses on the arcs (:func:`depth_lapsed`):
 #: like the corner's, it brakes on the stop the last round checked, and the staleness failsafe
 #: waits while it lasts and through the parallax glide after it.
@@ -73,8 +77,8 @@ DEPTH_STOP_REASON = "stopping to regain metric depth"
 GOAL_STOP_REASON = "goal reached"
 #: The glides and stops over ground flown or checked, on which depth may lapse
 #: (:meth:`companion.flight.navigation.Navigation.on_flown_ground`).
-FLOWN_GROUND_REASONS = (PARALLAX_REASON, BACKOFF_REASON, TURN_STOP_REASON, DEPTH_STOP_REASON,
-                        GOAL_STOP_REASON)
+FLOWN_GROUND_REASONS = (PARALLAX_REASON, BACKOFF_REASON, TURN_STOP_REASON, TURN_HOLD_REASON,
+                        DEPTH_STOP_REASON, GOAL_STOP_REASON)
 
 
 def on_glide(plan, reason: str, now: float) -> bool:

@@ -490,6 +490,17 @@ class Planner:
         return self._stop(_finite_time(t), _start_pose(T_W_B),
                           _vector(velocity_W, "velocity_W"), reason)
 
+    def stop_afresh(self, t: float, T_W_B, velocity_W, reason: str) -> Plan:
+        """A stop braking from ``velocity_W`` at ``t``, continued by the stops after it in
+        place of the one checked before: for a vehicle about to turn in place, at rest or
+        nearly. The stop checked before the turn continues the last arc for a period and brakes
+        along it from the speed it had then; flown after the turn (or by a failsafe during it)
+        it would carry the vehicle on toward what blocked it, ahead of where it came to rest
+        (a collision in the navigation benchmark, docs/flight.md, "Blocked: turn, then back
+        off")."""
+        self._checked_stop = None
+        return self.stop_plan(t, T_W_B, velocity_W, reason)
+
     def _stop(self, t: float, T_W_S: np.ndarray, velocity: np.ndarray, reason: str) -> Plan:
         stop = self._checked_stop
         if stop is not None and stop.t <= t and (t < stop.end_time or np.linalg.norm(

@@ -22,7 +22,8 @@ import numpy as np
 from autonomy.messages import Odometry
 from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON,
                                             FLOWN_GROUND_REASONS, GOAL_STOP_REASON,
-                                            PARALLAX_REASON, TURN_STOP_REASON, Backoff, Blocked,
+                                            PARALLAX_REASON, TURN_HOLD_REASON,
+                                            TURN_STOP_REASON, Backoff, Blocked,
                                             NoPathClock, ParallaxGlide, Step, approach_targets,
                                             depth_lapsed, must_turn, on_glide, pause_turn,
                                             still_turning, view_starved)
@@ -278,7 +279,21 @@ class Navigation:
         error = self.heading_error()
         if still_turning(error, c.options):
             self.turn_began = abs(error)
-            c.go(FlightState.ALIGNING, "at a corner; turning to face the next waypoint")
+            self._turn_in_place("at a corner; turning to face the next waypoint")
+
+    def _turn_in_place(self, reason: str) -> None:
+        """Turn in place (ALIGNING) for ``reason``, holding where the turn begins: the stop in
+        force through the turn, after it until the next plan, and for a failsafe during it
+        brakes afresh from the present velocity (:meth:`Planner.stop_afresh`), not on the stop
+        checked before, whose path runs on ahead of where the vehicle came to rest."""
+        c = self.context
+        odometry = c.channels.odometry.value
+        if odometry is not None:
+            hold = self.planner.stop_afresh(odometry.t, odometry.T_W_B, odometry.velocity_W,
+                                            TURN_HOLD_REASON)
+            c.channels.plan.publish(hold)
+            c.channels.checked_stop.publish(hold)
+        c.go(FlightState.ALIGNING, reason)
 
     async def _brake(self, reason: str) -> None:
         """Fly :meth:`stop_plan` for ``reason``, a stop by choice, unless a failsafe's stop
@@ -343,7 +358,7 @@ class Navigation:
         if blocked == Blocked.TURN:
             # at rest and not facing the waypoint: one turn in place for a new view (the arcs
             # only turn while moving on), then the no-path clock starts again
-            c.go(FlightState.ALIGNING, "no safe primitive; turning to face the waypoint")
+            self._turn_in_place("no safe primitive; turning to face the waypoint")
         elif blocked == Blocked.BACK_OFF:
             self._back_off(odometry)
 
@@ -370,9 +385,8 @@ class Navigation:
         if aim is None:
             return
         side = "left" if aim > 0.0 else "right"
-        self.context.go(FlightState.ALIGNING, f"no safe primitive and no way back; looking "
-                                              f"{math.degrees(abs(aim)):.0f} deg {side} of the "
-                                              f"waypoint")
+        self._turn_in_place(f"no safe primitive and no way back; looking "
+                            f"{math.degrees(abs(aim)):.0f} deg {side} of the waypoint")
 
     def _plan_with_stop(self, odometry: Odometry, goal_W: np.ndarray) -> tuple[Plan, Plan]:
         """This round's plan, and the braking branch it checked; on the planner's worker."""
