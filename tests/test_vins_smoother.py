@@ -239,9 +239,10 @@ def test_the_anchor_covariance_is_that_of_the_rigid_motion_it_stands_for():
 
 
 def test_the_white_noise_and_the_bias_walk_are_scaled_apart():
-    """``imu_noise_scale`` widens the white noise the rotors add to, ``imu_bias_walk_scale``
-    the bias walk (docs/vins.md, "The bias walk at its datasheet value"); the smoother's
-    preintegration takes both, by default each twice its density."""
+    """``imu_noise_scale`` widens the white noise the rotors add to, ``gyro_noise_scale`` the
+    gyro's on top of it, ``imu_bias_walk_scale`` the bias walk (docs/vins.md, "The bias walk
+    at its datasheet value", "The heading and the gyro's weight"); the smoother's
+    preintegration takes all three, by default the densities twice."""
     params = imu_params(NOISE, 2.0, 1.0)
     eye = np.eye(3)
     assert np.allclose(params.getAccelerometerCovariance(), (2.0 * 6.865e-4) ** 2 * eye)
@@ -250,10 +251,12 @@ def test_the_white_noise_and_the_bias_walk_are_scaled_apart():
     assert np.allclose(params.getBiasOmegaCovariance(), 1.9393e-05 ** 2 * eye)
     smoother = SlidingWindowSmoother(
         PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0), np.eye(4), NOISE,
-        VinsOptions(imu_noise_scale=3.0, imu_bias_walk_scale=0.5))
+        VinsOptions(imu_noise_scale=3.0, imu_bias_walk_scale=0.5, gyro_noise_scale=4.0))
     assert np.allclose(smoother.params.getAccelerometerCovariance(), (3.0 * 6.865e-4) ** 2 * eye)
+    assert np.allclose(smoother.params.getGyroscopeCovariance(), (12.0 * 4.8869e-05) ** 2 * eye)
     assert np.allclose(smoother.params.getBiasAccCovariance(), (0.5 * 3e-3) ** 2 * eye)
     default = SlidingWindowSmoother(
         PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0), np.eye(4), NOISE, VinsOptions())
     assert np.allclose(default.params.getBiasAccCovariance(), (2.0 * 3e-3) ** 2 * eye)
     assert np.allclose(default.params.getAccelerometerCovariance(), (2.0 * 6.865e-4) ** 2 * eye)
+    assert np.allclose(default.params.getGyroscopeCovariance(), (2.0 * 4.8869e-05) ** 2 * eye)

@@ -241,14 +241,15 @@ class _Keyframe:
     normalised: np.ndarray
 
 
-def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float
-               ) -> gtsam.PreintegrationCombinedParams:
+def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float,
+               gyro_scale: float = 1.0) -> gtsam.PreintegrationCombinedParams:
     """GTSAM preintegration parameters for a z-up world from continuous noise densities: the
-    white noise's times ``white_scale``, the bias random walk's times ``walk_scale``."""
+    white noise's times ``white_scale`` (the gyro's times ``gyro_scale`` too), the bias random
+    walk's times ``walk_scale``."""
     params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
     eye = np.eye(3)
-    params.setGyroscopeCovariance(
-        (white_scale * max(noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye)
+    params.setGyroscopeCovariance((white_scale * gyro_scale * max(
+        noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye)
     params.setAccelerometerCovariance(
         (white_scale * max(noise.accel_noise_density, _DENSITY_FLOOR["accel"])) ** 2 * eye)
     params.setIntegrationCovariance(1e-8 * eye)
@@ -298,7 +299,8 @@ class SlidingWindowSmoother:
                  options: VinsOptions):
         self.options = options
         self.camera = camera
-        self.params = imu_params(noise, options.imu_noise_scale, options.imu_bias_walk_scale)
+        self.params = imu_params(noise, options.imu_noise_scale, options.imu_bias_walk_scale,
+                                 options.gyro_noise_scale)
         self._T_B_C = np.asarray(T_B_C, dtype=float)
         self._body_P_camera = gtsam.Pose3(self._T_B_C)
         self._mounting_prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[

@@ -54,6 +54,11 @@ class VinsOptions:
     imu_noise_scale: float = option(2.0, ge=1.0, le=100.0, doc="multiplies the IMU's white-noise"
                                     " densities (datasheet values are optimistic on a vehicle "
                                     "with rotors)")
+    gyro_noise_scale: float = option(1.0, ge=1.0, le=1000.0, doc="multiplies the gyro's "
+                                     "white-noise density on top of imu_noise_scale (the "
+                                     "gyro's unmodelled errors: its cross-axis response, the "
+                                     "rotors' vibration; docs/vins.md, \"The gyro's weight\": "
+                                     "10 measured, not adopted)")
     imu_bias_walk_scale: float = option(2.0, gt=0.0, le=100.0, doc="multiplies the IMU's bias "
                                         "random-walk densities (docs/vins.md, \"The bias walk "
                                         "at its datasheet value\": 1 measured, not adopted)")
