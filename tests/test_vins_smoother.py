@@ -241,7 +241,7 @@ def test_the_anchor_covariance_is_that_of_the_rigid_motion_it_stands_for():
 def test_the_white_noise_and_the_bias_walk_are_scaled_apart():
     """``imu_noise_scale`` widens the white noise the rotors add to, ``gyro_noise_scale`` the
     gyro's on top of it, ``imu_bias_walk_scale`` the bias walk (docs/vins.md, "The bias walk
-    at its datasheet value", "The heading and the gyro's weight"); the smoother's
+    at its datasheet value", "The gyro's weight"); the smoother's
     preintegration takes all three, by default the densities twice."""
     params = imu_params(NOISE, 2.0, 1.0)
     eye = np.eye(3)
