@@ -347,6 +347,28 @@ def test_an_older_frame_decides_where_the_newest_cannot_tell():
     assert result.free.all() and result.frame[0] == 0.0
 
 
+def test_a_surface_the_newest_frame_measures_near_the_vehicle_is_not_freed_by_an_older_one():
+    """A realistic sewer flight's collision: from 2 m back the network had lost a thin pole
+    (the older frame sees only the wall); 0.75 m from it the newest frame sees it beside the
+    arc, inside the spheres of the arc's first points (which reach the camera plane: the
+    block rule judges them). The older frame saw those spheres whole and free, a strong
+    verdict; the newest frame's measured surface must still decide."""
+    wall = ((8.0, -50.0, -50.0), (9.0, 50.0, 50.0))
+    pole = ((0.63, -0.37, -50.0), (0.67, -0.33, 50.0))  # 0.75 m ahead-right, off every centre ray
+    history = DepthHistory()
+    for t, x, scene in ((0.0, -2.0, [wall]), (0.5, 0.0, [pole, wall])):
+        T_W_C = camera_pose(body(x=x))
+        depth = render(T_W_C, scene)
+        history.add(depth, np.ones_like(depth), T_W_C, CAMERA, t)
+    start = [0.0, 0.0, ALTITUDE]
+    arc = [[0.1, 0.0, ALTITUDE], [0.3, 0.0, ALTITUDE], [0.5, 0.0, ALTITUDE]]
+    result = history.check(arc, start_W=start, now=0.5)
+    assert not result.free.any() and result.occupied.all()
+    np.testing.assert_array_equal(result.frame, 0.5)  # the newest frame decided
+    aside = history.check([[0.3, 0.9, ALTITUDE]], start_W=start, now=0.5)
+    assert aside.free.all()  # a near sphere 1.3 m from the pole is not refused by it
+
+
 def test_the_history_remembers_an_obstacle_that_left_the_view():
     post = ((3.0, -0.3, -50.0), (3.6, 0.3, 50.0))
     scene = [post, *ROOM]

@@ -89,9 +89,13 @@ centre's pixel nearer than ``L``); free (weak) when the image's least range is a
 ``L + R`` (every ray through its sphere leaves it within ``L + R``); else it is judged ray by
 ray on ``NEAR_BLOCK_PX`` blocks of pixels (:meth:`DepthHistory._judge_by_blocks`: the exact rule
 with each block's least range against the largest exit distance of any of its rays), free
-(weak) when every block meeting the sphere passes. Weak, because the part of such a sphere
-outside the view is not seen by this frame: older frames, taken from farther back, usually see
-these spheres whole, and their strong verdict wins. (An earlier rule judged such a point by its
+(weak) when every block meeting the sphere passes, occupied (strong) when a known block fails.
+Weak, because the part of such a sphere outside the view is not seen by this frame: older
+frames, taken from farther back, usually see these spheres whole, and their strong verdict
+wins. Occupied is strong, because a surface was measured within the block rule's reach: an
+older frame from farther back may have missed it (the network loses a thin pole at range;
+a realistic sewer flight's estimated depth saw one 0.7 m away, and older frames' free
+verdicts flew the vehicle into it). (An earlier rule judged such a point by its
 centre's ray alone; in simulation it let a braking vehicle graze the corner of a hallway's
 entrance, whose edge no centre ray met. The whole-image test alone found nothing free near the
 vehicle between walls nearer than about 2 m.) A sphere within ``2 R`` that the rings refuse
@@ -440,6 +444,8 @@ class DepthHistory:
             rest, retry = rest[~dead[rest]], retry[~dead[retry]]
         if len(rest):
             free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest], R)
+            # a known block too near is a surface measured there: no older frame overrules it
+            strong[rest] = ~free[rest] & np.isfinite(gap[rest])
         if len(retry):
             again, again_gap = self._judge_by_blocks(frame, p[retry], R)
             freed = retry[again]
