@@ -93,9 +93,9 @@ with each block's least range against the largest exit distance of any of its ra
 Weak, because the part of such a sphere outside the view is not seen by this frame: older
 frames, taken from farther back, usually see these spheres whole, and their strong verdict
 wins. Occupied is strong, because a surface was measured within the block rule's reach: an
-older frame from farther back may have missed it (the network loses a thin pole at range;
-a realistic sewer flight's estimated depth saw one 0.7 m away, and older frames' free
-verdicts flew the vehicle into it). (An earlier rule judged such a point by its
+older frame from farther back may have missed it (a realistic sewer flight's estimated depth
+read a thin pipe 1.0–1.4 m away at 2.4–3.8 m, then rightly at 0.7–0.9 m; the older frames'
+free verdicts flew the vehicle into it). (An earlier rule judged such a point by its
 centre's ray alone; in simulation it let a braking vehicle graze the corner of a hallway's
 entrance, whose edge no centre ray met. The whole-image test alone found nothing free near the
 vehicle between walls nearer than about 2 m.) A sphere within ``2 R`` that the rings refuse
