@@ -35,12 +35,18 @@ class Frame:
     simulator's true body pose at the exposure, ``T_L_B`` in PX4's local frame (4x4), for the
     flight recording's VINS error (``companion log vins``). A real camera driver leaves both
     None and nothing else on the flight path may rely on them.
+
+    ``counter`` is the device's own number of the frame (a RealSense frame number, an OAK
+    sequence number, the simulated camera's exposure index), None where the device has none.
+    A driver whose buffer stopped updating delivers the same number again under a newer stamp:
+    the application refuses such a frame as stale.
     """
 
     t: float
     image: np.ndarray
     truth_depth: np.ndarray | None = None
     truth_pose: np.ndarray | None = None
+    counter: int | None = None
 
 
 @dataclass(frozen=True)

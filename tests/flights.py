@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from autonomy.navigation.mission import DEPTH_UNUSED_STATES
-from companion.config import Config
+from companion.config import load_config
 from companion.launch import simulated
 
 SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
@@ -17,16 +17,18 @@ SUMMARY_KEYS = {"reached_goal", "collisions", "flight_time_s", "path_length_m",
 #: the go, the clock, the soak).
 SHORT_DOME_GOAL = (-19.14, -11.82, 1.5)
 
-_LOCKSTEP_FLIGHTS: dict[simulated.SimMission, dict] = {}
+_LOCKSTEP_FLIGHTS: dict[tuple[simulated.SimMission, tuple[str, ...]], dict] = {}
 
 
-def fly(world: str, *, faults=(), goal=None, depth="estimated") -> dict:
-    """The lockstep flight's summary; a lockstep flight is deterministic, so one flown already
-    is not flown again (several tests read the same fault's flight)."""
+def fly(world: str, *, faults=(), goal=None, depth="estimated", overrides=()) -> dict:
+    """The lockstep flight's summary, with the default config but for ``overrides``
+    (``section.key=value``); a lockstep flight is deterministic, so one flown already is not
+    flown again (several tests read the same fault's flight)."""
     mission = simulated.SimMission(world=world, faults=tuple(faults), goal=goal, depth=depth)
-    if mission not in _LOCKSTEP_FLIGHTS:
-        _LOCKSTEP_FLIGHTS[mission] = simulated.run(Config(), mission)
-    return _LOCKSTEP_FLIGHTS[mission]
+    key = (mission, tuple(overrides))
+    if key not in _LOCKSTEP_FLIGHTS:
+        _LOCKSTEP_FLIGHTS[key] = simulated.run(load_config(None, overrides), mission)
+    return _LOCKSTEP_FLIGHTS[key]
 
 
 def assert_safe_landing(summary: dict) -> None:

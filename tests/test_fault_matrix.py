@@ -19,9 +19,9 @@ from drivers.sim.faults import MOMENTS, Fault
 #: What the first failsafe may name, for the faults that stop the flight: the fault itself, or
 #: what it did first (the IMU silent behind a cut link; during the climb, where the failsafes
 #: wait for the flight to be guarded, a VINS reset, or after an IMU gap the VINS lost until it
-#: can restart; a stale camera's depth losing its anchors before the VINS goes blind).
+#: can restart; a stale camera's frames refused, numbered as the last one taken).
 FAILSAFE_NAMES = {"camera_freeze": ("camera silent",), "camera_blackout": ("VINS",),
-                  "camera_stale": ("VINS blind", "no metric depth"),
+                  "camera_stale": ("camera silent",),
                   "imu_gap": ("IMU silent", "VINS lost (IMU back after a gap"),
                   "link_cut": ("MAVLink link lost", "IMU silent", "VINS reset in flight"),
                   "network_nan": ("no metric depth",), "network_const": ("no metric depth",),
@@ -116,6 +116,7 @@ def test_the_quick_matrix_ends_every_fault_in_its_documented_safe_behaviour(caps
             assert row["failsafes"][0].startswith(FAILSAFE_NAMES[kind]), row
     assert rows["frame_repeat"]["frames_out_of_order"] > 0
     assert rows["frame_reorder"]["frames_out_of_order"] > 0
+    assert rows["camera_stale"]["frames_stale"] > 0
     for kind in ("imu_repeat", "imu_reorder"):  # a repeated stamp does not go forward either
         assert rows[kind]["imu_dropped"].get("backwards", 0) > 0, rows[kind]
     assert rows["px4_reboot"]["failsafes"][-1] == "PX4 disarmed the vehicle in the air"

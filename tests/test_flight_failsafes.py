@@ -79,12 +79,32 @@ def test_the_wall_clock_stepping_an_hour_back_and_forth_mid_flight_changes_nothi
         assert stepped[field] == steady[field], field
 
 
-def test_a_camera_repeating_its_last_image_leaves_the_vins_blind_and_stops_the_flight():
+#: A camera without frame numbers (a V4L2 webcam through OpenCV): the application cannot tell
+#: its stale buffer from a new frame.
+UNNUMBERED = ("sim.camera_counter=false",)
+
+
+def test_a_camera_repeating_its_last_frame_is_refused_and_falls_silent():
+    """A driver whose buffer stopped updating delivers its last frame, numbered as before,
+    under fresh stamps: refused and counted from the first, so the camera falls silent to the
+    failsafes (camera_timeout_s) while the VINS still holds its landmarks."""
+    summary = fly("dome", faults=[Fault.parse("camera_stale@1")], depth="truth")
+    assert_safe_landing(summary)
+    assert summary["failsafes"] == ["camera silent"], summary["failsafes"]
+    assert summary["frames_stale"] > 20, summary["frames_stale"]
+    assert summary["frames_out_of_order"] == 0
+    assert not summary["reached_goal"]
+    assert summary["position_error_m"] < 0.5, summary["position_error_m"]
+
+
+def test_an_unnumbered_camera_repeating_its_image_leaves_the_vins_blind_and_stops_the_flight():
     """The features stay tracked, standing still, while the vehicle moves: the landmarks leave
     the VINS, whose pose is then the IMU's alone. On true depth nothing else stops the flight
     (estimated depth loses its anchors first), so it is the blind VINS's own failsafe."""
-    summary = fly("dome", faults=[Fault.parse("camera_stale@1")], depth="truth")
+    summary = fly("dome", faults=[Fault.parse("camera_stale@1")], depth="truth",
+                  overrides=UNNUMBERED)
     assert_safe_landing(summary)
+    assert summary["frames_stale"] == 0
     assert len(summary["failsafes"]) == 1 and \
         summary["failsafes"][0].startswith("VINS blind (< 5 landmarks for 3."), \
         summary["failsafes"]
@@ -96,7 +116,8 @@ def test_the_stop_after_a_blind_vins_is_flown_on_px4s_estimate_not_the_drifting_
     on that drifting position, flew 3.9 m and never came to rest by the VINS's reckoning (the
     stop's timeout ended it); at zero velocity on PX4's estimate it brakes within the
     braking distance from cruise and is at rest well before the timeout."""
-    summary = fly("dome", faults=[Fault.parse("camera_stale@1")], depth="truth")
+    summary = fly("dome", faults=[Fault.parse("camera_stale@1")], depth="truth",
+                  overrides=UNNUMBERED)
     transitions = summary["transitions"]
     stop = next(k for k, t in enumerate(transitions) if t["to"] == "failsafe_stop")
     stopping_s = transitions[stop + 1]["t"] - transitions[stop]["t"]

@@ -394,6 +394,10 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_bla
                 and np.array_equal(f.truth_depth, before.truth_depth, equal_nan=True)
                 for before, f in zip(frames, frames[1:])]
     assert repeated == [0.3 <= t < 0.4 for t in times[1:]], times
+    # numbered by exposure on the grid, as a RealSense or OAK numbers its frames; the stale
+    # frames carry the number of the frame they repeat, so the application can refuse them
+    counters = [f.counter for f in frames]
+    assert counters == [round(t / 0.05) if not 0.3 <= t < 0.4 else 5 for t in times], counters
 
 
 def test_sim_camera_delivers_frames_twice_or_in_swapped_pairs_under_those_faults():
@@ -405,6 +409,7 @@ def test_sim_camera_delivers_frames_twice_or_in_swapped_pairs_under_those_faults
     assert times == [0.0, 0.0, 0.05, 0.05, 0.1, 0.15, 0.25, 0.2, 0.3, 0.35, 0.4], times
     assert frames[1].image is frames[0].image
     assert not np.array_equal(frames[6].image, frames[7].image)
+    assert [f.counter for f in frames] == [0, 0, 1, 1, 2, 3, 5, 4, 6, 7, 8]
 
 
 # ---------------------------------------------------------------- the real vehicle's wiring

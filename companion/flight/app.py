@@ -192,6 +192,7 @@ class FlightApp:
             "navigation_time_s": navigation,
             "frames": s.frames,
             "frames_out_of_order": s.frames_out_of_order,
+            "frames_stale": s.frames_stale,
             # the VINS takes every frame; the depth stage the newest when its network is free
             "vins_frames": c.channels.vins.published,
             "depth_frames": c.channels.depth.published,

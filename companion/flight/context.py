@@ -51,6 +51,7 @@ class FlightStats:
 
     frames: int = 0
     frames_out_of_order: int = 0  # dropped: not after the last frame taken
+    frames_stale: int = 0  # dropped: the device's number of the last frame taken, again
     depth_ok: int = 0
     depth_fallbacks: int = 0  # of depth_ok: on the affine fallback (autonomy/depth/stage.py)
     depth_reasons: dict = field(default_factory=dict)

@@ -112,6 +112,7 @@ class Perception:
         self.last_depth_t: float | None = None  # newest depth in the planner's history
         self.last_fit_t: float | None = None  # newest depth rescaled by its own frame's fit
         self.last_depth_reason = ""  # why the newest frame without depth had none
+        self._fresh_since_stale = True  # a stale run's first frame is logged, not every one
 
     @property
     def last_frame_t(self) -> float | None:
@@ -132,7 +133,7 @@ class Perception:
         c = self.context
         while True:
             frame = await self.camera.next_frame()
-            if not self._in_order(frame):
+            if not self._fresh(frame):
                 continue
             c.channels.frames.publish(frame)
             c.stats.frames += 1
@@ -144,14 +145,29 @@ class Perception:
             self._after_vins(result)
             update.set_result(result)
 
-    def _in_order(self, frame: Frame) -> bool:
-        """Whether ``frame`` comes after the last one taken. One delivered twice or late (a
-        driver re-queueing or reordering its buffers) is dropped and counted: the VINS and the
-        depth history only run forward in time."""
-        last = self.last_frame_t
-        if last is not None and not frame.t > last:
-            self.context.stats.frames_out_of_order += 1
+    def _fresh(self, frame: Frame) -> bool:
+        """Whether ``frame`` is a new one, to take. Dropped and counted: one not after the last
+        one taken (delivered twice or late: a driver re-queueing or reordering its buffers),
+        since the VINS and the depth history only run forward in time; and one the device
+        numbers as the last one taken, under a newer stamp (stale: a driver whose buffer
+        stopped updating). Fed to the VINS, a stale image holds every feature still while the
+        vehicle moves, and its landmarks drain away while it trusts the IMU alone; refused, the
+        camera falls silent and the failsafe for that stops the flight."""
+        last = self.context.channels.frames.value
+        if last is None:
+            return True
+        stats = self.context.stats
+        if not frame.t > last.t:
+            stats.frames_out_of_order += 1
             return False
+        if frame.counter is not None and frame.counter == last.counter:
+            if self._fresh_since_stale:
+                log.warning("camera: frame %d delivered again at t=%.3f s (stale); refused",
+                            frame.counter, frame.t)
+            stats.frames_stale += 1
+            self._fresh_since_stale = False
+            return False
+        self._fresh_since_stale = True
         return True
 
     async def _depth_loop(self, for_depth: NewestSlot[tuple[Frame, asyncio.Future]]) -> None:

@@ -135,6 +135,7 @@ def fly_row(shared: tuple, fault: Fault) -> dict:
             "min_clearance_m": summary["min_clearance_m"],
             "vins_resets": summary["vins_resets"],
             "frames_out_of_order": summary["frames_out_of_order"],
+            "frames_stale": summary["frames_stale"],
             "imu_dropped": {key[4:]: n for key, n in counters.items()
                             if key.startswith("imu_") and key != "imu_interval_requests" and n},
             "watchdog_setpoints": summary["watchdog_setpoints"],

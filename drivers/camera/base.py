@@ -212,7 +212,7 @@ class ThreadedCamera:
                 self._last_counter = raw.counter
             if self._sequence > self._returned:
                 self._dropped += 1
-            self._frame = Frame(raw.t, image)
+            self._frame = Frame(raw.t, image, counter=raw.counter)
             self._sequence += 1
         self._wake()
 

@@ -16,7 +16,7 @@ consumer slower than the camera gets the newest frame and the ones it missed are
 counted in ``lost``. In lockstep the render happens while simulated time stands still, so the
 frame shows exactly the pose at its exposure. Faults (:mod:`drivers.sim.faults`):
 ``camera_freeze`` delivers nothing, ``camera_blackout`` black images, ``camera_stale`` the last
-image before it began (with its depth) at each new stamp.
+frame before it began (its image, depth and number) at each new stamp.
 """
 
 from __future__ import annotations
@@ -45,15 +45,16 @@ class CameraHead:
     ``sensor`` (the realistic profile's ``[sim_camera]``) or None for an ideal camera: exact
     pose, instant exposure, exact stamps. A sensor needs the ``world`` it flies in (its light)
     and ``rng``, which draws its noise, lost frames and (unless ``vehicle_rng`` does) mounting
-    error."""
+    error. ``numbered``: the device numbers its frames (``Frame.counter``, the exposure's index
+    on the camera's grid), as a RealSense or an OAK does."""
 
     def __init__(self, pinhole: PinholeCamera, rate_hz: float, T_B_C=T_BODY_CAMERA,
                  sensor: SensorOptions | None = None, world: str = "",
                  rng: np.random.Generator | None = None,
-                 vehicle_rng: np.random.Generator | None = None):
+                 vehicle_rng: np.random.Generator | None = None, numbered: bool = True):
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"camera rate must be a positive number of Hz, got {rate_hz}")
-        self.pinhole, self.period = pinhole, 1.0 / rate_hz
+        self.pinhole, self.period, self.numbered = pinhole, 1.0 / rate_hz, numbered
         self.T_B_C_configured = np.asarray(T_B_C, dtype=float)
         self.sensor = None if sensor is None else CameraSensor(
             sensor, pinhole, world, self.period,
@@ -121,18 +122,20 @@ class SimCamera:
                 await self.clock.sleep(capture.stamp - self.clock.now())
             self.delivered += 1
             truth = make_pose(quat_to_rot(state.q_W_B), state.position)
-            frame = self._deliver(replace(self._picture(capture), truth_pose=truth))
+            counter = self._next_index - 1 if self.head.numbered else None
+            frame = self._deliver(replace(self._picture(capture, counter), truth_pose=truth))
             if frame is not None:
                 return frame
 
-    def _picture(self, capture) -> Frame:
-        """The capture as the image faults leave it: stale (the last image again) or black."""
+    def _picture(self, capture, counter: int | None) -> Frame:
+        """The capture, numbered ``counter``, as the image faults leave it: stale (the last
+        frame again, its number too, under the new stamp) or black."""
         faults, t = self.sim.faults, self.sim.time
         if faults.active("camera_stale", t) and self._last is not None:
-            return Frame(capture.stamp, self._last.image, self._last.truth_depth)
-        self._last = Frame(capture.stamp, capture.image, capture.depth)
+            return replace(self._last, t=capture.stamp)
+        self._last = Frame(capture.stamp, capture.image, capture.depth, counter=counter)
         if faults.active("camera_blackout", t):
-            return Frame(capture.stamp, np.zeros_like(capture.image), capture.depth)
+            return replace(self._last, image=np.zeros_like(capture.image))
         return self._last
 
     def _deliver(self, frame: Frame) -> Frame | None:

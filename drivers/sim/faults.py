@@ -6,9 +6,11 @@ Each fault is something that goes wrong on a real vehicle, injected where it wou
 ``camera_freeze``   the camera stops delivering frames (a USB camera or driver that hangs)
 ``camera_blackout`` the camera delivers black frames (lens covered, lights out): the VINS
                     front-end starves, the estimate is lost and re-initialised (a VINS reset)
-``camera_stale``    the camera delivers its last image again with fresh stamps (a driver whose
-                    buffer stopped updating): the features stay tracked but stand still, so
-                    the landmarks leave the VINS and its pose is the IMU's alone
+``camera_stale``    the camera delivers its last frame again with fresh stamps (a driver whose
+                    buffer stopped updating), its device number too: the application refuses
+                    it and the camera falls silent. Without numbers (``[sim] camera_counter =
+                    false``) the features stay tracked but stand still, so the landmarks
+                    leave the VINS and its pose is the IMU's alone
 ``imu_gap``         PX4 stops streaming HIGHRES_IMU
 ``link_cut``        the MAVLink link drops every byte both ways (a cable or radio lost)
 ``network_nan``     the depth network outputs NaN (a broken engine, an overflow in fp16)

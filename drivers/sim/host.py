@@ -241,7 +241,8 @@ def camera_head(config, world: str, seed: int) -> CameraHead:
     return CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(),
                       config.sim_camera.for_profile(config.sim.profile), world,
                       np.random.default_rng([config.sim.noise_for(seed), 3]),
-                      np.random.default_rng([config.sim.vehicle_for(seed), 3]))
+                      np.random.default_rng([config.sim.vehicle_for(seed), 3]),
+                      numbered=config.sim.camera_counter)
 
 
 async def stall_when_due(faults: FaultSchedule, sim) -> None:

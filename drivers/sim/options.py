@@ -46,6 +46,13 @@ class SimOptions:
         "realtime: paced by the wall clock, for outside MAVLink clients",
     )
 
+    camera_counter: bool = option(
+        True,
+        doc="the simulated camera numbers its frames, as a RealSense or an OAK does, so that a "
+        "stale buffer (the camera_stale fault) repeats its number and the application refuses "
+        "it; false: a camera without numbers (a V4L2 webcam through OpenCV), whose stale "
+        "buffer only the VINS's blind failsafe catches",
+    )
     profile: str = option(
         "ideal",
         choices=PROFILES,
