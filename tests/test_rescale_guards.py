@@ -50,6 +50,44 @@ def test_near_tail_never_pushes_nearer_pixels_farther(method):
     assert np.all(np.diff(model.depth(beyond)) <= 0)
 
 
+# ---- near-end check ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method", ["monotone_spline", "monotone_smoothing_spline",
+                                    "smoothing_spline", "poly2"])
+def test_a_lone_near_anchor_on_the_wrong_surface_does_not_push_a_pole_away(method):
+    """A realistic sewer flight's anchors (docs/rescaling.md): landmarks on a wall 3.7–8 m
+    away, and one on that wall just beside a thin pole, which sampled the pole's disparity
+    (as if 1.7 m away) with the wall's depth, 4 m. Alone beyond a gap, the curve bent to it,
+    and the pole, 1.1 m away, read about 3 m: the near tail continued from a near end set at
+    the wall's depth. Judged by the others' extension, that anchor is dropped and the pole
+    reads near its depth."""
+    rng = np.random.default_rng(1)
+    x, z = anchors_at_depths(rng.uniform(3.7, 8.0, 45), rng, noise=0.01)  # the VINS's noise
+    x, z = np.append(x, relative_disparity_of([1.7])), np.append(z, 4.0)
+    pole = relative_disparity_of([1.1])
+
+    bent = fit(x, z, method, near_end_check=False)
+    assert bent.depth(pole)[0] > 2.0  # the failure
+    checked = fit(x, z, method)
+    assert checked.anchors.used == bent.anchors.used - 1
+    np.testing.assert_allclose(checked.depth(pole), [1.1], rtol=0.1)
+
+
+def test_near_anchors_beyond_a_gap_that_agree_with_the_others_are_kept():
+    """A post 1.0–1.3 m away beyond a gap (the gap guard's scene), and a network that reads
+    near surfaces nearer than affine (more disparity, e.g. 20 % at the post): the check is
+    one-sided, the near anchors stay and the post reads at its depth."""
+    rng = np.random.default_rng(4)
+    x, z = gap_anchors(rng)
+    for scale in (1.0, 1.2):
+        near = z < 2.0
+        relative = np.where(near, x * scale, x)
+        model = fit(relative, z, "monotone_spline")
+        assert model.anchors.used >= len(z) - 2, scale  # the outlier rejection's own drops
+        np.testing.assert_allclose(model.depth(relative_disparity_of([1.15]) * scale), [1.15],
+                                   rtol=0.1)
+
+
 # ---- gap guard --------------------------------------------------------------------------------
 
 def gap_anchors(rng):

@@ -362,12 +362,13 @@ def _fit_robustly(x, y, opts: RescaleOptions):
     if not opts.outlier_rejection:
         family, method, notes = _fit_family(x, y, opts)
         return family, np.ones(len(x), dtype=bool), method, notes
-    used = _inliers(x, y, _screening_curve(x, y, opts), opts.outlier_threshold)
+    used = _supported(x, y, _inliers(x, y, _screening_curve(x, y, opts),
+                                     opts.outlier_threshold), opts)
     for round_ in range(_REJECTION_ROUNDS):
         if used.sum() < opts.min_anchors:
             return None, used, opts.method, ()
         family, method, notes = _fit_family(x[used], y[used], opts)
-        judged = _inliers(x, y, family, opts.outlier_threshold)
+        judged = _supported(x, y, _inliers(x, y, family, opts.outlier_threshold), opts)
         if _settled(judged, used) or round_ == _REJECTION_ROUNDS - 1:
             return family, used, method, notes
         used = judged
@@ -387,6 +388,47 @@ def _screening_curve(x, y, opts: RescaleOptions):
     if curves.count_distinct(x) < 4:
         return curves.fit_affine_least_squares(x, y)
     return curves.fit_monotone_pspline(x, y, opts, smoothing_lambda=0.0)[0]
+
+
+#: An anchor beyond the near end's gap is unsupported when its metric disparity is less than
+#: the others' affine map's by more than this factor (it claims a surface this much farther).
+NEAR_END_FACTOR = 1.5
+
+
+def _supported(x, y, used: np.ndarray, opts: RescaleOptions) -> np.ndarray:
+    """``used`` less the anchors at the near end that the others do not support
+    (``near_end_check``).
+
+    The anchors of ``used`` beyond its last gap (a stretch of relative disparity wider than
+    ``gap_fraction`` of their range with no anchor), when fewer than those below it, have no
+    neighbour to contradict them: any flexible curve, the screening one too, bends to reach
+    them, so their residuals say nothing. They are judged instead by the least-squares affine
+    map of the anchors below the gap (the map a relative-disparity network ideally follows;
+    a curve fitted to few anchors is no steadier a judge): one whose metric disparity is less
+    than that map's by more than :data:`NEAR_END_FACTOR` is dropped. One-sided, because that is
+    the harmful error: such an anchor sets the curve's near end farther than its neighbours
+    say, and every nearer surface is read farther with it. Why: a landmark on a wall just
+    beside a thin pole samples the pole's larger disparity (the nearest surface of its four
+    pixels, anchors.py); alone beyond a gap, it set the near end at the wall's depth, and the
+    pole 1.1 m away read 3.1 m (a realistic sewer flight, docs/rescaling.md). A network that
+    reads near surfaces nearer than affine (more disparity) is not judged wrong by it; one
+    that reads them farther by more than the factor loses those anchors, and its near
+    surfaces are then read by the curve's straight tail, nearer than the anchors said.
+    """
+    if not opts.near_end_check:
+        return used
+    index = np.flatnonzero(used)  # x is sorted, so these are too
+    xs = x[index]
+    gaps = np.flatnonzero(np.diff(xs) > opts.gap_fraction * (xs[-1] - xs[0]))
+    if len(gaps) == 0:
+        return used
+    below, beyond = index[:gaps[-1] + 1], index[gaps[-1] + 1:]
+    if len(beyond) >= len(below) or curves.count_distinct(x[below]) < 4:
+        return used
+    extension = curves.fit_affine_least_squares(x[below], y[below])(x[beyond])
+    result = used.copy()
+    result[beyond[y[beyond] * NEAR_END_FACTOR < extension]] = False
+    return result
 
 
 def _inliers(x, y, family, threshold: float) -> np.ndarray:
