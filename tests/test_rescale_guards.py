@@ -73,19 +73,26 @@ def test_a_lone_near_anchor_on_the_wrong_surface_does_not_push_a_pole_away(metho
     np.testing.assert_allclose(checked.depth(pole), [1.1], rtol=0.1)
 
 
-def test_near_anchors_beyond_a_gap_that_agree_with_the_others_are_kept():
-    """A post 1.0–1.3 m away beyond a gap (the gap guard's scene), and a network that reads
-    near surfaces nearer than affine (more disparity, e.g. 20 % at the post): the check is
-    one-sided, the near anchors stay and the post reads at its depth."""
+@pytest.mark.parametrize("scale, kept", [(0.5, True), (1.0, True), (1.2, True), (2.0, False)])
+def test_the_near_end_check_drops_only_anchors_that_claim_a_farther_surface(scale, kept):
+    """A post 1.0–1.3 m away beyond a gap (the gap guard's scene), and a network that gives
+    the post ``scale`` times the affine map's relative disparity. Read farther than affine
+    (0.5) or nearer within the factor (1.2), its anchors stay, as with the check off; read
+    2x nearer, the post's anchors claim a surface about twice as far as the wall's map says
+    and go, and the post is read by the straight tail, nearer than it is: the safe side."""
     rng = np.random.default_rng(4)
     x, z = gap_anchors(rng)
-    for scale in (1.0, 1.2):
-        near = z < 2.0
-        relative = np.where(near, x * scale, x)
-        model = fit(relative, z, "monotone_spline")
-        assert model.anchors.used >= len(z) - 2, scale  # the outlier rejection's own drops
-        np.testing.assert_allclose(model.depth(relative_disparity_of([1.15]) * scale), [1.15],
-                                   rtol=0.1)
+    post = z < 2.0
+    relative = np.where(post, x * scale, x)
+    unchecked = fit(relative, z, "monotone_spline", near_end_check=False)
+    checked = fit(relative, z, "monotone_spline")
+    if kept:
+        assert checked.anchors.used == unchecked.anchors.used
+        np.testing.assert_allclose(checked.depth(relative_disparity_of([1.15]) * scale),
+                                   [1.15], rtol=0.1)
+    else:
+        assert checked.anchors.used == unchecked.anchors.used - post.sum()
+        assert checked.depth(relative_disparity_of([1.15]) * scale)[0] < 1.15
 
 
 # ---- gap guard --------------------------------------------------------------------------------

@@ -405,10 +405,15 @@ class GuardedCurve:
         return None
 
 
+def gap_starts(x_sorted: np.ndarray, gap_fraction: float) -> np.ndarray:
+    """Indices ``i`` of the sorted anchors followed by a gap: ``x[i + 1] - x[i]`` wider than
+    ``gap_fraction`` of the anchor range."""
+    return np.flatnonzero(np.diff(x_sorted) > gap_fraction * (x_sorted[-1] - x_sorted[0]))
+
+
 def find_gaps(family, x_sorted: np.ndarray, gap_fraction: float) -> tuple[Bridge, ...]:
     """Bridges over the anchor-free stretches wider than ``gap_fraction`` of the anchor range."""
-    limit = gap_fraction * (x_sorted[-1] - x_sorted[0])
-    starts = np.flatnonzero(np.diff(x_sorted) > limit)
+    starts = gap_starts(x_sorted, gap_fraction)
     if len(starts) == 0:
         return ()
     ends = family(np.concatenate([x_sorted[starts], x_sorted[starts + 1]]))

@@ -42,8 +42,9 @@ class RescaleOptions:
                                       "(1.4826 x median absolute deviation)")
     near_end_check: bool = option(True, doc="with outlier rejection, judge the anchors beyond "
                                   "an anchor-free gap at the near end (the largest relative "
-                                  "disparities) by the others' curve and its straight tail: "
-                                  "a curve bends to reach an anchor no neighbour contradicts")
+                                  "disparities) by the least-squares affine map of the others, "
+                                  "dropping one that claims a surface 1.5x farther: a curve "
+                                  "bends to reach an anchor no neighbour contradicts")
     segments: int = option(10, ge=1, le=100, doc="P-spline knot segments over the anchor range "
                            "(13 cubic bases for 10)")
     kappa: float = option(1e6, ge=0.0, doc="P-spline asymmetric penalty on decreasing "

@@ -411,15 +411,17 @@ def _supported(x, y, used: np.ndarray, opts: RescaleOptions) -> np.ndarray:
     beside a thin pole samples the pole's larger disparity (the nearest surface of its four
     pixels, anchors.py); alone beyond a gap, it set the near end at the wall's depth, and the
     pole 1.1 m away read 3.1 m (a realistic sewer flight, docs/rescaling.md). A network that
-    reads near surfaces nearer than affine (more disparity) is not judged wrong by it; one
-    that reads them farther by more than the factor loses those anchors, and its near
-    surfaces are then read by the curve's straight tail, nearer than the anchors said.
+    reads near surfaces farther than affine (less relative disparity) is never judged wrong
+    by it; one that reads them nearer (more) by more than the factor loses those anchors, and
+    its near surfaces are then read by the curve's straight tail, nearer than they are: the
+    safe side.
     """
     if not opts.near_end_check:
         return used
     index = np.flatnonzero(used)  # x is sorted, so these are too
-    xs = x[index]
-    gaps = np.flatnonzero(np.diff(xs) > opts.gap_fraction * (xs[-1] - xs[0]))
+    if len(index) < 2:
+        return used
+    gaps = curves.gap_starts(x[index], opts.gap_fraction)
     if len(gaps) == 0:
         return used
     below, beyond = index[:gaps[-1] + 1], index[gaps[-1] + 1:]

@@ -89,7 +89,8 @@ centre's pixel nearer than ``L``); free (weak) when the image's least range is a
 ``L + R`` (every ray through its sphere leaves it within ``L + R``); else it is judged ray by
 ray on ``NEAR_BLOCK_PX`` blocks of pixels (:meth:`DepthHistory._judge_by_blocks`: the exact rule
 with each block's least range against the largest exit distance of any of its rays), free
-(weak) when every block meeting the sphere passes, occupied (strong) when a known block fails.
+(weak) when every block meeting the sphere passes, occupied (strong) when the known pixels of
+a block meeting it fail (whatever unknown pixels its blocks hold).
 Weak, because the part of such a sphere outside the view is not seen by this frame: older
 frames, taken from farther back, usually see these spheres whole, and their strong verdict
 wins. Occupied is strong, because a surface was measured within the block rule's reach: an
@@ -170,7 +171,7 @@ class CheckResult:
 class _Frame:
     """One depth frame: its pose, camera, time, the sparse minimum table of its ranges and, per
     side in ``NEAR_BLOCK_PX``, the least range of each such square block (raveled, -1 where
-    any pixel is unknown)."""
+    any pixel is unknown) and the least of its known pixels (+inf where none is known)."""
 
     def __init__(self, table: np.ndarray, T_W_C: np.ndarray, camera: PinholeCamera, t: float):
         T_C_W = invert_pose(T_W_C)
@@ -181,6 +182,8 @@ class _Frame:
         self.least = float(table[0].min())  # negative when any pixel is unknown
         self.blocks = {side: table[side.bit_length() - 1, ::side, ::side].reshape(-1)
                        for side in NEAR_BLOCK_PX}
+        known = np.where(table[0] >= 0.0, table[0], np.float32(np.inf))
+        self.known_blocks = {side: _block_minima(known, side) for side in NEAR_BLOCK_PX}
         self.camera = camera
         self.focal = np.array([[camera.fx], [camera.fy]])  # image x, y: (2, 1) for broadcasting
         self.centre = np.array([[camera.cx], [camera.cy]])
@@ -354,9 +357,9 @@ class DepthHistory:
         return kept[side]
 
     def _judge_by_blocks(self, frame: _Frame, p: np.ndarray, R: float
-                         ) -> tuple[np.ndarray, np.ndarray]:
-        """``(free, clearance)`` of spheres of radius ``R`` about ``p`` (M, 3), camera frame,
-        by the exact rule on every pixel block (for spheres near the vehicle): a ray at angle
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(free, clearance, occupied)`` of spheres of radius ``R`` about ``p`` (M, 3), camera
+        frame, by the exact rule on every pixel block (for spheres near the vehicle): a ray at angle
         ``theta`` from the centre's direction meets the sphere when ``b = L sin(theta) <= R``
         (and, from outside it, ``theta < 90°``) and leaves it at ``s2(theta) = L cos(theta) +
         sqrt(R² - b²)``, which falls as ``theta`` grows. A block whose rays lie within
@@ -364,17 +367,20 @@ class DepthHistory:
         nearer in angle than ``theta_c - delta``; its least range must reach ``s2`` there.
         Free when every block meeting the sphere is known and passes (of a sphere reaching the
         camera plane only the part in view: the caller makes that verdict weak); the
-        clearance is the least margin. Points are taken per :data:`NEAR_CELL_M` cube (the
-        caution that costs is the cube's half diagonal, 4 cm)."""
+        clearance is the least margin. Occupied when the known pixels of a block meeting it
+        fail, whatever unknown pixels the blocks hold: a surface was measured there. Points are
+        taken per :data:`NEAR_CELL_M` cube (the caution that costs is the cube's half
+        diagonal, 4 cm)."""
         centres, inverse = _cells(p, NEAR_CELL_M)
         radius = R + NEAR_CELL_M * math.sqrt(0.75)
-        free, margin = self._blocks_rule(frame, centres, radius, NEAR_BLOCK_PX[0])
+        free, margin, occupied = self._blocks_rule(frame, centres, radius, NEAR_BLOCK_PX[0])
         for side in NEAR_BLOCK_PX[1:]:
             again = np.flatnonzero(~free)
             if len(again) == 0:
                 break
-            free[again], margin[again] = self._blocks_rule(frame, centres[again], radius, side)
-        return free[inverse], margin[inverse]
+            free[again], margin[again], occupied[again] = self._blocks_rule(
+                frame, centres[again], radius, side)
+        return free[inverse], margin[inverse], occupied[inverse]
 
     def _blocks_rule(self, frame: _Frame, p: np.ndarray, R: float, side: int):
         """The block rule of :meth:`_judge_by_blocks` on spheres of radius ``R``, with blocks
@@ -402,8 +408,11 @@ class DepthHistory:
         np.minimum.at(margin, point[meets], (ranges - exit_distance)[meets])
         unknown = np.zeros(m, dtype=bool)
         unknown[point[meets & (ranges < 0.0)]] = True
+        occupied = np.zeros(m, dtype=bool)
+        occupied[point[meets & (frame.known_blocks[side][block] < exit_distance)]] = True
         known = ~unknown
-        return known & (margin >= 0.0), np.where(known, margin.astype(float), np.nan)
+        return (known & (margin >= 0.0), np.where(known, margin.astype(float), np.nan),
+                occupied)
 
     def _judge(self, frame: _Frame, points: np.ndarray, near: np.ndarray, R: float,
                unfreed: np.ndarray | None = None, groups: np.ndarray | None = None):
@@ -443,11 +452,10 @@ class DepthHistory:
             dead = np.isin(groups, groups[occupied])
             rest, retry = rest[~dead[rest]], retry[~dead[retry]]
         if len(rest):
-            free[rest], gap[rest] = self._judge_by_blocks(frame, p[rest], R)
-            # a known block too near is a surface measured there: no older frame overrules it
-            strong[rest] = ~free[rest] & np.isfinite(gap[rest])
+            # a known pixel too near is a surface measured there: no older frame overrules it
+            free[rest], gap[rest], strong[rest] = self._judge_by_blocks(frame, p[rest], R)
         if len(retry):
-            again, again_gap = self._judge_by_blocks(frame, p[retry], R)
+            again, again_gap, _ = self._judge_by_blocks(frame, p[retry], R)
             freed = retry[again]
             free[freed], gap[freed] = True, again_gap[again]
             strong[freed] = ~clipped[np.searchsorted(whole, freed)]
@@ -467,10 +475,10 @@ class DepthHistory:
         free[ray] = (nearest >= 0.0) & (nearest >= distance + R)
         strong[ray] = (d >= 0.0) & (d < distance)
         gap[ray[free[ray]]] = nearest - (distance[free[ray]] + R)
-        # a sphere holding the camera meets every ray, so any unknown pixel leaves it
-        # unknown; the rest, ray by ray, block by block
-        holds_camera = (nearest < 0.0) & (distance <= R)
-        return ray[~free[ray] & ~strong[ray] & ~holds_camera]
+        # the rest, ray by ray, block by block (a sphere holding the camera meets every ray,
+        # so one unknown pixel keeps it from being free, but a measured surface may still
+        # make it occupied)
+        return ray[~free[ray] & ~strong[ray]]
 
     def _judge_by_rings(self, frame: _Frame, c: np.ndarray, R: float, whole: np.ndarray,
                         free: np.ndarray, strong: np.ndarray, gap: np.ndarray) -> np.ndarray:
@@ -514,6 +522,16 @@ def check_camera(camera) -> None:
     if min(camera.width, camera.height) < NEAR_BLOCK_PX[0]:
         raise ValueError(f"camera {camera.width}x{camera.height} is smaller than the "
                          f"{NEAR_BLOCK_PX[0]}-pixel blocks of the near-vehicle check")
+
+
+def _block_minima(image: np.ndarray, side: int) -> np.ndarray:
+    """The minimum of each ``side`` x ``side`` block of ``image`` (H, W), raveled row by row
+    as ``image[::side, ::side]`` is (the blocks at the right and bottom edges clipped)."""
+    H, W = image.shape
+    if H % side or W % side:
+        image = np.pad(image, ((0, -H % side), (0, -W % side)), constant_values=np.inf)
+    rows = image.reshape(-1, side, image.shape[1]).min(axis=1)  # contiguous reductions
+    return rows.reshape(len(rows), -1, side).min(axis=2).reshape(-1)
 
 
 def min_table(image: np.ndarray) -> np.ndarray:

@@ -112,7 +112,7 @@ class Perception:
         self.last_depth_t: float | None = None  # newest depth in the planner's history
         self.last_fit_t: float | None = None  # newest depth rescaled by its own frame's fit
         self.last_depth_reason = ""  # why the newest frame without depth had none
-        self._fresh_since_stale = True  # a stale run's first frame is logged, not every one
+        self._in_stale_run = False  # a stale run's first frame is logged, not every one
 
     @property
     def last_frame_t(self) -> float | None:
@@ -152,7 +152,10 @@ class Perception:
         numbers as the last one taken, under a newer stamp (stale: a driver whose buffer
         stopped updating). Fed to the VINS, a stale image holds every feature still while the
         vehicle moves, and its landmarks drain away while it trusts the IMU alone; refused, the
-        camera falls silent and the failsafe for that stops the flight."""
+        camera falls silent and the failsafe for that stops the flight. Only the same number
+        is stale: a number that goes back (a driver restarting its stream) starts afresh, and
+        a buffer cycling through two frames is not caught here (the VINS's blind failsafe
+        remains)."""
         last = self.context.channels.frames.value
         if last is None:
             return True
@@ -161,13 +164,13 @@ class Perception:
             stats.frames_out_of_order += 1
             return False
         if frame.counter is not None and frame.counter == last.counter:
-            if self._fresh_since_stale:
+            if not self._in_stale_run:
                 log.warning("camera: frame %d delivered again at t=%.3f s (stale); refused",
                             frame.counter, frame.t)
             stats.frames_stale += 1
-            self._fresh_since_stale = False
+            self._in_stale_run = True
             return False
-        self._fresh_since_stale = True
+        self._in_stale_run = False
         return True
 
     async def _depth_loop(self, for_depth: NewestSlot[tuple[Frame, asyncio.Future]]) -> None:
