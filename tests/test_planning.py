@@ -494,7 +494,7 @@ WIDE = PinholeCamera.from_hfov(640, 480, math.radians(90.0))
 FAR_WALL = ((30.0, -200.0, -50.0), (31.0, 200.0, 50.0))
 
 
-def floor_scene(altitude, boxes=()):
+def floor_scene(altitude, boxes=(), options=None):
     """The 640x480 depth of a level camera ``altitude`` above a flat floor (world z = 0): the
     floor plane analytically, depth ``altitude / ((v - cy) / fy)`` below the horizon, and a
     wall 30 m ahead and any ``boxes`` rendered; the planner seeing it from the origin."""
@@ -504,7 +504,7 @@ def floor_scene(altitude, boxes=()):
         floor = np.where(down > 0.0, altitude / down, np.inf)
     walls = render(camera_pose(T_W_B), [FAR_WALL, *boxes], WIDE)
     depth = np.fmin(floor, walls).astype(np.float32)
-    planner = Planner(WIDE)
+    planner = Planner(WIDE, options)
     planner.add_depth(metric(depth, 0.0), camera_pose(T_W_B))
     return planner, T_W_B, depth
 
@@ -812,6 +812,20 @@ def test_in_open_space_the_choice_heads_for_the_goal(goal, turn, climb):
     assert np.linalg.norm(end_W - goal) < np.linalg.norm(start - goal) - 3.0
     assert np.sign(plan.primitive.yaw_rate) == turn
     assert np.sign(plan.primitive.vertical_speed) == climb
+
+
+@pytest.mark.parametrize("height_gap_in_time, sinks", [(True, True), (False, False)])
+def test_a_goal_below_is_sunk_to_on_the_way_when_height_counts_in_time(height_gap_in_time,
+                                                                       sinks):
+    """2.5 m over a floor, the waypoint 12 m ahead at 1.5 m (a route's cruise height, the
+    hallway's door in docs/planner.md "Height"): counted in time the height gap outweighs the
+    floor's nearness and the choice sinks; as plain distance it climbs away from the floor."""
+    options = PlannerOptions(height_gap_in_time=height_gap_in_time)
+    planner, T_W_B, _ = floor_scene(2.5, options=options)
+    plan = planner.plan(0.05, T_W_B, FORWARD, np.array([12.0, 0.0, 1.5]))
+    assert plan.kind == "arc" and plan.primitive.yaw_rate == 0.0
+    assert (plan.primitive.vertical_speed < 0.0) == sinks
+    assert (plan.primitive.vertical_speed > 0.0) == (not sinks)
 
 
 def test_smoothness_keeps_the_choice_near_the_previous_one():
