@@ -163,6 +163,7 @@ SIMULATOR_DEFAULTS = (
     "depth.scale_field_nodes=4",
     "vins.estimate_time_offset=true",
     "vins.estimate_gyro_alignment=true",
+    "vins.gyro_noise_scale=10",
     "planner.near_tail_share=0.9",
     "planner.far_tail_share=0.9",
 )
