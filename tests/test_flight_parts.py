@@ -521,3 +521,43 @@ def test_a_failure_during_the_glide_to_a_landing_site_cuts_it_short(failure, rea
     health.check(0.0)
     assert navigation.at_landing_site()
     assert steps._glide_end() == f"{reason}: the glide to the landing site cut short"
+
+
+def test_a_frame_waits_out_a_silent_imu_once_and_the_next_frames_do_not_while_it_stays_silent():
+    """A frame waits for the IMU to reach it, up to ``imu_timeout_s``; once a wait has run
+    out, the next frames go straight on while the IMU's newest stamp stays where it was (each
+    waiting the whole time out, the VINS saw one frame in 0.29 s through an IMU gap and lost
+    the tracks it relocalises on), and wait again once the IMU moves."""
+    from companion.flight.perception import IMU_POLL_S, Perception
+
+    clock = SimClock(10.0)
+    autopilot = SimpleNamespace(last_imu_t=9.0)
+    context = SimpleNamespace(clock=clock, autopilot=autopilot,
+                              options=SimpleNamespace(imu_timeout_s=0.25))
+    perception = SimpleNamespace(context=context, _imu_silent_since=math.nan)
+
+    async def wait_for(t: float, imu_arrives_at: float | None = None) -> float:
+        """Simulated seconds the frame at ``t`` waited, the clock moved as the lockstep host
+        moves it (to each sleeper's deadline)."""
+        start = clock.now()
+        waiting = asyncio.ensure_future(Perception._wait_for_imu(perception, t))
+        while not waiting.done():
+            await asyncio.sleep(0)
+            deadline = clock.next_deadline
+            if deadline is not None:
+                clock.advance_to(deadline)
+            if imu_arrives_at is not None and clock.now() >= imu_arrives_at:
+                autopilot.last_imu_t = t
+        return clock.now() - start
+
+    async def frames():
+        silent = await wait_for(10.0)  # the IMU stopped at 9.0: the whole time out
+        still_silent = [await wait_for(10.0 + 0.05 * k) for k in range(1, 4)]
+        autopilot.last_imu_t = 9.9  # back, behind the frame: waited for again
+        back = await wait_for(10.5, imu_arrives_at=clock.now() + 0.02)
+        return silent, still_silent, back
+
+    silent, still_silent, back = asyncio.run(frames())
+    assert silent == pytest.approx(0.25, abs=2 * IMU_POLL_S)
+    assert still_silent == [0.0, 0.0, 0.0]
+    assert back == pytest.approx(0.02, abs=2 * IMU_POLL_S)
