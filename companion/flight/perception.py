@@ -206,14 +206,16 @@ class Perception:
         VINS saw one frame in every ``imu_timeout_s`` (0.29 s) through a gap, and the tracks it
         relocalises on when the IMU is back broke between them (docs/reliability.md)."""
         clock, autopilot = self.context.clock, self.context.autopilot
-        if autopilot.last_imu_t == self._imu_silent_since or (
-                autopilot.last_imu_t is None and self._imu_silent_since is None):
+        if autopilot.last_imu_t == self._imu_silent_since:
             return
+
+        def imu_behind() -> bool:
+            return autopilot.last_imu_t is None or autopilot.last_imu_t < t
+
         give_up = clock.now() + self.context.options.imu_timeout_s
-        while (autopilot.last_imu_t is None or autopilot.last_imu_t < t) \
-                and clock.now() < give_up:
+        while imu_behind() and clock.now() < give_up:
             await clock.sleep(IMU_POLL_S)
-        if autopilot.last_imu_t is None or autopilot.last_imu_t < t:
+        if imu_behind():
             self._imu_silent_since = autopilot.last_imu_t
 
     def _feed_imu(self) -> None:
