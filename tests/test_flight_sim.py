@@ -85,6 +85,26 @@ def test_a_door_lower_than_the_room_is_met_at_the_waypoints_height_and_flown_thr
     assert summary["closest_to_goal_m"] < 3.0, summary["closest_to_goal_m"]
 
 
+def test_blocked_after_a_corners_turn_the_parallax_glide_leaves_it_time_to_back_off():
+    """The sewer's pair 1, seed 2, on estimated depth (realistic): at the first corner the
+    vehicle turns to face the next leg beside a pillar that blocks every arc, with no
+    landmark in the new view, and glides back along its trail for parallax. The glide is a
+    stop by choice and the no-path clock does not run through it (``NoPathClock.restart``):
+    with it running, the no-safe-primitive failsafe came as the glide ended, before the
+    back-off's half of the no-path time, and the flight ended at the corner 71.7 m from the
+    goal (the benchmark at 3712664). Now it backs off and flies on (to the goal in 118 s of
+    navigation); a 25 s mission timeout cuts it short."""
+    preset = CONFIG_DIR / "sim-realistic.toml"
+    config = load_config(preset, ["flight.mission_timeout_s=25"])
+    summary = simulated.run(config, simulated.SimMission(world="sewer", seed=2, pair=1,
+                                                         depth="estimated"))
+    assert_safe_landing(summary)
+    assert summary["backoffs"] >= 1
+    assert summary["failsafes"] == ["mission timeout"], summary["failsafes"]
+    # measured: 61.4 m from the goal when the time ran out
+    assert summary["closest_to_goal_m"] < 66.0, summary["closest_to_goal_m"]
+
+
 def test_blocked_at_take_off_with_no_way_back_it_looks_aside_and_flies_on():
     """The dome's pair 4, seed 3 (realistic): a pole 1.8 m ahead of the take-off on the first
     leg's line. No arc of the view aimed at the waypoint was safe (31 of 75 blocked by the

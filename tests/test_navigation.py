@@ -268,6 +268,22 @@ def test_blocked_it_brakes_then_turns_once_then_backs_off_after_half_the_no_path
     assert clock.since is None and not clock.turned and not clock.expired(100.0, OPTIONS)
 
 
+def test_a_stop_by_choice_restarts_the_no_path_clock_and_keeps_the_turn_made():
+    """A corner's turn or a parallax glide while blocked: the clock starts again at the next
+    blocked round, so the back-off still comes after half the no-path time; the one turn
+    toward the waypoint stays spent."""
+    clock = NoPathClock()
+    far_off = math.radians(40.0)
+    assert clock.blocked(0.0, True, far_off, OPTIONS) == Blocked.TURN
+    assert clock.blocked(1.0, True, 0.0, OPTIONS) == Blocked.WAIT
+    assert clock.expired(4.5, OPTIONS)  # a glide from 1.0 s to 4.5 s, the clock running
+    clock.restart()
+    assert not clock.expired(4.5, OPTIONS)
+    assert clock.blocked(4.5, True, far_off, OPTIONS) == Blocked.WAIT  # no second turn
+    assert not clock.expired(7.5, OPTIONS)
+    assert clock.blocked(6.0, True, 0.0, OPTIONS) == Blocked.BACK_OFF
+
+
 def _candidates_blocked_on(planner, side: float) -> Candidates:
     """The slowest tier, every arc turning to ``side`` (+1 left, -1 right) blocked."""
     tier = planner.tiers[-1]

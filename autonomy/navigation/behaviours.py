@@ -310,6 +310,14 @@ class NoPathClock:
         self.turned = False
         self.looks: list[float] = []
 
+    def restart(self) -> None:
+        """A stop by choice (a corner's turn, the parallax glide): the clock does not run
+        through it and starts again at the next blocked round, the turn and the looks made
+        kept. A glide for parallax right after a corner's turn, beside a pillar that blocked
+        every arc, ran the clock out before the back-off's half of it could come (realistic
+        sewer pair 1, seed 2, estimated depth: docs/results.md)."""
+        self.since = None
+
     @property
     def aim(self) -> float:
         """The heading aimed at, radians off the waypoint's bearing: the last look's, else 0."""

@@ -261,6 +261,7 @@ class Navigation:
         step = self.parallax.step(self.plan, now, starved)
         if isinstance(step, Step):
             return step == Step.KEEP
+        self.no_path.restart()
         self._follow(self.planner.glide(odometry.t, odometry.T_W_B, step, PARALLAX_REASON))
         log.info("no depth or few landmarks after turning; gliding %s along the flown trail",
                  "back" if self.parallax.active else "to the turning point")
@@ -270,7 +271,7 @@ class Navigation:
         """Come to rest on the stop checked at the last round, then turn in place to face the
         next waypoint. A stop by choice: the no-path clock does not run."""
         c = self.context
-        self.no_path.since = None
+        self.no_path.restart()
         if not self.stopped():
             await self._brake(TURN_STOP_REASON)
             return
