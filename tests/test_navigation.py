@@ -280,8 +280,8 @@ def test_a_stop_by_choice_restarts_the_no_path_clock_and_keeps_the_turn_made():
     clock.restart()
     assert not clock.expired(4.5, OPTIONS)
     assert clock.blocked(4.5, True, far_off, OPTIONS) == Blocked.WAIT  # no second turn
-    assert not clock.expired(7.5, OPTIONS)
     assert clock.blocked(6.0, True, 0.0, OPTIONS) == Blocked.BACK_OFF
+    assert not clock.expired(7.5, OPTIONS)
 
 
 def _candidates_blocked_on(planner, side: float) -> Candidates:
