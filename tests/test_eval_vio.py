@@ -5,6 +5,7 @@ moved by a fixed rigid motion, landmarks 10 % too deep)."""
 import dataclasses
 import json
 import math
+import shutil
 
 import cv2
 import gtsam
@@ -36,14 +37,14 @@ def _position(t: float) -> np.ndarray:
 
 
 def _write_dataset(root, seconds: float = 4.0, image_size: tuple[int, int] = (24, 32),
-                   late_frame: bool = False):
+                   late_frame: bool = False, distortion=(0.0, 0.0, 0.0, 0.0)):
     """IMU and ground truth at 200 Hz, frames with a 2 m depth image (NaN on the left 4
     columns) at 20 Hz; ``late_frame``: one more frame 15 ms after the last sample, as a camera
     stamping late delivers."""
     rng = np.random.default_rng(0)
     depth = np.full((24, 32), 2.0, dtype=np.float32)
     depth[:, :4] = np.nan
-    with EurocWriter(root, CAMERA, np.eye(4), 20.0, NOISE) as writer:
+    with EurocWriter(root, CAMERA, np.eye(4), 20.0, NOISE, distortion) as writer:
         for k in range(int(seconds * 200) + 1):
             t_ns, t = T0_NS + 5_000_000 * k, 0.005 * k
             writer.add_imu(t_ns, [0.0, 0.0, 1.0], [0.0, 0.0, 9.8])
@@ -424,6 +425,37 @@ def test_a_path_too_straight_to_align_is_not_bounded_and_says_why(simulated, cap
     status, captured = _eval_vio(capsys, simulated, "--bound", "--max-frames", "100", "--json")
     assert status == 0, captured.err
     assert json.loads(captured.out)["bound"]["note"].startswith("not bounded on ")
+
+
+def test_truth_tracks_take_the_trackers_error_out_of_the_same_flight(simulated, capsys):
+    """The same images and IMU, the tracker's tracks with every pixel the truth's: no track
+    error left, on as many frames, and an estimate at least as close to the truth."""
+    runs = {}
+    for tracks in ("tracker", "truth"):
+        status, captured = _eval_vio(capsys, simulated, "--json", "--tracks", tracks)
+        assert status == 0, captured.err
+        runs[tracks] = json.loads(captured.out)
+    tracker, truth = runs["tracker"], runs["truth"]
+    assert truth["frames"] == tracker["frames"] == 161
+    assert tracker["track_error_px_median"] > 0.01
+    assert truth["track_error_px_median"] < 1e-3 and truth["track_error_px_p90"] < 1e-3
+    assert truth["depth_rel_err_median"] < tracker["depth_rel_err_median"]
+    assert truth["ate_over_distance"] < 0.01
+
+
+@pytest.mark.parametrize("problem, complaint", [
+    ("distorted lens", "lens is distorted: record the ideal profile"),
+    ("no depth0", "truth tracks need the true depth of every frame"),
+])
+def test_truth_tracks_on_a_recording_they_cannot_be_projected_into_fail_in_one_line(
+        tmp_path, capsys, problem, complaint):
+    _write_dataset(tmp_path, distortion=(-0.28, 0.07, 0.0, 0.0) if problem == "distorted lens"
+                   else (0.0, 0.0, 0.0, 0.0))
+    if problem == "no depth0":
+        shutil.rmtree(tmp_path / "mav0" / "depth0")
+    status, captured = _eval_vio(capsys, tmp_path, "--tracks", "truth")
+    assert status == 1 and complaint in captured.err
+    assert len(captured.err.strip().splitlines()) == 1
 
 
 def test_a_scale_that_grows_through_the_flight_shows_window_by_window(tmp_path):

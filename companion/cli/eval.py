@@ -37,6 +37,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "the whole flight, and report each one's error beside the "
                           "smoother's: what its window loses and what the factors allow (a "
                           "minute or so more for 40 s)")
+    vio.add_argument("--tracks", choices=("tracker", "truth"), default="tracker",
+                     help="the VINS's feature tracks: the tracker's, or the same tracks with "
+                          "each pixel the true projection of the point it was born on, to tell "
+                          "the tracker's error from the estimator's on the same images and IMU "
+                          "(a recording of the ideal profile, with depth0; docs/vins.md) "
+                          "(default: %(default)s)")
     vio.set_defaults(command=_eval_vio)
 
     depth = actions.add_parser(
@@ -169,7 +175,8 @@ def _eval_vio(args: argparse.Namespace, config: Config) -> int:
     try:
         result = evaluation.evaluate_vio(args.dataset, config.vins, frontend=config.vins_frontend,
                                          static=config.vins_init, max_frames=args.max_frames,
-                                         bound=args.bound)
+                                         bound=args.bound,
+                                         truth_tracks=args.tracks == "truth")
     except evaluation.EvaluationError as error:
         print(f"eval vio: {error}", file=sys.stderr)
         return common.EXIT_FAILED

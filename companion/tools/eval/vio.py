@@ -24,7 +24,7 @@ import numpy as np
 from autonomy.geometry import (
     PinholeCamera, invert_pose, make_pose, quat_to_rot, so3_log, yaw_alignment,
 )
-from autonomy.messages import ImuSample, SparseMap
+from autonomy.messages import Frame, ImuSample, SparseMap
 from autonomy.trajectory import (
     align_umeyama, ate_rmse, interpolate_poses, nees, path_length, pose_error_body,
 )
@@ -40,6 +40,7 @@ from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
     read_groundtruth, read_imu, read_imu_noise,
 )
+from drivers.sim.truth_tracks import TruthTracks
 
 if TYPE_CHECKING:
     from autonomy.vins.estimator import FrameUpdate, Vins
@@ -188,15 +189,17 @@ def read_vio_dataset(root: Path) -> VioDataset:
 
 def evaluate_vio(root: Path, options: VinsOptions, *, frontend: FrontendOptions | None = None,
                  static: StaticInitOptions | None = None, max_frames: int | None = None,
-                 consistency: bool = True, bound: bool = False) -> dict:
+                 consistency: bool = True, bound: bool = False,
+                 truth_tracks: bool = False) -> dict:
     """Run the VINS over the dataset at ``root`` (:func:`run_vins`) and score it
     (:func:`score_vio`); ``consistency`` false skips the NEES and the marginal covariance it
     needs at every keyframe (a quarter of the time); ``bound`` adds ``bound``, what the
-    smoother's own factors allow (:func:`bound_vio`)."""
+    smoother's own factors allow (:func:`bound_vio`); ``truth_tracks`` runs it on the
+    tracker's tracks with every pixel the truth's (:func:`run_vins`)."""
     data = read_vio_dataset(root)
     log = FactorLog() if bound else None
     trace = run_vins(data, options, frontend=frontend, static=static, max_frames=max_frames,
-                     consistency=consistency, factor_log=log)
+                     consistency=consistency, factor_log=log, truth_tracks=truth_tracks)
     result = score_vio(trace, data)
     if log is not None:
         result["bound"] = bound_vio(log, trace, data)
@@ -227,12 +230,21 @@ def bound_vio(log: FactorLog, trace: VioTrace, data: VioDataset) -> dict:
 
 def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
              static: StaticInitOptions | None = None, max_frames: int | None = None,
-             consistency: bool = True, factor_log: FactorLog | None = None) -> VioTrace:
+             consistency: bool = True, factor_log: FactorLog | None = None,
+             truth_tracks: bool = False) -> VioTrace:
     """Run a :class:`Vins` built with ``options``, ``frontend`` and ``static`` over the frames
     of ``data`` (:func:`vio_frames`) and trace its output, timing each stage; each keyframe's
     covariances are traced for the NEES only with ``consistency``; ``factor_log`` is given
-    every factor of the smoother's (the gauge hold's last prior left out at the end)."""
+    every factor of the smoother's (the gauge hold's last prior left out at the end).
+
+    With ``truth_tracks`` the smoother is given the tracker's tracks, born, kept and lost where
+    the tracker has them, with each pixel the true projection of the point it was born on
+    (:class:`drivers.sim.truth_tracks.TruthTracks`, as ``sim fly --tracks truth``): on the
+    same images and IMU, what the tracker's error costs the estimate. It needs a recording
+    whose camera is the one the truth is projected through: no lens distortion (the ideal
+    profile's) and a depth image with every frame."""
     stream = data.camera
+    exact = _truth_tracks(data) if truth_tracks else None
     vins = build_vins(data, options, frontend=frontend, static=static)
     if factor_log is not None:
         vins.backend.update_listener = factor_log.record
@@ -244,19 +256,25 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         imu.before_frame(vins, frame.t)
         start = time.perf_counter()
         tracks = vins.track(frame.image)
-        middle = time.perf_counter()
+        frontend_ms = 1e3 * (time.perf_counter() - start)
+        truth_known = truth_t[0] <= frame.t <= truth_t[-1]  # a late stamp can pass its end
+        depth = None
+        if exact is not None:  # not timed: no stage of the estimator's
+            depth = _exact_frame_depth(frame, truth_known, stream.camera)
+            tracks = exact(Frame(frame.t, frame.image, depth,
+                                 _true_pose(frame.t, truth_t, data.truth)), tracks)
         resets_before = vins.backend.resets
+        middle = time.perf_counter()
         update = vins.add_frame(frame.t, tracks)
-        _record(trace, update, 1e3 * (middle - start), 1e3 * (time.perf_counter() - middle))
+        _record(trace, update, frontend_ms, 1e3 * (time.perf_counter() - middle))
         if vins.backend.resets > resets_before:
             trace.rebuilds.append(Rebuild(vins.backend.latest.t, vins.backend.last_failure,
                                           trace.keyframes[-1] if trace.keyframes else None))
         if update.keyframe:
             trace.keyframes.append(_newest_keyframe(vins, consistency))
-        truth_known = truth_t[0] <= frame.t <= truth_t[-1]  # a late stamp can pass its end
         born = truth_known and bool((np.asarray(tracks.ages) == 1).any())
-        depth = None
-        if frame.depth_path is not None and (born or update.sparse_map is not None):
+        if (depth is None and frame.depth_path is not None
+                and (born or update.sparse_map is not None)):
             depth = read_frame_depth(frame.depth_path, stream.camera)
         if truth_known:
             tracking.observe(tracks, _true_pose(frame.t, truth_t, data.truth), depth)
@@ -271,6 +289,29 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     if factor_log is not None and not vins.backend.resets:
         factor_log.drop_slot(vins.backend.gauge_hold_slot)
     return trace
+
+
+def _truth_tracks(data: VioDataset) -> TruthTracks:
+    """The truth-track replacement for ``data``'s camera (:func:`run_vins`), or
+    :class:`EvaluationError` where the truth cannot be projected through the recorded camera."""
+    stream = data.camera
+    if data.depth is None:
+        raise EvaluationError(f"{data.root}: truth tracks need the true depth of every frame "
+                              "(depth0/, which 'companion sim record' writes)")
+    if any(stream.distortion):
+        raise EvaluationError(f"{data.root}: truth tracks need an exact camera, and this one's "
+                              "lens is distorted: record the ideal profile ('companion sim "
+                              "record --set sim.profile=ideal')")
+    return TruthTracks(stream.camera, stream.T_B_C)
+
+
+def _exact_frame_depth(frame: VioFrame, truth_known: bool, camera) -> np.ndarray:
+    """The true depth a truth-track frame needs, or :class:`EvaluationError` naming what is
+    missing."""
+    if frame.depth_path is None or not truth_known:
+        raise EvaluationError(f"truth tracks: the frame at {frame.t:.3f} s has no "
+                              + ("depth image" if frame.depth_path is None else "ground truth"))
+    return read_frame_depth(frame.depth_path, camera)
 
 
 def build_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
