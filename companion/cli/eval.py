@@ -14,6 +14,8 @@ from companion.config import Config
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
+    from drivers.sim.host import TRACK_SOURCES
+
     configured = common.configured_parser()
     group = commands.add_parser("eval", help="measure the accuracy of the algorithms",
                                 description="Measure the accuracy of the algorithms against "
@@ -37,7 +39,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "the whole flight, and report each one's error beside the "
                           "smoother's: what its window loses and what the factors allow (a "
                           "minute or so more for 40 s)")
-    vio.add_argument("--tracks", choices=("tracker", "truth"), default="tracker",
+    vio.add_argument("--tracks", choices=TRACK_SOURCES, default="tracker",
                      help="the VINS's feature tracks: the tracker's, or the same tracks with "
                           "each pixel the true projection of the point it was born on, to tell "
                           "the tracker's error from the estimator's on the same images and IMU "

@@ -258,11 +258,11 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         tracks = vins.track(frame.image)
         frontend_ms = 1e3 * (time.perf_counter() - start)
         truth_known = truth_t[0] <= frame.t <= truth_t[-1]  # a late stamp can pass its end
+        true_pose = _true_pose(frame.t, truth_t, data.truth) if truth_known else None
         depth = None
         if exact is not None:  # not timed: no stage of the estimator's
             depth = _exact_frame_depth(frame, truth_known, stream.camera)
-            tracks = exact(Frame(frame.t, frame.image, depth,
-                                 _true_pose(frame.t, truth_t, data.truth)), tracks)
+            tracks = exact(Frame(frame.t, frame.image, depth, true_pose), tracks)
         resets_before = vins.backend.resets
         middle = time.perf_counter()
         update = vins.add_frame(frame.t, tracks)
@@ -277,7 +277,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
                 and (born or update.sparse_map is not None)):
             depth = read_frame_depth(frame.depth_path, stream.camera)
         if truth_known:
-            tracking.observe(tracks, _true_pose(frame.t, truth_t, data.truth), depth)
+            tracking.observe(tracks, true_pose, depth)
         if update.sparse_map is not None and depth is not None:
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
