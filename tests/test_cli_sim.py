@@ -52,11 +52,13 @@ def test_sim_fly_offers_the_udp_and_serial_links_only(capsys):
 def test_sim_fly_refuses_truth_tracks_through_the_realistic_camera(capsys):
     """The truth is projected through the configured camera: the realistic profile's lens,
     mounting error and late stamps would make it wrong, so the flight does not start."""
-    assert main(["sim", "fly", "--tracks", "truth", "--no-plot", "--no-record"]) == 1
-    assert capsys.readouterr().err.startswith(
-        "sim fly: truth tracks need the ideal profile ([sim] profile = \"ideal\")")
+    for tracks in ("truth", "early-error", "late-error"):
+        assert main(["sim", "fly", "--tracks", tracks, "--no-plot", "--no-record"]) == 1
+        assert capsys.readouterr().err.startswith(
+            "sim fly: truth tracks need the ideal profile ([sim] profile = \"ideal\")")
     assert main(["sim", "fly", "--tracks", "oracle"]) == 2
-    assert "invalid choice: 'oracle' (choose from 'tracker', 'truth')" in capsys.readouterr().err
+    assert ("invalid choice: 'oracle' (choose from 'tracker', 'truth', 'early-error', "
+            "'late-error')") in capsys.readouterr().err
 
 
 def test_sim_fly_names_the_realistic_vehicles_errors_its_vins_does_not_estimate(caplog):

@@ -443,6 +443,25 @@ def test_truth_tracks_take_the_trackers_error_out_of_the_same_flight(simulated, 
     assert truth["ate_over_distance"] < 0.01
 
 
+def test_early_and_late_error_tracks_each_keep_a_part_of_the_trackers_error(simulated, capsys):
+    """The same flight on the truth with the tracker's error of each track's first frames
+    only, and with only what it gathers after them: neither is the truth's nil error;
+    early-error stops the error growing (its tail a fraction of the tracker's), late-error
+    takes out what the old tracks gathered in their first frames."""
+    runs = {}
+    for tracks in ("tracker", "early-error", "late-error"):
+        status, captured = _eval_vio(capsys, simulated, "--json", "--tracks", tracks)
+        assert status == 0, captured.err
+        runs[tracks] = json.loads(captured.out)
+    tracker, early, late = runs["tracker"], runs["early-error"], runs["late-error"]
+    assert early["frames"] == late["frames"] == tracker["frames"]
+    assert 0.01 < early["track_error_px_p90"] < 0.5 * tracker["track_error_px_p90"]
+    assert late["track_error_px_median"] > 0.01
+    old = {name: run["track_error_by_age"][-1] for name, run in runs.items()}
+    assert {o["ages"] for o in old.values()} == {"20+"}
+    assert old["late-error"]["median_px"] < old["tracker"]["median_px"]
+
+
 @pytest.mark.parametrize("problem, complaint", [
     ("distorted lens", "lens is distorted: record the ideal profile"),
     ("no depth0", "truth tracks need the true depth of every frame"),

@@ -1,5 +1,6 @@
 """Truth tracks (``sim fly --tracks truth``): the tracker's tracks with the truth's pixels,
-checked against the renderer that drew the frames."""
+checked against the renderer that drew the frames; and the truth with one part of the
+tracker's error (``--tracks early-error`` / ``late-error``)."""
 
 import math
 
@@ -11,7 +12,7 @@ from autonomy.messages import Frame
 from autonomy.vins import Tracks
 from autonomy.vins.frontend import FeatureTracker
 from drivers.sim.render import Renderer
-from drivers.sim.truth_tracks import TruthTracks
+from drivers.sim.truth_tracks import ERROR_SPLIT_AGE, TruthTracks, for_source
 from drivers.sim.world import build_world
 
 CAMERA = PinholeCamera(640, 480, 320.0, 320.0, 319.5, 239.5)
@@ -91,3 +92,49 @@ def test_a_frame_without_the_truth_is_refused(hall):
     tracks = FeatureTracker(CAMERA).track(hall[0].image)
     with pytest.raises(ValueError, match="true pose and depth"):
         TruthTracks(CAMERA, T_B_C)(Frame(0.0, hall[0].image), tracks)
+
+
+def _sideways_past_a_wall(frames: int):
+    """Frames of a camera sliding sideways 5 cm a frame past a wall 5 m ahead (every pixel's
+    depth 5 m, nothing rendered): no OpenGL needed."""
+    depth = np.full((CAMERA.height, CAMERA.width), 5.0, dtype=np.float32)
+    image = np.zeros((CAMERA.height, CAMERA.width), np.uint8)
+    return [Frame(0.05 * k, image, depth, make_pose(np.eye(3), np.array([0.0, -0.05 * k, 0.0])))
+            for k in range(frames)]
+
+
+def _fed(truth_tracks: TruthTracks, frame: Frame, pixels: np.ndarray, age: int) -> Tracks:
+    ids = np.arange(len(pixels))
+    normalised = (pixels - (CAMERA.cx, CAMERA.cy)) / (CAMERA.fx, CAMERA.fy)
+    return truth_tracks(frame, Tracks(age - 1, ids, pixels, normalised, np.full(len(ids), age)))
+
+
+@pytest.mark.parametrize("source", ["early-error", "late-error"])
+def test_early_and_late_error_keep_the_trackers_error_before_or_after_the_split(source):
+    """A tracker whose error grows by a known step each frame: early-error keeps what it had
+    at the track's split age and holds it, late-error keeps only what it gathers after."""
+    born = np.array([[200.0, 150.0], [420.0, 300.0], [320.0, 240.0]])
+    step = np.array([0.1, -0.05])  # the tracker's error gathered per frame
+    exact, mixed = TruthTracks(CAMERA, T_B_C), TruthTracks(CAMERA, T_B_C, source)
+    pixels = born
+    for age, frame in enumerate(_sideways_past_a_wall(ERROR_SPLIT_AGE + 4), start=1):
+        truth = _fed(exact, frame, pixels, age)
+        tracker = truth.pixels + (age - 1) * step
+        out = _fed(mixed, frame, tracker if age > 1 else born, age)
+        before_split = min(age, ERROR_SPLIT_AGE) - 1
+        kept = (before_split if source == "early-error" else age - 1 - before_split) * step
+        np.testing.assert_allclose(out.pixels, truth.pixels + kept, atol=1e-9)
+        np.testing.assert_allclose(out.normalised, (out.pixels - (CAMERA.cx, CAMERA.cy))
+                                   / (CAMERA.fx, CAMERA.fy), atol=1e-12)
+        pixels = tracker
+    assert age > ERROR_SPLIT_AGE + 1 and np.abs(truth.pixels - born).max() > 20.0
+
+
+def test_an_unknown_track_source_names_the_choices():
+    assert for_source("tracker", CAMERA, T_B_C) is None
+    assert for_source("late-error", CAMERA, T_B_C).source == "late-error"
+    with pytest.raises(ValueError, match="tracks must be one of tracker, truth, early-error, "
+                                         "late-error, got 'oracle'"):
+        for_source("oracle", CAMERA, T_B_C)
+    with pytest.raises(ValueError, match="source must be one of truth, early-error"):
+        TruthTracks(CAMERA, T_B_C, "tracker")

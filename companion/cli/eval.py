@@ -14,7 +14,7 @@ from companion.config import Config
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
-    from drivers.sim.host import TRACK_SOURCES
+    from drivers.sim.truth_tracks import TRACK_SOURCES
 
     configured = common.configured_parser()
     group = commands.add_parser("eval", help="measure the accuracy of the algorithms",
@@ -40,9 +40,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "smoother's: what its window loses and what the factors allow (a "
                           "minute or so more for 40 s)")
     vio.add_argument("--tracks", choices=TRACK_SOURCES, default="tracker",
-                     help="the VINS's feature tracks: the tracker's, or the same tracks with "
-                          "each pixel the true projection of the point it was born on, to tell "
-                          "the tracker's error from the estimator's on the same images and IMU "
+                     help="the VINS's feature tracks: the tracker's; truth, the same tracks "
+                          "with each pixel the true projection of the point it was born on, to "
+                          "tell the tracker's error from the estimator's on the same images and "
+                          "IMU; early-error / late-error, the truth's with the tracker's error "
+                          "of each track's first six frames only / gathered after them only "
                           "(a recording of the ideal profile, with depth0; docs/vins.md) "
                           "(default: %(default)s)")
     vio.set_defaults(command=_eval_vio)
@@ -177,8 +179,7 @@ def _eval_vio(args: argparse.Namespace, config: Config) -> int:
     try:
         result = evaluation.evaluate_vio(args.dataset, config.vins, frontend=config.vins_frontend,
                                          static=config.vins_init, max_frames=args.max_frames,
-                                         bound=args.bound,
-                                         truth_tracks=args.tracks == "truth")
+                                         bound=args.bound, track_source=args.tracks)
     except evaluation.EvaluationError as error:
         print(f"eval vio: {error}", file=sys.stderr)
         return common.EXIT_FAILED

@@ -20,9 +20,9 @@ DEFAULT_PLOT = Path("sim-fly.png")
 def add_commands(commands: argparse._SubParsersAction) -> None:
     from companion.tools.fault_matrix import MATRIX_FAULTS
     from drivers.sim.faults import FAULT_KINDS, MOMENTS
-    from drivers.sim.host import TRACK_SOURCES
     from drivers.sim.options import CLOCK_MODES, WORLD_NAMES
     from drivers.sim.serve import LINKS
+    from drivers.sim.truth_tracks import TRACK_SOURCES
 
     configured = common.configured_parser()
     simulated = common.configured_parser(simulator=True)
@@ -86,10 +86,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "rescaler and planner, from a start/goal pair of the world. Prints progress "
                     "and a summary, and draws the flown path over the world map.")
     fly.add_argument("--tracks", choices=TRACK_SOURCES, default="tracker",
-                     help="the VINS's feature tracks: the tracker's, or the same tracks with "
-                          "each pixel the true projection of the point it was born on, to tell "
-                          "the tracker's error from the estimator's (ideal profile only; "
-                          "docs/vins.md) (default: %(default)s)")
+                     help="the VINS's feature tracks: the tracker's; truth, the same tracks "
+                          "with each pixel the true projection of the point it was born on, to "
+                          "tell the tracker's error from the estimator's; early-error / "
+                          "late-error, the truth's with the tracker's error of each track's "
+                          "first six frames only / gathered after them only (ideal profile "
+                          "only; docs/vins.md) (default: %(default)s)")
     fly.add_argument("--start-yaw", type=float, metavar="DEG",
                      help="heading the vehicle stands at before take-off, degrees "
                           "counter-clockwise from east (default: facing the first leg)")

@@ -43,12 +43,12 @@ from drivers.camera.calibration import CalibratedCamera
 from drivers.mavlink.autopilot import Autopilot
 from drivers.mavlink.signing import load_key
 from drivers.sim.faults import FaultSchedule
-from drivers.sim.host import (DEPTH_SOURCES, TRACK_SOURCES, LockstepSimulator, SimError,
-                              SimMission, ThreadedSimulator, TruthDepth, TruthTrack, empty_disk,
+from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMission,
+                              ThreadedSimulator, TruthDepth, TruthTrack, empty_disk,
                               fill_disk_when_due, mission_waypoints, simulated_network,
                               stall_when_due)
 from drivers.sim.serve import LINKS
-from drivers.sim.truth_tracks import TruthTracks
+from drivers.sim.truth_tracks import TRACK_SOURCES, for_source as truth_tracks_for
 from drivers.sim.world import World, build_world
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,7 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     if mission.tracks not in TRACK_SOURCES:
         raise SimError(f"tracks must be one of {', '.join(TRACK_SOURCES)}, "
                        f"got {mission.tracks!r}")
-    if mission.tracks == "truth" and config.sim.profile != "ideal":
+    if mission.tracks != "tracker" and config.sim.profile != "ideal":
         raise SimError("truth tracks need the ideal profile ([sim] profile = \"ideal\"): the "
                        "realistic camera's lens, mounting error and late stamps are not the "
                        "configured camera the truth is projected through (--config "
@@ -160,8 +160,8 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         depth = TruthDepth(config.planner.max_range) if mission.depth == "truth" else \
             NetworkDepth(simulated_network(config, mission.seed, faults, lambda: sim.time),
                          config.rescale, config.depth)
-        exact_tracks = (TruthTracks(config.camera.pinhole(), config.camera.T_B_C())
-                        if mission.tracks == "truth" else None)
+        exact_tracks = truth_tracks_for(mission.tracks, config.camera.pinhole(),
+                                        config.camera.T_B_C())
         app = build_app(config, clock, side.companion_url(), camera, depth, waypoints,
                         lockstep=mission.clock == "lockstep", go_given_by=go_given_by,
                         exact_tracks=exact_tracks)

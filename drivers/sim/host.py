@@ -62,17 +62,13 @@ class SimError(RuntimeError):
 #: or the renderer's true depth (the evaluation's baseline, as the paper's ground-truth runs).
 DEPTH_SOURCES = ("estimated", "truth")
 
-#: Where the VINS's tracks come from: the tracker, or the tracker's tracks with each pixel the
-#: truth's (:mod:`drivers.sim.truth_tracks`, a diagnostic; the ideal profile only).
-TRACK_SOURCES = ("tracker", "truth")
-
 
 @dataclass(frozen=True)
 class SimMission:
     """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z);
-    ``depth`` one of :data:`DEPTH_SOURCES`; ``tracks`` one of :data:`TRACK_SOURCES`;
-    ``start_yaw_deg`` the heading the vehicle stands at
-    on the ground (degrees counter-clockwise from east; default: facing the first leg);
+    ``depth`` one of :data:`DEPTH_SOURCES`; ``tracks`` one of
+    :data:`drivers.sim.truth_tracks.TRACK_SOURCES`; ``start_yaw_deg`` the heading the vehicle
+    stands at on the ground (degrees counter-clockwise from east; default: facing the first leg);
     ``link`` one of :data:`drivers.sim.serve.LINKS`; ``go_after_s``: the operator's go comes
     that many simulated seconds after the mission starts waiting for it (None: the command
     line gave it)."""

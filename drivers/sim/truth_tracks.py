@@ -13,6 +13,15 @@ between two surfaces belongs to neither) or where nothing was rendered is droppe
 whose point has gone behind the camera or out of the image. The camera must be the one the
 renderer drew, exactly: the ideal profile's (the realistic profile's lens, mounting error and
 late stamps would make the "truth" wrong), which the caller checks.
+
+Two more sources (``--tracks early-error`` and ``late-error``) keep one part of the tracker's
+own error, split at a track's :data:`ERROR_SPLIT_AGE`-th frame, about when it can first be a
+landmark: with ``early-error`` a track is the tracker's up to that frame and from then on moves
+exactly as its point, ``truth + (tracker_split - truth_split)``, so it keeps the error it was
+born with and gathered before it could be triangulated; with ``late-error`` it is the truth up
+to that frame and from then on moves as the tracker moved it, ``truth_split + (tracker -
+tracker_split)``, so it carries only what the tracker gathers while the track is a landmark
+(docs/vins.md, "The hallway open loop").
 """
 
 from __future__ import annotations
@@ -32,15 +41,39 @@ DEPTH_EDGE = 0.05
 #: Nearest a point may be in front of the camera, metres.
 MIN_DEPTH = 0.1
 
+#: Where ``early-error`` and ``late-error`` split a track's error (module docstring), its age
+#: in frames: a landmark needs three keyframes, which come every other frame or so (keyframes
+#: at about 10 Hz on a 20 Hz camera), so this is about when it can first be triangulated.
+ERROR_SPLIT_AGE = 6
+
+#: The feature tracks a simulated VINS can run on: the tracker's, or the truth's with none,
+#: the early or the late part of the tracker's error (module docstring).
+TRACK_SOURCES = ("tracker", "truth", "early-error", "late-error")
+
+
+def for_source(source: str, camera: PinholeCamera, T_B_C) -> "TruthTracks | None":
+    """The replacement of the tracks that ``source`` (one of :data:`TRACK_SOURCES`) names, or
+    None for the tracker's own; ValueError naming the choices for any other."""
+    if source not in TRACK_SOURCES:
+        raise ValueError(f"tracks must be one of {', '.join(TRACK_SOURCES)}, got {source!r}")
+    return None if source == "tracker" else TruthTracks(camera, T_B_C, source)
+
 
 class TruthTracks:
-    """Replaces the tracks of each frame by the true projections of their points (module
-    docstring); one instance per flight, fed every frame in order."""
+    """Replaces the tracks of each frame by the true projections of their points, with the
+    part of the tracker's error that ``source`` keeps (module docstring); one instance per
+    flight, fed every frame in order."""
 
-    def __init__(self, camera: PinholeCamera, T_B_C):
+    def __init__(self, camera: PinholeCamera, T_B_C, source: str = "truth"):
+        if source not in TRACK_SOURCES[1:]:
+            raise ValueError(f"truth tracks' source must be one of "
+                             f"{', '.join(TRACK_SOURCES[1:])}, got {source!r}")
         self.camera = camera
         self.T_B_C = np.asarray(T_B_C, dtype=float)
+        self.source = source
         self._points_L: dict[int, np.ndarray] = {}
+        #: each track's tracker and true pixel at its split (both sources with an error)
+        self._split: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, frame: Frame, tracks: Tracks) -> Tracks:
         """``tracks`` of ``frame`` (which must carry ``truth_pose`` and ``truth_depth``) with
@@ -60,8 +93,33 @@ class TruthTracks:
         keep = np.flatnonzero(known)[visible]
         # ids are never reused: a track gone from this frame is gone for good
         self._points_L = {int(key): self._points_L[int(key)] for key in tracks.ids[known]}
-        return dataclasses.replace(tracks, ids=tracks.ids[keep], pixels=pixels[visible],
-                                   normalised=normalised[visible], ages=tracks.ages[keep])
+        self._split = {key: split for key, split in self._split.items()
+                       if key in self._points_L}
+        pixels = pixels[visible]
+        if self.source != "truth":
+            pixels = self._with_tracker_error(tracks.ids[keep], tracks.ages[keep],
+                                              tracks.pixels[keep], pixels)
+            normalised = (pixels - (self.camera.cx, self.camera.cy)) / (self.camera.fx,
+                                                                         self.camera.fy)
+        else:
+            normalised = normalised[visible]
+        return dataclasses.replace(tracks, ids=tracks.ids[keep], pixels=pixels,
+                                   normalised=normalised, ages=tracks.ages[keep])
+
+    def _with_tracker_error(self, ids, ages, tracker: np.ndarray, truth: np.ndarray):
+        """The pixels of ``early-error`` or ``late-error`` tracks (module docstring) from the
+        tracker's and the true ones, each (N, 2) in the order of ``ids``."""
+        early = self.source == "early-error"
+        pixels = np.array(tracker if early else truth, dtype=float)
+        for row, (key, age) in enumerate(zip(ids.tolist(), ages.tolist())):
+            if age <= ERROR_SPLIT_AGE or key not in self._split:  # (the latter: never, when
+                # fed from the tracks' births) the split moves with the track until its age
+                self._split[key] = (tracker[row].copy(), truth[row].copy())
+                continue
+            tracker_then, truth_then = self._split[key]
+            pixels[row] = (truth[row] + tracker_then - truth_then if early
+                           else truth_then + tracker[row] - tracker_then)
+        return pixels
 
     def _back_project(self, pixel, depth: np.ndarray, T_L_C: np.ndarray) -> np.ndarray | None:
         c = self.camera

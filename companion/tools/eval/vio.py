@@ -190,16 +190,17 @@ def read_vio_dataset(root: Path) -> VioDataset:
 def evaluate_vio(root: Path, options: VinsOptions, *, frontend: FrontendOptions | None = None,
                  static: StaticInitOptions | None = None, max_frames: int | None = None,
                  consistency: bool = True, bound: bool = False,
-                 truth_tracks: bool = False) -> dict:
+                 track_source: str = "tracker") -> dict:
     """Run the VINS over the dataset at ``root`` (:func:`run_vins`) and score it
     (:func:`score_vio`); ``consistency`` false skips the NEES and the marginal covariance it
     needs at every keyframe (a quarter of the time); ``bound`` adds ``bound``, what the
-    smoother's own factors allow (:func:`bound_vio`); ``truth_tracks`` runs it on the
-    tracker's tracks with every pixel the truth's (:func:`run_vins`)."""
+    smoother's own factors allow (:func:`bound_vio`); ``track_source`` other than the tracker's
+    runs it on the tracker's tracks with every pixel the truth's, or with part of the
+    tracker's error (:func:`run_vins`)."""
     data = read_vio_dataset(root)
     log = FactorLog() if bound else None
     trace = run_vins(data, options, frontend=frontend, static=static, max_frames=max_frames,
-                     consistency=consistency, factor_log=log, truth_tracks=truth_tracks)
+                     consistency=consistency, factor_log=log, track_source=track_source)
     result = score_vio(trace, data)
     if log is not None:
         result["bound"] = bound_vio(log, trace, data)
@@ -231,20 +232,22 @@ def bound_vio(log: FactorLog, trace: VioTrace, data: VioDataset) -> dict:
 def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
              static: StaticInitOptions | None = None, max_frames: int | None = None,
              consistency: bool = True, factor_log: FactorLog | None = None,
-             truth_tracks: bool = False) -> VioTrace:
+             track_source: str = "tracker") -> VioTrace:
     """Run a :class:`Vins` built with ``options``, ``frontend`` and ``static`` over the frames
     of ``data`` (:func:`vio_frames`) and trace its output, timing each stage; each keyframe's
     covariances are traced for the NEES only with ``consistency``; ``factor_log`` is given
     every factor of the smoother's (the gauge hold's last prior left out at the end).
 
-    With ``truth_tracks`` the smoother is given the tracker's tracks, born, kept and lost where
-    the tracker has them, with each pixel the true projection of the point it was born on
-    (:class:`drivers.sim.truth_tracks.TruthTracks`, as ``sim fly --tracks truth``): on the
-    same images and IMU, what the tracker's error costs the estimate. It needs a recording
-    whose camera is the one the truth is projected through: no lens distortion (the ideal
-    profile's) and a depth image with every frame."""
+    With ``track_source`` ``"truth"`` the smoother is given the tracker's tracks, born, kept and
+    lost where the tracker has them, with each pixel the true projection of the point it was
+    born on (:class:`drivers.sim.truth_tracks.TruthTracks`, as ``sim fly --tracks truth``): on
+    the same images and IMU, what the tracker's error costs the estimate; with
+    ``"early-error"`` or ``"late-error"``, what the part of it gathered before or after a
+    track's sixth frame costs (:data:`drivers.sim.truth_tracks.ERROR_SPLIT_AGE`). These need a
+    recording whose camera is the one the truth is projected through: no lens distortion (the
+    ideal profile's) and a depth image with every frame."""
     stream = data.camera
-    exact = _truth_tracks(data) if truth_tracks else None
+    exact = _truth_tracks(data, track_source)
     vins = build_vins(data, options, frontend=frontend, static=static)
     if factor_log is not None:
         vins.backend.update_listener = factor_log.record
@@ -291,9 +294,12 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     return trace
 
 
-def _truth_tracks(data: VioDataset) -> TruthTracks:
-    """The truth-track replacement for ``data``'s camera (:func:`run_vins`), or
-    :class:`EvaluationError` where the truth cannot be projected through the recorded camera."""
+def _truth_tracks(data: VioDataset, source: str) -> TruthTracks | None:
+    """The replacement of the tracks ``source`` names for ``data``'s camera (:func:`run_vins`;
+    None for the tracker's own), or :class:`EvaluationError` where the truth cannot be
+    projected through the recorded camera."""
+    if source == "tracker":
+        return None
     stream = data.camera
     if data.depth is None:
         raise EvaluationError(f"{data.root}: truth tracks need the true depth of every frame "
@@ -302,7 +308,7 @@ def _truth_tracks(data: VioDataset) -> TruthTracks:
         raise EvaluationError(f"{data.root}: truth tracks need an exact camera, and this one's "
                               "lens is distorted: record the ideal profile ('companion sim "
                               "record --set sim.profile=ideal')")
-    return TruthTracks(stream.camera, stream.T_B_C)
+    return TruthTracks(stream.camera, stream.T_B_C, source)
 
 
 def _exact_frame_depth(frame: VioFrame, truth_known: bool, camera) -> np.ndarray:
