@@ -445,9 +445,10 @@ def test_truth_tracks_take_the_trackers_error_out_of_the_same_flight(simulated, 
 
 def test_early_and_late_error_tracks_each_keep_a_part_of_the_trackers_error(simulated, capsys):
     """The same flight on the truth with the tracker's error of each track's first frames
-    only, and with only what it gathers after them: neither is the truth's nil error;
-    early-error stops the error growing (its tail a fraction of the tracker's), late-error
-    takes out what the old tracks gathered in their first frames."""
+    only, and with only what it gathers after them: young tracks are the tracker's with
+    early-error and exact with late-error; early-error stops the error growing (its tail a
+    fraction of the tracker's), late-error takes out what the old tracks gathered in their
+    first frames."""
     runs = {}
     for tracks in ("tracker", "early-error", "late-error"):
         status, captured = _eval_vio(capsys, simulated, "--json", "--tracks", tracks)
@@ -457,8 +458,13 @@ def test_early_and_late_error_tracks_each_keep_a_part_of_the_trackers_error(simu
     assert early["frames"] == late["frames"] == tracker["frames"]
     assert 0.01 < early["track_error_px_p90"] < 0.5 * tracker["track_error_px_p90"]
     assert late["track_error_px_median"] > 0.01
+    young = {name: run["track_error_by_age"][0] for name, run in runs.items()}
     old = {name: run["track_error_by_age"][-1] for name, run in runs.items()}
+    assert {o["ages"] for o in young.values()} == {"2-4"}
     assert {o["ages"] for o in old.values()} == {"20+"}
+    assert young["late-error"]["median_px"] < 1e-6
+    assert young["early-error"]["median_px"] == pytest.approx(young["tracker"]["median_px"],
+                                                              rel=0.2)
     assert old["late-error"]["median_px"] < old["tracker"]["median_px"]
 
 

@@ -12,7 +12,7 @@ from autonomy.messages import Frame
 from autonomy.vins import Tracks
 from autonomy.vins.frontend import FeatureTracker
 from drivers.sim.render import Renderer
-from drivers.sim.truth_tracks import ERROR_SPLIT_AGE, TruthTracks, for_source
+from drivers.sim.truth_tracks import ERROR_SPLIT_AGE, TruthTracks, replacement_for
 from drivers.sim.world import build_world
 
 CAMERA = PinholeCamera(640, 480, 320.0, 320.0, 319.5, 239.5)
@@ -103,38 +103,44 @@ def _sideways_past_a_wall(frames: int):
             for k in range(frames)]
 
 
-def _fed(truth_tracks: TruthTracks, frame: Frame, pixels: np.ndarray, age: int) -> Tracks:
-    ids = np.arange(len(pixels))
+def _fed(truth_tracks: TruthTracks, frame: Frame, ids: np.ndarray, pixels: np.ndarray,
+         age: int) -> Tracks:
     normalised = (pixels - (CAMERA.cx, CAMERA.cy)) / (CAMERA.fx, CAMERA.fy)
     return truth_tracks(frame, Tracks(age - 1, ids, pixels, normalised, np.full(len(ids), age)))
 
 
 @pytest.mark.parametrize("source", ["early-error", "late-error"])
 def test_early_and_late_error_keep_the_trackers_error_before_or_after_the_split(source):
-    """A tracker whose error grows by a known step each frame: early-error keeps what it had
-    at the track's split age and holds it, late-error keeps only what it gathers after."""
+    """A tracker whose error grows by a known step each frame, its own for each track:
+    early-error keeps what a track had at its split age and holds it, late-error keeps only
+    what it gathers after; each track its own, whatever the order of the tracks, and a
+    track lost on the way takes nothing of the others'."""
     born = np.array([[200.0, 150.0], [420.0, 300.0], [320.0, 240.0]])
-    step = np.array([0.1, -0.05])  # the tracker's error gathered per frame
+    steps = np.array([[0.1, -0.05], [-0.2, 0.0], [0.03, 0.15]])  # each track's error a frame
     exact, mixed = TruthTracks(CAMERA, T_B_C), TruthTracks(CAMERA, T_B_C, source)
-    pixels = born
+    ids, pixels, rows = np.arange(3), born, np.arange(3)
     for age, frame in enumerate(_sideways_past_a_wall(ERROR_SPLIT_AGE + 4), start=1):
-        truth = _fed(exact, frame, pixels, age)
-        tracker = truth.pixels + (age - 1) * step
-        out = _fed(mixed, frame, tracker if age > 1 else born, age)
+        if age == ERROR_SPLIT_AGE + 2:  # track 1 lost; the others handed over in reverse
+            ids, pixels, rows = ids[[2, 0]], pixels[[2, 0]], rows[[2, 0]]
+        truth = _fed(exact, frame, ids, pixels, age)
+        tracker = truth.pixels + (age - 1) * steps[rows]
+        out = _fed(mixed, frame, ids, tracker if age > 1 else born, age)
         before_split = min(age, ERROR_SPLIT_AGE) - 1
-        kept = (before_split if source == "early-error" else age - 1 - before_split) * step
-        np.testing.assert_allclose(out.pixels, truth.pixels + kept, atol=1e-9)
+        frames_kept = before_split if source == "early-error" else age - 1 - before_split
+        np.testing.assert_array_equal(out.ids, ids)
+        np.testing.assert_allclose(out.pixels, truth.pixels + frames_kept * steps[rows],
+                                   atol=1e-9)
         np.testing.assert_allclose(out.normalised, (out.pixels - (CAMERA.cx, CAMERA.cy))
                                    / (CAMERA.fx, CAMERA.fy), atol=1e-12)
         pixels = tracker
-    assert age > ERROR_SPLIT_AGE + 1 and np.abs(truth.pixels - born).max() > 20.0
+    assert age > ERROR_SPLIT_AGE + 1 and np.abs(truth.pixels - born[rows]).max() > 20.0
 
 
 def test_an_unknown_track_source_names_the_choices():
-    assert for_source("tracker", CAMERA, T_B_C) is None
-    assert for_source("late-error", CAMERA, T_B_C).source == "late-error"
+    assert replacement_for("tracker", CAMERA, T_B_C) is None
+    assert replacement_for("late-error", CAMERA, T_B_C).source == "late-error"
     with pytest.raises(ValueError, match="tracks must be one of tracker, truth, early-error, "
                                          "late-error, got 'oracle'"):
-        for_source("oracle", CAMERA, T_B_C)
+        replacement_for("oracle", CAMERA, T_B_C)
     with pytest.raises(ValueError, match="source must be one of truth, early-error"):
         TruthTracks(CAMERA, T_B_C, "tracker")

@@ -48,7 +48,7 @@ from drivers.sim.host import (DEPTH_SOURCES, LockstepSimulator, SimError, SimMis
                               fill_disk_when_due, mission_waypoints, simulated_network,
                               stall_when_due)
 from drivers.sim.serve import LINKS
-from drivers.sim.truth_tracks import TRACK_SOURCES, for_source as truth_tracks_for
+from drivers.sim.truth_tracks import TRACK_SOURCES, replacement_for
 from drivers.sim.world import World, build_world
 
 log = logging.getLogger(__name__)
@@ -160,8 +160,8 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
         depth = TruthDepth(config.planner.max_range) if mission.depth == "truth" else \
             NetworkDepth(simulated_network(config, mission.seed, faults, lambda: sim.time),
                          config.rescale, config.depth)
-        exact_tracks = truth_tracks_for(mission.tracks, config.camera.pinhole(),
-                                        config.camera.T_B_C())
+        exact_tracks = replacement_for(mission.tracks, config.camera.pinhole(),
+                                       config.camera.T_B_C())
         app = build_app(config, clock, side.companion_url(), camera, depth, waypoints,
                         lockstep=mission.clock == "lockstep", go_given_by=go_given_by,
                         exact_tracks=exact_tracks)

@@ -17,8 +17,9 @@ late stamps would make the "truth" wrong), which the caller checks.
 Two more sources (``--tracks early-error`` and ``late-error``) keep one part of the tracker's
 own error, split at a track's :data:`ERROR_SPLIT_AGE`-th frame, about when it can first be a
 landmark: with ``early-error`` a track is the tracker's up to that frame and from then on moves
-exactly as its point, ``truth + (tracker_split - truth_split)``, so it keeps the error it was
-born with and gathered before it could be triangulated; with ``late-error`` it is the truth up
+exactly as its point, ``truth + (tracker_split - truth_split)``, so it keeps the error it
+gathered in its first frames, before it could be triangulated (at its birth it has none: its
+point is the one under the tracker's pixel); with ``late-error`` it is the truth up
 to that frame and from then on moves as the tracker moved it, ``truth_split + (tracker -
 tracker_split)``, so it carries only what the tracker gathers while the track is a landmark
 (docs/vins.md, "The hallway open loop").
@@ -46,12 +47,15 @@ MIN_DEPTH = 0.1
 #: at about 10 Hz on a 20 Hz camera), so this is about when it can first be triangulated.
 ERROR_SPLIT_AGE = 6
 
-#: The feature tracks a simulated VINS can run on: the tracker's, or the truth's with none,
-#: the early or the late part of the tracker's error (module docstring).
-TRACK_SOURCES = ("tracker", "truth", "early-error", "late-error")
+#: The truth's tracks with none, the early or the late part of the tracker's error (module
+#: docstring).
+TRUTH_SOURCES = ("truth", "early-error", "late-error")
+
+#: The feature tracks a simulated VINS can run on: the tracker's, or one of the truth's.
+TRACK_SOURCES = ("tracker", *TRUTH_SOURCES)
 
 
-def for_source(source: str, camera: PinholeCamera, T_B_C) -> "TruthTracks | None":
+def replacement_for(source: str, camera: PinholeCamera, T_B_C) -> TruthTracks | None:
     """The replacement of the tracks that ``source`` (one of :data:`TRACK_SOURCES`) names, or
     None for the tracker's own; ValueError naming the choices for any other."""
     if source not in TRACK_SOURCES:
@@ -65,9 +69,9 @@ class TruthTracks:
     flight, fed every frame in order."""
 
     def __init__(self, camera: PinholeCamera, T_B_C, source: str = "truth"):
-        if source not in TRACK_SOURCES[1:]:
-            raise ValueError(f"truth tracks' source must be one of "
-                             f"{', '.join(TRACK_SOURCES[1:])}, got {source!r}")
+        if source not in TRUTH_SOURCES:
+            raise ValueError(f"truth tracks' source must be one of {', '.join(TRUTH_SOURCES)}, "
+                             f"got {source!r}")
         self.camera = camera
         self.T_B_C = np.asarray(T_B_C, dtype=float)
         self.source = source
@@ -77,7 +81,8 @@ class TruthTracks:
 
     def __call__(self, frame: Frame, tracks: Tracks) -> Tracks:
         """``tracks`` of ``frame`` (which must carry ``truth_pose`` and ``truth_depth``) with
-        every pixel the truth's, less the tracks that have none."""
+        every pixel the truth's, or the truth's with the part of the tracker's error the source
+        keeps, less the tracks that have none."""
         if frame.truth_pose is None or frame.truth_depth is None:
             raise ValueError("truth tracks need the simulator's true pose and depth with "
                              "every frame")
@@ -95,28 +100,28 @@ class TruthTracks:
         self._points_L = {int(key): self._points_L[int(key)] for key in tracks.ids[known]}
         self._split = {key: split for key, split in self._split.items()
                        if key in self._points_L}
-        pixels = pixels[visible]
-        if self.source != "truth":
-            pixels = self._with_tracker_error(tracks.ids[keep], tracks.ages[keep],
-                                              tracks.pixels[keep], pixels)
+        if self.source != "truth":  # split where the point is out of view too: it may return
+            pixels = self._with_tracker_error(tracks.ids[known], tracks.ages[known],
+                                              tracks.pixels[known], pixels)
             normalised = (pixels - (self.camera.cx, self.camera.cy)) / (self.camera.fx,
                                                                          self.camera.fy)
-        else:
-            normalised = normalised[visible]
+        pixels, normalised = pixels[visible], normalised[visible]
         return dataclasses.replace(tracks, ids=tracks.ids[keep], pixels=pixels,
                                    normalised=normalised, ages=tracks.ages[keep])
 
-    def _with_tracker_error(self, ids, ages, tracker: np.ndarray, truth: np.ndarray):
+    def _with_tracker_error(self, ids, ages, tracker: np.ndarray,
+                            truth: np.ndarray) -> np.ndarray:
         """The pixels of ``early-error`` or ``late-error`` tracks (module docstring) from the
-        tracker's and the true ones, each (N, 2) in the order of ``ids``."""
+        tracker's and the true ones, each (N, 2) in the order of ``ids``. The split follows a
+        track up to its :data:`ERROR_SPLIT_AGE`-th frame (a track first seen older, which a
+        replacement fed from the tracks' births never meets, splits where it is first seen)."""
         early = self.source == "early-error"
         pixels = np.array(tracker if early else truth, dtype=float)
         for row, (key, age) in enumerate(zip(ids.tolist(), ages.tolist())):
-            if age <= ERROR_SPLIT_AGE or key not in self._split:  # (the latter: never, when
-                # fed from the tracks' births) the split moves with the track until its age
+            if age <= ERROR_SPLIT_AGE:
                 self._split[key] = (tracker[row].copy(), truth[row].copy())
                 continue
-            tracker_then, truth_then = self._split[key]
+            tracker_then, truth_then = self._split.setdefault(key, (tracker[row], truth[row]))
             pixels[row] = (truth[row] + tracker_then - truth_then if early
                            else truth_then + tracker[row] - tracker_then)
         return pixels

@@ -40,7 +40,7 @@ from drivers.dataset.euroc import (
     CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
     read_groundtruth, read_imu, read_imu_noise,
 )
-from drivers.sim.truth_tracks import TruthTracks
+from drivers.sim.truth_tracks import TruthTracks, replacement_for
 
 if TYPE_CHECKING:
     from autonomy.vins.estimator import FrameUpdate, Vins
@@ -297,10 +297,11 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
 def _truth_tracks(data: VioDataset, source: str) -> TruthTracks | None:
     """The replacement of the tracks ``source`` names for ``data``'s camera (:func:`run_vins`;
     None for the tracker's own), or :class:`EvaluationError` where the truth cannot be
-    projected through the recorded camera."""
-    if source == "tracker":
-        return None
+    projected through the recorded camera; ValueError for an unknown ``source``."""
     stream = data.camera
+    replacement = replacement_for(source, stream.camera, stream.T_B_C)
+    if replacement is None:
+        return None
     if data.depth is None:
         raise EvaluationError(f"{data.root}: truth tracks need the true depth of every frame "
                               "(depth0/, which 'companion sim record' writes)")
@@ -308,7 +309,7 @@ def _truth_tracks(data: VioDataset, source: str) -> TruthTracks | None:
         raise EvaluationError(f"{data.root}: truth tracks need an exact camera, and this one's "
                               "lens is distorted: record the ideal profile ('companion sim "
                               "record --set sim.profile=ideal')")
-    return TruthTracks(stream.camera, stream.T_B_C, source)
+    return replacement
 
 
 def _exact_frame_depth(frame: VioFrame, truth_known: bool, camera) -> np.ndarray:
