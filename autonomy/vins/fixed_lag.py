@@ -87,7 +87,9 @@ class FixedLagSmoother:
         old = [key for key, t in self._stamps.items() if t < newest - self.lag]
         params = gtsam.ISAM2UpdateParams()
         params.constrainedKeys = self._groups(old)
-        params.extraReelimKeys = _key_list(key for key in self._stamps if not values.exists(key))
+        # one set of the few new keys, not a GTSAM look-up per key of the window
+        new = set(values.keys())
+        params.extraReelimKeys = _key_list(key for key in self._stamps if key not in new)
         if remove:
             params.removeFactorIndices = list(remove)
         slots = list(self._isam.update(graph, values, params).getNewFactorsIndices())
