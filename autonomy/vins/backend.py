@@ -260,11 +260,24 @@ def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float,
     return params
 
 
+def _symbol_keys(keys: np.ndarray, char: str) -> np.ndarray:
+    """The ``char`` symbols among GTSAM ``keys`` (uint64), in their order."""
+    return keys[keys >> np.uint64(_SYMBOL_INDEX_BITS) == ord(char)]
+
+
 def _symbol_indices(keys: np.ndarray, char: str) -> np.ndarray:
     """The sorted indices of the ``char`` symbols among GTSAM ``keys`` (uint64, sorted)."""
-    chars = keys >> np.uint64(_SYMBOL_INDEX_BITS)
     index_mask = np.uint64((1 << _SYMBOL_INDEX_BITS) - 1)
-    return (keys[chars == ord(char)] & index_mask).astype(np.int64)
+    return (_symbol_keys(keys, char) & index_mask).astype(np.int64)
+
+
+def _in_sorted(values: np.ndarray, sorted_ids: np.ndarray) -> np.ndarray:
+    """``np.isin(values, sorted_ids)`` by binary search in the sorted ``sorted_ids``: the
+    window's id sets are kept sorted, which ``np.isin`` would sort again."""
+    if len(sorted_ids) == 0:
+        return np.zeros(len(values), bool)
+    rows = np.minimum(np.searchsorted(sorted_ids, values), len(sorted_ids) - 1)
+    return sorted_ids[rows] == values
 
 
 #: Tangent dimensions of the variables whose covariances are asked for: pose, velocity.
@@ -568,13 +581,13 @@ class SlidingWindowSmoother:
                             airborne: bool) -> None:
         graph, values, stamps = self._imu_step(keyframe, pim, still, airborne)
         window = self._window + [keyframe]
-        seen = np.isin(keyframe.ids, self._landmarks.ids)
+        seen = _in_sorted(keyframe.ids, self._landmarks.ids)
         tracks, xy = self._consistent_observations(keyframe, seen)
         observed_pixels = self._pixels(xy)
         for track, pixel in zip(tracks, observed_pixels):
             graph.add(self._projection(keyframe.index, int(track), pixel))
             stamps[L(int(track))] = keyframe.t
-        fresh = ~seen & ~np.isin(keyframe.ids, self._retired)
+        fresh = ~seen & ~_in_sorted(keyframe.ids, self._retired)
         self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
                                 stamps)
         removed, hold = self._gauge_move(keyframe.t, graph)
@@ -640,8 +653,13 @@ class SlidingWindowSmoother:
             error_px = self.gate.focal_px * np.linalg.norm(p_C[:, :2] / p_C[:, 2:] - xy, axis=1)
         limit = observation_limit_px(error_px[in_front], self.options.max_observation_px)
         good = in_front & (error_px <= limit)
-        self._retired = np.union1d(self._retired, tracks[~good])
+        self._retire(tracks[~good])
         return tracks[good], xy[good]
+
+    def _retire(self, tracks: np.ndarray) -> None:
+        """No track of these ids becomes a landmark again (``_retired`` stays sorted)."""
+        if len(tracks):
+            self._retired = np.union1d(self._retired, tracks)
 
     def _projection(self, index: int, track: int, pixel: np.ndarray):
         """The factor of keyframe ``index`` seeing landmark ``track`` at ideal-pinhole
@@ -754,10 +772,9 @@ class SlidingWindowSmoother:
         self._window = [kf for kf in window if kf.index in kept]
         self._poses = {kf.index: estimate.atPose3(X(kf.index)).matrix() for kf in self._window}
         alive = _symbol_indices(keys, "l")
-        gone = np.setdiff1d(self._landmarks.ids, alive)
-        if len(gone):
-            self._retired = np.union1d(self._retired, gone)
-        points = np.array([estimate.atPoint3(L(int(i))) for i in alive]).reshape(-1, 3)
+        self._retire(self._landmarks.ids[~_in_sorted(self._landmarks.ids, alive)])
+        points = np.array([estimate.atPoint3(key) for key in _symbol_keys(keys, "l").tolist()]
+                          ).reshape(-1, 3)
         mask, _ = self._observations(self._window, alive)
         _, centres = self._cameras(self._window, len(alive))
         rays = points[:, None, :] - centres
