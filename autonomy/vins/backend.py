@@ -673,9 +673,9 @@ class SlidingWindowSmoother:
 
     @staticmethod
     def _observed(window: list[_Keyframe], tracks: np.ndarray):
-        """Where the window observes ``tracks``: for each observation, the row of its track,
-        the column of its keyframe, and its place among the window's observations in keyframe
-        order (``picked``)."""
+        """Which keyframes of the window observe each of ``tracks`` (``mask``, (M, K) bool), and
+        for each observation the row of its track, the column of its keyframe and its place
+        among the window's observations in keyframe order (``picked``)."""
         all_ids = np.concatenate([kf.ids for kf in window])
         column = np.repeat(np.arange(len(window)), [len(kf.ids) for kf in window])
         order = np.argsort(all_ids, kind="stable")
@@ -686,23 +686,15 @@ class SlidingWindowSmoother:
         row = np.repeat(np.arange(len(tracks)), counts)
         run_start = np.repeat(first - (np.cumsum(counts) - counts), counts)
         picked = order[run_start + np.arange(len(row))]
-        return row, column[picked], picked
-
-    @classmethod
-    def _observation_mask(cls, window: list[_Keyframe], tracks: np.ndarray) -> np.ndarray:
-        """Which keyframes of the window observe each of ``tracks``: (M, K) bool."""
-        row, column, _ = cls._observed(window, tracks)
         mask = np.zeros((len(tracks), len(window)), bool)
-        mask[row, column] = True
-        return mask
+        mask[row, column[picked]] = True
+        return mask, row, column[picked], picked
 
     @classmethod
     def _observations(cls, window: list[_Keyframe], tracks: np.ndarray):
         """The window's observations of ``tracks``: ``mask`` (M, K) and ``normalised``
         (M, K, 2)."""
-        row, column, picked = cls._observed(window, tracks)
-        mask = np.zeros((len(tracks), len(window)), bool)
-        mask[row, column] = True
+        mask, row, column, picked = cls._observed(window, tracks)
         normalised = np.zeros((len(tracks), len(window), 2))
         normalised[row, column] = np.concatenate([kf.normalised for kf in window])[picked]
         return mask, normalised
@@ -790,7 +782,7 @@ class SlidingWindowSmoother:
         self._retire(self._landmarks.ids[~_in_sorted(self._landmarks.ids, alive)])
         points = np.array([estimate.atPoint3(key) for key in _symbol_keys(keys, "l").tolist()]
                           ).reshape(-1, 3)
-        mask = self._observation_mask(self._window, alive)
+        mask, *_ = self._observed(self._window, alive)
         _, centres = self._cameras(self._window, len(alive))
         rays = points[:, None, :] - centres
         rays /= np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-12)
