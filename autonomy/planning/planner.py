@@ -42,6 +42,11 @@ arc is used: the arcs flown keep the most room any arc can, never less than
 farther ahead is not hemmed in and stops as before. The plan's candidates say which sphere
 was used.
 
+**The speed wave.** With ``speed_swing`` the chosen arc and its checked stop are flown along
+the same path up to ``speed_swing`` m/s slower, and back, every ``speed_swing_period_s``
+(speed_wave.py): never faster than the tier checked, so the check holds; the accelerations
+let the VINS see its scale, which a steady cruise lets walk.
+
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
 no such stop, braking from the present velocity, which the following rounds continue in the
@@ -67,6 +72,7 @@ from autonomy.planning.landing import candidate_sites, column_points
 from autonomy.planning.primitives import (
     Primitive, PrimitiveOptions, forward_arc, library, stop_primitive, tier_speeds,
 )
+from autonomy.planning.speed_wave import SpeedWave
 
 
 #: The reason an approach glide's plan carries (:meth:`Planner.approach`).
@@ -125,6 +131,13 @@ class PlannerOptions(PrimitiveOptions):
                                    "safe primitive, the vehicle glides to a site ahead seen "
                                    "free this far round its column down to the floor before "
                                    "landing (landing.py); 0: it lands where it stopped, metres")
+    # The VINS's scale needs the accelerometer to see speed change: a steady cruise lets it
+    # walk (docs/vins.md, "The hallway's drift is the cruise's"). Never faster than checked.
+    speed_swing: float = option(0.0, ge=0.0, le=5.0, doc="the speed wave (speed_wave.py): "
+                                "each arc is flown up to this much slower, m/s, and back, "
+                                "along the same path; 0: at its speed throughout")
+    speed_swing_period_s: float = option(3.3, gt=0.0, le=60.0, doc="the speed wave's "
+                                         "period, seconds")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -241,6 +254,7 @@ class Plan:
     stop_duration_s: float
     candidates: "Candidates | None" = None
     request: PlanRequest | None = None
+    wave: SpeedWave | None = None
 
     def setpoint(self, t: float) -> "Setpoint":
         """What to command at time ``t``: the primitive's motion ``tau = t - self.t`` after its
@@ -248,17 +262,34 @@ class Plan:
         ``stop_duration_s``, at rest after) turned into ``W``. The acceleration is the
         feed-forward that lets the autopilot's velocity loop follow the arc and the braking
         without the lag of its feedback alone, the position what the application's tracking
-        corrects toward: the collision check assumed the primitive is flown as it is."""
+        corrects toward: the collision check assumed the primitive is flown as it is.
+
+        With a speed ``wave`` the same motion is flown slower by the wave's ``m(t)``: at
+        ``tau = W(t) - W(self.t)`` (speed_wave.py), velocity and yaw rate times ``m``, the
+        acceleration ``m² a + m' v``."""
         if not math.isfinite(t):
             raise ValueError(f"setpoint time must be finite, got {t!r}")
-        p_S, v_S, a_S, yaw_rate = self.primitive.motion_S(t - self.t, self.stop_duration_s)
+        if self.wave is None:
+            tau, m, rate = t - self.t, 1.0, 0.0
+        else:
+            share = self.wave.share(self.primitive.speed)
+            tau = self.wave.progress(self.t, t, share)
+            m, rate = self.wave.factor(t, share), self.wave.rate(t, share)
+        p_S, v_S, a_S, yaw_rate = self.primitive.motion_S(tau, self.stop_duration_s)
+        if tau < 0.0:  # before the plan's start: at its start, not moving on the wave
+            m, rate = 1.0, 0.0
+        a_S = m * m * a_S + rate * v_S
         R = self.T_W_S[:3, :3]
-        return Setpoint(R @ v_S, float(yaw_rate), R @ a_S, R @ p_S + self.T_W_S[:3, 3])
+        return Setpoint(R @ (m * v_S), float(m * yaw_rate), R @ a_S,
+                        R @ p_S + self.T_W_S[:3, 3])
 
     @property
     def end_time(self) -> float:
         """When the plan comes to rest."""
-        return self.t + self.primitive.duration + self.stop_duration_s
+        span = self.primitive.duration + self.stop_duration_s
+        if self.wave is None:
+            return self.t + span
+        return self.wave.time_at(self.t, span, self.wave.share(self.primitive.speed))
 
 
 class Planner:
@@ -274,6 +305,7 @@ class Planner:
                                     max_age_s=o.history_s, near_tail_share=o.near_tail_share,
                                     far_tail_share=o.far_tail_share)
         self.tiers = [PrimitiveTier(speed, o) for speed in tier_speeds(o.primitives)]
+        self.wave = SpeedWave.of(o.speed_swing, o.speed_swing_period_s)
         self._previous: Plan | None = None
         self._checked_stop: Plan | None = None
 
@@ -340,10 +372,11 @@ class Planner:
         plan = Plan(t, T_W_S, tier.library[i], "arc", "", count, chosen,
                     self.options.stop_duration_s,
                     Candidates(tier.speed, tier.library, safe, i, blocked, radius,
-                               tuple(faster)))
+                               tuple(faster)), wave=self.wave)
         self._previous = plan
+        # on the same wave: a stop taking over from the arc goes on at the arc's speed
         self._checked_stop = Plan(t, T_W_S, tier.branches[i], "stop", "", count, chosen,
-                                  self.options.stop_duration_s)
+                                  self.options.stop_duration_s, wave=self.wave)
         return plan
 
     def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None,

@@ -199,14 +199,17 @@ def _sim_serve(args: argparse.Namespace, config: Config) -> int:
 
 
 def _sim_record(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.planning.speed_wave import SpeedWave
     from drivers.sim import record
     from drivers.sim.render import RenderError
 
     sim = _sim_options(args, config)
     try:
+        # the flight's speed swings as the application's flights do
+        wave = SpeedWave.of(config.planner.speed_swing, config.planner.speed_swing_period_s)
         summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
                                         config.imu, duration=args.duration,
-                                        sim_camera=config.sim_camera)
+                                        sim_camera=config.sim_camera, wave=wave)
     except (record.RecordError, RenderError, OSError) as error:
         print(f"sim record: {error}", file=sys.stderr)
         return common.EXIT_FAILED

@@ -2,8 +2,9 @@
 
 The flight is the one a careful pilot would give a visual-inertial estimator: a few seconds
 standing still on the ground (for a static initialisation), a vertical take-off to cruise
-height, then the route's collision-free path at constant speed, facing along it, back and
-forth until the duration is spent. The vehicle is the simulated quadrotor with its PX4-like
+height, then the route's collision-free path, facing along it, back and forth until the
+duration is spent, at a constant speed or, with a speed wave (the application's ``[planner]
+speed_swing``), swinging about it as the application's flights do (``PathFollower``). The vehicle is the simulated quadrotor with its PX4-like
 controller, so the motion is smooth and dynamically feasible; the IMU is sampled from the
 same dynamics, so a noiseless recording integrates back onto its own ground truth.
 """
@@ -17,6 +18,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from autonomy.planning.speed_wave import SpeedWave
 from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import EurocWriter
 from drivers.sim.camera import CameraHead
@@ -119,25 +121,41 @@ def resample(points: np.ndarray, spacing: float) -> np.ndarray:
 
 
 class PathFollower:
-    """Targets that move along a path at constant speed, back and forth, facing the way ahead.
+    """Targets that move along a path, back and forth, facing the way ahead.
 
     At time ``t`` the target is the point at arc length ``s(t) = speed * t`` folded onto
     ``[0, L]`` (a triangle wave, so the vehicle turns round at each end), with the path's
-    tangent times the speed as velocity feed-forward and the tangent's heading as yaw.
+    tangent times the speed as velocity feed-forward and the tangent's heading as yaw. With a
+    speed ``wave`` the speed swings about ``speed`` by half the wave's swing either way,
+    ``speed (m(t) + share / 2)`` (speed_wave.py), so that the path flown in a given time, and
+    a recording's length, are those of the constant speed.
     """
 
-    def __init__(self, path_xy: np.ndarray, height: float, speed: float):
+    def __init__(self, path_xy: np.ndarray, height: float, speed: float,
+                 wave: SpeedWave | None = None):
         self.points = np.asarray(path_xy, dtype=float)
         steps = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
         self.arc = np.concatenate([[0.0], np.cumsum(steps)])
         self.length = float(self.arc[-1])
         self.height = height
         self.speed = speed
+        self.wave = wave
         if self.length <= 0.0:
             raise RecordError("the route's path has no length")
+        if wave is not None and wave.swing >= 2.0 * speed:
+            raise RecordError(f"a speed swing of {wave.swing:g} m/s would stop a vehicle "
+                              f"cruising at {speed:g} m/s: it must be less than {2 * speed:g}")
+
+    def _speed_and_travel(self, t: float) -> tuple[float, float]:
+        """The speed at ``t`` and the arc length travelled by then."""
+        if self.wave is None:
+            return self.speed, self.speed * t
+        share = self.wave.swing / self.speed
+        return (self.speed * (self.wave.factor(t, share) + share / 2.0),
+                self.speed * (self.wave.progress(0.0, t, share) + share / 2.0 * t))
 
     def target(self, t: float) -> ControlTarget:
-        travelled = self.speed * max(t, 0.0)
+        speed, travelled = self._speed_and_travel(max(t, 0.0))
         lap, s = divmod(travelled, self.length)
         backwards = int(lap) % 2 == 1
         if backwards:
@@ -150,7 +168,7 @@ class PathFollower:
             tangent = -tangent
         return ControlTarget(
             position=np.array([x, y, self.height]),
-            velocity=np.array([tangent[0], tangent[1], 0.0]) * self.speed,
+            velocity=np.array([tangent[0], tangent[1], 0.0]) * speed,
             yaw=math.atan2(tangent[1], tangent[0]),
         )
 
@@ -168,10 +186,11 @@ def route_path(world: World, route: Route) -> np.ndarray:
 def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
         sensor: SensorOptions | None = None, renderer: Renderer | None = None,
-        vehicle_seed: int | None = None) -> RecordSummary:
+        vehicle_seed: int | None = None, wave: SpeedWave | None = None) -> RecordSummary:
     """Fly ``route`` for ``duration`` simulated seconds, sending every sample to ``sink``.
     ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the errors the
-    vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`).
+    vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave`` swings the
+    cruise's speed (:class:`PathFollower`).
 
     Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
     after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
@@ -180,7 +199,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     """
     dt = 1.0 / imu.rate_hz
     path = route_path(world, route)
-    follower = PathFollower(path, route.cruise_height, SPEED)
+    follower = PathFollower(path, route.cruise_height, SPEED, wave)
     quad = Quadrotor(vehicle, world.obstacle_clearance,
                      position=np.array([route.start[0], route.start[1], 0.0]),
                      yaw=_heading(path))
@@ -243,7 +262,8 @@ def _heading(path: np.ndarray) -> float:
 
 def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: VehicleOptions,
                    imu: ImuOptions, *, duration: float,
-                   sim_camera: SensorOptions | None = None) -> RecordSummary:
+                   sim_camera: SensorOptions | None = None,
+                   wave: SpeedWave | None = None) -> RecordSummary:
     """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``,
     in ``sim.profile``: realistic, through the camera sensor ``sim_camera`` (default
     ``[sim_camera]``'s defaults; its lens is written into ``sensor.yaml``, and the mounting
@@ -252,7 +272,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
 
     The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset;
     ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting),
-    ``sim.noise_seed`` the same flight with another draw of the sensors' noise.
+    ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``wave``
+    swings the cruise's speed (:class:`PathFollower`).
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
@@ -268,7 +289,7 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
                      _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.noise_for(sim.seed),
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
-                   vehicle_seed=sim.vehicle_for(sim.seed))
+                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:
