@@ -4,9 +4,10 @@ The flight is the one a careful pilot would give a visual-inertial estimator: a 
 standing still on the ground (for a static initialisation), a vertical take-off to cruise
 height, then the route's collision-free path, facing along it, back and forth until the
 duration is spent, at a constant speed or, with a speed wave (the application's ``[planner]
-speed_swing``), swinging about it as the application's flights do (``PathFollower``). The vehicle is the simulated quadrotor with its PX4-like
-controller, so the motion is smooth and dynamically feasible; the IMU is sampled from the
-same dynamics, so a noiseless recording integrates back onto its own ground truth.
+speed_swing``), swinging about it as the application's flights do (``PathFollower``). The
+vehicle is the simulated quadrotor with its PX4-like controller, so the motion is smooth and
+dynamically feasible; the IMU is sampled from the same dynamics, so a noiseless recording
+integrates back onto its own ground truth.
 """
 
 from __future__ import annotations
