@@ -16,6 +16,8 @@ the estimator is overconfident and less when it is too cautious.
 
 from __future__ import annotations
 
+import cmath
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -154,3 +156,49 @@ def nees(error: np.ndarray, covariance: np.ndarray) -> float:
         return float(error @ np.linalg.solve(covariance, error))
     except np.linalg.LinAlgError:
         raise ValueError("singular covariance") from None
+
+
+#: The least horizontal distance flown over which :func:`split_displacement` splits an error
+#: into the path's scale and bearing, metres (shorter, both are noise).
+DISPLACEMENT_MIN_M = 1.0
+
+
+@dataclass(frozen=True)
+class DisplacementSplit:
+    """An estimator's position error at the end of a path, taken apart against the
+    horizontal path flown: the true horizontal displacement ``D`` (``distance_m`` long) and the
+    estimate's ``E``, as the complex ratio ``E / D = scale * exp(i bearing)``; the error
+    ``E - D`` along ``D`` (``along_m``, negative: the estimate fell short) and across it
+    (``across_m``, positive: to the left), the height error gathered over the path
+    (``height_m``), and the error at its start (``start_m``, 3-D). The horizontal error at the
+    end is exactly the start's plus ``along_m`` and ``across_m`` in D's frame: a scale error
+    shows along, a heading error across."""
+
+    distance_m: float
+    scale: float
+    bearing_deg: float
+    along_m: float
+    across_m: float
+    height_m: float
+    start_m: float
+
+
+def split_displacement(true_start, true_end, estimated_start, estimated_end,
+                       least_m: float = DISPLACEMENT_MIN_M) -> DisplacementSplit | None:
+    """The error at ``estimated_end`` against ``true_end`` split over the path from the
+    starts (positions, metres, z up; :class:`DisplacementSplit`); None when the true path
+    ends within ``least_m`` of its start horizontally."""
+    true_start, true_end, estimated_start, estimated_end = (
+        np.asarray(p, dtype=float) for p in (true_start, true_end, estimated_start,
+                                             estimated_end))
+    true_step, estimated_step = true_end - true_start, estimated_end - estimated_start
+    flown, estimated = complex(*true_step[:2]), complex(*estimated_step[:2])
+    if abs(flown) < least_m:
+        return None
+    ratio = estimated / flown
+    in_path_frame = (estimated - flown) * flown.conjugate() / abs(flown)
+    return DisplacementSplit(
+        distance_m=abs(flown), scale=abs(ratio), bearing_deg=math.degrees(cmath.phase(ratio)),
+        along_m=in_path_frame.real, across_m=in_path_frame.imag,
+        height_m=float(estimated_step[2] - true_step[2]),
+        start_m=float(np.linalg.norm(estimated_start - true_start)))

@@ -11,6 +11,7 @@ the same run again on a real two-node Ray cluster started on this machine (issue
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -85,6 +86,11 @@ def test_the_ground_truth_depth_trial_reaches_its_goal_without_collision(short_r
     assert result["gt"][WORLD]["mean_time_s"] == gt["flight_time_s"]
     assert result["gt"][WORLD]["least_clearance_m"] == gt["min_clearance_m"] > 0
     assert result["gt"][WORLD]["vins_error_worst_m"] == gt["position_error_m"] >= 0
+    # the record keeps that error split over the path flown (its parts add up to it)
+    split = gt["position_error_split"]
+    assert 0 < split["distance_m"] <= gt["path_length_m"]
+    assert math.hypot(split["along_m"], split["across_m"], split["height_m"]) == pytest.approx(
+        gt["position_error_m"], abs=1e-6)
     assert 0 < gt["time_to_goal_s"] < gt["flight_time_s"]
 
 

@@ -143,7 +143,17 @@ def test_the_truth_scores_the_flight_and_the_vins_error_when_navigation_ended():
     assert score["path_length_m"] == pytest.approx(8.0)
     assert score["closest_to_goal_m"] == pytest.approx(1.0)
     assert score["position_error_m"] == pytest.approx(0.5)
-    assert track.score(world, goal)["position_error_m"] is None  # no estimate (never tied)
+    # split over the 5 m flown from the start: all of it height, none scale or heading
+    split = score["position_error_split"]
+    assert split["distance_m"] == pytest.approx(5.0) and split["height_m"] == pytest.approx(0.5)
+    assert split["scale"] == pytest.approx(1.0) and split["across_m"] == pytest.approx(0.0)
+    # believing itself 10 % farther along the same bearing: all of it along the path
+    split = track.score(world, goal, {"t": 6.0, "position_L": [4.4, 3.3, 1.5]})[
+        "position_error_split"]
+    assert split["scale"] == pytest.approx(1.1) and split["along_m"] == pytest.approx(0.5)
+    assert split["bearing_deg"] == pytest.approx(0.0, abs=1e-9)
+    unscored = track.score(world, goal)  # no estimate (never tied)
+    assert unscored["position_error_m"] is None and unscored["position_error_split"] is None
 
 
 def test_truth_depth_is_fully_confident_and_its_empty_sky_is_far():
@@ -275,6 +285,30 @@ def test_odometry_quality_tells_px4_when_not_to_fuse_the_vins(state, settling, b
 
 
 # ---------------------------------------------------------------- the summary
+
+def test_the_simulated_summary_splits_the_vins_error_over_the_path():
+    """`sim fly`'s summary gives the VINS error with its split (the path's scale, bearing,
+    height), and the bare error where the flight has none (never tied, or flew nowhere)."""
+    from companion.launch.simulated import format_summary
+
+    summary = {"world": "sewer", "pair": 0, "seed": 1, "goal": [80.0, 2.5, 1.5],
+               "reached_goal": True, "closest_to_goal_m": 0.48, "collisions": 0,
+               "path_length_m": 87.1, "min_clearance_m": 1.1, "position_error_m": 2.07,
+               "mavlink": {"where": "udp", "received_bytes_per_s": 9e3, "sent_bytes_per_s": 2e3,
+                           "capacity_bytes_per_s": None,
+                           "bad_data": {"received": 0, "sent": 0}},
+               "final_state": "landed", "failsafes": [], "flight_time_s": 63.3,
+               "depth_rate_hz": 9.9, "loop_lag_ms_p99": 5.0, "planning_rounds": 522,
+               "stop_rounds": 0, "backoffs": 0, "vins_resets": 0,
+               "position_error_split": {"distance_m": 81.2, "scale": 0.9808, "bearing_deg": -0.86,
+                                        "along_m": -1.56, "across_m": -1.22, "height_m": 0.38,
+                                        "start_m": 0.0}}
+    line = next(line for line in format_summary(summary).splitlines() if "VINS error" in line)
+    assert line == ("  VINS error        2.07 m (path scale 0.9808: -1.56 m along; bearing "
+                    "-0.86°: -1.22 m across; height +0.38 m)")
+    summary["position_error_split"] = None
+    line = next(line for line in format_summary(summary).splitlines() if "VINS error" in line)
+    assert line == "  VINS error        2.07 m"
 
 def test_the_summary_ends_with_the_estimated_time_offset_and_how_to_start_from_it():
     from autonomy.vins.time_offset import TimeOffset

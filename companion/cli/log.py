@@ -149,12 +149,26 @@ def _time_table(path: Path, spent) -> str:
     return "\n".join(lines)
 
 
+def _displacement_line(split, least_m: float) -> str:
+    """The error at the end taken apart: the path's scale and bearing, and the metres each
+    and the height and start add."""
+    if split is None:
+        return f"error at the end not split: under {least_m:g} m flown from the first frame"
+    return (f"error at the end over the {split.distance_m:.1f} m flown: scale "
+            f"{split.scale:.4f} ({split.along_m:+.2f} m along), bearing "
+            f"{split.bearing_deg:+.2f}° ({split.across_m:+.2f} m across), height "
+            f"{split.height_m:+.2f} m, first frame {split.start_m:.2f} m off")
+
+
 def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
-    """The rows every ``every`` seconds and at each change of the VINS's state, under a line
-    with the error at the end, the largest and the median; ``with_map``, the map scale too."""
+    """The rows every ``every`` seconds and at each change of the VINS's state, under lines
+    with the error at the end, the largest and the median, the heading error's accrual and
+    the error at the end split (:func:`_displacement_line`); ``with_map``, the map scale
+    too."""
     if not samples:
         return f"{path}: no frame with both a VINS pose and the truth"
-    from companion.recording.replay import TURNING_RATE_DEG_S, heading_accrual
+    from autonomy.trajectory import DISPLACEMENT_MIN_M
+    from companion.recording.replay import TURNING_RATE_DEG_S, displacement_split, heading_accrual
 
     errors = [sample.error_m for sample in samples]
     largest = max(samples, key=lambda sample: sample.error_m)
@@ -167,6 +181,7 @@ def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
              f"{turning.seconds:.1f} s, {turning.turned_deg:.0f}° turned) "
              f"{turning.error_change_deg:+.2f}°, flying straight ({straight.seconds:.1f} s) "
              f"{straight.error_change_deg:+.2f}°",
+             _displacement_line(displacement_split(samples), DISPLACEMENT_MIN_M),
              "      t     error   heading  state        landmarks"
              + ("  map scale" if with_map else "")]
     next_row, state = samples[0].t, None

@@ -48,6 +48,7 @@ from autonomy.navigation.behaviours import FLOWN_GROUND_REASONS
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
 from autonomy.navigation.mission import DISARMED_STATES, GUARDED_STATES, FlightState
 from autonomy.planning.planner import Planner
+from autonomy.trajectory import DisplacementSplit, split_displacement
 from autonomy.vins.estimator import Vins
 from autonomy.vins.health import HealthState
 from companion.config import config_from_toml, load_config
@@ -643,7 +644,8 @@ class VinsErrorSample:
     truth, within +-180), ``truth_position`` where the body truly was (metres) and
     ``truth_yaw_deg`` its true heading (within +-180), all in PX4's local frame; the VINS's
     health at that frame; ``map_scale`` (asked for, and where the true depth was recorded) the
-    median of its tracked landmarks' depth over the true depth."""
+    median of its tracked landmarks' depth over the true depth; ``estimate_position`` where
+    the VINS had the body (metres)."""
 
     t: float
     truth_position: tuple[float, float, float]
@@ -653,6 +655,7 @@ class VinsErrorSample:
     state: str
     landmarks: int
     map_scale: float | None = None
+    estimate_position: tuple[float, float, float] | None = None
 
 
 #: The true yaw rate above which `log vins` counts the vehicle as turning, degrees per second
@@ -692,6 +695,17 @@ def heading_accrual(samples: list[VinsErrorSample],
         turned[kind] += abs(yaw_step)
         change[kind] += _wrapped_deg(after.heading_deg - before.heading_deg)
     return {kind: HeadingAccrual(seconds[kind], turned[kind], change[kind]) for kind in seconds}
+
+
+def displacement_split(samples: list[VinsErrorSample]) -> DisplacementSplit | None:
+    """The last sample's error split into the path's scale, bearing and height since the
+    first sample (``autonomy.trajectory.split_displacement``); None without estimated
+    positions or when the vehicle ended within ``DISPLACEMENT_MIN_M`` (1 m) of its first
+    position horizontally."""
+    if len(samples) < 2 or any(s.estimate_position is None for s in (samples[0], samples[-1])):
+        return None
+    return split_displacement(samples[0].truth_position, samples[-1].truth_position,
+                              samples[0].estimate_position, samples[-1].estimate_position)
 
 
 def _wrapped_deg(angle: float) -> float:
@@ -748,7 +762,8 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
             error_m=float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3])),
             heading_deg=_wrapped_deg(math.degrees(yaw_of(estimate[:3, :3])) - truth_yaw),
             state=vitals.get("state", "?"),
-            landmarks=int(vitals.get("landmarks", 0)), map_scale=scales.get(t)))
+            landmarks=int(vitals.get("landmarks", 0)), map_scale=scales.get(t),
+            estimate_position=tuple(float(v) for v in estimate[:3, 3])))
     return samples
 
 

@@ -26,7 +26,7 @@ import signal
 import socket
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 import numpy as np
@@ -34,6 +34,7 @@ import numpy as np
 from autonomy.depth.network import DepthNetwork
 from autonomy.depth.synthetic import SyntheticNetwork
 from autonomy.messages import DepthDiagnostics, Frame, MetricDepth
+from autonomy.trajectory import split_displacement
 from drivers.camera.calibration import CameraCalibration
 from drivers.clock import MonotonicClock, SimClock
 from drivers.sim.camera import CameraHead, SimCamera
@@ -212,11 +213,15 @@ class TruthTrack:
         """The flight in truth: its start, length, least clearance, closest approach to
         ``goal`` and, given the application's ``estimate`` ``{"t", "position_L"}`` of where it
         was when navigation ended (local frame = world frame here), how far that lies from the
-        truth at that time: the VINS's drift over the flight."""
+        truth at that time: the VINS's drift over the flight, and that error split over the
+        path from the start (``position_error_split``: the path's scale and bearing, metres
+        along, across and in height; ``autonomy.trajectory.split_displacement``, the VINS
+        taken to have started where the vehicle did, where it was tied to the local frame)."""
         path = np.array(self.positions).reshape(-1, 3)
         if len(path) == 0:
             return {"start": None, "path_length_m": 0.0, "min_clearance_m": None,
-                    "closest_to_goal_m": None, "position_error_m": None}
+                    "closest_to_goal_m": None, "position_error_m": None,
+                    "position_error_split": None}
         airborne = path[path[:, 2] > 0.3]
         clearance = world.obstacle_clearance(airborne) if len(airborne) else np.array([np.inf])
         return {
@@ -226,7 +231,15 @@ class TruthTrack:
             "closest_to_goal_m": float(np.linalg.norm(path[:, :2] - goal[:2], axis=1).min()),
             "position_error_m": None if estimate is None else float(np.linalg.norm(
                 np.asarray(estimate["position_L"]) - self._at(estimate["t"]))),
+            "position_error_split": None if estimate is None else _split_or_none(
+                path[0], self._at(estimate["t"]), estimate["position_L"]),
         }
+
+
+def _split_or_none(start, true_end, estimated_end) -> dict | None:
+    """:func:`split_displacement` from ``start`` for both, as a dict, or None."""
+    split = split_displacement(start, true_end, start, estimated_end)
+    return None if split is None else asdict(split)
 
 
 def camera_head(config, world: str, seed: int) -> CameraHead:
