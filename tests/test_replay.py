@@ -303,6 +303,12 @@ def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recor
     assert code == 1 and "no true pose" in err and "only simulated flights" in err
     code, _, err = companion_log("vins", recording["recording"]["path"], "--every", "0")
     assert code == 1 and "--every must be above 0" in err
+    # a file that is not there, or a folder: one line naming it, never a traceback
+    for unreadable in (tmp_path / "missing.mcap", tmp_path):
+        for action in ("vins", "time"):
+            code, out, err = companion_log(action, unreadable)
+            assert code == 1 and out == "" and err.count("\n") == 1, err
+            assert err.startswith(f"log {action}: {unreadable}: cannot read: "), err
 
 
 def test_log_time_splits_the_navigation_phase_over_what_the_vehicle_was_doing(recording):

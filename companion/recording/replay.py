@@ -188,8 +188,13 @@ def _read(path: Path, topics_read, *, stamp: str = "publish_time") \
     """``(topic, time in ns, decoded message)`` of the recording's messages on ``topics_read``,
     in log-time order; the time is the message's ``stamp``: ``publish_time`` (when it was
     measured) or ``log_time`` (when the flight handled it). Whatever the MCAP reader or a decoder (zstd, protobuf,
-    JSON) raises on bytes it cannot read is a :class:`ReplayError`: the file is damaged."""
-    with open(path, "rb") as file:
+    JSON) raises on bytes it cannot read is a :class:`ReplayError`: the file is damaged; a
+    file that cannot be opened (missing, a folder, no permission) is one too."""
+    try:
+        file = open(path, "rb")
+    except OSError as error:
+        raise ReplayError(f"{path}: cannot read: {error.strerror or error}") from None
+    with file:
         messages = _decoded(file, topics_read)
         while True:
             try:
