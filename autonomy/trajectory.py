@@ -12,6 +12,11 @@ Whether the estimator's covariance is honest is the normalised estimation error 
 Navigation", 2001, §5.4): ``e^T P^-1 e`` for an error ``e`` of ``d`` dimensions and its
 reported covariance ``P`` averages ``d`` when ``P`` is the error's true covariance, more when
 the estimator is overconfident and less when it is too cautious.
+
+Unaligned, where the estimate is tied to the truth at the start (a flight's local frame), the
+error at the end of a path splits into the path's scale and bearing (``split_displacement``):
+the estimated horizontal displacement over the true one as one complex ratio, whose modulus
+is the scale a monocular estimator can lose and whose argument is the heading it can drift.
 """
 
 from __future__ import annotations
