@@ -229,17 +229,18 @@ class TruthTrack:
             "path_length_m": float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
             "min_clearance_m": float(clearance.min()) if np.isfinite(clearance.min()) else None,
             "closest_to_goal_m": float(np.linalg.norm(path[:, :2] - goal[:2], axis=1).min()),
-            "position_error_m": None if estimate is None else float(np.linalg.norm(
-                np.asarray(estimate["position_L"]) - self._at(estimate["t"]))),
-            "position_error_split": None if estimate is None else _split_or_none(
-                path[0], self._at(estimate["t"]), estimate["position_L"]),
+            **self._vins_error(path[0], estimate),
         }
 
-
-def _split_or_none(start, true_end, estimated_end) -> dict | None:
-    """:func:`split_displacement` from ``start`` for both, as a dict, or None."""
-    split = split_displacement(start, true_end, start, estimated_end)
-    return None if split is None else asdict(split)
+    def _vins_error(self, start: np.ndarray, estimate: dict | None) -> dict:
+        """``position_error_m`` and ``position_error_split`` (:meth:`score`), None without
+        an ``estimate``."""
+        if estimate is None:
+            return {"position_error_m": None, "position_error_split": None}
+        truth, believed = self._at(estimate["t"]), np.asarray(estimate["position_L"], float)
+        split = split_displacement(start, truth, start, believed)
+        return {"position_error_m": float(np.linalg.norm(believed - truth)),
+                "position_error_split": None if split is None else asdict(split)}
 
 
 def camera_head(config, world: str, seed: int) -> CameraHead:
