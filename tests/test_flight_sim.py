@@ -22,11 +22,13 @@ from pathlib import Path
 
 import pytest
 
+from autonomy.navigation.mission import FlightOptions
+from autonomy.vins.options import VinsOptions
 from companion import cli
 from companion.config import Config, load_config
 from companion.launch import simulated
 from drivers.sim.world import build_world
-from flights import SUMMARY_KEYS, assert_safe_landing
+from flights import SHORT_DOME_GOAL, SUMMARY_KEYS, assert_safe_landing, fly
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -173,6 +175,50 @@ def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_
     busy_network_frames = (holding - camera_up) / config.sim_latency.network_s
     assert 0.9 * busy_network_frames <= summary["depth_frames"] <= busy_network_frames + 1
     assert summary["depth_rate_hz"] > 10.0  # fitted depth into the planner while navigating
+
+
+def swing_of(summary: dict) -> tuple[float, str]:
+    """The offset swing's length, seconds, and the reason it ended, from the transitions."""
+    transitions = summary["transitions"]
+    begin = next(t for t in transitions if t["to"] == "calibrating")
+    end = next(t for t in transitions if t["from"] == "calibrating")
+    assert begin["from"] == "entering_offboard" and end["to"] == "navigating", transitions
+    return end["t"] - begin["t"], end["reason"]
+
+
+def test_before_navigating_it_swings_in_place_until_the_camera_time_offset_is_known():
+    """With the offset estimated online, the vehicle yaws to and fro on top of its take-off
+    until the rotation has shown the offset (sigma under ``time_offset_max_sigma_s``), and
+    starts navigating when its heading is back where the swing began (a whole number of half
+    periods). The ideal profile's camera is on time; the offset learnt lines it up with the
+    gyro as the VINS integrates it: each HIGHRES_IMU sample is the mean over the 5 ms before
+    its stamp (PX4's integrator, drivers/sim/imu.py) and the VINS holds it over the 5 ms after,
+    so the gyro's rotation lags by up to one sample (+2.5 ms measured, docs/vins.md, "The time
+    offset's windows and the rotors' vibration")."""
+    options = FlightOptions()
+    summary = fly("dome", goal=SHORT_DOME_GOAL, overrides=["vins.estimate_time_offset=true"])
+    assert_safe_landing(summary)
+    assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
+    seconds, reason = swing_of(summary)
+    assert reason.startswith("the camera's time offset known")
+    half_periods = seconds / (options.offset_swing_period_s / 2.0)
+    assert 1 <= round(half_periods) and abs(half_periods - round(half_periods)) < 0.05
+    offset = summary["vins_time_offset"]
+    assert offset["sigma_s"] <= VinsOptions().time_offset_max_sigma_s
+    assert 0.0 < offset["seconds"] < 0.005
+
+
+def test_an_offset_swing_that_shows_nothing_times_out_and_navigation_goes_on():
+    """An offset the swing cannot show (here a sigma no estimate reaches) delays navigation by
+    ``offset_swing_timeout_s`` at most: the VINS flew before the swing existed without it."""
+    summary = fly("dome", goal=SHORT_DOME_GOAL, overrides=[
+        "vins.estimate_time_offset=true", "vins.time_offset_max_sigma_s=1e-7",
+        "flight.offset_swing_timeout_s=2.5"])
+    assert_safe_landing(summary)
+    assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
+    seconds, reason = swing_of(summary)
+    assert reason == "the offset swing timed out, the camera's time offset unknown"
+    assert seconds == pytest.approx(2.5, abs=0.05)
 
 
 # ---------------------------------------------------------------- the command

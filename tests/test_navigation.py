@@ -12,10 +12,12 @@ import pytest
 from autonomy.geometry import PinholeCamera, make_pose, rot_z
 from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX_LANDMARKS,
                                             PARALLAX_REASON, PARALLAX_WAIT_S, TURN_STOP_REASON,
-                                            Backoff, Blocked, NoPathClock, ParallaxGlide, Step,
+                                            Backoff, Blocked, NoPathClock, OffsetSwing,
+                                            ParallaxGlide, Step,
                                             TURN_STEP, approach_targets, depth_lapsed,
                                             facing, must_turn,
-                                            on_glide, pause_turn, still_turning, turn_rate,
+                                            offset_unknown, on_glide, pause_turn,
+                                            still_turning, turn_rate,
                                             view_starved)
 from autonomy.navigation.failsafes import (BlindClock, Vitals, failsafe_reason, vins_failed,
                                            vins_problem)
@@ -25,6 +27,7 @@ from autonomy.navigation.route import Route, heading_error, stop_waypoints
 from autonomy.navigation.trail import Trail
 from autonomy.planning.planner import Candidates, Planner, PlannerOptions
 from autonomy.vins.health import HealthState
+from autonomy.vins.time_offset import TimeOffset
 
 OPTIONS = FlightOptions()
 IDENTITY = np.eye(4)
@@ -163,6 +166,47 @@ def test_a_turn_in_place_turns_toward_the_waypoint_until_within_align_done():
     assert turn_rate(-2.0, OPTIONS) == pytest.approx(-math.radians(30.0))
     assert still_turning(math.radians(15.1), OPTIONS) and not facing(math.radians(15.1), OPTIONS)
     assert facing(math.radians(-14.9), OPTIONS) and not still_turning(math.radians(14.9), OPTIONS)
+
+
+# ---------------------------------------------------------------- the offset swing
+
+def test_the_offset_swing_yaws_its_amplitude_each_way_and_back_every_period():
+    swing, period = OffsetSwing(OPTIONS), OPTIONS.offset_swing_period_s
+    dt = period / 2000
+    rates = np.array([swing.rate(k * dt) for k in range(2000)])
+    heading = np.concatenate([[0.0], np.cumsum(rates) * dt])  # the rate integrated
+    assert heading.max() == pytest.approx(math.radians(OPTIONS.offset_swing_deg), rel=1e-2)
+    assert heading.min() == pytest.approx(-math.radians(OPTIONS.offset_swing_deg), rel=1e-2)
+    assert heading[-1] == pytest.approx(0.0, abs=1e-3)  # back where it began
+    assert heading[1000] == pytest.approx(0.0, abs=1e-3)  # and half a period in
+    # the rate changes all the time: what shows the camera's time offset
+    assert np.all(np.abs(np.diff(rates)) > 0)
+
+
+def test_the_offset_swing_ends_when_the_heading_is_back_after_the_offset_is_known():
+    half = OPTIONS.offset_swing_period_s / 2.0
+    swing = OffsetSwing(OPTIONS)
+    assert not swing.over(0.4, known=False)
+    assert not swing.over(half + 0.3, known=True)  # known: on to the next half period
+    assert not swing.over(2 * half - 0.01, known=False)  # decided once known
+    assert swing.over(2 * half, known=False)
+    # known on a half period's end: over at once
+    assert OffsetSwing(OPTIONS).over(half, known=True)
+
+
+def test_the_offset_swing_ends_unknown_at_its_timeout():
+    swing = OffsetSwing(OPTIONS)
+    assert not swing.over(OPTIONS.offset_swing_timeout_s - 0.01, known=False)
+    assert swing.over(OPTIONS.offset_swing_timeout_s, known=False)
+
+
+@pytest.mark.parametrize("offset, unknown", [
+    (TimeOffset(0.015), False),  # fixed by the options
+    (TimeOffset(0.0, estimating=True), True),  # nothing has shown it yet
+    (TimeOffset(0.012, sigma=0.0015, estimating=True), True),  # too uncertain
+    (TimeOffset(0.015, sigma=0.0004, estimating=True), False)])
+def test_the_offset_is_unknown_only_while_estimated_and_not_yet_shown(offset, unknown):
+    assert offset_unknown(offset, max_sigma_s=0.001) is unknown
 
 
 # ---------------------------------------------------------------- the parallax glide

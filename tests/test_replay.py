@@ -32,12 +32,14 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def recording(tmp_path_factory):
     """The recording of 12 s of the dome's first pair, lockstep, PNG camera, the go 2 s into
     the wait for it (the VINS's zero-velocity prior on the ground, which the replay must give
-    where the flight did). Lockstep runs faster than real time, so the writer may fall behind
+    where the flight did), the camera's time offset estimated, so the flight swings for it
+    before navigating (docs/flight.md, CALIBRATING). Lockstep runs faster than real time, so the writer may fall behind
     on a busy machine: a queue as long as the flight keeps every image (docs/recording.md,
     "Drops")."""
     directory = tmp_path_factory.mktemp("recordings")
     config = load_config(None, [f"recorder.directory={directory}", "flight.mission_timeout_s=12",
-                                "recorder.camera_format=png", "recorder.camera_queue=1000"])
+                                "recorder.camera_format=png", "recorder.camera_queue=1000",
+                                "vins.estimate_time_offset=true"])
     summary = simulated.run(config, simulated.SimMission(world="dome", go_after_s=2.0),
                             record=True)
     assert summary["recording"]["error"] is None and not summary["recording"]["dropped"]
@@ -313,10 +315,10 @@ def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recor
 
 def test_log_time_splits_the_navigation_phase_over_what_the_vehicle_was_doing(recording):
     """The 12 s dome flight, ended by its 12 s mission timeout: its navigation phase (the
-    summary's navigation_time_s) is spent on the planner's arcs, by speed tier, and on the
-    failsafe's stop, as long as the transitions say (to the hold, or the glide to a landing
-    site); the arc rounds are the flight's planner
-    rounds, which the summary counts too."""
+    summary's navigation_time_s, from the switch to Offboard) is spent on the offset swing,
+    the planner's arcs, by speed tier, and the failsafe's stop, each as long as the
+    transitions say (the stop to the hold, or the glide to a landing site); the arc rounds are
+    the flight's planner rounds, which the summary counts too."""
     code, out, _ = companion_log("time", recording["recording"]["path"], "--json")
     assert code == 0
     spent = json.loads(out)
@@ -326,6 +328,9 @@ def test_log_time_splits_the_navigation_phase_over_what_the_vehicle_was_doing(re
     stop = [t["to"] for t in recording["transitions"]].index("failsafe_stop")
     assert spent["activities"]["the failsafe's stop"] == pytest.approx(
         times[stop + 1] - times[stop], abs=0.01)
+    swing = [t["to"] for t in recording["transitions"]].index("calibrating")
+    assert spent["activities"]["the offset swing"] == pytest.approx(
+        times[swing + 1] - times[swing], abs=0.01)
     arcs = {label: s for label, s in spent["activities"].items() if label.startswith("arcs at")}
     assert arcs and sum(arcs.values()) > 0.5 * spent["seconds"], spent["activities"]
     rounds = recording["planning_rounds"]

@@ -3,8 +3,11 @@
 Pure bookkeeping, no I/O and no clock of its own: the application passes the time in. A flight
 goes
 
-    PREFLIGHT -> INITIALISING -> TAKING_OFF -> ENTERING_OFFBOARD -> NAVIGATING
-              -> STOPPING (goal reached) -> LANDING -> LANDED
+    PREFLIGHT -> INITIALISING -> TAKING_OFF -> ENTERING_OFFBOARD [-> CALIBRATING]
+              -> NAVIGATING -> STOPPING (goal reached) -> LANDING -> LANDED
+
+(CALIBRATING: the yaw swing in place that shows the camera's time offset, while it is
+estimated and not yet known: :class:`autonomy.navigation.behaviours.OffsetSwing`.)
 
 and whatever goes wrong in the air takes the safe way down:
 
@@ -75,6 +78,15 @@ class FlightOptions:
                                    doc="heading error at which turning in place ends, degrees")
     align_yaw_rate_deg: float = option(30.0, gt=0.0, le=180.0,
                                        doc="yaw rate of a turn in place, degrees per second")
+    offset_swing_deg: float = option(
+        10.0, ge=0.0, le=45.0,
+        doc="before navigating, while the camera's time offset is estimated and not yet known, "
+            "yaw in place this far to each side and back until it is, degrees (0: never)")
+    offset_swing_period_s: float = option(2.0, ge=0.5, le=20.0,
+                                          doc="period of the offset swing, seconds")
+    offset_swing_timeout_s: float = option(
+        10.0, gt=0.0, le=120.0,
+        doc="longest offset swing: navigation starts after it, the offset known or not, s")
     setpoint_rate_hz: float = option(30.0, ge=20.0, le=50.0,
                                      doc="offboard velocity setpoints per second (PX4: > 2)")
     tracking_gain: float = option(
@@ -152,6 +164,7 @@ class FlightState(enum.Enum):
     AWAITING_GO = "awaiting_go"
     TAKING_OFF = "taking_off"
     ENTERING_OFFBOARD = "entering_offboard"
+    CALIBRATING = "calibrating"
     ALIGNING = "aligning"
     NAVIGATING = "navigating"
     STOPPING = "stopping"
@@ -170,8 +183,8 @@ GROUND_STATES = frozenset({FlightState.PREFLIGHT, FlightState.INITIALISING,
 #: States on the ground, disarmed: before arming, and after the landing.
 DISARMED_STATES = GROUND_STATES | {FlightState.LANDED}
 #: States in which the application commands the vehicle with offboard setpoints.
-OFFBOARD_STATES = frozenset({FlightState.ENTERING_OFFBOARD, FlightState.ALIGNING,
-                             FlightState.NAVIGATING, FlightState.STOPPING,
+OFFBOARD_STATES = frozenset({FlightState.ENTERING_OFFBOARD, FlightState.CALIBRATING,
+                             FlightState.ALIGNING, FlightState.NAVIGATING, FlightState.STOPPING,
                              FlightState.FAILSAFE_STOP, FlightState.TO_LANDING_SITE})
 #: States after a failsafe in which the application still commands the vehicle.
 FAILSAFE_OFFBOARD_STATES = frozenset({FlightState.FAILSAFE_STOP, FlightState.TO_LANDING_SITE})
@@ -182,8 +195,12 @@ MISSION_TIMEOUT = "mission timeout"
 NO_SAFE_PRIMITIVE = "no safe primitive"
 SITE_SEEKING_FAILSAFES = frozenset({MISSION_TIMEOUT, NO_SAFE_PRIMITIVE})
 #: States in which a failsafe check applies (in the air, on our setpoints).
-GUARDED_STATES = frozenset({FlightState.ALIGNING, FlightState.NAVIGATING,
-                            FlightState.STOPPING})
+GUARDED_STATES = frozenset({FlightState.CALIBRATING, FlightState.ALIGNING,
+                            FlightState.NAVIGATING, FlightState.STOPPING})
+#: Guarded states in which the vehicle turns in place, not flown along the VINS's path: the
+#: blind clock does not run (a turn's view has no landmarks yet) and the ground under it
+#: counts as flown.
+TURNING_IN_PLACE_STATES = frozenset({FlightState.CALIBRATING, FlightState.ALIGNING})
 FINAL_STATES = frozenset({FlightState.LANDED, FlightState.ABORTED})
 #: States in which nothing reads metric depth: PX4 flies the vehicle on its own (Hold after a
 #: failsafe or while the link is lost, then the landing), or has landed it or stopped its

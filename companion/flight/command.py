@@ -3,7 +3,8 @@
 
 A setpoint is the ``plan`` channel's plan sampled now, its velocity corrected toward the plan's
 position (:func:`tracked`), turned into PX4's local frame; zero velocity while entering
-Offboard and in a failsafe's stop after the VINS failed; a turn in place while aligning. The :class:`~companion.flight.watchdog.
+Offboard and in a failsafe's stop after the VINS failed; a turn in place while aligning, the
+offset swing while calibrating. The :class:`~companion.flight.watchdog.
 SetpointWatchdog` thread replaces a late setpoint by the ``checked_stop`` channel's plan, from
 outside the event loop.
 """
@@ -106,6 +107,8 @@ class Command:
         state, plan = self.context.state, self.context.channels.plan.value
         if state == FlightState.ALIGNING:
             return still(turn_rate(self.navigation.heading_error(), self.context.options))
+        if state == FlightState.CALIBRATING:
+            return still(self.navigation.swing.rate(self.context.mission.elapsed(now)))
         if state == FlightState.ENTERING_OFFBOARD or plan is None \
                 or self.navigation.stopping_on_px4:
             return still()

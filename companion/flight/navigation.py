@@ -24,11 +24,12 @@ from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON,
                                             FLOWN_GROUND_REASONS, GOAL_STOP_REASON,
                                             PARALLAX_REASON, TURN_HOLD_REASON,
                                             TURN_STOP_REASON, Backoff, Blocked,
-                                            NoPathClock, ParallaxGlide, Step, approach_targets,
-                                            depth_lapsed, must_turn, on_glide, pause_turn,
-                                            still_turning, view_starved)
+                                            NoPathClock, OffsetSwing, ParallaxGlide, Step,
+                                            approach_targets, depth_lapsed, must_turn,
+                                            on_glide, pause_turn, still_turning, view_starved)
 from autonomy.navigation.failsafes import age
-from autonomy.navigation.mission import FAILSAFE_OFFBOARD_STATES, FlightState
+from autonomy.navigation.mission import (FAILSAFE_OFFBOARD_STATES, TURNING_IN_PLACE_STATES,
+                                        FlightState)
 from autonomy.navigation.route import Route, heading_error
 from autonomy.navigation.trail import Trail
 from autonomy.planning.planner import Plan, Planner
@@ -38,8 +39,10 @@ from drivers.clock import Rate
 
 log = logging.getLogger(__name__)
 
-#: From the take-off to Offboard: the vehicle climbs its take-off column and holds on top.
-CLIMBING_STATES = frozenset({FlightState.TAKING_OFF, FlightState.ENTERING_OFFBOARD})
+#: From the take-off until navigating: the vehicle climbs its take-off column and holds on
+#: top (yawing there while the camera's time offset is learnt).
+CLIMBING_STATES = frozenset({FlightState.TAKING_OFF, FlightState.ENTERING_OFFBOARD,
+                             FlightState.CALIBRATING})
 
 
 class Navigation:
@@ -56,6 +59,7 @@ class Navigation:
         self.glide_cut = ""  # a failure after the failsafe that rules out or ends the glide
         self.turn_began: float | None = None  # |heading error| as a corner's turn began
         self.regained_after: float | None = None  # the fit that lapsed at the last regaining
+        self.swing = OffsetSwing(context.options)  # before navigating, for the time offset
 
     # ------------------------------------------------------------------ for the other stages
 
@@ -136,12 +140,12 @@ class Navigation:
             self.context.options.stopped_speed
 
     def on_flown_ground(self) -> bool:
-        """Braking to a corner's turn on the stop checked before it, turning in place there,
-        gliding for parallax after it, backing off along the trail, or braking at the goal:
+        """Braking to a corner's turn on the stop checked before it, turning in place there
+        (or swinging for the camera's time offset, on top of the take-off column), gliding for parallax after it, backing off along the trail, or braking at the goal:
         the vehicle stays on ground it has flown or checked, so depth may lapse (new depth is
         what the turn and the glides are for; at the goal none is needed)."""
         now, plan = self.context.clock.now(), self.plan
-        return self.context.state == FlightState.ALIGNING or self.parallax.active \
+        return self.context.state in TURNING_IN_PLACE_STATES or self.parallax.active \
             or self.backoff.active \
             or any(on_glide(plan, reason, now) for reason in FLOWN_GROUND_REASONS)
 

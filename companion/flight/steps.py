@@ -1,5 +1,7 @@
 """The mission's steps, in order (DESIGN.md, "Flight behaviour"): preflight, the VINS's static
-initialisation, the operator's go (:mod:`companion.flight.go`), arming and take-off, entering Offboard, navigating until the goal is reached
+initialisation, the operator's go (:mod:`companion.flight.go`), arming and take-off, entering
+Offboard (then the offset swing while the camera's time offset is unknown:
+:class:`~autonomy.navigation.behaviours.OffsetSwing`), navigating until the goal is reached
 or a failsafe stops the vehicle, and coming down. Each step waits on the other stages'
 channels and moves the mission's state machine (:class:`autonomy.navigation.mission.Mission`);
 a step that fails on the ground aborts, one that fails in the air lands."""
@@ -8,7 +10,7 @@ from __future__ import annotations
 
 import logging
 
-from autonomy.navigation.behaviours import facing
+from autonomy.navigation.behaviours import facing, offset_unknown
 from autonomy.navigation.mission import MISSION_TIMEOUT, SITE_SEEKING_FAILSAFES, FlightState
 from companion.flight.context import FlightContext
 from companion.flight.go import OperatorGate
@@ -26,7 +28,8 @@ OFFBOARD_STREAM_S = 1.2
 TAKEOFF_HEIGHT_MARGIN = 0.25
 #: The navigation phase: from Offboard until the vehicle is at rest, landing at the goal, or
 #: after a failsafe, holding or gliding to a landing site (not counted as navigation).
-NAVIGATION_PHASE = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
+NAVIGATION_PHASE = frozenset({FlightState.CALIBRATING, FlightState.NAVIGATING,
+                              FlightState.ALIGNING,
                               FlightState.STOPPING, FlightState.FAILSAFE_STOP})
 
 
@@ -155,7 +158,15 @@ class MissionSteps:
             c.go(FlightState.LANDING, "PX4 refused Offboard")
             return
         c.stats.navigation_start = c.clock.now()
-        c.go(FlightState.NAVIGATING, "Offboard")
+        if self._offset_unknown() and c.options.offset_swing_deg > 0.0:
+            c.go(FlightState.CALIBRATING, "Offboard; swinging in place until the camera's time "
+                                          "offset is known")
+        else:
+            c.go(FlightState.NAVIGATING, "Offboard")
+
+    def _offset_unknown(self) -> bool:
+        vins = self.perception.vins
+        return offset_unknown(vins.time_offset, vins.options.time_offset_max_sigma_s)
 
     async def _navigate(self) -> None:
         c = self.context
@@ -189,6 +200,8 @@ class MissionSteps:
         if state in (FlightState.STOPPING, FlightState.FAILSAFE_STOP):
             if self.navigation.stopped() or c.mission.elapsed(now) > c.options.stop_timeout_s:
                 await self._after_stop(state)
+        elif state == FlightState.CALIBRATING:
+            self._calibration_step(now)
         elif state == FlightState.ALIGNING:
             error = self.navigation.heading_error()
             if facing(error, c.options):
@@ -197,6 +210,23 @@ class MissionSteps:
                      "facing the look aside" if looking else "facing the next waypoint")
             elif self.navigation.turn_paused(error):
                 c.go(FlightState.NAVIGATING, "few VINS landmarks; the turn paused for parallax")
+
+    def _calibration_step(self, now: float) -> None:
+        """End the offset swing when it is over (:class:`OffsetSwing`), the offset known or
+        not (navigation needs it no more than the flights before the swing did)."""
+        c = self.context
+        known = not self._offset_unknown()
+        if not self.navigation.swing.over(c.mission.elapsed(now), known):
+            return
+        offset = self.perception.vins.time_offset
+        if known:
+            c.go(FlightState.NAVIGATING, f"the camera's time offset known: "
+                                         f"{offset.seconds * 1e3:.1f} ms")
+            return
+        log.warning("the camera's time offset still unknown after the swing's %.0f s",
+                    c.options.offset_swing_timeout_s)
+        c.go(FlightState.NAVIGATING, "the offset swing timed out, the camera's time offset "
+                                     "unknown")
 
     async def _after_stop(self, state: FlightState) -> None:
         c = self.context

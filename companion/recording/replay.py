@@ -46,7 +46,8 @@ from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, yaw_of
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import FLOWN_GROUND_REASONS
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
-from autonomy.navigation.mission import DISARMED_STATES, GUARDED_STATES, FlightState
+from autonomy.navigation.mission import (DISARMED_STATES, GUARDED_STATES,
+                                        TURNING_IN_PLACE_STATES, FlightState)
 from autonomy.planning.planner import Planner
 from autonomy.trajectory import DisplacementSplit, split_displacement
 from autonomy.vins.estimator import Vins
@@ -68,7 +69,7 @@ _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
 #: Recorded states in which the failsafe rules apply, and those on flown ground (a turn in
 #: place), where depth may lapse (autonomy.navigation.mission.GUARDED_STATES).
 _GUARDED = {state.value for state in GUARDED_STATES}
-_ALIGNING = FlightState.ALIGNING.value
+_TURNING_IN_PLACE = {state.value for state in TURNING_IN_PLACE_STATES}
 #: Recorded states on the ground, disarmed, where the VINS was told so (its zero-velocity
 #: prior: autonomy/vins/stillness.py); "" is the flight's start, before any transition.
 _ON_GROUND = {state.value for state in DISARMED_STATES} | {""}
@@ -398,8 +399,9 @@ class _Replayer:
         self.no_path_since = (None if plan.reason != "no safe primitive"
                               else now if self.no_path_since is None else self.no_path_since)
         health = self.vins_health
-        self.blind.update(now, None if health is None else health.landmarks,
-                          self.state in _GUARDED and self.state != _ALIGNING, self.config.flight)
+        flown_on_vins = self.state in _GUARDED and self.state not in _TURNING_IN_PLACE
+        self.blind.update(now, None if health is None else health.landmarks, flown_on_vins,
+                          self.config.flight)
         if self.report.replayed_failsafe is not None or self.state not in _GUARDED:
             return
         vitals = Vitals(
@@ -409,7 +411,7 @@ class _Replayer:
                           if health is not None and health.state == HealthState.LOST else ""),
             depth_age_s=age(self.last_depth_t, now), depth_reason="",
             blind_s=self.blind.blind_s, blind_expired=self.blind.expired(self.config.flight),
-            on_flown_ground=self.state == _ALIGNING or record["reason"] in FLOWN_GROUND_REASONS,
+            on_flown_ground=self.state in _TURNING_IN_PLACE or record["reason"] in FLOWN_GROUND_REASONS,
             no_path_expired=self.no_path_since is not None
             and now - self.no_path_since > self.config.flight.no_path_timeout_s)
         reason = failsafe_reason(vitals, self.config.flight)
@@ -775,9 +777,12 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
 #: The states of the navigation phase (from Offboard until the flight comes down), with the
 #: activity their time is counted as; NAVIGATING's time goes to the plan being flown.
 _PHASE_ACTIVITY = {FlightState.NAVIGATING.value: None,
+                   FlightState.CALIBRATING.value: "the offset swing",
                    FlightState.ALIGNING.value: "turning in place",
                    FlightState.STOPPING.value: "stopping at the goal",
                    FlightState.FAILSAFE_STOP.value: "the failsafe's stop"}
+#: The states the phase begins with, at the switch to Offboard: the offset swing, or navigating.
+_PHASE_STARTS = (FlightState.CALIBRATING.value, FlightState.NAVIGATING.value)
 
 
 @dataclass
@@ -831,10 +836,10 @@ def navigation_time(path: Path) -> NavigationTime:
         except ValueError as error:
             raise ReplayError(f"{topics.EVENTS.name}: {error}") from None
     start = next((t for t, what, value in timeline
-                  if what == "state" and value == FlightState.NAVIGATING.value), None)
+                  if what == "state" and value in _PHASE_STARTS), None)
     if start is None:
         raise ReplayError(f"{path}: the flight never navigated (no transition to "
-                          f"{FlightState.NAVIGATING.value} on {topics.EVENTS.name})")
+                          f"{' or '.join(_PHASE_STARTS)} on {topics.EVENTS.name})")
     activities: dict[str, float] = defaultdict(float)
     state, plan, since = None, "waiting for the first plan", start
     for t, what, value in timeline:
