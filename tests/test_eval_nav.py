@@ -272,6 +272,14 @@ def test_outcome_of_a_trial(summary, expected, early):
 def test_time_to_goal_counts_from_offboard():
     assert nav.time_to_goal(_summary(reached=True)) == 25.0
     assert nav.time_to_goal(_summary()) is None
+    # the offset swing first (docs/flight.md, CALIBRATING): its time is the flight's too
+    swung = _summary(reached=True)
+    swung["transitions"][:1] = [
+        {"t": 10.0, "from": "entering_offboard", "to": "calibrating",
+         "reason": "Offboard; swinging in place until the camera's time offset is known"},
+        {"t": 11.0, "from": "calibrating", "to": "navigating",
+         "reason": "the camera's time offset known: 18.2 ms"}]
+    assert nav.time_to_goal(swung) == 25.0
 
 
 def _records():

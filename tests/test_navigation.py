@@ -24,6 +24,7 @@ from autonomy.navigation.failsafes import (BlindClock, Vitals, failsafe_reason, 
 from autonomy.navigation.mission import (MISSION_TIMEOUT, SITE_SEEKING_FAILSAFES, FlightOptions,
                                          FlightState, Mission)
 from autonomy.navigation.route import Route, heading_error, stop_waypoints
+from autonomy.options import OptionError
 from autonomy.navigation.trail import Trail
 from autonomy.planning.planner import Candidates, Planner, PlannerOptions
 from autonomy.vins.health import HealthState
@@ -198,6 +199,15 @@ def test_the_offset_swing_ends_unknown_at_its_timeout():
     swing = OffsetSwing(OPTIONS)
     assert not swing.over(OPTIONS.offset_swing_timeout_s - 0.01, known=False)
     assert swing.over(OPTIONS.offset_swing_timeout_s, known=False)
+
+
+@pytest.mark.parametrize("settings, words", [
+    ({"offset_swing_deg": 30.0, "offset_swing_period_s": 1.0}, "peaks at 188 deg/s"),
+    ({"offset_swing_period_s": 4.0, "offset_swing_timeout_s": 1.5}, "at least half")])
+def test_a_swing_too_fast_or_a_timeout_shorter_than_half_a_swing_is_refused(settings, words):
+    with pytest.raises(OptionError, match=words):
+        FlightOptions(**settings)
+    assert FlightOptions(offset_swing_deg=0.0).offset_swing_deg == 0.0  # off: never swings
 
 
 @pytest.mark.parametrize("offset, unknown", [

@@ -35,6 +35,11 @@ from autonomy.options import OptionError, option, validate
 log = logging.getLogger(__name__)
 
 
+#: Fastest yaw rate an offset swing may command, degrees per second: three times the 30 deg/s
+#: of a turn in place, which a 10 degree swing of 2 s matches (31 deg/s at its peak).
+MAX_SWING_RATE_DEG = 90.0
+
+
 @dataclass(frozen=True)
 class FlightOptions:
     """The mission and its failsafe thresholds (the ``[flight]`` table)."""
@@ -141,6 +146,15 @@ class FlightOptions:
         validate(self)
         for text in self.waypoints:
             parse_point(text, "waypoints")
+        peak = self.offset_swing_deg * 2.0 * math.pi / self.offset_swing_period_s
+        if peak > MAX_SWING_RATE_DEG:
+            raise OptionError("offset_swing_deg", f"with offset_swing_period_s = "
+                              f"{self.offset_swing_period_s} the swing peaks at {peak:.0f} "
+                              f"deg/s, above {MAX_SWING_RATE_DEG:.0f} (2 pi A / T)")
+        if self.offset_swing_timeout_s < self.offset_swing_period_s / 2.0:
+            raise OptionError("offset_swing_timeout_s", "must be at least half of "
+                              f"offset_swing_period_s ({self.offset_swing_period_s / 2.0} s), "
+                              f"got {self.offset_swing_timeout_s}")
 
     def waypoint_points(self) -> list[tuple[float, float, float]]:
         """The waypoints as (x, y, z) tuples, metres."""
@@ -197,10 +211,11 @@ SITE_SEEKING_FAILSAFES = frozenset({MISSION_TIMEOUT, NO_SAFE_PRIMITIVE})
 #: States in which a failsafe check applies (in the air, on our setpoints).
 GUARDED_STATES = frozenset({FlightState.CALIBRATING, FlightState.ALIGNING,
                             FlightState.NAVIGATING, FlightState.STOPPING})
-#: Guarded states in which the vehicle turns in place, not flown along the VINS's path: the
-#: blind clock does not run (a turn's view has no landmarks yet) and the ground under it
-#: counts as flown.
-TURNING_IN_PLACE_STATES = frozenset({FlightState.CALIBRATING, FlightState.ALIGNING})
+#: Guarded states in which the vehicle turns in place over ground it has flown (the offset
+#: swing on top of its take-off, a turn at a corner): depth may lapse there. The blind clock
+#: holds only in a turn (ALIGNING), whose new view has no landmarks yet; the swing's 10
+#: degrees keep its view, and a VINS blind through it is a failsafe as in flight.
+IN_PLACE_STATES = frozenset({FlightState.CALIBRATING, FlightState.ALIGNING})
 FINAL_STATES = frozenset({FlightState.LANDED, FlightState.ABORTED})
 #: States in which nothing reads metric depth: PX4 flies the vehicle on its own (Hold after a
 #: failsafe or while the link is lost, then the landing), or has landed it or stopped its

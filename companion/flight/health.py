@@ -10,8 +10,7 @@ from autonomy.navigation.failsafes import (Vitals, age, failsafe_reason, vins_fa
                                            vins_problem)
 from autonomy.navigation.mission import (DISARMED_STATES, FAILSAFE_OFFBOARD_STATES,
                                          GUARDED_STATES, OFFBOARD_STATES,
-                                         SITE_SEEKING_FAILSAFES, TURNING_IN_PLACE_STATES,
-                                         FlightState)
+                                         SITE_SEEKING_FAILSAFES, FlightState)
 from companion.flight.context import FlightContext
 from companion.flight.navigation import Navigation
 from companion.flight.perception import Perception
@@ -68,7 +67,7 @@ class Health:
         if in_the_air and not c.autopilot.armed:
             c.motors_stopped()
             return
-        flown_on_vins = (state in GUARDED_STATES and state not in TURNING_IN_PLACE_STATES
+        flown_on_vins = (state in GUARDED_STATES and state != FlightState.ALIGNING
                          or state == FlightState.TO_LANDING_SITE)
         c.blind.update(now, self.navigation.landmarks(), flown_on_vins, c.options)
         if state in FAILSAFE_OFFBOARD_STATES:

@@ -28,7 +28,7 @@ from autonomy.navigation.behaviours import (BACKOFF_REASON, DEPTH_STOP_REASON,
                                             approach_targets, depth_lapsed, must_turn,
                                             on_glide, pause_turn, still_turning, view_starved)
 from autonomy.navigation.failsafes import age
-from autonomy.navigation.mission import (FAILSAFE_OFFBOARD_STATES, TURNING_IN_PLACE_STATES,
+from autonomy.navigation.mission import (FAILSAFE_OFFBOARD_STATES, IN_PLACE_STATES,
                                         FlightState)
 from autonomy.navigation.route import Route, heading_error
 from autonomy.navigation.trail import Trail
@@ -141,11 +141,12 @@ class Navigation:
 
     def on_flown_ground(self) -> bool:
         """Braking to a corner's turn on the stop checked before it, turning in place there
-        (or swinging for the camera's time offset, on top of the take-off column), gliding for parallax after it, backing off along the trail, or braking at the goal:
-        the vehicle stays on ground it has flown or checked, so depth may lapse (new depth is
-        what the turn and the glides are for; at the goal none is needed)."""
+        (or swinging for the camera's time offset on top of the take-off column), gliding for
+        parallax after it, backing off along the trail, or braking at the goal: the vehicle
+        stays on ground it has flown or checked, so depth may lapse (new depth is what the
+        turn and the glides are for; at the goal none is needed)."""
         now, plan = self.context.clock.now(), self.plan
-        return self.context.state in TURNING_IN_PLACE_STATES or self.parallax.active \
+        return self.context.state in IN_PLACE_STATES or self.parallax.active \
             or self.backoff.active \
             or any(on_glide(plan, reason, now) for reason in FLOWN_GROUND_REASONS)
 

@@ -28,8 +28,7 @@ OFFBOARD_STREAM_S = 1.2
 TAKEOFF_HEIGHT_MARGIN = 0.25
 #: The navigation phase: from Offboard until the vehicle is at rest, landing at the goal, or
 #: after a failsafe, holding or gliding to a landing site (not counted as navigation).
-NAVIGATION_PHASE = frozenset({FlightState.CALIBRATING, FlightState.NAVIGATING,
-                              FlightState.ALIGNING,
+NAVIGATION_PHASE = frozenset({FlightState.NAVIGATING, FlightState.ALIGNING,
                               FlightState.STOPPING, FlightState.FAILSAFE_STOP})
 
 
@@ -68,7 +67,7 @@ class MissionSteps:
 
     async def fly(self) -> None:
         steps = (self._preflight, self._initialise, self._await_go, self._take_off,
-                 self._enter_offboard, self._navigate, self._come_down)
+                 self._enter_offboard, self._swing, self._navigate, self._come_down)
         for step in steps:
             if self.context.mission.done:
                 return
@@ -165,8 +164,36 @@ class MissionSteps:
             c.go(FlightState.NAVIGATING, "Offboard")
 
     def _offset_unknown(self) -> bool:
-        vins = self.perception.vins
-        return offset_unknown(vins.time_offset, vins.options.time_offset_max_sigma_s)
+        """Is the camera's time offset still to be shown (:func:`offset_unknown`), by the
+        newest VINS update (none yet: unknown)?"""
+        update = self.context.channels.vins.value
+        return update is None or offset_unknown(
+            update.time_offset, self.perception.vins.options.time_offset_max_sigma_s)
+
+    async def _swing(self) -> None:
+        """The offset swing (CALIBRATING; the setpoints are the command stage's) until it is
+        over (:class:`~autonomy.navigation.behaviours.OffsetSwing`), the offset known or not:
+        navigation needs it no more than flights before the swing did. A failsafe meanwhile
+        ends it, and its stop is :meth:`_navigate`'s. The mission timeout starts after it."""
+        c = self.context
+        while c.state == FlightState.CALIBRATING and not self._swing_over():
+            await c.clock.sleep(POLL_S)
+
+    def _swing_over(self) -> bool:
+        """Is the swing over? Then on to navigating, saying whether the offset was shown."""
+        c, swing = self.context, self.navigation.swing
+        elapsed = c.mission.elapsed(c.clock.now())
+        if not swing.over(elapsed, known=not self._offset_unknown()):
+            return False
+        if swing.end_s is not None:  # known once, if no longer quite (its sigma grows)
+            offset = c.channels.vins.value.time_offset
+            c.go(FlightState.NAVIGATING, f"the camera's time offset known: "
+                                         f"{offset.seconds * 1e3:.1f} ms")
+            return True
+        log.warning("the camera's time offset still unknown after the swing's %.1f s", elapsed)
+        c.go(FlightState.NAVIGATING, "the offset swing timed out, the camera's time offset "
+                                     "unknown")
+        return True
 
     async def _navigate(self) -> None:
         c = self.context
@@ -200,8 +227,6 @@ class MissionSteps:
         if state in (FlightState.STOPPING, FlightState.FAILSAFE_STOP):
             if self.navigation.stopped() or c.mission.elapsed(now) > c.options.stop_timeout_s:
                 await self._after_stop(state)
-        elif state == FlightState.CALIBRATING:
-            self._calibration_step(now)
         elif state == FlightState.ALIGNING:
             error = self.navigation.heading_error()
             if facing(error, c.options):
@@ -210,23 +235,6 @@ class MissionSteps:
                      "facing the look aside" if looking else "facing the next waypoint")
             elif self.navigation.turn_paused(error):
                 c.go(FlightState.NAVIGATING, "few VINS landmarks; the turn paused for parallax")
-
-    def _calibration_step(self, now: float) -> None:
-        """End the offset swing when it is over (:class:`OffsetSwing`), the offset known or
-        not (navigation needs it no more than the flights before the swing did)."""
-        c = self.context
-        known = not self._offset_unknown()
-        if not self.navigation.swing.over(c.mission.elapsed(now), known):
-            return
-        offset = self.perception.vins.time_offset
-        if known:
-            c.go(FlightState.NAVIGATING, f"the camera's time offset known: "
-                                         f"{offset.seconds * 1e3:.1f} ms")
-            return
-        log.warning("the camera's time offset still unknown after the swing's %.0f s",
-                    c.options.offset_swing_timeout_s)
-        c.go(FlightState.NAVIGATING, "the offset swing timed out, the camera's time offset "
-                                     "unknown")
 
     async def _after_stop(self, state: FlightState) -> None:
         c = self.context

@@ -46,8 +46,8 @@ from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, yaw_of
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import FLOWN_GROUND_REASONS
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
-from autonomy.navigation.mission import (DISARMED_STATES, GUARDED_STATES,
-                                        TURNING_IN_PLACE_STATES, FlightState)
+from autonomy.navigation.mission import (DISARMED_STATES, GUARDED_STATES, IN_PLACE_STATES,
+                                        FlightState)
 from autonomy.planning.planner import Planner
 from autonomy.trajectory import DisplacementSplit, split_displacement
 from autonomy.vins.estimator import Vins
@@ -69,7 +69,8 @@ _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
 #: Recorded states in which the failsafe rules apply, and those on flown ground (a turn in
 #: place), where depth may lapse (autonomy.navigation.mission.GUARDED_STATES).
 _GUARDED = {state.value for state in GUARDED_STATES}
-_TURNING_IN_PLACE = {state.value for state in TURNING_IN_PLACE_STATES}
+_ALIGNING = FlightState.ALIGNING.value
+_IN_PLACE = {state.value for state in IN_PLACE_STATES}
 #: Recorded states on the ground, disarmed, where the VINS was told so (its zero-velocity
 #: prior: autonomy/vins/stillness.py); "" is the flight's start, before any transition.
 _ON_GROUND = {state.value for state in DISARMED_STATES} | {""}
@@ -399,7 +400,7 @@ class _Replayer:
         self.no_path_since = (None if plan.reason != "no safe primitive"
                               else now if self.no_path_since is None else self.no_path_since)
         health = self.vins_health
-        flown_on_vins = self.state in _GUARDED and self.state not in _TURNING_IN_PLACE
+        flown_on_vins = self.state in _GUARDED and self.state != _ALIGNING
         self.blind.update(now, None if health is None else health.landmarks, flown_on_vins,
                           self.config.flight)
         if self.report.replayed_failsafe is not None or self.state not in _GUARDED:
@@ -411,7 +412,7 @@ class _Replayer:
                           if health is not None and health.state == HealthState.LOST else ""),
             depth_age_s=age(self.last_depth_t, now), depth_reason="",
             blind_s=self.blind.blind_s, blind_expired=self.blind.expired(self.config.flight),
-            on_flown_ground=self.state in _TURNING_IN_PLACE or record["reason"] in FLOWN_GROUND_REASONS,
+            on_flown_ground=self.state in _IN_PLACE or record["reason"] in FLOWN_GROUND_REASONS,
             no_path_expired=self.no_path_since is not None
             and now - self.no_path_since > self.config.flight.no_path_timeout_s)
         reason = failsafe_reason(vitals, self.config.flight)

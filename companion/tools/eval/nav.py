@@ -76,6 +76,8 @@ from typing import Callable, Iterable, TextIO
 import numpy as np
 from tqdm import tqdm
 
+from autonomy.navigation.behaviours import GOAL_STOP_REASON
+from autonomy.navigation.mission import FlightState
 from companion.launch import simulated
 from companion.report import mean_or_none, show
 from companion.tools.eval import executor, provenance
@@ -236,11 +238,16 @@ def ended_early(summary: dict) -> bool:
 
 
 def time_to_goal(summary: dict) -> float | None:
-    """Simulated seconds from the switch to Offboard to "goal reached", None if not reached."""
-    times = {t["reason"]: t["t"] for t in reversed(summary.get("transitions", []))}
-    if "goal reached" not in times or "Offboard" not in times:
+    """Simulated seconds from the switch to Offboard (the transition out of ENTERING_OFFBOARD,
+    to the offset swing or to navigating: the swing is the flight's time too) to "goal
+    reached", None if not reached."""
+    transitions = summary.get("transitions", [])
+    offboard = next((t["t"] for t in transitions
+                     if t["from"] == FlightState.ENTERING_OFFBOARD.value), None)
+    reached = next((t["t"] for t in transitions if t["reason"] == GOAL_STOP_REASON), None)
+    if offboard is None or reached is None:
         return None
-    return times["goal reached"] - times["Offboard"]
+    return reached - offboard
 
 
 # --------------------------------------------------------------------------------------------
