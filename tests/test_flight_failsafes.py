@@ -43,6 +43,20 @@ def test_a_failure_in_cruise_ends_in_stop_hold_and_landing(fault, reason):
     assert not summary["reached_goal"]
 
 
+def test_a_failure_during_the_offset_swing_ends_in_stop_hold_and_landing():
+    """The swing before navigating (CALIBRATING, docs/flight.md) is guarded as navigation is:
+    a camera that freezes during it (the swing held on for 10 s by an offset that never
+    shows) stops the vehicle, which holds and lands without navigating."""
+    summary = fly("dome", faults=[Fault.parse("camera_freeze@takeoff:3")], overrides=[
+        "vins.estimate_time_offset=true", "vins.time_offset_max_sigma_s=1e-7"])
+    assert_safe_landing(summary)
+    assert summary["failsafes"] and "camera silent" in summary["failsafes"][0], \
+        summary["failsafes"]
+    states = [t["to"] for t in summary["transitions"]]
+    assert states[-5:] == ["calibrating", "failsafe_stop", "holding", "landing", "landed"], \
+        states
+
+
 def test_after_an_imu_gap_near_an_obstacle_the_vins_restarts_where_the_vehicle_is():
     """The fault matrix's IMU gap near the trunk (issue 27): the vehicle brakes in the 2 s
     gap, so the last sample held across it put the VINS 53 degrees off level; the restart
