@@ -48,7 +48,8 @@ def test_a_failure_during_the_offset_swing_ends_in_stop_hold_and_landing():
     a camera that freezes during it (the swing held on for 10 s by an offset that never
     shows) stops the vehicle, which holds and lands without navigating."""
     summary = fly("dome", faults=[Fault.parse("camera_freeze@takeoff:3")], overrides=[
-        "vins.estimate_time_offset=true", "vins.time_offset_max_sigma_s=1e-7"])
+        "vins.estimate_time_offset=true", "flight.offset_swing_deg=10",
+        "vins.time_offset_max_sigma_s=1e-7"])
     assert_safe_landing(summary)
     assert summary["failsafes"] and "camera silent" in summary["failsafes"][0], \
         summary["failsafes"]

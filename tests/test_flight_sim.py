@@ -95,11 +95,9 @@ def test_blocked_after_a_corners_turn_the_parallax_glide_leaves_it_time_to_back_
     with it running, the no-safe-primitive failsafe came as the glide ended, before the
     back-off's half of the no-path time, and the flight ended at the corner 71.7 m from the
     goal (the benchmark at 3712664). Now it backs off and flies on (to the goal in 118 s of
-    navigation); a 25 s mission timeout cuts it short. Flown without the offset swing, as
-    when it was found: the swing changes the flight (its VINS), which then meets the corner
-    otherwise, and this is the corner's test."""
+    navigation); a 25 s mission timeout cuts it short."""
     preset = CONFIG_DIR / "sim-realistic.toml"
-    config = load_config(preset, ["flight.mission_timeout_s=25", "flight.offset_swing_deg=0"])
+    config = load_config(preset, ["flight.mission_timeout_s=25"])
     summary = simulated.run(config, simulated.SimMission(world="sewer", seed=2, pair=1,
                                                          depth="estimated"))
     assert_safe_landing(summary)
@@ -189,7 +187,8 @@ def swing_of(summary: dict) -> tuple[float, str]:
 
 
 def test_before_navigating_it_swings_in_place_until_the_camera_time_offset_is_known():
-    """With the offset estimated online, the vehicle yaws to and fro on top of its take-off
+    """With the swing on (``offset_swing_deg``, off by default) and the offset estimated
+    online, the vehicle yaws to and fro on top of its take-off
     until the rotation has shown the offset (sigma under ``time_offset_max_sigma_s``), and
     starts navigating when its heading is back where the swing began (a whole number of half
     periods). The ideal profile's camera is on time; the offset learnt lines it up with the
@@ -198,7 +197,8 @@ def test_before_navigating_it_swings_in_place_until_the_camera_time_offset_is_kn
     so the gyro's rotation lags by up to one sample (+2.5 ms measured, docs/vins.md, "The time
     offset's windows and the rotors' vibration")."""
     options = FlightOptions()
-    summary = fly("dome", goal=SHORT_DOME_GOAL, overrides=["vins.estimate_time_offset=true"])
+    summary = fly("dome", goal=SHORT_DOME_GOAL, overrides=["vins.estimate_time_offset=true",
+                                                          "flight.offset_swing_deg=10"])
     assert_safe_landing(summary)
     assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
     seconds, reason = swing_of(summary)
@@ -214,8 +214,8 @@ def test_an_offset_swing_that_shows_nothing_times_out_and_navigation_goes_on():
     """An offset the swing cannot show (here a sigma no estimate reaches) delays navigation by
     ``offset_swing_timeout_s`` at most: the VINS flew before the swing existed without it."""
     summary = fly("dome", goal=SHORT_DOME_GOAL, overrides=[
-        "vins.estimate_time_offset=true", "vins.time_offset_max_sigma_s=1e-7",
-        "flight.offset_swing_timeout_s=2.5"])
+        "vins.estimate_time_offset=true", "flight.offset_swing_deg=10",
+        "vins.time_offset_max_sigma_s=1e-7", "flight.offset_swing_timeout_s=2.5"])
     assert_safe_landing(summary)
     assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
     seconds, reason = swing_of(summary)

@@ -171,13 +171,17 @@ def test_a_turn_in_place_turns_toward_the_waypoint_until_within_align_done():
 
 # ---------------------------------------------------------------- the offset swing
 
+#: The swing measured (off by default): 10 degrees each way, 2 s a period.
+SWING = FlightOptions(offset_swing_deg=10.0)
+
+
 def test_the_offset_swing_yaws_its_amplitude_each_way_and_back_every_period():
-    swing, period = OffsetSwing(OPTIONS), OPTIONS.offset_swing_period_s
+    swing, period = OffsetSwing(SWING), SWING.offset_swing_period_s
     dt = period / 2000
     rates = np.array([swing.rate(k * dt) for k in range(2000)])
     heading = np.concatenate([[0.0], np.cumsum(rates) * dt])  # the rate integrated
-    assert heading.max() == pytest.approx(math.radians(OPTIONS.offset_swing_deg), rel=1e-2)
-    assert heading.min() == pytest.approx(-math.radians(OPTIONS.offset_swing_deg), rel=1e-2)
+    assert heading.max() == pytest.approx(math.radians(SWING.offset_swing_deg), rel=1e-2)
+    assert heading.min() == pytest.approx(-math.radians(SWING.offset_swing_deg), rel=1e-2)
     assert heading[-1] == pytest.approx(0.0, abs=1e-3)  # back where it began
     assert heading[1000] == pytest.approx(0.0, abs=1e-3)  # and half a period in
     # the rate changes all the time: what shows the camera's time offset
@@ -185,20 +189,20 @@ def test_the_offset_swing_yaws_its_amplitude_each_way_and_back_every_period():
 
 
 def test_the_offset_swing_ends_when_the_heading_is_back_after_the_offset_is_known():
-    half = OPTIONS.offset_swing_period_s / 2.0
-    swing = OffsetSwing(OPTIONS)
+    half = SWING.offset_swing_period_s / 2.0
+    swing = OffsetSwing(SWING)
     assert not swing.over(0.4, known=False)
     assert not swing.over(half + 0.3, known=True)  # known: on to the next half period
     assert not swing.over(2 * half - 0.01, known=False)  # decided once known
     assert swing.over(2 * half, known=False)
     # known on a half period's end: over at once
-    assert OffsetSwing(OPTIONS).over(half, known=True)
+    assert OffsetSwing(SWING).over(half, known=True)
 
 
 def test_the_offset_swing_ends_unknown_at_its_timeout():
-    swing = OffsetSwing(OPTIONS)
-    assert not swing.over(OPTIONS.offset_swing_timeout_s - 0.01, known=False)
-    assert swing.over(OPTIONS.offset_swing_timeout_s, known=False)
+    swing = OffsetSwing(SWING)
+    assert not swing.over(SWING.offset_swing_timeout_s - 0.01, known=False)
+    assert swing.over(SWING.offset_swing_timeout_s, known=False)
 
 
 @pytest.mark.parametrize("settings, words", [

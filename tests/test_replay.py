@@ -32,14 +32,14 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def recording(tmp_path_factory):
     """The recording of 12 s of the dome's first pair, lockstep, PNG camera, the go 2 s into
     the wait for it (the VINS's zero-velocity prior on the ground, which the replay must give
-    where the flight did), the camera's time offset estimated, so the flight swings for it
-    before navigating (docs/flight.md, CALIBRATING). Lockstep runs faster than real time, so
+    where the flight did), the camera's time offset estimated and the offset swing on, so the
+    flight swings for it before navigating (docs/flight.md, CALIBRATING). Lockstep runs faster than real time, so
     the writer may fall behind on a busy machine: a queue as long as the flight keeps every
     image (docs/recording.md, "Drops")."""
     directory = tmp_path_factory.mktemp("recordings")
     config = load_config(None, [f"recorder.directory={directory}", "flight.mission_timeout_s=12",
                                 "recorder.camera_format=png", "recorder.camera_queue=1000",
-                                "vins.estimate_time_offset=true"])
+                                "vins.estimate_time_offset=true", "flight.offset_swing_deg=10"])
     summary = simulated.run(config, simulated.SimMission(world="dome", go_after_s=2.0),
                             record=True)
     assert summary["recording"]["error"] is None and not summary["recording"]["dropped"]

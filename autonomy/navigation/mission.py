@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 
 #: Fastest yaw rate an offset swing may command, degrees per second: three times the 30 deg/s
-#: of a turn in place, which a 10 degree swing of 2 s matches (31 deg/s at its peak).
+#: of a turn in place, which a 10 degree swing of 2 s (the one measured) matches at its peak.
 MAX_SWING_RATE_DEG = 90.0
 
 
@@ -84,9 +84,10 @@ class FlightOptions:
     align_yaw_rate_deg: float = option(30.0, gt=0.0, le=180.0,
                                        doc="yaw rate of a turn in place, degrees per second")
     offset_swing_deg: float = option(
-        10.0, ge=0.0, le=45.0,
+        0.0, ge=0.0, le=45.0,
         doc="before navigating, while the camera's time offset is estimated and not yet known, "
-            "yaw in place this far to each side and back until it is, degrees (0: never)")
+            "yaw in place this far to each side and back until it is, degrees (0: never, the "
+            "default; 10 measured, docs/vins.md)")
     offset_swing_period_s: float = option(2.0, ge=0.5, le=20.0,
                                           doc="period of the offset swing, seconds")
     offset_swing_timeout_s: float = option(
