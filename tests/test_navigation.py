@@ -12,20 +12,18 @@ import pytest
 from autonomy.geometry import PinholeCamera, make_pose, rot_z
 from autonomy.navigation.behaviours import (BACKOFF_REASON, LOOK_ASIDE, PARALLAX_LANDMARKS,
                                             PARALLAX_REASON, PARALLAX_WAIT_S, TURN_STOP_REASON,
-                                            Backoff, Blocked, NoPathClock, OffsetSwing,
-                                            ParallaxGlide, Step,
-                                            TURN_STEP, approach_targets, depth_lapsed,
-                                            facing, must_turn,
-                                            offset_unknown, on_glide, pause_turn,
-                                            still_turning, turn_rate,
+                                            TURN_STEP, Backoff, Blocked, NoPathClock,
+                                            OffsetSwing, ParallaxGlide, Step, approach_targets,
+                                            depth_lapsed, facing, must_turn, offset_unknown,
+                                            on_glide, pause_turn, still_turning, turn_rate,
                                             view_starved)
 from autonomy.navigation.failsafes import (BlindClock, Vitals, failsafe_reason, vins_failed,
                                            vins_problem)
 from autonomy.navigation.mission import (MISSION_TIMEOUT, SITE_SEEKING_FAILSAFES, FlightOptions,
                                          FlightState, Mission)
 from autonomy.navigation.route import Route, heading_error, stop_waypoints
-from autonomy.options import OptionError
 from autonomy.navigation.trail import Trail
+from autonomy.options import OptionError
 from autonomy.planning.planner import Candidates, Planner, PlannerOptions
 from autonomy.vins.health import HealthState
 from autonomy.vins.time_offset import TimeOffset

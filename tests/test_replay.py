@@ -33,9 +33,9 @@ def recording(tmp_path_factory):
     """The recording of 12 s of the dome's first pair, lockstep, PNG camera, the go 2 s into
     the wait for it (the VINS's zero-velocity prior on the ground, which the replay must give
     where the flight did), the camera's time offset estimated and the offset swing on, so the
-    flight swings for it before navigating (docs/flight.md, CALIBRATING). Lockstep runs faster than real time, so
-    the writer may fall behind on a busy machine: a queue as long as the flight keeps every
-    image (docs/recording.md, "Drops")."""
+    flight swings for it before navigating (docs/flight.md, CALIBRATING). Lockstep runs faster
+    than real time, so the writer may fall behind on a busy machine: a queue as long as the
+    flight keeps every image (docs/recording.md, "Drops")."""
     directory = tmp_path_factory.mktemp("recordings")
     config = load_config(None, [f"recorder.directory={directory}", "flight.mission_timeout_s=12",
                                 "recorder.camera_format=png", "recorder.camera_queue=1000",

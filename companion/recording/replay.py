@@ -66,8 +66,9 @@ _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
          topics.VINS_HEALTH.name, topics.DEPTH_FIT.name, topics.DEPTH_METRIC.name,
          topics.PLAN.name, topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name,
          topics.EVENTS.name)
-#: Recorded states in which the failsafe rules apply, and those on flown ground (a turn in
-#: place), where depth may lapse (autonomy.navigation.mission.GUARDED_STATES).
+#: Recorded states in which the failsafe rules apply (autonomy.navigation.mission.
+#: GUARDED_STATES); the turn in place, through which the blind clock holds; and the states on
+#: flown ground (the turn, the offset swing), where depth may lapse (IN_PLACE_STATES).
 _GUARDED = {state.value for state in GUARDED_STATES}
 _ALIGNING = FlightState.ALIGNING.value
 _IN_PLACE = {state.value for state in IN_PLACE_STATES}
