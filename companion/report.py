@@ -27,3 +27,13 @@ def mean_or_none(values) -> float | None:
 def show(value: float | None, spec: str, unit: str = "") -> str:
     """``value`` formatted with ``spec`` and ``unit`` for a report line; "n/a" for None."""
     return "n/a" if value is None else f"{value:{spec}}{unit}"
+
+
+def format_split(split: dict | None) -> str:
+    """A position error's split over the path flown (``autonomy.trajectory.DisplacementSplit``
+    as a dict) for a report line, in parentheses after a space; nothing for None."""
+    if split is None:
+        return ""
+    return (f" (path scale {split['scale']:.4f}: {split['along_m']:+.2f} m along; bearing "
+            f"{split['bearing_deg']:+.2f}°: {split['across_m']:+.2f} m across; height "
+            f"{split['height_m']:+.2f} m)")

@@ -83,6 +83,9 @@ def test_a_tracker_that_slides_half_a_pixel_is_measured_at_half_a_pixel():
     assert counts == {"2-4": 12, "5-9": 20, "10-19": 40, "20+": 24}
     assert all(b["median_px"] == pytest.approx(0.5, abs=0.05)
                for b in summary["track_error_by_age"])
+    # the slide is shared by every track, so it is the mean error too
+    assert all(b["mean_px"] == pytest.approx([0.3, -0.4], abs=0.05)
+               for b in summary["track_error_by_age"])
 
 
 def creeping_errors(frames: int, creep: complex) -> TrackErrors:
@@ -173,5 +176,5 @@ def test_no_scored_track_gives_none_and_empty_bins():
     summary = track_error_summary([], [], [])
     assert summary["track_error_px_median"] is None and summary["track_error_px_p90"] is None
     assert [b["observations"] for b in summary["track_error_by_age"]] == [0] * len(AGE_BINS)
-    assert all(b["median_px"] is None and b["outward_mean_px"] is None
+    assert all(b["median_px"] is None and b["outward_mean_px"] is None and b["mean_px"] is None
                for b in summary["track_error_by_age"])

@@ -185,6 +185,57 @@ def test_the_heading_drift_is_the_last_keyframes_yaw_error_through_the_gauge(tmp
     assert "heading drift +0.30 deg" in format_vio_report(result)
 
 
+def test_the_gyro_bias_is_scored_per_axis_against_the_truth(tmp_path):
+    """Keyframes whose gyro bias is the truth's (0.01 rad/s about x) plus 1 mrad/s about z:
+    0.0573 deg/s of mean error about z alone, which over the 1.9 s between the first and the
+    last keyframe turns the heading the other way, by 0.109 deg."""
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 41)
+    trace.keyframes = [dataclasses.replace(kf, gyro_bias=GYRO_BIAS + [0.0, 0.0, 1e-3])
+                       for kf in _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0] * 3)]
+    bias = score_vio(trace, data)["gyro_bias"]
+    z_error = math.degrees(1e-3)
+    np.testing.assert_allclose(bias["mean_error"], [0.0, 0.0, z_error], atol=1e-9)
+    np.testing.assert_allclose(bias["rms_error"], [0.0, 0.0, z_error], atol=1e-9)
+    np.testing.assert_allclose(bias["true_mean"], np.degrees(GYRO_BIAS), atol=1e-9)
+    assert bias["heading_deg"] == pytest.approx(-1.9 * z_error)
+    assert bias["error_by_time"] == []  # no whole 8 s window in 2 s
+    assert "mean error (+0.0000, +0.0000, +0.0573) deg/s" in format_vio_report(
+        score_vio(trace, data))
+
+
+def test_the_end_error_is_split_through_the_first_keyframes_gauge(tmp_path):
+    """An estimate whose path is the truth's 2 % longer and turned 0.5 deg left about the
+    first keyframe, in a world yawed off the truth's (the gauge): scale 1.02 and bearing
+    +0.5 deg over the path, which the ATE's best fit would have turned away."""
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 41)
+    exact = _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0] * 3)
+    start = exact[0].T_W_B[:3, 3]
+    turn = rot_z(math.radians(0.5))
+    trace.keyframes = [dataclasses.replace(kf, T_W_B=make_pose(
+        kf.T_W_B[:3, :3], start + 1.02 * turn @ (kf.T_W_B[:3, 3] - start))) for kf in exact]
+    split = score_vio(trace, data)["end_split"]
+    assert split["scale"] == pytest.approx(1.02) and split["bearing_deg"] == pytest.approx(0.5)
+    assert split["start_m"] == pytest.approx(0.0, abs=1e-9)
+    flown = np.linalg.norm((exact[-1].T_W_B[:3, 3] - start)[:2])
+    assert split["distance_m"] == pytest.approx(flown)
+    assert split["across_m"] == pytest.approx(1.02 * flown * math.sin(math.radians(0.5)))
+    assert "path scale 1.0200" in format_vio_report(score_vio(trace, data))
+
+
+def test_a_trace_without_keyframes_has_no_gyro_bias_score(tmp_path):
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 41)
+    trace.keyframes = []
+    result = score_vio(trace, data)
+    assert result["gyro_bias"] is None and result["end_split"] is None
+    assert "gyro bias against the truth (x, y, z): too few keyframes" in format_vio_report(result)
+
+
 def test_the_scale_taken_out_leaves_the_paths_shape(tmp_path):
     """An estimate 3 % short has an ATE but none once the similarity takes the scale out."""
     _write_dataset(tmp_path)

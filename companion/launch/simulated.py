@@ -38,7 +38,7 @@ import numpy as np
 from companion.flight.app import FlightApp, format_flight
 from companion.flight.perception import NetworkDepth
 from companion.recording.session import open_recording, recorded, recording_metadata
-from companion.report import show
+from companion.report import format_split, show
 from drivers.camera.calibration import CalibratedCamera
 from drivers.mavlink.autopilot import Autopilot
 from drivers.mavlink.signing import load_key
@@ -297,15 +297,6 @@ def _format_load(load: dict) -> str:
     return f"{load['where']}: {carried}; bad data {bad['received']} in, {bad['sent']} out"
 
 
-def _format_split(split: dict | None) -> str:
-    """The VINS error's split over the path flown (``TruthTrack.score``), or nothing."""
-    if split is None:
-        return ""
-    return (f" (path scale {split['scale']:.4f}: {split['along_m']:+.2f} m along; bearing "
-            f"{split['bearing_deg']:+.2f}°: {split['across_m']:+.2f} m across; height "
-            f"{split['height_m']:+.2f} m)")
-
-
 def format_summary(summary: dict) -> str:
     """A simulated flight's summary as a few lines for a person."""
     lines = [f"{summary['world']} pair {summary['pair']} (seed {summary['seed']}) -> goal "
@@ -316,7 +307,7 @@ def format_summary(summary: dict) -> str:
              f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
              f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}",
              f"  VINS error        {show(summary.get('position_error_m'), '.2f', ' m')}"
-             f"{_format_split(summary.get('position_error_split'))}",
+             f"{format_split(summary.get('position_error_split'))}",
              f"  MAVLink           {_format_load(summary['mavlink'])}"]
     lines += format_flight(summary).splitlines()
     if summary.get("plot"):

@@ -15,7 +15,10 @@ near the principal point and the flow points outward, so a tracker that follows 
 mean motion creeps outward of the point, frame after frame, and the landmarks come out near:
 the scale's loss of ``docs/vins.md`` ("The scale's loss was the tracker's window"). Its mean,
 by age, is that creep; the median of the error's size cannot show it, as a minority of tracks
-creep by pixels while most stay put.
+creep by pixels while most stay put. The mean error itself (x right, y down), by age, is
+what the tracks share whatever their place in the image: flying straight, a mean along x is
+a turn the tracks put in that the vehicle did not make (docs/vins.md, "The heading's drift
+is the tracks'").
 
 A corner often lies on a depth edge, where the nearest pixel's depth may be the other
 surface's, metres off; a track is named only where the depth of the 3x3 pixels round its
@@ -40,8 +43,8 @@ from autonomy.geometry import PinholeCamera, distort_points
 #: ``[low, high)``; ``None`` is no upper bound.
 AGE_BINS = ((2, 5), (5, 10), (10, 20), (20, None))
 
-#: The outward mean leaves out errors this large, pixels: gross mistracks, a few of which
-#: would outweigh the creep it measures (RANSAC and the smoother's gate reject them).
+#: The means leave out errors this large, pixels: gross mistracks, a few of which would
+#: outweigh the creep they measure (RANSAC and the smoother's gate reject them).
 OUTWARD_MAX_ERROR_PX = 5.0
 
 #: Largest spread of the true depth round a birth pixel (max - min over the 3x3 pixels, as a
@@ -58,6 +61,7 @@ class TrackErrors:
         self.T_B_C = np.asarray(T_B_C, dtype=float)
         self._births: dict[int, np.ndarray] = {}  # track id -> world point
         self.errors_px: list[float] = []
+        self.errors_xy: list[tuple[float, float]] = []  # each error, x right and y down
         self.outward_px: list[float] = []  # each error along the outward radius (NaN: centre)
         self.ages: list[int] = []
 
@@ -110,30 +114,35 @@ class TrackErrors:
         with np.errstate(invalid="ignore", divide="ignore"):
             outward = np.where(length > 0.0, np.sum(error * radius, axis=1) / length, np.nan)
         self.errors_px.extend(np.linalg.norm(error, axis=1).tolist())
+        self.errors_xy.extend(map(tuple, error.tolist()))
         self.outward_px.extend(outward.tolist())
         self.ages.extend(ages[ahead].tolist())
 
     def summary(self) -> dict:
         """:func:`track_error_summary` of every observation scored so far."""
-        return track_error_summary(self.errors_px, self.outward_px, self.ages)
+        return track_error_summary(self.errors_xy, self.outward_px, self.ages)
 
 
-def track_error_summary(errors_px, outward_px, ages) -> dict:
-    """``track_error_px_median`` and ``_p90`` over the scored observations (``errors_px``,
-    pixels, of tracks ``ages`` frames old; None when there are none) and
-    ``track_error_by_age``: for each of :data:`AGE_BINS`, the ages, the count, the median and
-    ``outward_mean_px``, the mean of the errors along the outward radius (``outward_px``; the
-    creep, module docstring) over those under :data:`OUTWARD_MAX_ERROR_PX`."""
-    errors, ages = np.asarray(errors_px, dtype=float), np.asarray(ages)
+def track_error_summary(errors_xy, outward_px, ages) -> dict:
+    """``track_error_px_median`` and ``_p90`` over the scored observations (``errors_xy``,
+    pixels, x right and y down, of tracks ``ages`` frames old; None when there are none) and
+    ``track_error_by_age``: for each of :data:`AGE_BINS`, the ages, the count, the median
+    size, and over the errors under :data:`OUTWARD_MAX_ERROR_PX` ``outward_mean_px``, the
+    mean along the outward radius (``outward_px``; the creep, module docstring), and
+    ``mean_px``, the mean error (x, y)."""
+    vectors = np.asarray(errors_xy, dtype=float).reshape(-1, 2)
+    errors, ages = np.linalg.norm(vectors, axis=1), np.asarray(ages)
     outward = np.asarray(outward_px, dtype=float)
     by_age = []
     for low, high in AGE_BINS:
         chosen = (ages >= low) & (ages < (np.inf if high is None else high))
-        radial = outward[chosen & np.isfinite(outward) & (errors < OUTWARD_MAX_ERROR_PX)]
+        kept = chosen & (errors < OUTWARD_MAX_ERROR_PX)
+        radial = outward[kept & np.isfinite(outward)]
         by_age.append({"ages": f"{low}+" if high is None else f"{low}-{high - 1}",
                        "observations": int(chosen.sum()),
                        "median_px": float(np.median(errors[chosen])) if chosen.any() else None,
-                       "outward_mean_px": float(radial.mean()) if len(radial) else None})
+                       "outward_mean_px": float(radial.mean()) if len(radial) else None,
+                       "mean_px": vectors[kept].mean(axis=0).tolist() if kept.any() else None})
     return {
         "track_error_px_median": float(np.median(errors)) if len(errors) else None,
         "track_error_px_p90": float(np.percentile(errors, 90)) if len(errors) else None,

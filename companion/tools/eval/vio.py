@@ -14,7 +14,7 @@ import math
 import re
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
@@ -27,10 +27,11 @@ from autonomy.geometry import (
 from autonomy.messages import Frame, ImuSample, SparseMap
 from autonomy.trajectory import (
     align_umeyama, ate_rmse, interpolate_poses, nees, path_length, pose_error_body,
+    split_displacement,
 )
 from autonomy.vins.preintegration import ImuNoise
 from autonomy.vins.time_offset import TimeOffset
-from companion.report import finite_or_none, median_or_none, show
+from companion.report import finite_or_none, format_split, median_or_none, show
 from companion.tools.eval.drag_fit import fit_drag
 from companion.tools.eval.tracks import TrackErrors, track_error_summary
 from companion.tools.eval.vio_bound import (
@@ -105,7 +106,8 @@ class ImuFeed:
 class KeyframeEstimate:
     """The smoother's newest keyframe as the odometry reports it: exposure time ``t``, pose
     ``T_W_B``, ``velocity_W``, and their marginal covariances (6x6 in the body frame, rotation
-    first; 3x3 in the world frame); its accelerometer bias and the window's landmarks."""
+    first; 3x3 in the world frame); its accelerometer and gyro biases and the window's
+    landmarks."""
 
     t: float
     T_W_B: np.ndarray
@@ -114,6 +116,7 @@ class KeyframeEstimate:
     velocity_covariance: np.ndarray | None
     accel_bias: np.ndarray
     landmarks: int  #: landmarks in the smoother's window
+    gyro_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass(frozen=True)
@@ -357,7 +360,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     after the similarity alignment instead, so with the scale error taken out (what is left is
     the heading's drift and the path's shape). ``heading_drift_deg``: the last keyframe's yaw
     error against the truth aligned at the first keyframe (:func:`_heading_drift`).
-    ``depth_rel_err_median``:
+    ``gyro_bias``: the smoother's gyro bias against the truth, per body axis
+    (:func:`_gyro_bias_metrics`). ``end_split``: the last keyframe's error through the first
+    keyframe's gauge, split over the path (:func:`_end_split`). ``depth_rel_err_median``:
     median of the traced depth errors (None when the dataset has no ``depth0``);
     ``track_error_*``: the front-end's tracks against the truth
     (:mod:`companion.tools.eval.tracks`; None without ``depth0``). Back-end times
@@ -388,6 +393,8 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         **_trajectory_metrics(trace, truth_t, data.truth),
         **_consistency_metrics(trace.keyframes, truth_t, data.truth),
         "heading_drift_deg": _heading_drift(trace.keyframes, truth_t, data.truth),
+        "gyro_bias": _gyro_bias_metrics(trace.keyframes, truth_t, data.truth),
+        "end_split": _end_split(trace.keyframes, truth_t, data.truth),
         "rebuilds": [_rebuild_report(rebuild, truth_t, data.truth) for rebuild in trace.rebuilds],
         "depth_rel_err_median": None if data.depth is None else median_or_none(depth_errors),
         "depth_points": len(depth_errors),
@@ -453,7 +460,7 @@ def _newest_keyframe(vins: Vins, covariances: bool) -> KeyframeEstimate:
     return KeyframeEstimate(state.t, state.T_W_B, state.velocity,
                             backend.pose_covariance() if covariances else None,
                             backend.velocity_covariance() if covariances else None,
-                            state.bias_a, len(backend.landmarks.ids))
+                            state.bias_a, len(backend.landmarks.ids), state.bias_g)
 
 
 def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
@@ -545,6 +552,57 @@ def _heading_drift(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
     true_last = _truth_in_world(keyframes, truth_t, truth)[-1][0]
     error = _yaw(keyframes[-1].T_W_B) - _yaw(true_last)
     return math.degrees(math.atan2(math.sin(error), math.cos(error)))
+
+
+def _end_split(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
+               truth: GroundTruthTable) -> dict | None:
+    """The error of the last keyframe inside the truth's span, with the truth put in the
+    estimator's world by the first one's yaw and shift (as a flight's navigation frame is
+    fixed at its start, not by a best fit), split over the horizontal path flown between them
+    (``autonomy.trajectory.split_displacement``: the path's scale and bearing, metres along,
+    across and in height): what ``eval nav`` splits at the end of a flight, where the ATE's
+    alignment takes a constant bearing out. None without two keyframes a metre apart."""
+    inside = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
+    if len(inside) < 2:
+        return None
+    ends = [inside[0], inside[-1]]
+    (first, _), (last, _) = _truth_in_world(ends, truth_t, truth)
+    split = split_displacement(first[:3, 3], last[:3, 3], ends[0].T_W_B[:3, 3],
+                               ends[1].T_W_B[:3, 3])
+    return None if split is None else asdict(split)
+
+
+def _gyro_bias_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
+                       truth: GroundTruthTable) -> dict | None:
+    """The smoother's gyro bias ``b`` against the true one, per body axis (x, y, z), deg/s,
+    each keyframe's as it was when newest, over the keyframes inside the truth's span (None
+    without two of them).
+
+    ``mean_error`` and ``rms_error`` of ``b - b_true``; ``true_mean``; ``heading_deg``, the
+    heading the z error turns over the flight, ``-∫ (b_z - b_true,z) dt`` (trapezoid over the
+    keyframes): the drift the bias would give where the gyro alone set the yaw between
+    keyframes, beside ``heading_drift_deg``, the drift the estimate has. The truth is the
+    sensor's additive bias; the estimate also takes in what the scale and cross-axis errors
+    add at the rates flown, ``(M_g - I) ω``, so turns show in its error.
+    ``error_by_time``: the mean error over each whole :data:`SCALE_WINDOW_S` (``t`` its
+    start), where a bias held wrong after a turn shows as a step.
+    """
+    inside = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
+    if len(inside) < 2:
+        return None
+    t = np.array([kf.t for kf in inside])
+    error = np.degrees([kf.gyro_bias - _truth_at(kf.t, truth_t, truth.gyro_bias)
+                        for kf in inside])
+    true = np.degrees([_truth_at(kf.t, truth_t, truth.gyro_bias) for kf in inside])
+    windows = np.arange(t[0], t[-1] - SCALE_WINDOW_S + 1e-9, SCALE_WINDOW_S)
+    by_time = [{"t": float(start),
+                "mean_error": error[(t >= start) & (t < start + SCALE_WINDOW_S)].mean(
+                    axis=0).tolist()} for start in windows]
+    return {"mean_error": error.mean(axis=0).tolist(),
+            "rms_error": np.sqrt((error**2).mean(axis=0)).tolist(),
+            "true_mean": true.mean(axis=0).tolist(),
+            "heading_deg": float(-np.trapezoid(error[:, 2], t)),
+            "error_by_time": by_time}
 
 
 def _yaw(T_W_B: np.ndarray) -> float:
@@ -699,6 +757,15 @@ def _alignment_text(alignment: dict | None) -> str:
     return f"{column} over {alignment['pairs']} frame pairs"
 
 
+def _gyro_bias_text(bias: dict | None) -> str:
+    if bias is None:
+        return "too few keyframes"
+    mean = ", ".join(f"{v:+.4f}" for v in bias["mean_error"])
+    rms = ", ".join(f"{v:.4f}" for v in bias["rms_error"])
+    return (f"mean error ({mean}) deg/s, RMS ({rms}); the z error turns the heading "
+            f"{bias['heading_deg']:+.2f} deg over the flight")
+
+
 def _mounting_text(mounting: dict | None) -> str:
     """The mounting's line: not estimated, or the estimate's offset (camera axes)."""
     if mounting is None:
@@ -740,6 +807,11 @@ def format_vio_report(result: dict) -> str:
         f"velocity {show(result['nees_velocity_mean'], '.1f')} mean, "
         f"{show(result['nees_velocity_median'], '.1f')} median (3), over "
         f"{result['nees_keyframes']} keyframes",
+        "gyro bias against the truth (x, y, z): " + _gyro_bias_text(result["gyro_bias"]),
+        "the last keyframe through the first's gauge: " + (
+            "no path a metre long" if result["end_split"] is None else
+            f"{result['end_split']['distance_m']:.1f} m flown"
+            + format_split(result["end_split"])),
         f"depth: median relative error {show(result['depth_rel_err_median'], '.1%')} over "
         f"{result['depth_points']} landmarks",
         f"tracks: {show(result['track_error_px_median'], '.2f', ' px')} median error against "
