@@ -196,3 +196,18 @@ def test_every_seeds_recorded_path_keeps_clear_of_the_walls(world_name):
         path = route_path(world, world.routes[seed % len(world.routes)])
         at_height = np.column_stack([path, np.full(len(path), world.cruise_height)])
         assert world.obstacle_clearance(at_height).min() >= PATH_CLEARANCE, seed
+
+
+def test_the_vins_runs_on_a_noiseless_recording_without_a_rebuild(noiseless):
+    """A recording of the exact IMU says its noise is nil (sensor.yaml): the VINS weighs it at
+    its density floors, which must still leave every window well posed (``eval vio`` of such
+    a recording once rebuilt the smoother at every keyframe)."""
+    from autonomy.vins.options import VinsOptions
+    from companion.tools.eval.vio import read_vio_dataset, run_vins
+
+    out, _ = noiseless
+    data = read_vio_dataset(out)
+    assert data.noise.gyro_random_walk == 0.0 and data.noise.accel_noise_density == 0.0
+    trace = run_vins(data, VinsOptions(gyro_noise_scale=10.0), consistency=False)
+    assert trace.static_init is not None and sum(trace.keyframe) > 10
+    assert trace.resets == 0
