@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import platform
 import shutil
 import signal
 import subprocess
@@ -23,6 +24,7 @@ import time
 from pathlib import Path
 
 import cv2
+import numpy
 import pytest
 
 from companion.cli import main
@@ -549,6 +551,16 @@ def test_every_record_carries_the_code_revision_and_the_config_hash(short_run):
         subprocess.run(["git", "-C", str(provenance.CHECKOUT), "cat-file", "-e",
                         commit + "^{commit}"], check=True)
         assert record["config_hash"] == provenance.config_hash(flown)
+        assert record["libraries"] == provenance.library_versions()
+
+
+def test_the_library_versions_name_each_flight_library_and_the_interpreter():
+    versions = provenance.library_versions().split("; ")
+    assert versions[0] == f"python {platform.python_version()}"
+    assert [v.split()[0] for v in versions[1:]] == list(provenance.FLIGHT_LIBRARIES)
+    assert f"numpy {numpy.__version__}" in versions
+    # OpenCV's own version leaves out the wheel's build number (5.1.0 of 5.1.0.95)
+    assert f"opencv-python-headless {cv2.__version__}" in provenance.library_versions()
 
 
 def test_the_revision_is_the_commit_and_names_an_uncommitted_edit(tmp_path):
@@ -648,6 +660,7 @@ def test_a_resumed_run_flies_only_what_it_lacks_and_reports_the_whole(monkeypatc
 @pytest.mark.parametrize("change, words", [
     (lambda done: [{**r, "revision": "0" * 40} for r in done], "different code revisions"),
     (lambda done: [{**r, "config_hash": "0" * 16} for r in done], "different configs"),
+    (lambda done: [{**r, "libraries": "python 3.0"} for r in done], "different library versions"),
     (lambda done: done + done[:1], "recorded more than once"),
     (lambda done: [{**done[0], "seed": 7}], "dome pair 0 gt seed 7 was flown but is not in "
                                             "this run's plan"),

@@ -15,9 +15,10 @@ them and yields each result as it completes, with the item's index.
   mid-run loses nothing. A task that raises is not retried (the evaluation records its own
   errors); an exception that escapes it ends the run.
 
-Every node must run the same code as the machine that started the run, since each record is
-stamped with this machine's revision: each task checks its node's revision
-(:func:`~companion.tools.eval.provenance.code_revision`) and refuses to run other code.
+Every node must run the same code on the same libraries as the machine that started the run,
+since each record is stamped with this machine's revision and library versions: each task
+checks its node's (:func:`~companion.tools.eval.provenance.code_revision`,
+:func:`~companion.tools.eval.provenance.library_versions`) and refuses to run otherwise.
 """
 
 from __future__ import annotations
@@ -117,8 +118,8 @@ class RayCluster:
         # carries the evaluation's report: while Ray runs, stdout is stderr.
         with contextlib.redirect_stdout(sys.stderr):
             shared_ref = ray.put(shared)
-            revision = provenance.code_revision()
-            pending = {task.remote(function, shared_ref, item, revision): k
+            made_by = (provenance.code_revision(), provenance.library_versions())
+            pending = {task.remote(function, shared_ref, item, made_by): k
                        for k, item in enumerate(items)}
             try:
                 while pending:
@@ -157,12 +158,18 @@ def _check_reachable(address: str) -> None:
                             f"{error.strerror or error}") from None
 
 
-def _checked_call(function: Callable, shared: Any, item: Any, revision: str) -> Any:
-    """``function(shared, item)`` on a node, after checking that the node runs ``revision``."""
+def _checked_call(function: Callable, shared: Any, item: Any, made_by: tuple[str, str]) -> Any:
+    """``function(shared, item)`` on a node, after checking that the node runs the driver's
+    ``made_by``: its code revision and library versions (:mod:`provenance`)."""
+    revision, libraries = made_by
     here = provenance.code_revision()
     if here != revision:
         raise ExecutorError(f"node {os.uname().nodename} runs revision {here}, the run "
                             f"{revision}: install the same code on every node")
+    installed = provenance.library_versions()
+    if installed != libraries:
+        raise ExecutorError(f"node {os.uname().nodename} has {installed}, the run {libraries}: "
+                            "install the same versions on every node (its flights would differ)")
     _log_errors_only(logging.ERROR)
     return function(shared, item)
 

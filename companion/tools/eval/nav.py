@@ -50,8 +50,9 @@ Parts. Since the result depends only on the arguments, an evaluation too long fo
 can be flown in parts (one ``--seed S --trials 1`` or one ``--worlds W`` each, every part with
 ``--runs``) and reported as one: :func:`read_runs` merges the parts' records into those of
 the whole run, refusing parts that overlap, flew different time limits, fly one depth source
-without the other, or come from different code or configs (each record carries the git
-revision and the config's hash, :mod:`~companion.tools.eval.provenance`). With ``--runs``
+without the other, or come from different code, configs or library versions (each record
+carries the git revision, the config's hash and the libraries' versions,
+:mod:`~companion.tools.eval.provenance`). With ``--runs``
 each record is added to the file as its trial completes, so an interrupted run loses only the
 trials in flight, and ``--resume`` flies only the trials its file lacks. Trials run in worker
 processes on this machine, or as tasks on a Ray cluster (``--cluster``;
@@ -566,11 +567,12 @@ def refuse_mixed_time_limits(records: Iterable[dict], verb: str) -> float:
 
 
 def check_provenance(records: Iterable[dict]) -> None:
-    """EvaluationError unless ``records`` all come from one revision of the code and one
-    config (their ``revision`` and ``config_hash``; records from before these were kept have
-    neither, and merge only with each other)."""
+    """EvaluationError unless ``records`` all come from one revision of the code, one config
+    and one set of library versions (their ``revision``, ``config_hash`` and ``libraries``;
+    records from before these were kept lack them, and merge only with each other)."""
     provenance = _provenance(records)
-    for key, what in (("revision", "code revisions"), ("config_hash", "configs")):
+    for key, what in (("revision", "code revisions"), ("config_hash", "configs"),
+                      ("libraries", "library versions")):
         if len(provenance[key]) > 1:
             raise EvaluationError(f"the records come from different {what} "
                                   f"({', '.join(provenance[key])}); one evaluation is flown "
@@ -578,11 +580,11 @@ def check_provenance(records: Iterable[dict]) -> None:
 
 
 def _provenance(records: Iterable[dict]) -> dict[str, list[str]]:
-    """The distinct ``revision`` and ``config_hash`` values of ``records``, in order, "none
-    recorded" for records from before these were kept."""
+    """The distinct ``revision``, ``config_hash`` and ``libraries`` values of ``records``, in
+    order, "none recorded" for records from before these were kept."""
     records = list(records)
     return {key: list(dict.fromkeys(str(r.get(key, "none recorded")) for r in records))
-            for key in ("revision", "config_hash")}
+            for key in ("revision", "config_hash", "libraries")}
 
 
 def trial_key(record: dict) -> tuple:
@@ -717,7 +719,8 @@ def _label_bars(axes, x: np.ndarray, bars: list[tuple[str, str]], sources: int) 
 
 
 def _made_by(records: list[dict]) -> str:
-    """"code revision 1a2b...; config hash 3c4d..." of ``records`` (their provenance)."""
+    """"code revision 1a2b...; config hash 3c4d..." of ``records`` (their provenance; the
+    libraries' versions, which the records keep too, would crowd a caption)."""
     provenance = _provenance(records)
     return (f"code revision {', '.join(provenance['revision'])}; "
             f"config hash {', '.join(provenance['config_hash'])}")

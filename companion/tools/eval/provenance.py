@@ -1,13 +1,18 @@
-"""What made an evaluation's records: the code's revision and the config's hash.
+"""What made an evaluation's records: the code's revision, the config's hash and the versions
+of the libraries a flight's numbers depend on.
 
 Records flown in parts, or resumed after an interruption, are one evaluation only if the same
-code flew them with the same config; each record carries both so that merging can check
-(:func:`companion.tools.eval.nav.merge_records`).
+code flew them with the same config on the same libraries; each record carries all three so
+that merging can check (:func:`companion.tools.eval.nav.merge_records`). The libraries count:
+one commit and config flew other flights on a machine whose environment was built a day later
+from the same pyproject ranges (docs/vins.md, "The offset swing").
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
+import platform
 import subprocess
 from pathlib import Path
 
@@ -17,6 +22,10 @@ from companion.config import Config, dump_toml
 UNKNOWN = "unknown"
 #: The checkout this package runs from: companion/tools/eval/ is three folders below it.
 CHECKOUT = Path(__file__).resolve().parents[3]
+#: The installed distributions whose versions a flight's numbers depend on: the arithmetic, the
+#: tracker, the smoother, the depth network and the renderer.
+FLIGHT_LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "gtsam", "onnxruntime",
+                    "moderngl")
 
 
 def code_revision(checkout: Path = CHECKOUT) -> str:
@@ -41,10 +50,23 @@ def config_hash(config: Config) -> str:
     return hashlib.sha256(dump_toml(config).encode()).hexdigest()[:16]
 
 
+def library_versions() -> str:
+    """The interpreter's version and each of :data:`FLIGHT_LIBRARIES`' installed one, as
+    ``"python 3.12.3; numpy 2.4.6; ..."`` ("not installed" for one that is not)."""
+    versions = [f"python {platform.python_version()}"]
+    for name in FLIGHT_LIBRARIES:
+        try:
+            versions.append(f"{name} {importlib.metadata.version(name)}")
+        except importlib.metadata.PackageNotFoundError:
+            versions.append(f"{name} not installed")
+    return "; ".join(versions)
+
+
 def stamp(config: Config) -> dict[str, str]:
-    """What each record of a run flown with ``config`` carries: ``revision`` and
-    ``config_hash``."""
-    return {"revision": code_revision(), "config_hash": config_hash(config)}
+    """What each record of a run flown with ``config`` carries: ``revision``, ``config_hash``
+    and ``libraries`` (:func:`library_versions`)."""
+    return {"revision": code_revision(), "config_hash": config_hash(config),
+            "libraries": library_versions()}
 
 
 def _git(checkout: Path, *args: str) -> str:
