@@ -178,3 +178,13 @@ def test_no_scored_track_gives_none_and_empty_bins():
     assert [b["observations"] for b in summary["track_error_by_age"]] == [0] * len(AGE_BINS)
     assert all(b["median_px"] is None and b["outward_mean_px"] is None and b["mean_px"] is None
                for b in summary["track_error_by_age"])
+
+
+def test_a_gross_mistrack_is_left_out_of_the_means_not_the_median():
+    """Two tracks of one age: 0.3 px to the right, and one 10 px off (a mistrack RANSAC would
+    reject): the median and the count keep both, the means only the first."""
+    summary = track_error_summary([(0.3, 0.0), (10.0, 0.0)], [0.3, 10.0], [5, 5])
+    bin_ = next(b for b in summary["track_error_by_age"] if b["ages"] == "5-9")
+    assert bin_["observations"] == 2 and bin_["median_px"] == pytest.approx(5.15)
+    assert bin_["mean_px"] == pytest.approx([0.3, 0.0])
+    assert bin_["outward_mean_px"] == pytest.approx(0.3)

@@ -17,6 +17,7 @@ from autonomy.messages import SparseMap
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInit
 from companion.cli import main
+from companion.tools.eval import vio
 from companion.tools.eval.vio import (
     EvaluationError, ImuFeed, KeyframeEstimate, Rebuild, VioTrace, build_vins, depth_relative_errors,
     evaluate_vio, format_vio_report, read_vio_dataset, run_vins, score_vio, vio_frames,
@@ -146,7 +147,8 @@ def _keyframes_in_a_yawed_world(errors_body, velocity_error, *, pose_sigma=0.01,
         estimate = make_pose(R, true[:3, 3] - R @ error[3:])
         keyframes.append(KeyframeEstimate(t, estimate, np.asarray(velocity_error, float),
                                           pose_sigma**2 * np.eye(6),
-                                          velocity_sigma**2 * np.eye(3), np.zeros(3), 40))
+                                          velocity_sigma**2 * np.eye(3), np.zeros(3), 40,
+                                          GYRO_BIAS))
     return keyframes
 
 
@@ -192,7 +194,7 @@ def test_the_gyro_bias_is_scored_per_axis_against_the_truth(tmp_path):
     _write_dataset(tmp_path, seconds=2.5)
     data = read_vio_dataset(tmp_path)
     trace = _known_trace(data, 41)
-    trace.keyframes = [dataclasses.replace(kf, gyro_bias=GYRO_BIAS + [0.0, 0.0, 1e-3])
+    trace.keyframes = [dataclasses.replace(kf, gyro_bias=kf.gyro_bias + [0.0, 0.0, 1e-3])
                        for kf in _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0] * 3)]
     bias = score_vio(trace, data)["gyro_bias"]
     z_error = math.degrees(1e-3)
@@ -226,6 +228,25 @@ def test_the_end_error_is_split_through_the_first_keyframes_gauge(tmp_path):
     assert "path scale 1.0200" in format_vio_report(score_vio(trace, data))
 
 
+def test_the_gyro_bias_by_time_skips_windows_without_a_keyframe(tmp_path):
+    """Keyframes to 0.5 s with the truth's bias, none from there to 1.65 s (a loss), then
+    1 mrad/s off about z: 0.3 s windows give the error where keyframes are and nothing in the
+    gap, and the trapezoid across the gap turns 0.9 mrad of heading."""
+    _write_dataset(tmp_path, seconds=2.5)
+    data = read_vio_dataset(tmp_path)
+    trace = _known_trace(data, 41)
+    kept = [kf for kf in _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0] * 3)
+            if kf.t < 0.55 or kf.t > 1.65]
+    trace.keyframes = [kf if kf.t < 1.0 else dataclasses.replace(
+        kf, gyro_bias=kf.gyro_bias + [0.0, 0.0, 1e-3]) for kf in kept]
+    truth_t = vio._seconds(data.truth.t_ns, data.imu.t_ns[0])
+    bias = vio._gyro_bias_metrics(trace.keyframes, truth_t, data.truth, window_s=0.3)
+    assert [w["t"] for w in bias["error_by_time"]] == pytest.approx([0.1, 0.4, 1.6])
+    assert [w["mean_error"][2] for w in bias["error_by_time"]] == pytest.approx(
+        [0.0, 0.0, math.degrees(1e-3)])
+    assert bias["heading_deg"] == pytest.approx(-math.degrees(0.9e-3))
+
+
 def test_a_trace_without_keyframes_has_no_gyro_bias_score(tmp_path):
     _write_dataset(tmp_path, seconds=2.5)
     data = read_vio_dataset(tmp_path)
@@ -253,7 +274,7 @@ def test_a_keyframe_with_an_unusable_covariance_is_counted_not_scored(tmp_path):
     keyframes = _keyframes_in_a_yawed_world(lambda k: np.zeros(6), [0.0, 0.0, 0.0], count=3)
     trace.keyframes = keyframes[:2] + [KeyframeEstimate(
         keyframes[2].t, keyframes[2].T_W_B, keyframes[2].velocity_W,
-        np.full((6, 6), np.nan), np.eye(3), np.zeros(3), 40)]
+        np.full((6, 6), np.nan), np.eye(3), np.zeros(3), 40, GYRO_BIAS)]
     result = score_vio(trace, data)
     assert result["nees_keyframes"] == 2 and result["nees_refused"] == 1
     assert result["nees_pose_mean"] == pytest.approx(0.0, abs=1e-12)

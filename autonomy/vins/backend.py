@@ -76,10 +76,11 @@ from autonomy.vins.landmarks import (
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise
 
-#: Floors under the IMU densities, so a noiseless recording still gives a well-posed problem:
-#: the bias walks within 30 times of EuRoC's (1.9e-5, 3e-3), the presets' figures. At 1e-7 and
-#: 1e-6, a bias chain that stiff left GTSAM finding the window indeterminate at a bias key and
-#: rebuilding it at nearly every keyframe (``eval vio`` of a 40 s noiseless recording: 450).
+#: Floors under the IMU densities, so a noiseless recording still gives a well-posed problem.
+#: The bias walks' are 1.9 and 30 times under EuRoC's (1.9e-5, 3e-3), the presets' figures; a
+#: configured figure below a floor is raised to it. At 1e-7 and 1e-6 a bias chain that stiff
+#: left GTSAM finding the window indeterminate at a bias key and rebuilding it at nearly every
+#: keyframe (``eval vio`` of a 40 s noiseless recording: 450 rebuilds).
 _DENSITY_FLOOR = {"gyro": 1e-5, "accel": 1e-4, "gyro_walk": 1e-5, "accel_walk": 1e-4}
 
 

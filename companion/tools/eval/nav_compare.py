@@ -41,7 +41,8 @@ COMPARED_COUNTS = ("success", "collision", "mean_speed_mps", "least_clearance_m"
 
 def read_run(path: Path) -> list[dict]:
     """The records of one ``--runs`` file, complete or interrupted: EvaluationError naming
-    the file when one trial is in it twice or it mixes code revisions or configs."""
+    the file when one trial is in it twice or it mixes code revisions, configs or library
+    versions."""
     records = nav.read_records(Path(path))
     try:
         nav.refuse_repeated_trials(records)

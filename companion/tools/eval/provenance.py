@@ -3,9 +3,10 @@ of the libraries a flight's numbers depend on.
 
 Records flown in parts, or resumed after an interruption, are one evaluation only if the same
 code flew them with the same config on the same libraries; each record carries all three so
-that merging can check (:func:`companion.tools.eval.nav.merge_records`). The libraries count:
-one commit and config flew other flights on a machine whose environment was built a day later
-from the same pyproject ranges (docs/vins.md, "The offset swing").
+that merging can check (:func:`companion.tools.eval.nav.merge_records`). The libraries are
+kept since one commit and config flew other flights on this machine a day after their record,
+its environment built again in between from the same pyproject ranges (docs/vins.md, "The
+offset swing"); which difference did it is not known.
 """
 
 from __future__ import annotations
@@ -22,10 +23,10 @@ from companion.config import Config, dump_toml
 UNKNOWN = "unknown"
 #: The checkout this package runs from: companion/tools/eval/ is three folders below it.
 CHECKOUT = Path(__file__).resolve().parents[3]
-#: The installed distributions whose versions a flight's numbers depend on: the arithmetic, the
-#: tracker, the smoother, the depth network and the renderer.
-FLIGHT_LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "gtsam", "onnxruntime",
-                    "moderngl")
+#: The modules whose versions a flight's numbers depend on: the arithmetic, the tracker, the
+#: smoother, the depth network and the renderer. Each is named by the distribution that
+#: installed it, whichever that is (opencv-python or its headless build, onnxruntime-gpu).
+FLIGHT_MODULES = ("numpy", "scipy", "cv2", "gtsam", "onnxruntime", "moderngl")
 
 
 def code_revision(checkout: Path = CHECKOUT) -> str:
@@ -51,14 +52,16 @@ def config_hash(config: Config) -> str:
 
 
 def library_versions() -> str:
-    """The interpreter's version and each of :data:`FLIGHT_LIBRARIES`' installed one, as
-    ``"python 3.12.3; numpy 2.4.6; ..."`` ("not installed" for one that is not)."""
+    """The interpreter's version and, for each of :data:`FLIGHT_MODULES`, the version of every
+    distribution that installed it, as ``"python 3.12.3; numpy 2.4.6; ..."`` (the module's
+    name and "not installed" for one no distribution provides). The GL driver the renderer
+    draws with is not among them."""
+    providers = importlib.metadata.packages_distributions()
     versions = [f"python {platform.python_version()}"]
-    for name in FLIGHT_LIBRARIES:
-        try:
-            versions.append(f"{name} {importlib.metadata.version(name)}")
-        except importlib.metadata.PackageNotFoundError:
-            versions.append(f"{name} not installed")
+    for module in FLIGHT_MODULES:
+        names = sorted(set(providers.get(module, ())))
+        versions += ([f"{name} {importlib.metadata.version(name)}" for name in names]
+                     or [f"{module} not installed"])
     return "; ".join(versions)
 
 

@@ -45,7 +45,7 @@ AGE_BINS = ((2, 5), (5, 10), (10, 20), (20, None))
 
 #: The means leave out errors this large, pixels: gross mistracks, a few of which would
 #: outweigh the creep they measure (RANSAC and the smoother's gate reject them).
-OUTWARD_MAX_ERROR_PX = 5.0
+GROSS_ERROR_PX = 5.0
 
 #: Largest spread of the true depth round a birth pixel (max - min over the 3x3 pixels, as a
 #: share of the pixel's own) for the track to be named: off a depth edge.
@@ -60,7 +60,6 @@ class TrackErrors:
         self.camera, self.distortion = camera, tuple(distortion)
         self.T_B_C = np.asarray(T_B_C, dtype=float)
         self._births: dict[int, np.ndarray] = {}  # track id -> world point
-        self.errors_px: list[float] = []
         self.errors_xy: list[tuple[float, float]] = []  # each error, x right and y down
         self.outward_px: list[float] = []  # each error along the outward radius (NaN: centre)
         self.ages: list[int] = []
@@ -113,10 +112,14 @@ class TrackErrors:
         length = np.linalg.norm(radius, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
             outward = np.where(length > 0.0, np.sum(error * radius, axis=1) / length, np.nan)
-        self.errors_px.extend(np.linalg.norm(error, axis=1).tolist())
         self.errors_xy.extend(map(tuple, error.tolist()))
         self.outward_px.extend(outward.tolist())
         self.ages.extend(ages[ahead].tolist())
+
+    @property
+    def errors_px(self) -> list[float]:
+        """Each scored error's size, pixels."""
+        return np.linalg.norm(np.reshape(self.errors_xy, (-1, 2)), axis=1).tolist()
 
     def summary(self) -> dict:
         """:func:`track_error_summary` of every observation scored so far."""
@@ -127,7 +130,7 @@ def track_error_summary(errors_xy, outward_px, ages) -> dict:
     """``track_error_px_median`` and ``_p90`` over the scored observations (``errors_xy``,
     pixels, x right and y down, of tracks ``ages`` frames old; None when there are none) and
     ``track_error_by_age``: for each of :data:`AGE_BINS`, the ages, the count, the median
-    size, and over the errors under :data:`OUTWARD_MAX_ERROR_PX` ``outward_mean_px``, the
+    size, and over the errors under :data:`GROSS_ERROR_PX` ``outward_mean_px``, the
     mean along the outward radius (``outward_px``; the creep, module docstring), and
     ``mean_px``, the mean error (x, y)."""
     vectors = np.asarray(errors_xy, dtype=float).reshape(-1, 2)
@@ -136,7 +139,7 @@ def track_error_summary(errors_xy, outward_px, ages) -> dict:
     by_age = []
     for low, high in AGE_BINS:
         chosen = (ages >= low) & (ages < (np.inf if high is None else high))
-        kept = chosen & (errors < OUTWARD_MAX_ERROR_PX)
+        kept = chosen & (errors < GROSS_ERROR_PX)
         radial = outward[kept & np.isfinite(outward)]
         by_age.append({"ages": f"{low}+" if high is None else f"{low}-{high - 1}",
                        "observations": int(chosen.sum()),

@@ -116,7 +116,7 @@ class KeyframeEstimate:
     velocity_covariance: np.ndarray | None
     accel_bias: np.ndarray
     landmarks: int  #: landmarks in the smoother's window
-    gyro_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gyro_bias: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -219,8 +219,7 @@ def bound_vio(log: FactorLog, trace: VioTrace, data: VioDataset) -> dict:
         return {"note": f"not bounded: the smoother was rebuilt {trace.resets} time(s), and a "
                         "rebuild's priors would pin the batch's scale"}
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
-    fixed_lag = {kf.t: kf.T_W_B[:3, 3] for kf in trace.keyframes
-                 if truth_t[0] <= kf.t <= truth_t[-1]}
+    fixed_lag = {kf.t: kf.T_W_B[:3, 3] for kf in _inside_truth(trace.keyframes, truth_t)}
     if len(fixed_lag) < 3:
         return {"note": f"not bounded: {len(fixed_lag)} keyframes with ground truth"}
     keyframes = batch_positions(log, fixed_lag, BOUND_EVERY)
@@ -546,12 +545,18 @@ def _heading_drift(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
     less the truth's, in the estimator's world (the truth turned onto the first keyframe: yaw
     is unobservable, so all it has of it is its start); positive is counter-clockwise; over
     the keyframes inside the truth's span (None without any)."""
-    keyframes = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
+    keyframes = _inside_truth(keyframes, truth_t)
     if not keyframes:
         return None
     true_last = _truth_in_world(keyframes, truth_t, truth)[-1][0]
     error = _yaw(keyframes[-1].T_W_B) - _yaw(true_last)
     return math.degrees(math.atan2(math.sin(error), math.cos(error)))
+
+
+def _inside_truth(keyframes: list[KeyframeEstimate],
+                  truth_t: np.ndarray) -> list[KeyframeEstimate]:
+    """The keyframes stamped inside the ground truth's span (a late stamp can pass its end)."""
+    return [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
 
 
 def _end_split(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
@@ -561,8 +566,9 @@ def _end_split(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
     fixed at its start, not by a best fit), split over the horizontal path flown between them
     (``autonomy.trajectory.split_displacement``: the path's scale and bearing, metres along,
     across and in height): what ``eval nav`` splits at the end of a flight, where the ATE's
-    alignment takes a constant bearing out. None without two keyframes a metre apart."""
-    inside = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
+    alignment takes a constant bearing out. None with fewer than two such keyframes, or where
+    the truth ends within ``DISPLACEMENT_MIN_M`` of its start horizontally (a loop)."""
+    inside = _inside_truth(keyframes, truth_t)
     if len(inside) < 2:
         return None
     ends = [inside[0], inside[-1]]
@@ -573,7 +579,7 @@ def _end_split(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
 
 
 def _gyro_bias_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
-                       truth: GroundTruthTable) -> dict | None:
+                       truth: GroundTruthTable, window_s: float = SCALE_WINDOW_S) -> dict | None:
     """The smoother's gyro bias ``b`` against the true one, per body axis (x, y, z), deg/s,
     each keyframe's as it was when newest, over the keyframes inside the truth's span (None
     without two of them).
@@ -584,24 +590,26 @@ def _gyro_bias_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
     keyframes, beside ``heading_drift_deg``, the drift the estimate has. The truth is the
     sensor's additive bias; the estimate also takes in what the scale and cross-axis errors
     add at the rates flown, ``(M_g - I) ω``, so turns show in its error.
-    ``error_by_time``: the mean error over each whole :data:`SCALE_WINDOW_S` (``t`` its
-    start), where a bias held wrong after a turn shows as a step.
+    ``error_by_time``: the mean error over each whole ``window_s`` (``t`` its start) that
+    holds a keyframe, where a bias held wrong after a turn shows as a step.
     """
-    inside = [kf for kf in keyframes if truth_t[0] <= kf.t <= truth_t[-1]]
+    inside = _inside_truth(keyframes, truth_t)
     if len(inside) < 2:
         return None
     t = np.array([kf.t for kf in inside])
     error = np.degrees([kf.gyro_bias - _truth_at(kf.t, truth_t, truth.gyro_bias)
                         for kf in inside])
     true = np.degrees([_truth_at(kf.t, truth_t, truth.gyro_bias) for kf in inside])
-    windows = np.arange(t[0], t[-1] - SCALE_WINDOW_S + 1e-9, SCALE_WINDOW_S)
-    by_time = [{"t": float(start),
-                "mean_error": error[(t >= start) & (t < start + SCALE_WINDOW_S)].mean(
-                    axis=0).tolist()} for start in windows]
+    windows = [(start, (t >= start) & (t < start + window_s))
+               for start in np.arange(t[0], t[-1] - window_s + 1e-9, window_s)]
+    by_time = [{"t": float(start), "mean_error": error[chosen].mean(axis=0).tolist()}
+               for start, chosen in windows if chosen.any()]
+    # the trapezoid rule by hand: numpy 1.x, which the pyproject allows, has no np.trapezoid
+    turned = np.sum(np.diff(t) * (error[1:, 2] + error[:-1, 2]) / 2.0)
     return {"mean_error": error.mean(axis=0).tolist(),
             "rms_error": np.sqrt((error**2).mean(axis=0)).tolist(),
             "true_mean": true.mean(axis=0).tolist(),
-            "heading_deg": float(-np.trapezoid(error[:, 2], t)),
+            "heading_deg": float(-turned),
             "error_by_time": by_time}
 
 
@@ -644,8 +652,7 @@ def _consistency_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
     which part of the estimate is overconfident. A keyframe with an unusable covariance is
     left out and counted in ``nees_refused``.
     """
-    inside = [kf for kf in keyframes
-              if kf.pose_covariance is not None and truth_t[0] <= kf.t <= truth_t[-1]]
+    inside = [kf for kf in _inside_truth(keyframes, truth_t) if kf.pose_covariance is not None]
     empty = {"nees_pose_mean": None, "nees_pose_median": None, "nees_velocity_mean": None,
              "nees_velocity_median": None, "nees_pose_by_axis": None, "nees_keyframes": 0,
              "nees_refused": 0}
@@ -758,6 +765,7 @@ def _alignment_text(alignment: dict | None) -> str:
 
 
 def _gyro_bias_text(bias: dict | None) -> str:
+    """The gyro bias's line: its mean and RMS error per axis and the heading they turn."""
     if bias is None:
         return "too few keyframes"
     mean = ", ".join(f"{v:+.4f}" for v in bias["mean_error"])
@@ -809,7 +817,8 @@ def format_vio_report(result: dict) -> str:
         f"{result['nees_keyframes']} keyframes",
         "gyro bias against the truth (x, y, z): " + _gyro_bias_text(result["gyro_bias"]),
         "the last keyframe through the first's gauge: " + (
-            "no path a metre long" if result["end_split"] is None else
+            "none (under two keyframes, or a path ending where it began)"
+            if result["end_split"] is None else
             f"{result['end_split']['distance_m']:.1f} m flown"
             + format_split(result["end_split"])),
         f"depth: median relative error {show(result['depth_rel_err_median'], '.1%')} over "
