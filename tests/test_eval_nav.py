@@ -942,3 +942,54 @@ def test_a_cluster_without_ray_fails_in_one_line_naming_the_extra(monkeypatch):
         nav.run_trials(Config(), trials, cluster="auto")
     with pytest.raises(EvaluationError, match="--workers sizes the local pool"):
         nav.run_trials(Config(), trials, cluster="auto", workers=2)
+
+
+_ORPHAN_SCRIPT = '''
+import os, sys, time
+from companion.tools.eval.executor import LocalPool
+
+def wait(folder, item):
+    open(os.path.join(folder, str(os.getpid())), "w").close()
+    time.sleep(120)
+    return item
+
+if __name__ == "__main__":
+    for _ in LocalPool(2).run(wait, sys.argv[1], [0, 1]):
+        pass
+'''
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` is a live process (a zombie left for its reaper is not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_local_workers_end_with_a_run_killed_without_clean_up(tmp_path):
+    """A run stopped by SIGKILL (or SIGTERM, neither runs a finally) leaves its workers in
+    the middle of a task; each ends itself within a second or two, not when its task ends."""
+    script, started = tmp_path / "run.py", tmp_path / "started"
+    script.write_text(_ORPHAN_SCRIPT)
+    started.mkdir()
+    run = subprocess.Popen([sys.executable, str(script), str(started)],
+                           env={**os.environ, "PYTHONPATH": str(provenance.CHECKOUT)})
+    try:
+        deadline = time.monotonic() + 90
+        while len(list(started.iterdir())) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        workers = [int(p.name) for p in started.iterdir()]
+        assert len(workers) == 2 and all(_running(pid) for pid in workers)
+        run.kill()
+        run.wait()
+        deadline = time.monotonic() + 10
+        while any(_running(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not any(_running(pid) for pid in workers)
+    finally:
+        run.kill()
+        for pid in [int(p.name) for p in started.iterdir()]:
+            if _running(pid):
+                os.kill(pid, signal.SIGKILL)

@@ -5,7 +5,10 @@ An evaluation (``eval nav``'s trials) is many independent calls ``function(share
 them and yields each result as it completes, with the item's index.
 
 - :class:`LocalPool`, the default, needs nothing installed: ``spawn`` worker processes on this
-  machine (each starts clean, with its own OpenGL context), ``workers`` of them.
+  machine (each starts clean, with its own OpenGL context), ``workers`` of them. A worker
+  ends itself within a second of its parent's death: a run stopped by ``kill`` (SIGTERM or
+  SIGKILL, which run no clean-up) once left its workers flying trials nobody would read, for
+  over an hour.
 - :class:`RayCluster` runs each call as a task on an existing Ray cluster (``--cluster auto``
   for the cluster this machine's ``ray start`` joined, ``HOST:PORT`` for the head's address
   as ``ray start --head`` prints it, or ``ray://HOST:PORT`` through Ray Client; the ``ray``
@@ -31,6 +34,8 @@ import multiprocessing
 import os
 import socket
 import sys
+import threading
+import time
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterator, Sequence
 
@@ -41,6 +46,8 @@ from companion.tools.eval.vio import EvaluationError
 RAY_RETRIES = 3
 #: Seconds to wait for a cluster's address to answer before saying it cannot be reached.
 CONNECT_TIMEOUT_S = 5.0
+#: How often a local worker checks that the process that started it is alive, seconds.
+PARENT_CHECK_S = 0.5
 
 
 class ExecutorError(EvaluationError):
@@ -70,6 +77,22 @@ def _log_errors_only(level: int) -> None:
                                "%(message)s")
 
 
+def _start_worker(level: int, parent: int) -> None:
+    """A local worker's set-up: its logging (:func:`_log_errors_only`), and a daemon thread
+    that ends the process once ``parent``, the run's process, is gone (module docstring)."""
+    _log_errors_only(level)
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True,
+                     name="parent-watch").start()
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Poll every :data:`PARENT_CHECK_S` whether this process's parent is still ``parent``
+    (an orphan is adopted by another), and end the process at once when it is not."""
+    while os.getppid() == parent:
+        time.sleep(PARENT_CHECK_S)
+    os._exit(1)
+
+
 class LocalPool:
     """``workers`` ``spawn`` processes on this machine."""
 
@@ -82,7 +105,8 @@ class LocalPool:
         """``(index, function(shared, items[index]))`` for every item, as each completes."""
         pool = concurrent.futures.ProcessPoolExecutor(
             self.workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_log_errors_only, initargs=(logging.getLogger().getEffectiveLevel(),))
+            initializer=_start_worker,
+            initargs=(logging.getLogger().getEffectiveLevel(), os.getpid()))
         try:
             futures = {pool.submit(function, shared, item): k for k, item in enumerate(items)}
             for future in concurrent.futures.as_completed(futures):
