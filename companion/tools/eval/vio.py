@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Iterator
 
 import cv2
 import numpy as np
+from scipy.integrate import trapezoid
 
 from autonomy.geometry import (
     PinholeCamera, invert_pose, make_pose, quat_to_rot, so3_log, yaw_alignment,
@@ -597,19 +598,16 @@ def _gyro_bias_metrics(keyframes: list[KeyframeEstimate], truth_t: np.ndarray,
     if len(inside) < 2:
         return None
     t = np.array([kf.t for kf in inside])
-    error = np.degrees([kf.gyro_bias - _truth_at(kf.t, truth_t, truth.gyro_bias)
-                        for kf in inside])
     true = np.degrees([_truth_at(kf.t, truth_t, truth.gyro_bias) for kf in inside])
+    error = np.degrees([kf.gyro_bias for kf in inside]) - true
     windows = [(start, (t >= start) & (t < start + window_s))
                for start in np.arange(t[0], t[-1] - window_s + 1e-9, window_s)]
     by_time = [{"t": float(start), "mean_error": error[chosen].mean(axis=0).tolist()}
                for start, chosen in windows if chosen.any()]
-    # the trapezoid rule by hand: numpy 1.x, which the pyproject allows, has no np.trapezoid
-    turned = np.sum(np.diff(t) * (error[1:, 2] + error[:-1, 2]) / 2.0)
     return {"mean_error": error.mean(axis=0).tolist(),
             "rms_error": np.sqrt((error**2).mean(axis=0)).tolist(),
             "true_mean": true.mean(axis=0).tolist(),
-            "heading_deg": float(-turned),
+            "heading_deg": float(-trapezoid(error[:, 2], t)),
             "error_by_time": by_time}
 
 
