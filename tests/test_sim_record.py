@@ -160,6 +160,29 @@ def test_recording_refuses_a_folder_in_use_and_a_bad_duration(tmp_path):
                        ImuOptions(), duration=float("nan"))
 
 
+@pytest.mark.parametrize("speed", [0.0, -1.0, float("nan"), 12.5])
+def test_recording_refuses_a_speed_the_vehicle_cannot_fly(tmp_path, speed):
+    with pytest.raises(RecordError, match="xy_vel_max \\(12 m/s\\)"):
+        record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
+                       ImuOptions(), duration=1.0, speed=speed)
+    assert not (tmp_path / "new").exists()
+
+
+def test_record_command_cruises_at_the_speed_asked(tmp_path):
+    """The planner's flights cruise at up to 2 m/s; ``--speed`` records at theirs."""
+    small = ["--set", "camera.width=160", "--set", "camera.height=120"]
+    cruise = {}
+    for speed in (None, "1.8"):
+        out = tmp_path / f"speed-{speed}"
+        asked = [] if speed is None else ["--speed", speed]
+        assert main(["sim", "record", "--world", "dome", "--seed", "1", "--duration", "12",
+                     "--out", str(out), *asked, *small]) == 0
+        velocity = np.diff(read_groundtruth(out).position[-600:], axis=0) * 200.0  # last 3 s
+        cruise[speed] = np.median(np.hypot(velocity[:, 0], velocity[:, 1]))
+    assert cruise[None] == pytest.approx(1.0, abs=0.05)
+    assert cruise["1.8"] == pytest.approx(1.8, abs=0.1)
+
+
 def test_record_command_writes_a_dataset_and_reports_it(tmp_path, capsys):
     out = tmp_path / "set"
     status = main(["sim", "record", "--world", "sewer", "--seed", "2", "--duration", "0.5",

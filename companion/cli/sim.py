@@ -73,6 +73,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     record.add_argument("--duration", type=common.positive_float, default=40.0,
                         metavar="SECONDS",
                         help="simulated seconds to record (default: %(default)s)")
+    record.add_argument("--speed", type=common.positive_float, metavar="M/S",
+                        help="cruise speed along the route, at most the vehicle's [vehicle] "
+                             "xy_vel_max; the planner's flights cruise at up to [planner] "
+                             "speed (default: 1 m/s, drivers/sim/record.py's SPEED)")
     record.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="dataset folder to create (must be new or empty)")
     record.set_defaults(command=_sim_record)
@@ -209,7 +213,9 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
         wave = SpeedWave.of(config.planner.speed_swing, config.planner.speed_swing_period_s)
         summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
                                         config.imu, duration=args.duration,
-                                        sim_camera=config.sim_camera, wave=wave)
+                                        sim_camera=config.sim_camera, wave=wave,
+                                        speed=record.SPEED if args.speed is None
+                                        else args.speed)
     except (record.RecordError, RenderError, OSError) as error:
         print(f"sim record: {error}", file=sys.stderr)
         return common.EXIT_FAILED

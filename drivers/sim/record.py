@@ -31,7 +31,10 @@ from drivers.sim.quadrotor import ControlTarget, Quadrotor, VehicleOptions
 from drivers.sim.world import ROBOT_RADIUS, Route, World, build_world
 
 SPEED = 1.0
-"""Cruise speed along the path, m/s: gentle enough that consecutive 20 Hz frames overlap."""
+"""Default cruise speed along the path, m/s: gentle enough that consecutive 20 Hz frames overlap.
+The application's flights cruise faster (its planner's fastest tier is 2 m/s), and the VINS's
+scale walks faster with them (docs/vins.md, "The scale at the planner's speed"): ``speed``
+records at theirs."""
 
 STATIC_SECONDS = 2.0
 """Time standing still on the ground before take-off, for static initialisation."""
@@ -187,11 +190,12 @@ def route_path(world: World, route: Route) -> np.ndarray:
 def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
         sensor: SensorOptions | None = None, renderer: Renderer | None = None,
-        vehicle_seed: int | None = None, wave: SpeedWave | None = None) -> RecordSummary:
-    """Fly ``route`` for ``duration`` simulated seconds, sending every sample to ``sink``.
-    ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the errors the
-    vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave`` swings the
-    cruise's speed (:class:`PathFollower`).
+        vehicle_seed: int | None = None, wave: SpeedWave | None = None,
+        speed: float = SPEED) -> RecordSummary:
+    """Fly ``route`` for ``duration`` simulated seconds at ``speed`` m/s, sending every sample
+    to ``sink``. ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the
+    errors the vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave``
+    swings the cruise's speed (:class:`PathFollower`).
 
     Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
     after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
@@ -200,7 +204,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     """
     dt = 1.0 / imu.rate_hz
     path = route_path(world, route)
-    follower = PathFollower(path, route.cruise_height, SPEED, wave)
+    follower = PathFollower(path, route.cruise_height, speed, wave)
     quad = Quadrotor(vehicle, world.obstacle_clearance,
                      position=np.array([route.start[0], route.start[1], 0.0]),
                      yaw=_heading(path))
@@ -264,7 +268,7 @@ def _heading(path: np.ndarray) -> float:
 def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: VehicleOptions,
                    imu: ImuOptions, *, duration: float,
                    sim_camera: SensorOptions | None = None,
-                   wave: SpeedWave | None = None) -> RecordSummary:
+                   wave: SpeedWave | None = None, speed: float = SPEED) -> RecordSummary:
     """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``,
     in ``sim.profile``: realistic, through the camera sensor ``sim_camera`` (default
     ``[sim_camera]``'s defaults; its lens is written into ``sensor.yaml``, and the mounting
@@ -273,11 +277,15 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
 
     The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset;
     ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting),
-    ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``wave``
-    swings the cruise's speed (:class:`PathFollower`).
+    ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``speed`` is
+    the cruise's, m/s (at most the vehicle's ``xy_vel_max``); ``wave`` swings it
+    (:class:`PathFollower`).
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
+    if not (math.isfinite(speed) and 0.0 < speed <= vehicle.xy_vel_max):
+        raise RecordError(f"the cruise speed must be positive and at most the vehicle's "
+                          f"xy_vel_max ({vehicle.xy_vel_max:g} m/s), got {speed} m/s")
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")
@@ -290,7 +298,7 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
                      _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.noise_for(sim.seed),
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
-                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave)
+                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave, speed=speed)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:
