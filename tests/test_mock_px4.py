@@ -344,6 +344,39 @@ def test_takeoff_climbs_to_the_takeoff_altitude_then_holds_and_land_disarms(benc
     assert bench.vehicle.landed and not bench.vehicle.armed
 
 
+def smoothed_takeoff_rates(parameters=None, seconds=6.0) -> np.ndarray:
+    """The vertical speed, every tick, of a smoothed take-off to MIS_TAKEOFF_ALT (2.5 m)."""
+    bench = Bench(Px4Options(smooth_takeoff=True), parameters=parameters)
+    try:
+        bench.arm()
+        assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan,
+                             math.nan, math.nan) == mavlink.MAV_RESULT_ACCEPTED
+        climb = []
+        bench.run(seconds, each_tick=lambda: climb.append(
+            (bench.px4.mode, bench.vehicle.state.velocity[2])))
+        assert bench.px4.mode == px4_protocol.AUTO_LOITER
+        assert bench.vehicle.state.position[2] == pytest.approx(2.5, abs=0.15)
+    finally:
+        bench.close()
+    return np.array([v for mode, v in climb if mode == px4_protocol.AUTO_TAKEOFF])
+
+
+def test_a_smoothed_takeoff_climbs_as_px4s():
+    """PX4's take-off is a smoothed climb (FlightTaskAuto.cpp, _updateTrajConstraints): at most
+    MPC_TKO_SPEED, and an acceleration of at most MPC_TKO_SPEED / MPC_TKO_RAMP_T = 0.5 m/s²
+    (1.5 m/s over 3 s) up and down, so the climb stops without a jolt."""
+    rates = smoothed_takeoff_rates()
+    assert 1.0 < rates.max() < 1.5  # 2.5 m does not leave room to reach 1.5 m/s at 0.5 m/s²
+    assert np.abs(np.diff(rates) / DT).max() < 0.5 * 1.2  # the vehicle lags its setpoint
+    assert len(rates) * DT > 4.0  # a velocity step climbs 2.5 m in under 2 s
+
+
+def test_a_smoothed_takeoff_honours_its_ramp_time():
+    """MPC_TKO_RAMP_T 1 s lets the take-off reach MPC_TKO_SPEED (1.5 m/s at 1.5 m/s²)."""
+    rates = smoothed_takeoff_rates({"MPC_TKO_RAMP_T": 1.0}, seconds=4.0)
+    assert rates.max() == pytest.approx(1.5, abs=0.1)
+
+
 def test_signing_ignores_unsigned_commands_and_accepts_signed_ones():
     bench = Bench(Px4Options(signing_key=KEY.hex()))
     try:

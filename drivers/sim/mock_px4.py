@@ -42,6 +42,7 @@ from drivers.mavlink.link import MavlinkLink, mavlink
 from drivers.mavlink.parameters import decode_value, encode_value
 from drivers.mavlink.signing import check_key_options, load_key
 from drivers.sim.quadrotor import ControlTarget, Quadrotor
+from drivers.sim.trajectory import AxisState, VelocitySmoothing, max_speed_from_distance
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +127,7 @@ OFFBOARD_LOSS_ACTIONS = tuple(OFFBOARD_LOSS_ACTION_VALUES)
 
 #: The parameters the mock serves, all INT32 or REAL32 as in PX4. Those the mock honours:
 #: COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_LAND, MIS_TAKEOFF_ALT, MPC_TKO_SPEED,
-#: MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1: horizontal and vertical vision position),
+#: MPC_TKO_RAMP_T, MPC_ACC_UP_MAX, MPC_JERK_AUTO, MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1: horizontal and vertical vision position),
 #: EKF2_EV_QMIN (odometry of a lower quality is not fused); the
 #: others are what docs/operations.md asks an operator to set, held at a correctly configured
 #: vehicle's values, for `companion fly --check` to read. MAV_SYS_ID and MAV_COMP_ID are read
@@ -146,10 +147,16 @@ PARAMETER_TYPES = {
     "MAV_COMP_ID": mavlink.MAV_PARAM_TYPE_INT32,
     "MAV_SYS_ID": mavlink.MAV_PARAM_TYPE_INT32,
     "MIS_TAKEOFF_ALT": mavlink.MAV_PARAM_TYPE_REAL32,
+    "MPC_ACC_UP_MAX": mavlink.MAV_PARAM_TYPE_REAL32,
+    "MPC_JERK_AUTO": mavlink.MAV_PARAM_TYPE_REAL32,
     "MPC_LAND_SPEED": mavlink.MAV_PARAM_TYPE_REAL32,
+    "MPC_TKO_RAMP_T": mavlink.MAV_PARAM_TYPE_REAL32,
     "MPC_TKO_SPEED": mavlink.MAV_PARAM_TYPE_REAL32,
     "SER_TEL2_BAUD": mavlink.MAV_PARAM_TYPE_INT32,
 }
+#: The take-off's limits (trajectory.py), which divide or bound and so must be positive; PX4's
+#: parameter metadata sets their least values at 0.1 or more. MPC_TKO_RAMP_T may be 0: no ramp.
+POSITIVE_PARAMETERS = ("MPC_ACC_UP_MAX", "MPC_JERK_AUTO", "MPC_TKO_SPEED")
 #: PX4 sends its parameters by index in name order (the generated parameter table is sorted).
 PARAMETER_NAMES = tuple(sorted(PARAMETER_TYPES))
 #: PARAM_VALUE's name for the hash PX4 sends first on PARAM_REQUEST_LIST, and its index:
@@ -175,6 +182,22 @@ class Px4Options:
         2.5, gt=0.0, le=100.0, doc="take-off height above home, metres [MIS_TAKEOFF_ALT]")
     takeoff_speed: float = option(1.5, gt=0.0, le=10.0,
                                   doc="climb rate of take-off, m/s [MPC_TKO_SPEED]")
+    takeoff_ramp_time: float = option(
+        3.0, gt=0.0, le=5.0,
+        doc="time the take-off takes to reach its climb rate: its acceleration is at most "
+            "takeoff_speed / takeoff_ramp_time, s [MPC_TKO_RAMP_T]")
+    climb_accel_max: float = option(
+        4.0, gt=0.0, le=15.0, doc="largest upward acceleration of auto modes, m/s^2 "
+                                  "[MPC_ACC_UP_MAX]")
+    auto_jerk_max: float = option(
+        4.0, gt=0.0, le=80.0, doc="largest jerk of auto modes' trajectories, m/s^3 "
+                                  "[MPC_JERK_AUTO]")
+    # PX4's own take-off (trajectory.py). Off until the VINS's restart after an IMU gap copes
+    # with the flights it makes (docs/vins.md, "The take-off as PX4 flies it").
+    smooth_takeoff: bool = option(
+        False, doc="climb as PX4 does, smoothed to MPC_TKO_SPEED within MPC_TKO_RAMP_T, "
+                   "MPC_ACC_UP_MAX and MPC_JERK_AUTO (FlightTaskAuto); false: a step to "
+                   "MPC_TKO_SPEED, stopped by the position hold at the height")
     land_speed: float = option(0.7, gt=0.0, le=5.0,
                                doc="descent rate of Land, m/s [MPC_LAND_SPEED]")
     disarm_after_land: float = option(
@@ -226,7 +249,10 @@ def default_parameters(options: Px4Options) -> dict[str, int | float]:
         "MAV_COMP_ID": options.component_id,
         "MAV_SYS_ID": options.system_id,
         "MIS_TAKEOFF_ALT": options.takeoff_altitude,
+        "MPC_ACC_UP_MAX": options.climb_accel_max,
+        "MPC_JERK_AUTO": options.auto_jerk_max,
         "MPC_LAND_SPEED": options.land_speed,
+        "MPC_TKO_RAMP_T": options.takeoff_ramp_time,
         "MPC_TKO_SPEED": options.takeoff_speed,
         "SER_TEL2_BAUD": 921600,
     }
@@ -234,8 +260,9 @@ def default_parameters(options: Px4Options) -> dict[str, int | float]:
 
 def check_parameter(name: str, value) -> int | float:
     """``value`` as parameter ``name`` holds it (int for INT32, float32 for REAL32); ValueError
-    for an unknown name, a non-integer INT32, a non-finite REAL32, or a COM_OBL_RC_ACT the
-    mock cannot fly."""
+    for an unknown name, a non-integer INT32, a non-finite REAL32, a take-off limit that is
+    not positive (:data:`POSITIVE_PARAMETERS`; a negative MPC_TKO_RAMP_T), or a COM_OBL_RC_ACT
+    the mock cannot fly."""
     if name not in PARAMETER_TYPES:
         raise ValueError(f"unknown parameter {name!r}; the mock has {', '.join(PARAMETER_NAMES)}")
     try:
@@ -244,6 +271,10 @@ def check_parameter(name: str, value) -> int | float:
         raise ValueError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(number):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
+    if (name in POSITIVE_PARAMETERS and number <= 0.0) or (name == "MPC_TKO_RAMP_T"
+                                                            and number < 0.0):
+        raise ValueError(f"{name} {number:g}: the mock cannot take off with it (PX4's own "
+                         "range excludes it)")
     if PARAMETER_TYPES[name] == mavlink.MAV_PARAM_TYPE_REAL32:
         return decode_value(encode_value(number, mavlink.MAV_PARAM_TYPE_REAL32),
                             mavlink.MAV_PARAM_TYPE_REAL32)  # a float32, as PX4 holds it
@@ -327,6 +358,7 @@ class MockPx4:
         self._hold_position: np.ndarray | None = None
         self._hold_yaw = 0.0
         self._takeoff_height = self.parameters["MIS_TAKEOFF_ALT"]
+        self._takeoff: tuple[VelocitySmoothing, float] | None = None  # the climb, its last tick
         self._landed_since: float | None = None
         self._ev_offset = np.zeros(3)
         self._ev_time: float | None = None
@@ -605,6 +637,7 @@ class MockPx4:
 
     def _set_mode(self, mode: px4_protocol.Px4Mode) -> None:
         self.mode = mode
+        self._takeoff = None  # a take-off begins afresh
         if mode == px4_protocol.AUTO_LOITER:
             self._enter_hold()
         log.info("mode %s at t=%.3f", mode.name, self.time)
@@ -893,12 +926,39 @@ class MockPx4:
             return
         goal = np.array([self._hold_position[0], self._hold_position[1],
                          self._home[2] + self._takeoff_height])
-        if self.estimate.position[2] >= goal[2] - 0.1:
+        height = float(self.estimate.position[2])
+        if height >= goal[2] - 0.1:
             self._set_mode(px4_protocol.AUTO_LOITER)
             self._hold_position = goal
             self._fly_hold()
             return
-        self._climb(self.parameters["MPC_TKO_SPEED"])
+        if not self.options.smooth_takeoff:
+            self._climb(self.parameters["MPC_TKO_SPEED"])
+            return
+        climb = self._smoothed_climb(height, goal[2])
+        self.vehicle.set_target(ControlTarget(velocity=np.array([0.0, 0.0, climb.v]),
+                                              acceleration=np.array([0.0, 0.0, climb.a]),
+                                              yaw=self._hold_yaw))
+
+    def _smoothed_climb(self, height: float, goal_height: float) -> AxisState:
+        """This tick's vertical setpoint of PX4's take-off (trajectory.py: FlightTaskAuto's
+        PositionSmoothing under the take-off's limits, the trajectory's height held at the
+        vehicle's), from rest when the take-off began; it is the same below MPC_LAND_ALT1
+        (10 m by default), which every take-off here stays under."""
+        p = self.parameters
+        if self._takeoff is None:
+            speed, ramp = p["MPC_TKO_SPEED"], p["MPC_TKO_RAMP_T"]
+            accel = min(p["MPC_ACC_UP_MAX"], speed / ramp) if ramp > 0.0 else p["MPC_ACC_UP_MAX"]
+            self._takeoff = (VelocitySmoothing(p["MPC_JERK_AUTO"], accel, speed,
+                                               AxisState(x=height)), self.time)
+        smoothing, last = self._takeoff
+        smoothing.force_position(height)
+        wanted = min(smoothing.max_vel, max_speed_from_distance(
+            smoothing.max_jerk, smoothing.max_accel, max(goal_height - height, 0.0)))
+        state = smoothing.update_traj(self.time - last)
+        smoothing.update_durations(wanted)
+        self._takeoff = (smoothing, self.time)
+        return state
 
     def _fly_land(self) -> None:
         self._climb(-self.parameters["MPC_LAND_SPEED"])
