@@ -10,7 +10,7 @@ import pytest
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
 from drivers.mavlink.signing import signing_timestamp
-from drivers.sim.mock_px4 import MockPx4, Px4Options
+from drivers.sim.mock_px4 import MockPx4, Px4Options, check_parameter
 from drivers.sim.quadrotor import Quadrotor
 
 DT = 0.005  # 200 Hz physics, the IMU rate
@@ -611,3 +611,39 @@ def test_imu_delivery_faults_repeat_or_swap_the_stamps_px4_sends(bench, delivery
     assert len(stamps) > 50 and order(stamps), stamps[:12]
     if delivery == "repeat":
         assert len(stamps) == 2 * len(set(stamps))
+
+
+@pytest.mark.parametrize("name, value", [("MPC_JERK_AUTO", 0.0), ("MPC_ACC_UP_MAX", -1.0),
+                                         ("MPC_TKO_SPEED", 0.0), ("MPC_TKO_RAMP_T", -0.5)])
+def test_take_off_limits_the_mock_cannot_fly_are_refused(name, value):
+    with pytest.raises(ValueError, match="cannot take off"):
+        check_parameter(name, value)
+
+
+def test_a_takeoff_without_a_ramp_accelerates_past_the_ramps_limit():
+    """MPC_TKO_RAMP_T 0 is PX4's "no ramp": the acceleration is bounded by MPC_ACC_UP_MAX
+    (4 m/s²) and the jerk alone, not by the ramp's 0.5 m/s²."""
+    assert check_parameter("MPC_TKO_RAMP_T", 0.0) == 0.0
+    rates = smoothed_takeoff_rates({"MPC_TKO_RAMP_T": 0.0}, seconds=8.0)
+    assert np.abs(np.diff(rates) / DT).max() > 1.0
+
+
+def test_a_takeoff_armed_into_again_starts_from_rest():
+    """Disarmed mid-climb (a forced disarm: the vehicle falls) and armed again in the same
+    mode, the climb starts from rest, not where the interrupted one had got to."""
+    bench = Bench(Px4Options(smooth_takeoff=True))
+    try:
+        bench.arm()
+        bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
+                      math.nan)
+        bench.run(1.5)
+        assert bench.vehicle.state.velocity[2] > 0.4
+        bench.px4.force_disarm("test")
+        bench.run(3.0)
+        assert bench.vehicle.landed
+        assert bench.px4.mode == px4_protocol.AUTO_TAKEOFF
+        assert bench.arm() == mavlink.MAV_RESULT_ACCEPTED
+        bench.run(0.5)
+        assert 0.0 <= bench.vehicle.state.velocity[2] < 0.5 * 0.5 + 0.05
+    finally:
+        bench.close()

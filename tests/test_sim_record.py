@@ -14,6 +14,7 @@ from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
 from drivers.sim.record import (PATH_CLEARANCE, RecordError, record_dataset, route_path,
                                  smooth_path)
+from autonomy.planning.speed_wave import SpeedWave
 from drivers.sim.render import RenderError, Renderer
 from drivers.sim.quadrotor import VehicleOptions
 from drivers.sim.world import build_world
@@ -166,6 +167,12 @@ def test_recording_refuses_a_speed_the_vehicle_cannot_fly(tmp_path, speed):
         record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
                        ImuOptions(), duration=1.0, speed=speed)
     assert not (tmp_path / "new").exists()
+
+
+def test_recording_refuses_a_speed_wave_that_would_fly_faster_than_the_vehicle(tmp_path):
+    with pytest.raises(RecordError, match="half the speed wave's swing"):
+        record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
+                       ImuOptions(), duration=1.0, speed=11.8, wave=SpeedWave(0.6, 3.3))
 
 
 def test_record_command_cruises_at_the_speed_asked(tmp_path):

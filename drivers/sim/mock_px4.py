@@ -183,9 +183,9 @@ class Px4Options:
     takeoff_speed: float = option(1.5, gt=0.0, le=10.0,
                                   doc="climb rate of take-off, m/s [MPC_TKO_SPEED]")
     takeoff_ramp_time: float = option(
-        3.0, gt=0.0, le=5.0,
+        3.0, ge=0.0, le=5.0,
         doc="time the take-off takes to reach its climb rate: its acceleration is at most "
-            "takeoff_speed / takeoff_ramp_time, s [MPC_TKO_RAMP_T]")
+            "takeoff_speed / takeoff_ramp_time; 0: no ramp, s [MPC_TKO_RAMP_T]")
     climb_accel_max: float = option(
         4.0, gt=0.0, le=15.0, doc="largest upward acceleration of auto modes, m/s^2 "
                                   "[MPC_ACC_UP_MAX]")
@@ -579,6 +579,7 @@ class MockPx4:
         self.vehicle.arm()
         self._home = np.array(self.estimate.position)
         self._landed_since = None
+        self._takeoff = None  # a take-off armed into starts from rest
         if self.mode == px4_protocol.AUTO_LOITER:
             self._enter_hold()
         self._statustext(mavlink.MAV_SEVERITY_INFO, "Armed by external command")
@@ -943,8 +944,10 @@ class MockPx4:
     def _smoothed_climb(self, height: float, goal_height: float) -> AxisState:
         """This tick's vertical setpoint of PX4's take-off (trajectory.py: FlightTaskAuto's
         PositionSmoothing under the take-off's limits, the trajectory's height held at the
-        vehicle's), from rest when the take-off began; it is the same below MPC_LAND_ALT1
-        (10 m by default), which every take-off here stays under."""
+        vehicle's), from rest when the take-off began. PX4 applies those limits below
+        MPC_LAND_ALT1 (10 m by default) and the auto modes' above it; the mock applies them
+        all the way up. The limits are read when the take-off begins (PX4 reads them every
+        step: a PARAM_SET during a climb acts from the next take-off here)."""
         p = self.parameters
         if self._takeoff is None:
             speed, ramp = p["MPC_TKO_SPEED"], p["MPC_TKO_RAMP_T"]

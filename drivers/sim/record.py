@@ -283,9 +283,11 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
-    if not (math.isfinite(speed) and 0.0 < speed <= vehicle.xy_vel_max):
-        raise RecordError(f"the cruise speed must be positive and at most the vehicle's "
-                          f"xy_vel_max ({vehicle.xy_vel_max:g} m/s), got {speed} m/s")
+    fastest = speed + (wave.swing / 2.0 if wave is not None else 0.0)  # PathFollower's peak
+    if not (math.isfinite(speed) and speed > 0.0 and fastest <= vehicle.xy_vel_max):
+        raise RecordError(f"the cruise speed must be positive and, with half the speed wave's "
+                          f"swing, at most the vehicle's xy_vel_max ({vehicle.xy_vel_max:g} "
+                          f"m/s), got {speed} m/s")
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")

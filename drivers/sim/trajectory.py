@@ -32,7 +32,7 @@ def max_speed_from_distance(jerk: float, accel: float, distance: float,
     ``v_f² = v² - 2 a (d - v 2 a / j)``, never below ``final_speed`` (PX4's
     ``math::trajectory::computeMaxSpeedFromDistance``, ``TrajMath.hpp``)."""
     b = 4.0 * accel * accel / jerk
-    c = -2.0 * accel * distance - final_speed * final_speed
+    c = -2.0 * accel * abs(distance) - final_speed * final_speed  # PX4 passes fabs()
     return max(0.5 * (-b + math.sqrt(b * b - 4.0 * c)), final_speed)
 
 
@@ -65,7 +65,8 @@ class VelocitySmoothing:
 
     def force_position(self, x: float) -> None:
         """Move the trajectory to ``x``, keeping its velocity and acceleration (PX4's
-        ``forceSetPosition``)."""
+        ``VelocitySmoothing::setCurrentPosition``, which ``PositionSmoothing::forceSetPosition``
+        calls per axis)."""
         self.state.x = x
         self._start.x = x
 
