@@ -79,7 +79,8 @@ def test_names_that_cannot_be_a_param_id_are_refused(name):
 
 def test_the_mock_answers_a_read_by_name_and_by_index_as_px4_does(bench):
     [value] = read(bench, "EKF2_HGT_REF")
-    assert (value.param_id, value.param_type, value.param_count) == ("EKF2_HGT_REF", INT32, 17)
+    assert (value.param_id, value.param_type, value.param_count) == ("EKF2_HGT_REF", INT32,
+                                                                   len(PARAMETER_NAMES))
     assert value.param_value != 3.0 and decode_value(value.param_value, INT32) == 3  # Vision
     assert value.param_index == PARAMETER_NAMES.index("EKF2_HGT_REF")
     [first] = read(bench, index=0)
