@@ -127,8 +127,9 @@ OFFBOARD_LOSS_ACTIONS = tuple(OFFBOARD_LOSS_ACTION_VALUES)
 
 #: The parameters the mock serves, all INT32 or REAL32 as in PX4. Those the mock honours:
 #: COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_LAND, MIS_TAKEOFF_ALT, MPC_TKO_SPEED,
-#: MPC_TKO_RAMP_T, MPC_ACC_UP_MAX, MPC_JERK_AUTO, MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1: horizontal and vertical vision position),
-#: EKF2_EV_QMIN (odometry of a lower quality is not fused); the
+#: MPC_TKO_RAMP_T, MPC_ACC_UP_MAX, MPC_JERK_AUTO, MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1:
+#: horizontal and vertical vision position), EKF2_EV_QMIN (odometry of a lower quality is not
+#: fused); the
 #: others are what docs/operations.md asks an operator to set, held at a correctly configured
 #: vehicle's values, for `companion fly --check` to read. MAV_SYS_ID and MAV_COMP_ID are read
 #: once at boot, as PX4 reads them (mavlink_main.cpp, the Mavlink constructor).
@@ -957,7 +958,7 @@ class MockPx4:
         smoothing, last = self._takeoff
         smoothing.force_position(height)
         wanted = min(smoothing.max_vel, max_speed_from_distance(
-            smoothing.max_jerk, smoothing.max_accel, max(goal_height - height, 0.0)))
+            smoothing.max_jerk, smoothing.max_accel, goal_height - height))
         state = smoothing.update_traj(self.time - last)
         smoothing.update_durations(wanted)
         self._takeoff = (smoothing, self.time)

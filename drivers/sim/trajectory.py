@@ -22,7 +22,7 @@ This module is that arithmetic, in float64 where PX4's is float32.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 
 def max_speed_from_distance(jerk: float, accel: float, distance: float,
@@ -58,7 +58,7 @@ class VelocitySmoothing:
                 raise ValueError(f"{name} must be positive, got {value!r}")
         self.max_jerk, self.max_accel, self.max_vel = max_jerk, max_accel, max_vel
         self.state = state or AxisState()
-        self._start = AxisState(**vars(self.state))
+        self._start = replace(self.state)
         self._local_time = 0.0
         self._direction = 0
         self._durations = (0.0, 0.0, 0.0)
@@ -75,7 +75,7 @@ class VelocitySmoothing:
         (clamped to ``±max_vel``)."""
         target = min(max(velocity_setpoint, -self.max_vel), self.max_vel)
         self._local_time = 0.0
-        self._start = AxisState(**vars(self.state))
+        self._start = replace(self.state)
         self._direction = self._direction_to(target)
         if self._direction == 0:
             self._durations = (0.0, 0.0, 0.0)
