@@ -129,6 +129,23 @@ def test_standing_still_after_the_gap_restarts_level_where_it_was_at_rest():
     assert restart.tilt_sigma == pytest.approx(math.radians(VinsOptions().reinit_tilt_sigma_deg))
 
 
+def test_standing_still_after_losing_the_map_restarts_where_it_was_last_relocalised():
+    """The vehicle flew on into the gap, relocalised on the map until the map left the view:
+    the restart takes the last relocalised position and yaw, not the estimate from before the
+    gap (1.5 m behind, in the flight of docs/vins.md, "An IMU gap in flight", after a turn)."""
+    ids, points = landmarks_ahead(40)
+    g = gap()
+    last_seen = body_pose(0.6, yaw_deg=12.0)
+    for t in (10.05, 10.10, 10.15):
+        g.observe(t, seen_from(last_seen, ids, points), ids, points, T_C_B)
+    for t in np.arange(11.0, 12.31, 0.05):  # the map out of view from here on
+        g.observe(t, seen_from(last_seen, ids + 1000, points), ids, points, T_C_B)
+    restart = g.standing_still(12.3, *still_imu(12.0, 12.3, 0.0))
+    assert isinstance(restart, Restart) and restart.how == "standing still"
+    assert np.allclose(restart.state.position, last_seen[:3, 3], atol=1e-6)
+    assert yaw_of(restart.state.R_W_B) == pytest.approx(yaw_of(last_seen[:3, :3]), abs=1e-6)
+
+
 @pytest.mark.parametrize("shift_px, rate, imu_from, why", [
     (0.0, 0.0, 12.2, "0.10 of 0.2 s of samples"),  # too little IMU since the gap yet
     (5.0, 0.0, 12.0, "the camera moves"),  # the features slid 5 px in 0.2 s

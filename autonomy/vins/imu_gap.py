@@ -24,8 +24,9 @@ estimator (:meth:`autonomy.vins.estimator.Vins._restart_after_gap`) restarts fro
 3. **standing still**, after ``reinit_imu_window_s`` of samples: standing still over that
    window by :func:`autonomy.vins.stillness.is_still` (the vehicle holds, as the
    application's failsafe makes it). Velocity zero within
-   ``still_velocity_sigma``; position and yaw the last estimate before the gap (the gap's
-   motion is unobserved: the restart moves the world's origin, as any reset does); roll and
+   ``still_velocity_sigma``; position and yaw the newest known, the last frame's of the gap
+   relocalised on the map or else the estimate before the gap (the motion since is
+   unobserved: the restart moves the world's origin, as any reset does); roll and
    pitch those of the window's mean specific force (the static initialisation's gravity
    alignment), within ``reinit_tilt_sigma_deg``.
 
@@ -40,7 +41,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from autonomy.geometry import invert_pose, make_pose, rot_z
+from autonomy.geometry import invert_pose, make_pose, rot_z, yaw_of
 from autonomy.vins.frontend import Tracks
 from autonomy.vins.imu_buffer import NavState
 from autonomy.vins.options import VinsOptions
@@ -102,9 +103,10 @@ class Restart:
 
 @dataclass
 class ImuGap:
-    """The IMU fell silent after ``last_sample_t``. What the estimate was before
-    (``position``, ``yaw``), the accelerometer bias, and what the frames since showed: the
-    body poses relocalised on the map and the recent frames' tracks."""
+    """The IMU fell silent after ``last_sample_t``. Where the vehicle was last known
+    (``position``, ``yaw``: the estimate before the gap, then each frame relocalised in it),
+    the accelerometer bias, and what the frames since showed: the body poses relocalised on
+    the map and the recent frames' tracks."""
 
     last_sample_t: float
     position: np.ndarray
@@ -125,6 +127,7 @@ class ImuGap:
                                          o.max_reprojection_px / self.focal_px)
         if T_W_B is not None:
             self.poses.append((t, T_W_B))
+            self.position, self.yaw = T_W_B[:3, 3], yaw_of(T_W_B[:3, :3])
         self.frames.append((t, tracks))
         keep_from = t - 2.0 * max(o.reinit_imu_window_s, o.relocalise_window_s)
         self.poses = [(s, T) for s, T in self.poses if s >= keep_from]
