@@ -129,21 +129,37 @@ def test_standing_still_after_the_gap_restarts_level_where_it_was_at_rest():
     assert restart.tilt_sigma == pytest.approx(math.radians(VinsOptions().reinit_tilt_sigma_deg))
 
 
+def lose_the_map_after(relocalised_at: list[float]) -> tuple[Restart, np.ndarray]:
+    """A gap whose frames at ``relocalised_at`` see the map, each from further along (body
+    at x = 0.6 m + 1.5 m/s), and whose frames from 11 s on do not; the restart standing still
+    at 12.3 s, and the last pose relocalised."""
+    ids, points = landmarks_ahead(40)
+    g = gap()
+    for t in relocalised_at:
+        seen = body_pose(0.6 + 1.5 * (t - 10.0), yaw_deg=12.0 + 10.0 * (t - 10.0))
+        g.observe(t, seen_from(seen, ids, points), ids, points, T_C_B)
+    for t in np.arange(11.0, 12.31, 0.05):  # the map out of view from here on
+        g.observe(t, seen_from(seen, ids + 1000, points), ids, points, T_C_B)
+    restart = g.standing_still(12.3, *still_imu(12.0, 12.3, 0.0))
+    assert isinstance(restart, Restart) and restart.how == "standing still"
+    return restart, seen
+
+
 def test_standing_still_after_losing_the_map_restarts_where_it_was_last_relocalised():
     """The vehicle flew on into the gap, relocalised on the map until the map left the view:
     the restart takes the last relocalised position and yaw, not the estimate from before the
     gap (1.5 m behind, in the flight of docs/vins.md, "An IMU gap in flight", after a turn)."""
-    ids, points = landmarks_ahead(40)
-    g = gap()
-    last_seen = body_pose(0.6, yaw_deg=12.0)
-    for t in (10.05, 10.10, 10.15):
-        g.observe(t, seen_from(last_seen, ids, points), ids, points, T_C_B)
-    for t in np.arange(11.0, 12.31, 0.05):  # the map out of view from here on
-        g.observe(t, seen_from(last_seen, ids + 1000, points), ids, points, T_C_B)
-    restart = g.standing_still(12.3, *still_imu(12.0, 12.3, 0.0))
-    assert isinstance(restart, Restart) and restart.how == "standing still"
+    restart, last_seen = lose_the_map_after([10.05, 10.10, 10.15])
     assert np.allclose(restart.state.position, last_seen[:3, 3], atol=1e-6)
     assert yaw_of(restart.state.R_W_B) == pytest.approx(yaw_of(last_seen[:3, :3]), abs=1e-6)
+
+
+def test_one_frame_relocalised_alone_does_not_move_the_restart():
+    """One PnP is not trusted to place the vehicle (a handful of landmarks that slid off their
+    points may agree on a wrong pose): the restart stays at the estimate from before the gap."""
+    restart, _ = lose_the_map_after([10.05])
+    assert np.allclose(restart.state.position, [5.0, 1.0, 1.5])
+    assert yaw_of(restart.state.R_W_B) == pytest.approx(math.radians(30.0), abs=1e-9)
 
 
 @pytest.mark.parametrize("shift_px, rate, imu_from, why", [

@@ -24,11 +24,12 @@ estimator (:meth:`autonomy.vins.estimator.Vins._restart_after_gap`) restarts fro
 3. **standing still**, after ``reinit_imu_window_s`` of samples: standing still over that
    window by :func:`autonomy.vins.stillness.is_still` (the vehicle holds, as the
    application's failsafe makes it). Velocity zero within
-   ``still_velocity_sigma``; position and yaw the newest known, the last frame's of the gap
-   relocalised on the map or else the estimate before the gap (the motion since is
-   unobserved: the restart moves the world's origin, as any reset does); roll and
-   pitch those of the window's mean specific force (the static initialisation's gravity
-   alignment), within ``reinit_tilt_sigma_deg``.
+   ``still_velocity_sigma``; position and yaw the newest known: those of the gap's last
+   frame relocalised on the map, once a second frame within ``relocalise_window_s`` was too
+   (one PnP alone is not trusted to move it), or else the estimate from before the gap (the
+   motion since is unobserved: the restart moves the world's origin, as any reset does);
+   roll and pitch those of the window's mean specific force (the static initialisation's
+   gravity alignment), within ``reinit_tilt_sigma_deg``.
 
 Otherwise (the map lost and the camera moving) it stays LOST and says so.
 """
@@ -51,6 +52,10 @@ from autonomy.vins.stillness import is_still, median_flow_px
 #: RANSAC's iterations and confidence for the P3P hypotheses.
 PNP_ITERATIONS = 100
 PNP_CONFIDENCE = 0.99
+
+#: Frames relocalised within ``relocalise_window_s`` before the newest of them is where the
+#: vehicle is last known: the gap's first frames after a turn may see the map in only two.
+CONFIRMING_POSES = 2
 
 
 def body_pose_from_landmarks(landmark_ids: np.ndarray, points_W: np.ndarray, tracks: Tracks,
@@ -104,9 +109,9 @@ class Restart:
 @dataclass
 class ImuGap:
     """The IMU fell silent after ``last_sample_t``. Where the vehicle was last known
-    (``position``, ``yaw``: the estimate before the gap, then each frame relocalised in it),
-    the accelerometer bias, and what the frames since showed: the body poses relocalised on
-    the map and the recent frames' tracks."""
+    (``position``, ``yaw``: the estimate before the gap, then the gap's frames relocalised on
+    the map, :data:`CONFIRMING_POSES` at a time), the accelerometer bias, and what the frames
+    since showed: the body poses relocalised on the map and the recent frames' tracks."""
 
     last_sample_t: float
     position: np.ndarray
@@ -127,7 +132,9 @@ class ImuGap:
                                          o.max_reprojection_px / self.focal_px)
         if T_W_B is not None:
             self.poses.append((t, T_W_B))
-            self.position, self.yaw = T_W_B[:3, 3], yaw_of(T_W_B[:3, :3])
+            recent = [s for s, _ in self.poses if s >= t - o.relocalise_window_s]
+            if len(recent) >= CONFIRMING_POSES:
+                self.position, self.yaw = T_W_B[:3, 3], yaw_of(T_W_B[:3, :3])
         self.frames.append((t, tracks))
         keep_from = t - 2.0 * max(o.reinit_imu_window_s, o.relocalise_window_s)
         self.poses = [(s, T) for s, T in self.poses if s >= keep_from]
