@@ -132,8 +132,7 @@ class ImuGap:
                                          o.max_reprojection_px / self.focal_px)
         if T_W_B is not None:
             self.poses.append((t, T_W_B))
-            recent = [s for s, _ in self.poses if s >= t - o.relocalise_window_s]
-            if len(recent) >= CONFIRMING_POSES:
+            if len(self._recent_poses(t)) >= CONFIRMING_POSES:
                 self.position, self.yaw = T_W_B[:3, 3], yaw_of(T_W_B[:3, :3])
         self.frames.append((t, tracks))
         keep_from = t - 2.0 * max(o.reinit_imu_window_s, o.relocalise_window_s)
@@ -145,7 +144,7 @@ class ImuGap:
         those of the last ``relocalise_window_s``; None when this frame or too few recent
         ones were not relocalised."""
         o = self.options
-        recent = [(s, T) for s, T in self.poses if s >= t - o.relocalise_window_s]
+        recent = self._recent_poses(t)
         if not recent or recent[-1][0] != t:
             return None
         velocity = velocity_from_poses(np.array([s for s, _ in recent]),
@@ -157,6 +156,10 @@ class ImuGap:
         return Restart(NavState(t, T_W_B[:3, :3], T_W_B[:3, 3], velocity),
                        o.reinit_velocity_sigma, math.radians(o.prior_tilt_sigma_deg),
                        "relocalised on the map")
+
+    def _recent_poses(self, t: float) -> list[tuple[float, np.ndarray]]:
+        """The poses relocalised within ``relocalise_window_s`` of ``t``."""
+        return [(s, T) for s, T in self.poses if s >= t - self.options.relocalise_window_s]
 
     def standing_still(self, t: float, imu_t: np.ndarray, gyro: np.ndarray,
                        accel: np.ndarray) -> Restart | str:

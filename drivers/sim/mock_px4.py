@@ -129,10 +129,9 @@ OFFBOARD_LOSS_ACTIONS = tuple(OFFBOARD_LOSS_ACTION_VALUES)
 #: COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_LAND, MIS_TAKEOFF_ALT, MPC_TKO_SPEED,
 #: MPC_TKO_RAMP_T, MPC_ACC_UP_MAX, MPC_JERK_AUTO, MPC_LAND_SPEED, EKF2_EV_CTRL (bits 0 and 1:
 #: horizontal and vertical vision position), EKF2_EV_QMIN (odometry of a lower quality is not
-#: fused); the
-#: others are what docs/operations.md asks an operator to set, held at a correctly configured
-#: vehicle's values, for `companion fly --check` to read. MAV_SYS_ID and MAV_COMP_ID are read
-#: once at boot, as PX4 reads them (mavlink_main.cpp, the Mavlink constructor).
+#: fused); the others are what docs/operations.md asks an operator to set, held at a correctly
+#: configured vehicle's values, for `companion fly --check` to read. MAV_SYS_ID and MAV_COMP_ID
+#: are read once at boot, as PX4 reads them (mavlink_main.cpp, the Mavlink constructor).
 PARAMETER_TYPES = {
     "COM_DISARM_LAND": mavlink.MAV_PARAM_TYPE_REAL32,
     "COM_OBL_RC_ACT": mavlink.MAV_PARAM_TYPE_INT32,
