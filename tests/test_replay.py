@@ -108,6 +108,48 @@ def test_a_config_that_starves_the_planner_of_depth_replays_to_its_failsafe(reco
     assert starved["failsafes"]["replayed_first"]["reason"].startswith("no metric depth")
 
 
+def test_the_replay_scores_its_vins_where_navigation_ended_as_the_flight_did(recording, own):
+    """With the flight's own config the replayed VINS is the flight's, so both end the same
+    distance off, and that is the distance the flight's summary scored (its estimate at the
+    clock's time when navigation ended, the frame's within a few centimetres)."""
+    report, _ = own
+    scored = report["vins_error"]
+    assert scored["at"] == "navigation's end"
+    assert scored["replayed"] == scored["recorded"]
+    assert scored["recorded"]["error_m"] == pytest.approx(recording["position_error_m"],
+                                                          abs=0.03)
+    assert scored["recorded"]["split"]["scale"] == pytest.approx(
+        recording["position_error_split"]["scale"], abs=0.01)
+
+
+def test_a_replayed_vins_in_another_world_frame_is_tied_as_the_flight_tied_its_own():
+    """The replayed VINS's world turned 30 degrees and moved (a config that started it
+    otherwise): tied at the recorded tie's frame, its error is the recorded one's; its path
+    4 % short shows as a 4 % short scale; without a tie there is nothing to score."""
+    from autonomy.geometry import make_pose, rot_z
+    from companion.recording.replay import _vins_at_end
+
+    # frames at 1 and 2 ns: on the ground, where the flight tied the VINS, and at the end
+    T_L_W = make_pose(rot_z(0.4), np.array([1.0, -2.0, 0.0]))
+    recorded = {1: np.eye(4), 2: make_pose(rot_z(0.2), np.array([20.0, 5.0, 2.0]))}
+    truth = {t: (T_L_W @ T)[:3, 3] for t, T in recorded.items()}
+    truth[2] = truth[2] + np.array([0.3, 0.0, 0.0])  # the recorded VINS ends 0.3 m off
+    T_V_W = make_pose(rot_z(np.radians(30.0)), np.array([4.0, 1.0, 0.0]))
+    replayed = {t: T_V_W @ T for t, T in recorded.items()}
+    scored = _vins_at_end({"recorded": recorded, "replayed": replayed}, truth, (1, T_L_W),
+                          end_ns=None)
+    assert scored["at"] == "the last frame"
+    assert scored["recorded"]["error_m"] == pytest.approx(0.3)
+    assert scored["replayed"]["error_m"] == pytest.approx(0.3)
+    assert scored["replayed"]["split"] == pytest.approx(scored["recorded"]["split"], abs=2e-4)
+    shorter = {1: replayed[1], 2: replayed[2].copy()}
+    shorter[2][:3, 3] = replayed[1][:3, 3] + 0.96 * (replayed[2][:3, 3] - replayed[1][:3, 3])
+    scale = _vins_at_end({"recorded": recorded, "replayed": shorter}, truth, (1, T_L_W),
+                         end_ns=None)["replayed"]["split"]["scale"]
+    assert scale == pytest.approx(0.96 * scored["recorded"]["split"]["scale"], abs=2e-4)
+    assert _vins_at_end({"recorded": recorded, "replayed": replayed}, truth, None, None) is None
+
+
 def test_replay_refuses_what_it_cannot_read(tmp_path, capsys):
     assert cli.main(["replay", str(tmp_path / "missing.mcap")]) == 1
     assert "no such file" in capsys.readouterr().err

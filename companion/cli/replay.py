@@ -68,7 +68,21 @@ def format_report(report: dict) -> str:
         f"{_failsafes([failsafes['replayed_first']] if failsafes['replayed_first'] else [])}",
         f"  frames without fit  {report['depth_failures'] or 'none'}",
         f"  stage medians (ms)  {report['timings_ms']}",
+        f"  VINS error          {_vins_error(report['vins_error'])}",
     ])
+
+
+def _vins_error(scored: dict | None) -> str:
+    """The VINS's error where navigation ended, recorded and replayed (the path's scale in
+    brackets), or why there is none."""
+    if scored is None:
+        return "- (no truth, or the VINS never tied to PX4's local frame)"
+
+    def one(name: str) -> str:
+        split = scored[name]["split"]
+        scale = "" if split is None else f" (path scale {split['scale']:.4f})"
+        return f"{name} {scored[name]['error_m']:.2f} m{scale}"
+    return f"at {scored['at']} ({scored['t']:.1f} s): {one('recorded')}, {one('replayed')}"
 
 
 def _failsafes(failsafes: list[dict]) -> str:

@@ -28,7 +28,7 @@ import json
 import math
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -42,7 +42,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from autonomy.depth import metrics
 from autonomy.depth.stage import MetricDepthStage
 from autonomy.depth.synthetic import SyntheticNetwork
-from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot, yaw_of
+from autonomy.geometry import (PinholeCamera, make_pose, quat_to_rot, yaw_alignment,
+                               yaw_of)
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import FLOWN_GROUND_REASONS
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
@@ -102,7 +103,10 @@ class ReplayReport:
     have raised on the replayed VINS, depth and planner at a recorded round while the flight
     was guarded (see :meth:`_Replayer._failsafe_check` for what it can and cannot know);
     stage timings per frame, medians in milliseconds. ``frames_without_truth``:
-    simulated frames whose true depth the recorder dropped, so no depth was made for them."""
+    simulated frames whose true depth the recorder dropped, so no depth was made for them.
+    ``vins_error``: the recorded and the replayed VINS against the simulator's truth where
+    navigation ended (:func:`_vins_at_end`), None for a recording without the truth or the
+    tie to PX4's local frame."""
 
     frames: int = 0
     vins_same_frames: int = 0
@@ -117,6 +121,7 @@ class ReplayReport:
     recorded_failsafes: list = field(default_factory=list)
     replayed_failsafe: dict | None = None
     timings_ms: dict = field(default_factory=dict)
+    vins_error: dict | None = None
 
     def as_dict(self) -> dict:
         agreement = self.same_decision / self.rounds if self.rounds else None
@@ -129,7 +134,8 @@ class ReplayReport:
                 "vins_lost_frames": self.vins_lost_frames,
                 "failsafes": {"recorded": self.recorded_failsafes,
                               "replayed_first": self.replayed_failsafe},
-                "depth_failures": self.depth_failures, "timings_ms": self.timings_ms}
+                "depth_failures": self.depth_failures, "timings_ms": self.timings_ms,
+                "vins_error": self.vins_error}
 
 
 def _rounded(value: float):
@@ -238,6 +244,13 @@ class _Replayer:
         self.last_depth_t: float | None = None  # newest replayed depth in the planner
         self.no_path_since: float | None = None  # replayed rounds with nothing safe since
         self.blind = BlindClock()  # how long the replayed VINS has been flown on blind
+        # what the VINS is scored on, by frame: its poses (T_W_B), the true positions in
+        # PX4's local frame; the recorded tie of the two frames (its time, T_L_W); the
+        # navigation phase's start and end (published times, ns)
+        self.poses: dict[str, dict[int, np.ndarray]] = {"recorded": {}, "replayed": {}}
+        self.true_positions: dict[int, np.ndarray] = {}
+        self.tie: tuple[int, np.ndarray] | None = None
+        self.navigation: list[int | None] = [None, None]
 
     def _network(self):
         config = self.config
@@ -286,6 +299,8 @@ class _Replayer:
         self.report.timings_ms = {stage: round(float(np.median(values)) * 1e3, 2)
                                   for stage, values in self.timings.items()}
         self.report.depth_failures = dict(self.stage.no_fit)
+        self.report.vins_error = _vins_at_end(self.poses, self.true_positions, self.tie,
+                                              self.navigation[1])
         return self.report
 
     # what the recording holds
@@ -294,8 +309,15 @@ class _Replayer:
         self.pinhole = _pinhole(message)
 
     def _on_tf(self, t, message) -> None:
-        if (message.parent_frame_id, message.child_frame_id) == (topics.BODY, topics.CAMERA):
+        frames = (message.parent_frame_id, message.child_frame_id)
+        if frames == (topics.BODY, topics.CAMERA):
             self.T_B_C = _transform(message)
+        elif frames == (topics.WORLD, topics.BODY):
+            self.poses["recorded"][t] = _transform(message)
+        elif frames == (topics.LOCAL, topics.TRUTH):
+            self.true_positions[t] = _transform(message)[:3, 3]
+        elif frames == (topics.LOCAL, topics.WORLD):
+            self.tie = (t, _transform(message))
 
     def _on_imu(self, t, record) -> None:
         if self.vins is None:
@@ -325,6 +347,8 @@ class _Replayer:
         if frame.truth_depth is not None:  # what the recorded depth is scored on, if any
             self.truth_small[t] = _small(frame.truth_depth)
         update = self._vins(frame)
+        if update.T_W_B is not None:
+            self.poses["replayed"][t] = update.T_W_B
         health = update.health
         if (health.tracked, health.landmarks, health.state.value) == \
                 (record["tracked"], record["landmarks"], record["state"]):
@@ -353,6 +377,11 @@ class _Replayer:
             raise ReplayError(f"{topics.EVENTS.name}: {error}") from None
         if self.state in _FAILSAFE_STATES:
             self.report.recorded_failsafes.append({"t": round(t * 1e-9, 3), "reason": reason})
+        start, end = self.navigation
+        if start is None and self.state in _PHASE_STARTS:
+            self.navigation[0] = t
+        elif start is not None and end is None and self.state not in _PHASE_ACTIVITY:
+            self.navigation[1] = t
 
     def _on_depth_metric(self, t, message) -> None:
         """The flight's depth of the frame at ``t``, scored on its truth; truth older than it
@@ -463,6 +492,40 @@ class _Replayer:
         if usable and frame.truth_depth is not None:
             self.errors["replayed"].add(_small(metric.depth), _small(frame.truth_depth))
         return (metric, update.T_W_B @ self.T_B_C) if usable else None
+
+
+def _vins_at_end(poses: dict[str, dict[int, np.ndarray]], true_positions: dict[int, np.ndarray],
+                 tie: tuple[int, np.ndarray] | None, end_ns: int | None) -> dict | None:
+    """The recorded and the replayed VINS against the truth at the last frame both posed
+    before navigation ended (or, a recording that never ended it, their last frame), as the
+    simulated flight's summary scores it (``drivers.sim.host``'s ``position_error_m`` and
+    ``position_error_split``): the distance from the true position in PX4's local frame, and
+    that error split over the path since the tie, both estimates taken to have started where
+    the vehicle was then. The replayed VINS is tied as the flight tied its own
+    (:func:`autonomy.geometry.yaw_alignment`, at the frame the recorded tie was made after,
+    to the local pose that tie gave that frame), so that a config that moves its world frame
+    is scored alike. None without a tie or a frame both VINS posed where the truth is."""
+    if tie is None:
+        return None
+    tie_ns, T_L_W = tie
+    scored = sorted(set(poses["recorded"]) & set(poses["replayed"]) & set(true_positions))
+    tied = [t for t in scored if t <= tie_ns]
+    ended = [t for t in scored if end_ns is None or t <= end_ns]
+    if not tied or not ended:
+        return None
+    tied, last = tied[-1], ended[-1]
+    T_L_B = T_L_W @ poses["recorded"][tied]
+    ties = {"recorded": T_L_W, "replayed": yaw_alignment(T_L_B, poses["replayed"][tied])}
+    start, truth = true_positions[tied], true_positions[last]
+    result = {"t": round(last * 1e-9, 3),
+              "at": "the last frame" if end_ns is None else "navigation's end"}
+    for name, tie_of in ties.items():
+        believed = (tie_of @ poses[name][last])[:3, 3]
+        split = split_displacement(start, truth, start, believed)
+        result[name] = {"error_m": round(float(np.linalg.norm(believed - truth)), 4),
+                        "split": None if split is None else
+                        {key: round(value, 4) for key, value in asdict(split).items()}}
+    return result
 
 
 class _AbsRel:
