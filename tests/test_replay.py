@@ -122,6 +122,25 @@ def test_the_replay_scores_its_vins_where_navigation_ended_as_the_flight_did(rec
         recording["position_error_split"]["scale"], abs=0.01)
 
 
+def test_a_replay_of_the_vins_alone_scores_it_alike_and_takes_its_options(recording, own):
+    """``--vins-only``: the own config's VINS ends where the full replay's did, with no depth
+    or plans made; a VINS option (the feature noise trebled) replays to another VINS, scored
+    against the same recorded one."""
+    own_report, _ = own
+    alone = replay(recording["recording"]["path"], "--vins-only")
+    assert alone["stages"] == ["vins"] and own_report["stages"] == ["vins", "depth", "planner"]
+    assert alone["vins_error"] == own_report["vins_error"]
+    assert alone["vins_same_frames"] == alone["frames"] == own_report["frames"]
+    assert alone["planner_rounds"] == 0 and alone["frames_with_depth"]["replayed"] == 0
+    assert set(alone["timings_ms"]) == {"vins"}
+    noisier = replay(recording["recording"]["path"], "--vins-only", "--set",
+                     "vins.pixel_sigma=3.0")
+    assert noisier["vins_same_frames"] < noisier["frames"]
+    assert noisier["vins_error"]["recorded"] == own_report["vins_error"]["recorded"]
+    assert noisier["vins_error"]["replayed"]["error_m"] != \
+        own_report["vins_error"]["replayed"]["error_m"]
+
+
 def test_a_replayed_vins_in_another_world_frame_is_tied_as_the_flight_tied_its_own():
     """The replayed VINS's world turned 30 degrees and moved (a config that started it
     otherwise): tied at the recorded tie's frame, its error is the recorded one's; its path

@@ -28,19 +28,25 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     replay.add_argument("--until", type=common.positive_float, metavar="SECONDS", dest="until_s",
                         help="replay only the recording's first SECONDS (from its first "
                              "message), the recorded side compared over the same span")
+    replay.add_argument("--vins-only", action="store_true",
+                        help="replay the VINS alone, not the depth stage or the planner: its "
+                             "error where navigation ended, for a VINS option, in about half "
+                             "the time")
     common.add_json_flag(replay, instead_of="the table")
     replay.set_defaults(command=_replay)
 
 
 def _replay(args: argparse.Namespace, config: Config) -> int:
-    from companion.recording.replay import ReplayError, plot, recorded_config, replay
+    from companion.recording.replay import (ALL_STAGES, VINS_ONLY, ReplayError, plot,
+                                            recorded_config, replay)
 
     try:
         chosen, mission = recorded_config(args.recording, args.overrides,
                                           Path(args.config_path) if args.config_path else None)
         if args.plot is not None:
             plot(args.recording, mission, chosen, args.plot)
-        report = replay(args.recording, chosen, mission, args.until_s).as_dict()
+        report = replay(args.recording, chosen, mission, args.until_s,
+                        VINS_ONLY if args.vins_only else ALL_STAGES).as_dict()
     except ConfigError as error:
         print(f"replay: {error}", file=sys.stderr)
         return common.EXIT_USAGE
@@ -54,22 +60,30 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
 
 
 def format_report(report: dict) -> str:
+    lines = [f"  frames              {report['frames']} ({report['vins_same_frames']} with the "
+             "flight's own VINS state)",
+             f"  VINS lost frames    {report['vins_lost_frames']}",
+             f"  VINS error          {_vins_error(report['vins_error'])}"]
+    if "depth" in report["stages"]:
+        lines += _depth_and_planner(report)
+    else:
+        lines.append("  (the VINS alone: no depth, planner or failsafes)")
+    lines.append(f"  stage medians (ms)  {report['timings_ms']}")
+    return "\n".join(lines)
+
+
+def _depth_and_planner(report: dict) -> list[str]:
     agreement, failsafes = report["planner_agreement"], report["failsafes"]
-    return "\n".join([
-        f"  frames              {report['frames']} ({report['vins_same_frames']} with the "
-        "flight's own VINS state)",
+    return [
         f"  depth AbsRel        recorded {report['abs_rel']['recorded']}, "
         f"replayed {report['abs_rel']['replayed']} (frames with truth: "
         f"{report['frames_with_depth']['recorded']}, {report['frames_with_depth']['replayed']})",
         f"  planner agreement   {'-' if agreement is None else f'{agreement:.1%}'} of "
         f"{report['planner_rounds']} rounds",
-        f"  VINS lost frames    {report['vins_lost_frames']}",
         f"  failsafes           recorded {_failsafes(failsafes['recorded'])}; replayed, first "
         f"{_failsafes([failsafes['replayed_first']] if failsafes['replayed_first'] else [])}",
         f"  frames without fit  {report['depth_failures'] or 'none'}",
-        f"  stage medians (ms)  {report['timings_ms']}",
-        f"  VINS error          {_vins_error(report['vins_error'])}",
-    ])
+    ]
 
 
 def _vins_error(scored: dict | None) -> str:

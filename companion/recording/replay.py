@@ -67,6 +67,11 @@ _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
          topics.VINS_HEALTH.name, topics.DEPTH_FIT.name, topics.DEPTH_METRIC.name,
          topics.PLAN.name, topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name,
          topics.EVENTS.name)
+#: What a replay of the VINS alone reads: not the true depth, depth or plans.
+_READ_VINS = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.VINS_HEALTH.name,
+              topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name, topics.EVENTS.name)
+#: The stages a replay runs, all of them or the VINS alone.
+ALL_STAGES, VINS_ONLY = ("vins", "depth", "planner"), ("vins",)
 #: Recorded states in which the failsafe rules apply (autonomy.navigation.mission.
 #: GUARDED_STATES); the turn in place, through which the blind clock holds; and the states on
 #: flown ground (the turn, the offset swing), where depth may lapse (IN_PLACE_STATES).
@@ -106,8 +111,10 @@ class ReplayReport:
     simulated frames whose true depth the recorder dropped, so no depth was made for them.
     ``vins_error``: the recorded and the replayed VINS against the simulator's truth where
     navigation ended (:func:`_vins_at_end`), None for a recording without the truth or the
-    tie to PX4's local frame."""
+    tie to PX4's local frame. ``stages``: those replayed (:data:`ALL_STAGES`, or
+    :data:`VINS_ONLY`, when the depth, planner and failsafe fields stay empty)."""
 
+    stages: tuple = ALL_STAGES
     frames: int = 0
     vins_same_frames: int = 0
     frames_without_truth: int = 0
@@ -125,7 +132,8 @@ class ReplayReport:
 
     def as_dict(self) -> dict:
         agreement = self.same_decision / self.rounds if self.rounds else None
-        return {"frames": self.frames, "vins_same_frames": self.vins_same_frames,
+        return {"stages": list(self.stages), "frames": self.frames,
+                "vins_same_frames": self.vins_same_frames,
                 "frames_without_truth": self.frames_without_truth,
                 "frames_with_depth": self.frames_with_depth,
                 "abs_rel": {k: _rounded(v) for k, v in self.abs_rel.items()},
@@ -222,14 +230,14 @@ def _read(path: Path, topics_read, *, stamp: str = "publish_time") \
 class _Replayer:
     """The stages of one replay and what they are compared with."""
 
-    def __init__(self, config, mission: dict | None):
+    def __init__(self, config, mission: dict | None, stages: tuple = ALL_STAGES):
         self.config, self.mission = config, mission
-        self.report = ReplayReport()
+        self.report = ReplayReport(stages=stages)
         self.pinhole: PinholeCamera | None = None
         self.T_B_C: np.ndarray | None = None
         self.vins: Vins | None = None
         self.stage = MetricDepthStage(config.rescale, config.depth)
-        self.network = self._network()
+        self.network = self._network() if "depth" in stages else None
         # by the frame's published time in nanoseconds (on_message):
         self.frames: dict[int, np.ndarray] = {}  # decoded images, until the VINS takes them
         # (frame, VINS update) of the frames the VINS finished, until the depth stage takes one
@@ -584,16 +592,19 @@ class _Decoders:
         return None if own is None else self._protobuf.decoder_for(message_encoding, own)
 
 
-def replay(path: Path, config, mission: dict | None, until_s: float | None = None
-           ) -> ReplayReport:
+def replay(path: Path, config, mission: dict | None, until_s: float | None = None,
+           stages: tuple = ALL_STAGES) -> ReplayReport:
     """Replay the recording at ``path`` under ``config`` (module docstring); with ``until_s``,
     only its first ``until_s`` seconds (by published time, from its first message replayed),
-    the recording's side of every comparison cut at the same instant."""
+    the recording's side of every comparison cut at the same instant; ``stages``
+    :data:`VINS_ONLY`, the VINS alone (neither the true depth nor the depth and plans read)."""
     if until_s is not None and not (math.isfinite(until_s) and until_s > 0.0):
         raise ValueError(f"until_s must be a number of seconds above 0, got {until_s}")
-    replayer = _Replayer(config, mission)
+    if stages not in (ALL_STAGES, VINS_ONLY):
+        raise ValueError(f"stages must be {ALL_STAGES} or {VINS_ONLY}, got {stages}")
+    replayer = _Replayer(config, mission, stages)
     end = None
-    for topic, t, message in _read(path, _READ):
+    for topic, t, message in _read(path, _READ if stages == ALL_STAGES else _READ_VINS):
         if until_s is not None:
             end = t + round(until_s * 1e9) if end is None else end
             if t > end:
