@@ -141,6 +141,21 @@ def test_a_replay_of_the_vins_alone_scores_it_alike_and_takes_its_options(record
         own_report["vins_error"]["replayed"]["error_m"]
 
 
+def test_the_table_gives_the_vins_error_and_leaves_out_the_stages_not_replayed(own):
+    from companion.cli.replay import format_report
+
+    report, _ = own
+    error = report["vins_error"]["recorded"]
+    line = (f"  VINS error          at navigation's end ({report['vins_error']['t']:.1f} s): "
+            f"recorded {error['error_m']:.2f} m (path scale {error['split']['scale']:.4f}), "
+            f"replayed {error['error_m']:.2f} m (path scale {error['split']['scale']:.4f})")
+    assert line in format_report(report).splitlines()
+    assert "planner agreement" in format_report(report)
+    alone = format_report({**report, "stages": ["vins"]})
+    assert line in alone.splitlines() and "planner agreement" not in alone
+    assert "VINS error          - (no truth" in format_report({**report, "vins_error": None})
+
+
 def test_a_replayed_vins_in_another_world_frame_is_tied_as_the_flight_tied_its_own():
     """The replayed VINS's world turned 30 degrees and moved (a config that started it
     otherwise): tied at the recorded tie's frame, its error is the recorded one's; its path
