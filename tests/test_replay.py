@@ -281,6 +281,7 @@ def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(re
             == pytest.approx(sample["error_m"])
     split = table.splitlines()[2]
     assert split.startswith("error at the end over the "), split
+    assert table.splitlines()[3].startswith("path length by speed: 0.3-1.25 m/s ")
     flown = np.subtract(samples[-1]["truth_position"], samples[0]["truth_position"])[:2]
     assert float(split.split(" m flown")[0].split()[-1]) == pytest.approx(
         np.linalg.norm(flown), abs=0.05)
@@ -318,6 +319,39 @@ def test_the_error_at_the_end_is_split_into_the_paths_scale_bearing_and_height()
         np.array([-math.sin(heading), math.cos(heading)])
     assert np.allclose(np.array(start[:2]) + split.along_m * along + split.across_m * across,
                        np.subtract(estimate_end, truth_end)[:2])
+
+
+def test_the_paths_length_error_is_split_by_the_speed_it_was_flown_at():
+    """Ten seconds hovering, 10 s east at 1 m/s read exactly, then 10 s north at 2 m/s read
+    2 % short and 3 degrees off: each band gets its own seconds, metres and length error (the
+    heading's error moves the estimate across, not along); the hover is in no band."""
+    from companion.recording.replay import VinsErrorSample, length_accrual
+
+    samples, truth, estimate = [], np.zeros(3), np.zeros(3)
+    turned = np.array([[math.cos(0.05), -math.sin(0.05)], [math.sin(0.05), math.cos(0.05)]])
+    for k in range(600):  # 20 Hz
+        t = k / 20.0
+        if 10.0 <= t < 20.0:
+            step = np.array([0.05, 0.0])
+            truth[:2] += step
+            estimate[:2] += step
+        elif t >= 20.0:
+            step = np.array([0.0, 0.1])
+            truth[:2] += step
+            estimate[:2] += 0.98 * turned @ step
+        samples.append(VinsErrorSample(t=t, truth_position=tuple(truth), truth_yaw_deg=0.0,
+                                       error_m=0.0, heading_deg=0.0, state="ok", landmarks=50,
+                                       estimate_position=tuple(estimate)))
+    accrued = length_accrual(samples)
+    assert list(accrued) == ["0.3-1.25 m/s", "1.25-1.75 m/s", "over 1.75 m/s"]
+    slow, middle, fast = accrued.values()
+    assert slow.seconds == pytest.approx(10.0, abs=0.6)
+    assert slow.flown_m == pytest.approx(10.0, abs=0.2)
+    assert slow.along_m == pytest.approx(0.0, abs=0.01)  # one step straddles the turn north
+    assert middle.seconds == 0.0 and middle.flown_m == 0.0
+    # less the step that straddles the turn and the last, under a whole step
+    assert 18.5 <= fast.flown_m <= 20.0
+    assert fast.along_m / fast.flown_m == pytest.approx(0.98 * math.cos(0.05) - 1.0, abs=1e-9)
 
 
 def test_the_error_is_not_split_over_a_flight_that_went_nowhere():
@@ -373,7 +407,7 @@ def test_log_vins_map_scale_is_the_landmarks_depth_over_the_true_depth(recording
     assert abs(np.median(scales) - 1.0) < 0.02 and np.abs(scales - 1.0).max() < 0.1
     assert samples[0]["landmarks"] == 0 and samples[0]["map_scale"] is None
     code, table, _ = companion_log("vins", recording["recording"]["path"], "--map")
-    assert code == 0 and "map scale" in table.splitlines()[3]
+    assert code == 0 and "map scale" in table.splitlines()[4]
 
 
 def test_log_vins_refuses_a_recording_without_the_truth_and_a_bad_interval(recording, tmp_path):

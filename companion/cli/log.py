@@ -160,15 +160,24 @@ def _displacement_line(split, least_m: float) -> str:
             f"{split.height_m:+.2f} m, first frame {split.start_m:.2f} m off")
 
 
+def _length_line(accrued: dict) -> str:
+    """The path's length error by true speed: each band's seconds, metres and scale error."""
+    bands = [f"{label} {band.seconds:.0f} s, {band.flown_m:.0f} m, "
+             f"{100.0 * band.along_m / band.flown_m:+.2f} %" if band.flown_m > 0.0
+             else f"{label} none" for label, band in accrued.items()]
+    return "path length by speed: " + "; ".join(bands)
+
+
 def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
     """The rows every ``every`` seconds and at each change of the VINS's state, under lines
-    with the error at the end, the largest and the median, the heading error's accrual and
-    the error at the end split (:func:`_displacement_line`); ``with_map``, the map scale
-    too."""
+    with the error at the end, the largest and the median, the heading error's accrual, the
+    error at the end split (:func:`_displacement_line`) and the path's length error by speed
+    (:func:`_length_line`); ``with_map``, the map scale too."""
     if not samples:
         return f"{path}: no frame with both a VINS pose and the truth"
     from autonomy.trajectory import DISPLACEMENT_MIN_M
-    from companion.recording.replay import TURNING_RATE_DEG_S, displacement_split, heading_accrual
+    from companion.recording.replay import (TURNING_RATE_DEG_S, displacement_split,
+                                            heading_accrual, length_accrual)
 
     errors = [sample.error_m for sample in samples]
     largest = max(samples, key=lambda sample: sample.error_m)
@@ -182,6 +191,7 @@ def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
              f"{turning.error_change_deg:+.2f}°, flying straight ({straight.seconds:.1f} s) "
              f"{straight.error_change_deg:+.2f}°",
              _displacement_line(displacement_split(samples), DISPLACEMENT_MIN_M),
+             _length_line(length_accrual(samples)),
              "      t     error   heading  state        landmarks"
              + ("  map scale" if with_map else "")]
     next_row, state = samples[0].t, None

@@ -780,6 +780,60 @@ def heading_accrual(samples: list[VinsErrorSample],
     return {kind: HeadingAccrual(seconds[kind], turned[kind], change[kind]) for kind in seconds}
 
 
+#: The true horizontal speeds (m/s) that split `log vins`'s path length accrual: below the
+#: first the vehicle hovers or turns in place (not counted), then the planner's tiers (1, 1.5
+#: and 2 m/s, `[planner] speed`) each in its own band.
+SPEED_BAND_EDGES_M_S = (0.3, 1.25, 1.75)
+#: The stretch of flight each step of the accrual spans, seconds: long enough that the
+#: estimate's noise from frame to frame is small against the step's length.
+ACCRUAL_STEP_S = 0.5
+
+
+@dataclass(frozen=True)
+class LengthAccrual:
+    """What the VINS made of the path's length over one band of true speed: ``seconds`` in
+    it, ``flown_m`` the true horizontal distance, and ``along_m`` the estimate's steps along
+    the true ones less their length, summed (negative: the estimate fell short); its ratio
+    to ``flown_m`` is the band's scale error."""
+
+    seconds: float
+    flown_m: float
+    along_m: float
+
+
+def length_accrual(samples: list[VinsErrorSample],
+                   step_s: float = ACCRUAL_STEP_S) -> dict[str, LengthAccrual]:
+    """The estimated path's length error split by true speed (:data:`SPEED_BAND_EDGES_M_S`).
+
+    The flight is cut into steps of at least ``step_s``; each step's true horizontal
+    displacement ``D`` and estimated ``E`` give ``E . D / |D| - |D|``, the estimate's length
+    along ``D`` less the truth's, which goes to the band of the step's speed ``|D| / dt``.
+    A scale error the VINS makes at one speed shows in that band, whichever way the
+    vehicle's heading turned meanwhile (a heading error shows across, not here)."""
+    edges = SPEED_BAND_EDGES_M_S
+    labels = [f"{low:g}-{high:g} m/s" for low, high in zip(edges, edges[1:])]
+    labels.append(f"over {edges[-1]:g} m/s")
+    totals = {label: [0.0, 0.0, 0.0] for label in labels}
+    posed = [s for s in samples if s.estimate_position is not None]
+    start = 0
+    for end in range(1, len(posed)):
+        first, last = posed[start], posed[end]
+        dt = last.t - first.t
+        if dt < step_s:
+            continue
+        flown = np.subtract(last.truth_position, first.truth_position)[:2]
+        estimated = np.subtract(last.estimate_position, first.estimate_position)[:2]
+        distance = float(np.linalg.norm(flown))
+        band = int(np.searchsorted(edges, distance / dt, side="right")) - 1
+        if band >= 0:
+            total = totals[labels[band]]
+            total[0] += dt
+            total[1] += distance
+            total[2] += float(estimated @ flown) / distance - distance
+        start = end
+    return {label: LengthAccrual(*total) for label, total in totals.items()}
+
+
 def displacement_split(samples: list[VinsErrorSample]) -> DisplacementSplit | None:
     """The last sample's error split into the path's scale, bearing and height since the
     first sample (``autonomy.trajectory.split_displacement``); None without estimated
