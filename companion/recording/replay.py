@@ -8,9 +8,12 @@ so as the recorder stored it) goes through the VINS front-end and back-end where
 VINS finished it (``/vins/health``), and through the depth source (the ``[depth_network]``
 model, or for a simulated flight the synthetic stand-in on the recorded true depth, same seed)
 and the rescaler where the flight's depth stage finished it (``/depth/fit``: the network takes
-only the frames it is free for), its metric depth then joining the planner's history; each planner round of the recording (``/planner/plan`` with its request) is
-asked again of the replayed planner, with the round's recorded pose, velocity and goal.
-Nothing waits on a clock: it runs as fast as the CPU allows.
+only the frames it is free for), its metric depth then joining the planner's history; each
+planner round of the recording (``/planner/plan`` with its request) is asked again of the
+replayed planner, with the round's recorded pose, velocity and goal. Nothing waits on a
+clock: it runs as fast as the CPU allows. A simulated flight's recorded truth scores the
+replayed VINS beside the recorded one where navigation ended; :data:`VINS_ONLY` replays the
+VINS alone, the loop for a VINS option.
 
 What "reproduces" means: the replay meets the messages in the order the flight's stages did,
 so a lockstep simulated flight recorded with a lossless camera (``[recorder] camera_format =
@@ -204,9 +207,10 @@ def _read(path: Path, topics_read, *, stamp: str = "publish_time") \
         -> Iterator[tuple[str, int, object]]:
     """``(topic, time in ns, decoded message)`` of the recording's messages on ``topics_read``,
     in log-time order; the time is the message's ``stamp``: ``publish_time`` (when it was
-    measured) or ``log_time`` (when the flight handled it). Whatever the MCAP reader or a decoder (zstd, protobuf,
-    JSON) raises on bytes it cannot read is a :class:`ReplayError`: the file is damaged; a
-    file that cannot be opened (missing, a folder, no permission) is one too."""
+    measured) or ``log_time`` (when the flight handled it). Whatever the MCAP reader or a
+    decoder (zstd, protobuf, JSON) raises on bytes it cannot read is a :class:`ReplayError`:
+    the file is damaged; a file that cannot be opened (missing, a folder, no permission) is
+    one too."""
     try:
         file = open(path, "rb")
     except OSError as error:
