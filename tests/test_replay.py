@@ -184,6 +184,30 @@ def test_a_replayed_vins_in_another_world_frame_is_tied_as_the_flight_tied_its_o
     assert _vins_at_end({"recorded": recorded, "replayed": replayed}, truth, None, None) is None
 
 
+def test_record_along_flies_the_recorded_flights_own_path(recording, tmp_path):
+    """``sim record --along``: the flight's world and seed, from where it stood, then along
+    the path it truly flew (within the follower's tracking of a smoothed copy)."""
+    from drivers.dataset.euroc import read_groundtruth
+
+    out = tmp_path / "along"
+    assert cli.main(["sim", "record", "--along", recording["recording"]["path"], "--duration",
+                     "9", "--set", "camera.width=160", "--set", "camera.height=120",
+                     "--out", str(out)]) == 0
+    flown = np.array([sample["truth_position"] for sample in _log_vins(recording)])
+    recorded = read_groundtruth(out).position
+    np.testing.assert_allclose(recorded[0, :2], recording["start"][:2], atol=0.01)
+    cruising = recorded[recorded[:, 2] > 1.0]
+    assert len(cruising) > 200  # over a second of it, at 200 Hz
+    nearest = np.min(np.linalg.norm(cruising[:, None, :2] - flown[None, :, :2], axis=2), axis=1)
+    assert nearest.max() < 0.3
+
+
+def _log_vins(recording) -> list[dict]:
+    code, out, _ = companion_log("vins", recording["recording"]["path"], "--json")
+    assert code == 0
+    return json.loads(out)
+
+
 def test_replay_refuses_what_it_cannot_read(tmp_path, capsys):
     assert cli.main(["replay", str(tmp_path / "missing.mcap")]) == 1
     assert "no such file" in capsys.readouterr().err

@@ -12,7 +12,8 @@ from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import read_camera, read_depth_png, read_groundtruth, read_imu
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
-from drivers.sim.record import (PATH_CLEARANCE, RecordError, record_dataset, route_path,
+from drivers.sim.record import (PATH_CLEARANCE, RecordError, record_dataset, route_along,
+                                route_path,
                                  smooth_path)
 from autonomy.planning.speed_wave import SpeedWave
 from drivers.sim.render import RenderError, Renderer
@@ -242,3 +243,43 @@ def test_the_vins_runs_on_a_noiseless_recording_without_a_rebuild(noiseless):
     trace = run_vins(data, VinsOptions(gyro_noise_scale=10.0), consistency=False)
     assert trace.static_init is not None and sum(trace.keyframe) > 10
     assert trace.resets == 0
+
+
+def test_a_flights_path_is_followed_from_its_start_at_the_height_it_flew():
+    """A flight standing at the start, climbing to 1.6 m, hovering and turning there (the same
+    point again and again), then flying the dome seed 0 route's own path: the route starts on
+    the floor where the flight did, at the height it flew, and the path is the flight's,
+    smoothed, with the route's clearance."""
+    world = build_world("dome", 0)
+    flown = route_path(world, world.routes[0])
+    ground = [[*flown[0], 0.0]] * 20
+    climb = [[*flown[0], z] for z in np.linspace(0.1, 1.6, 16)]
+    hover = [[*flown[0], 1.6]] * 30
+    positions = np.array(ground + climb + hover + [[*xy, 1.6] for xy in flown])
+    route, path = route_along(world, positions)
+    np.testing.assert_allclose(route.start, [*flown[0], 0.0])
+    assert route.cruise_height == pytest.approx(1.6)
+    np.testing.assert_allclose(path[[0, -1]], flown[[0, -1]], atol=0.01)
+    nearest = np.min(np.linalg.norm(path[:, None, :] - flown[None, ::5, :], axis=2), axis=1)
+    assert nearest.max() < 0.5
+    at_height = np.column_stack([path, np.full(len(path), 1.6)])
+    assert world.obstacle_clearance(at_height).min() >= PATH_CLEARANCE
+
+
+def test_a_flight_that_never_flew_has_no_path_to_follow():
+    world = build_world("dome", 0)
+    on_the_ground = np.zeros((50, 3))
+    with pytest.raises(RecordError, match="never flew"):
+        route_along(world, on_the_ground)
+    hovering = np.array([[0.0, 0.0, 1.5]] * 50)
+    with pytest.raises(RecordError, match="never moved"):
+        route_along(world, hovering)
+
+
+def test_record_along_refuses_another_world_or_seed_and_a_missing_flight(tmp_path, capsys):
+    assert main(["sim", "record", "--along", str(tmp_path / "flight.mcap"), "--seed", "3",
+                 "--out", str(tmp_path / "out")]) == 1
+    assert "drop --world and --seed" in capsys.readouterr().err
+    assert main(["sim", "record", "--along", str(tmp_path / "flight.mcap"),
+                 "--out", str(tmp_path / "out")]) == 1
+    assert "no such file" in capsys.readouterr().err

@@ -77,6 +77,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                         help="cruise speed along the route, at most the vehicle's [vehicle] "
                              "xy_vel_max; the planner's flights cruise at up to [planner] "
                              "speed (default: 1 m/s, drivers/sim/record.py's SPEED)")
+    record.add_argument("--along", type=Path, metavar="FLIGHT.mcap",
+                        help="follow the true path of a recorded simulated flight, in its world "
+                             "and seed (so not with --world or --seed; [sim] vehicle_seed flies "
+                             "another vehicle), instead of the seed's route: the estimator "
+                             "scored open loop on the places and at the speed a navigation "
+                             "flight met (docs/vins.md)")
     record.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="dataset folder to create (must be new or empty)")
     record.set_defaults(command=_sim_record)
@@ -204,25 +210,42 @@ def _sim_serve(args: argparse.Namespace, config: Config) -> int:
 
 def _sim_record(args: argparse.Namespace, config: Config) -> int:
     from autonomy.planning.speed_wave import SpeedWave
+    from companion.recording.replay import ReplayError
     from drivers.sim import record
     from drivers.sim.render import RenderError
 
-    sim = _sim_options(args, config)
     try:
+        sim, along = _recorded_along(args, config)
         # the flight's speed swings as the application's flights do
         wave = SpeedWave.of(config.planner.speed_swing, config.planner.speed_swing_period_s)
         summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
                                         config.imu, duration=args.duration,
                                         sim_camera=config.sim_camera, wave=wave,
                                         speed=record.SPEED if args.speed is None
-                                        else args.speed)
-    except (record.RecordError, RenderError, OSError) as error:
+                                        else args.speed, along=along)
+    except (record.RecordError, RenderError, OSError, ReplayError) as error:
         print(f"sim record: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     print(f"recorded {summary.duration:g} s of {summary.world} route {summary.route} "
           f"({summary.frames} frames, {summary.imu_samples} IMU samples, path "
           f"{summary.path_length:.1f} m) into {args.out}")
     return common.EXIT_OK
+
+
+def _recorded_along(args: argparse.Namespace, config: Config):
+    """The [sim] options to record with and, with ``--along``, the flight's true positions,
+    in its world and seed (the world is built from the seed, so another would not hold the
+    path: RecordError)."""
+    if args.along is None:
+        return _sim_options(args, config), None
+    from companion.recording.replay import flown_path
+    from drivers.sim.record import RecordError
+
+    if args.world is not None or args.seed is not None:
+        raise RecordError("--along flies the flight's own world and seed: drop --world and "
+                          "--seed")
+    world, seed, positions = flown_path(args.along)
+    return dataclasses.replace(config.sim, world=world, seed=seed), positions
 
 
 def _sim_fly(args: argparse.Namespace, config: Config) -> int:

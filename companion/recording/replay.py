@@ -854,6 +854,24 @@ def _wrapped_deg(angle: float) -> float:
     return (angle + 180.0) % 360.0 - 180.0
 
 
+def flown_path(path: Path) -> tuple[str, int, np.ndarray]:
+    """The world and seed of a simulated flight's recording and where the simulator truly had
+    the vehicle at each frame, (N, 3) in time order (``local``->``truth`` on ``/tf``; the local
+    frame is the world's in the simulator): what ``sim record --along`` flies again.
+    ReplayError for a recording of no simulated flight or without the truth."""
+    metadata = _metadata(path)
+    if "mission" not in metadata:
+        raise ReplayError(f"{path}: not the recording of a simulated flight (no mission)")
+    flown = simulated_mission(_mission(metadata["mission"], path))
+    positions = [_transform(decoded)[:3, 3] for topic, _, decoded in
+                 _read(path, [topics.TRANSFORMS.name])
+                 if (decoded.parent_frame_id, decoded.child_frame_id)
+                 == (topics.LOCAL, topics.TRUTH)]
+    if not positions:
+        raise ReplayError(f"{path}: no true pose (local -> truth on {topics.TRANSFORMS.name})")
+    return flown.world, flown.seed, np.array(positions)
+
+
 def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
     """The VINS's error at every frame of a simulated flight's recording that has both its
     pose (``world``->``body`` on ``/tf``, in PX4's local frame through the ``local``->``world``

@@ -7,7 +7,9 @@ duration is spent, at a constant speed or, with a speed wave (the application's 
 speed_swing``), swinging about it as the application's flights do (``PathFollower``). The
 vehicle is the simulated quadrotor with its PX4-like controller, so the motion is smooth and
 dynamically feasible; the IMU is sampled from the same dynamics, so a noiseless recording
-integrates back onto its own ground truth.
+integrates back onto its own ground truth. ``along`` replaces the route with the true path of
+another flight (a navigation flight's recording: ``companion sim record --along``), so that the
+estimator can be scored open loop on the very places and the speed a flight met.
 """
 
 from __future__ import annotations
@@ -177,6 +179,36 @@ class PathFollower:
         )
 
 
+#: Least true height, metres, of the points of a flown path that the recorder follows: the rest
+#: are the flight on the ground, taking off and landing.
+AIRBORNE_M = 0.3
+#: Least step, metres, between kept points of a flown path: a hover or a turn in place adds none.
+ALONG_STEP_M = 0.02
+
+
+def route_along(world: World, positions: np.ndarray) -> tuple[Route, np.ndarray]:
+    """The route and smoothed path (:func:`smooth_path`, with the route's clearance) that
+    follow a flight's true ``positions`` ((N, 3), world ENU, in time order): from the
+    flight's start on the floor, at the median height it flew, along its airborne points.
+    RecordError when it never flew (fewer than two airborne points a step apart)."""
+    positions = np.asarray(positions, dtype=float)
+    airborne = positions[positions[:, 2] > AIRBORNE_M]
+    if len(airborne) < 2:
+        raise RecordError("the flight never flew: no path to follow")
+    points = airborne[:1, :2]
+    for point in airborne[1:, :2]:
+        if np.linalg.norm(point - points[-1]) > ALONG_STEP_M:
+            points = np.vstack([points, point])
+    if len(points) < 2:
+        raise RecordError("the flight never moved horizontally: no path to follow")
+    height = float(np.median(airborne[:, 2]))
+    route = Route("along a flight", np.array([*positions[0, :2], 0.0]),
+                  np.array([*points[-1], height]), height)
+    path = smooth_path(resample(points, 0.1), clearance=lambda xy: world.obstacle_clearance(
+        np.column_stack([xy, np.full(len(xy), height)])))
+    return route, path
+
+
 def route_path(world: World, route: Route) -> np.ndarray:
     """The smoothed collision-free path of ``route`` in the horizontal plane, (M, 2)."""
     polyline = world.find_path(route.start[:2], route.goal[:2], ROBOT_RADIUS)
@@ -191,11 +223,12 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
         sensor: SensorOptions | None = None, renderer: Renderer | None = None,
         vehicle_seed: int | None = None, wave: SpeedWave | None = None,
-        speed: float = SPEED) -> RecordSummary:
+        speed: float = SPEED, path: np.ndarray | None = None) -> RecordSummary:
     """Fly ``route`` for ``duration`` simulated seconds at ``speed`` m/s, sending every sample
     to ``sink``. ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the
     errors the vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave``
-    swings the cruise's speed (:class:`PathFollower`).
+    swings the cruise's speed (:class:`PathFollower`); ``path`` (M, 2), the path to follow
+    instead of the route's own (:func:`route_along`).
 
     Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
     after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
@@ -203,7 +236,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     lost frames are not written). ``renderer`` must draw the camera head's render camera.
     """
     dt = 1.0 / imu.rate_hz
-    path = route_path(world, route)
+    path = route_path(world, route) if path is None else path
     follower = PathFollower(path, route.cruise_height, speed, wave)
     quad = Quadrotor(vehicle, world.obstacle_clearance,
                      position=np.array([route.start[0], route.start[1], 0.0]),
@@ -268,7 +301,8 @@ def _heading(path: np.ndarray) -> float:
 def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: VehicleOptions,
                    imu: ImuOptions, *, duration: float,
                    sim_camera: SensorOptions | None = None,
-                   wave: SpeedWave | None = None, speed: float = SPEED) -> RecordSummary:
+                   wave: SpeedWave | None = None, speed: float = SPEED,
+                   along: np.ndarray | None = None) -> RecordSummary:
     """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``,
     in ``sim.profile``: realistic, through the camera sensor ``sim_camera`` (default
     ``[sim_camera]``'s defaults; its lens is written into ``sensor.yaml``, and the mounting
@@ -279,7 +313,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting),
     ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``speed`` is
     the cruise's, m/s (at most the vehicle's ``xy_vel_max``); ``wave`` swings it
-    (:class:`PathFollower`).
+    (:class:`PathFollower`). ``along``: another flight's true positions (N, 3) in this world,
+    followed instead of the seed's route (:func:`route_along`).
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
@@ -292,7 +327,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     if out.exists() and any(out.iterdir()):
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")
     world = build_world(sim.world, sim.seed, sim.profile)
-    route = world.routes[sim.seed % len(world.routes)]
+    route, path = (world.routes[sim.seed % len(world.routes)], None) if along is None \
+        else route_along(world, along)
     sensor = (sim_camera or SensorOptions()).for_profile(sim.profile)
     imu = imu.for_profile(sim.profile)
     distortion = tuple(sensor.distortion) if sensor and sensor.distortion else (0.0,) * 4
@@ -300,7 +336,7 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
                      _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.noise_for(sim.seed),
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
-                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave, speed=speed)
+                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave, speed=speed, path=path)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:
