@@ -71,8 +71,8 @@ _READ = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.TRUTH_DEPTH.name,
          topics.PLAN.name, topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name,
          topics.EVENTS.name)
 #: What a replay of the VINS alone reads: not the true depth, depth or plans.
-_READ_VINS = (topics.IMU.name, topics.CAMERA_IMAGE.name, topics.VINS_HEALTH.name,
-              topics.CAMERA_CALIBRATION.name, topics.TRANSFORMS.name, topics.EVENTS.name)
+_READ_VINS = tuple(name for name in _READ if name not in (
+    topics.TRUTH_DEPTH.name, topics.DEPTH_FIT.name, topics.DEPTH_METRIC.name, topics.PLAN.name))
 #: The stages a replay runs, all of them or the VINS alone.
 ALL_STAGES, VINS_ONLY = ("vins", "depth", "planner"), ("vins",)
 #: Recorded states in which the failsafe rules apply (autonomy.navigation.mission.

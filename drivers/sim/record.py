@@ -195,18 +195,22 @@ def route_along(world: World, positions: np.ndarray) -> tuple[Route, np.ndarray]
     airborne = positions[positions[:, 2] > AIRBORNE_M]
     if len(airborne) < 2:
         raise RecordError("the flight never flew: no path to follow")
-    points = airborne[:1, :2]
+    kept = [airborne[0, :2]]
     for point in airborne[1:, :2]:
-        if np.linalg.norm(point - points[-1]) > ALONG_STEP_M:
-            points = np.vstack([points, point])
+        if np.linalg.norm(point - kept[-1]) > ALONG_STEP_M:
+            kept.append(point)
+    points = np.array(kept)
     if len(points) < 2:
         raise RecordError("the flight never moved horizontally: no path to follow")
     height = float(np.median(airborne[:, 2]))
     route = Route("along a flight", np.array([*positions[0, :2], 0.0]),
                   np.array([*points[-1], height]), height)
-    path = smooth_path(resample(points, 0.1), clearance=lambda xy: world.obstacle_clearance(
-        np.column_stack([xy, np.full(len(xy), height)])))
-    return route, path
+    return route, smooth_path(resample(points, 0.1), clearance=_clearance_at(world, height))
+
+
+def _clearance_at(world: World, height: float) -> Callable[[np.ndarray], np.ndarray]:
+    """The clearance of horizontal points (M, 2) at ``height`` in ``world``."""
+    return lambda xy: world.obstacle_clearance(np.column_stack([xy, np.full(len(xy), height)]))
 
 
 def route_path(world: World, route: Route) -> np.ndarray:
@@ -215,8 +219,7 @@ def route_path(world: World, route: Route) -> np.ndarray:
     if polyline is None:
         raise RecordError(f"{world.name}: no path with {ROBOT_RADIUS} m clearance "
                           f"for route {route.name}")
-    return smooth_path(polyline, clearance=lambda xy: world.obstacle_clearance(
-        np.column_stack([xy, np.full(len(xy), world.cruise_height)])))
+    return smooth_path(polyline, clearance=_clearance_at(world, world.cruise_height))
 
 
 def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
