@@ -2,6 +2,7 @@
 lies on the world's surfaces, and the same seed records the same flight."""
 
 import hashlib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,9 +13,8 @@ from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import read_camera, read_depth_png, read_groundtruth, read_imu
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
-from drivers.sim.record import (PATH_CLEARANCE, RecordError, record_dataset, route_along,
-                                route_path,
-                                 smooth_path)
+from drivers.sim.record import (PATH_CLEARANCE, FlownMotion, RecordError, TimedFollower,
+                                record_dataset, route_along, route_path, smooth_path)
 from autonomy.planning.speed_wave import SpeedWave
 from drivers.sim.render import RenderError, Renderer
 from drivers.sim.quadrotor import VehicleOptions
@@ -276,6 +276,88 @@ def test_a_flight_that_never_flew_has_no_path_to_follow():
         route_along(world, hovering)
 
 
+def _flight_with_a_stop_and_a_turn() -> FlownMotion:
+    """2 s on the floor, a climb to 1.5 m at 1 m/s, 4 s east at 2 m/s, 2 s stopped turning
+    90 degrees left at 45 deg/s, 2 s north at 1 m/s, a landing at 1 m/s and 1 s on the
+    floor: 20 samples a second, stamped from 100 s."""
+    t = np.arange(0.0, 14.0, 0.05)
+    x = np.clip(t - 3.5, 0.0, 4.0) * 2.0
+    y = np.clip(t - 9.5, 0.0, 2.0)
+    z = np.interp(t, [0.0, 2.0, 3.5, 11.5, 13.0], [0.0, 0.0, 1.5, 1.5, 0.0])
+    yaw = np.radians(np.clip(t - 7.5, 0.0, 2.0) * 45.0)
+    return FlownMotion("dome", 0, "ideal", times=t + 100.0,
+                       positions=np.column_stack([x, y, z]), yaws=yaw)
+
+
+def test_a_timed_follower_flies_the_flights_motion_from_its_lift_off():
+    """The flight's climb, speeds, stop and turn in place come back at the same times after
+    it lifted off, with their rates as feed-forward; after its last airborne point, a hover
+    there."""
+    follower = TimedFollower(_flight_with_a_stop_and_a_turn())
+    assert follower.takes_off
+    # from its last sample on the floor, 2.0 s, to its last over 0.3 m, 12.65 s
+    assert follower.span == pytest.approx(10.65)
+    assert follower.length == pytest.approx(10.0)
+    assert follower.start_yaw == 0.0
+    on_the_floor = follower.target(0.0)
+    np.testing.assert_allclose(on_the_floor.position, 0.0, atol=1e-12)
+    climbing = follower.target(1.0)
+    np.testing.assert_allclose(climbing.position, [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(climbing.velocity, [0.0, 0.0, 1.0], atol=1e-9)
+    np.testing.assert_allclose(climbing.acceleration, 0.0, atol=1e-9)
+    cruising = follower.target(3.5)
+    np.testing.assert_allclose(cruising.position, [4.0, 0.0, 1.5])
+    np.testing.assert_allclose(cruising.velocity, [2.0, 0.0, 0.0], atol=1e-9)
+    braking = follower.target(5.5)  # the stop, sharp: one sample's difference
+    assert braking.acceleration[0] < -10.0
+    turning = follower.target(6.5)
+    np.testing.assert_allclose(turning.position, [8.0, 0.0, 1.5])
+    np.testing.assert_allclose(turning.velocity, 0.0, atol=1e-9)
+    assert turning.yaw == pytest.approx(np.radians(45.0))
+    assert turning.yaw_rate == pytest.approx(np.radians(45.0))
+    north = follower.target(8.5)
+    np.testing.assert_allclose(north.position, [8.0, 1.0, 1.5])
+    np.testing.assert_allclose(north.velocity, [0.0, 1.0, 0.0], atol=1e-9)
+    assert north.yaw == pytest.approx(np.radians(90.0))
+    after = follower.target(30.0)
+    np.testing.assert_allclose(after.position, [8.0, 2.0, 0.35], atol=1e-9)
+    np.testing.assert_allclose(after.velocity, 0.0)
+    assert after.yaw_rate == 0.0
+
+
+def test_a_timed_follower_turns_the_short_way_through_plus_minus_180_degrees():
+    """A flight turning left through 180 degrees: its yaws wrap from +179 to -179, which the
+    follower must not take for a turn back of 358 degrees."""
+    flown = _flight_with_a_stop_and_a_turn()
+    wrapped = np.angle(np.exp(1j * (flown.yaws + np.radians(135.0))))
+    follower = TimedFollower(replace(flown, yaws=wrapped))
+    assert np.all(np.abs(follower.yaw_rates) <= np.radians(45.0) + 1e-9)
+    assert follower.target(8.5).yaw - follower.target(0.0).yaw == pytest.approx(np.radians(90))
+
+
+def test_a_timed_follower_refuses_a_flight_it_cannot_fly_again():
+    flown = _flight_with_a_stop_and_a_turn()
+    with pytest.raises(RecordError, match="never flew"):
+        TimedFollower(replace(flown, positions=np.zeros_like(flown.positions)))
+    with pytest.raises(RecordError, match="one time, position and yaw"):
+        TimedFollower(replace(flown, times=flown.times[:-1]))
+    with pytest.raises(RecordError, match="must increase"):
+        TimedFollower(replace(flown, times=np.full_like(flown.times, 100.0)))
+
+
+def test_recording_refuses_a_timed_flight_without_a_flight_or_with_a_speed_wave(tmp_path):
+    with pytest.raises(RecordError, match="needs the flight"):
+        record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
+                       ImuOptions(), duration=None, timed=True)
+    with pytest.raises(RecordError, match="no speed wave"):
+        record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
+                       ImuOptions(), duration=None, timed=True,
+                       along=_flight_with_a_stop_and_a_turn(), wave=SpeedWave(0.6, 3.3))
+    with pytest.raises(RecordError, match="positive"):
+        record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
+                       ImuOptions(), duration=None)
+
+
 def test_record_along_refuses_another_world_or_seed_and_a_missing_flight(tmp_path, capsys):
     assert main(["sim", "record", "--along", str(tmp_path / "flight.mcap"), "--seed", "3",
                  "--out", str(tmp_path / "out")]) == 1
@@ -283,3 +365,8 @@ def test_record_along_refuses_another_world_or_seed_and_a_missing_flight(tmp_pat
     assert main(["sim", "record", "--along", str(tmp_path / "flight.mcap"),
                  "--out", str(tmp_path / "out")]) == 1
     assert "no such file" in capsys.readouterr().err
+    assert main(["sim", "record", "--timed", "--out", str(tmp_path / "out")]) == 1
+    assert "give it --along" in capsys.readouterr().err
+    assert main(["sim", "record", "--along", str(tmp_path / "flight.mcap"), "--timed",
+                 "--speed", "2", "--out", str(tmp_path / "out")]) == 1
+    assert "drop --speed" in capsys.readouterr().err

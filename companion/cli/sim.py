@@ -70,9 +70,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         description="Fly a smooth collision-free path through the world and write camera "
                     "images, ground-truth depth, IMU and ground truth in the EuRoC/ASL "
                     "layout (mav0/cam0, depth0, imu0, state_groundtruth_estimate0).")
-    record.add_argument("--duration", type=common.positive_float, default=40.0,
-                        metavar="SECONDS",
-                        help="simulated seconds to record (default: %(default)s)")
+    record.add_argument("--duration", type=common.positive_float, metavar="SECONDS",
+                        help="simulated seconds to record (default: 40; with --timed, the "
+                             "whole flight)")
     record.add_argument("--speed", type=common.positive_float, metavar="M/S",
                         help="cruise speed along the route, at most the vehicle's [vehicle] "
                              "xy_vel_max; the planner's flights cruise at up to [planner] "
@@ -83,6 +83,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                              "another vehicle), instead of the seed's route: the estimator "
                              "scored open loop on the places and at the speed a navigation "
                              "flight met (docs/vins.md)")
+    record.add_argument("--timed", action="store_true",
+                        help="with --along: fly the flight's own motion again in time (its "
+                             "changes of speed, stops and turns, from when it reached its "
+                             "height), not a steady cruise along its path; not with --speed")
     record.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="dataset folder to create (must be new or empty)")
     record.set_defaults(command=_sim_record)
@@ -216,13 +220,15 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
 
     try:
         sim, along = _recorded_along(args, config)
-        # the flight's speed swings as the application's flights do
-        wave = SpeedWave.of(config.planner.speed_swing, config.planner.speed_swing_period_s)
+        # the flight's speed swings as the application's flights do; a timed one flies its own
+        wave = None if args.timed else SpeedWave.of(config.planner.speed_swing,
+                                                    config.planner.speed_swing_period_s)
+        duration = 40.0 if args.duration is None and not args.timed else args.duration
         summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
-                                        config.imu, duration=args.duration,
+                                        config.imu, duration=duration,
                                         sim_camera=config.sim_camera, wave=wave,
                                         speed=record.SPEED if args.speed is None
-                                        else args.speed, along=along)
+                                        else args.speed, along=along, timed=args.timed)
     except (record.RecordError, RenderError, OSError, ReplayError) as error:
         print(f"sim record: {error}", file=sys.stderr)
         return common.EXIT_FAILED
@@ -233,19 +239,23 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
 
 
 def _recorded_along(args: argparse.Namespace, config: Config):
-    """The [sim] options to record with and, with ``--along``, the flight's true positions,
-    in its world and seed (the world is built from the seed, so another would not hold the
-    path: RecordError)."""
+    """The [sim] options to record with and, with ``--along``, the flight, recorded in its
+    world and seed (the world is built from the seed, so another would not hold the path:
+    RecordError)."""
+    from drivers.sim.record import RecordError
+
     if args.along is None:
+        if args.timed:
+            raise RecordError("--timed flies a recorded flight's motion again: give it --along")
         return _sim_options(args, config), None
     from companion.recording.replay import flown_path
-    from drivers.sim.record import RecordError
 
     if args.world is not None or args.seed is not None:
         raise RecordError("--along flies the flight's own world and seed: drop --world and "
                           "--seed")
-    world, seed, positions = flown_path(args.along)
-    return dataclasses.replace(config.sim, world=world, seed=seed), positions
+    if args.timed and args.speed is not None:
+        raise RecordError("--timed flies the flight's own speeds: drop --speed")
+    return config.sim, flown_path(args.along)
 
 
 def _sim_fly(args: argparse.Namespace, config: Config) -> int:

@@ -33,7 +33,7 @@ import time
 from collections import defaultdict
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
 import cv2
 import foxglove.messages as fm
@@ -59,6 +59,9 @@ from autonomy.vins.health import HealthState
 from companion.config import config_from_toml, load_config
 from companion.recording import topics
 from companion.recording.writer import COMPANION_METADATA
+
+if TYPE_CHECKING:
+    from drivers.sim.record import FlownMotion
 
 #: The schema of each of the recorder's topics, by name.
 _SCHEMAS = {topic.name: topic.schema.name for topic in topics.TOPICS}
@@ -854,22 +857,27 @@ def _wrapped_deg(angle: float) -> float:
     return (angle + 180.0) % 360.0 - 180.0
 
 
-def flown_path(path: Path) -> tuple[str, int, np.ndarray]:
-    """The world and seed of a simulated flight's recording and where the simulator truly had
-    the vehicle at each frame, (N, 3) in time order (``local``->``truth`` on ``/tf``; the local
-    frame is the world's in the simulator): what ``sim record --along`` flies again.
-    ReplayError for a recording of no simulated flight or without the truth."""
-    metadata = _metadata(path)
-    if "mission" not in metadata:
+def flown_path(path: Path) -> FlownMotion:
+    """The simulated flight of a recording: its world, seed and profile, and where the
+    simulator truly had the vehicle at each frame, in time order (``local``->``truth`` on
+    ``/tf``; the local frame is the world's in the simulator): what ``sim record --along``
+    flies again. ReplayError for a recording of no simulated flight or without the truth."""
+    from drivers.sim.record import FlownMotion
+
+    config, mission = recorded_config(path)
+    if mission is None:
         raise ReplayError(f"{path}: not the recording of a simulated flight (no mission)")
-    flown = simulated_mission(_mission(metadata["mission"], path))
-    positions = [_transform(decoded)[:3, 3] for topic, _, decoded in
-                 _read(path, [topics.TRANSFORMS.name])
-                 if (decoded.parent_frame_id, decoded.child_frame_id)
-                 == (topics.LOCAL, topics.TRUTH)]
-    if not positions:
+    flown = simulated_mission(mission)
+    poses = {t: _transform(decoded) for topic, t, decoded in
+             _read(path, [topics.TRANSFORMS.name])
+             if (decoded.parent_frame_id, decoded.child_frame_id) == (topics.LOCAL, topics.TRUTH)}
+    if not poses:
         raise ReplayError(f"{path}: no true pose (local -> truth on {topics.TRANSFORMS.name})")
-    return flown.world, flown.seed, np.array(positions)
+    times = sorted(poses)
+    return FlownMotion(
+        world=flown.world, seed=flown.seed, profile=config.sim.profile,
+        times=np.array(times) / 1e9, positions=np.array([poses[t][:3, 3] for t in times]),
+        yaws=np.array([yaw_of(poses[t][:3, :3]) for t in times]))
 
 
 def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:

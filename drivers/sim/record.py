@@ -9,13 +9,16 @@ vehicle is the simulated quadrotor with its PX4-like controller, so the motion i
 dynamically feasible; the IMU is sampled from the same dynamics, so a noiseless recording
 integrates back onto its own ground truth. ``along`` replaces the route with the true path of
 another flight (a navigation flight's recording: ``companion sim record --along``), so that the
-estimator can be scored open loop on the very places and the speed a flight met.
+estimator can be scored open loop on the very places and the speed a flight met; ``timed``
+flies that flight's own motion again in time instead (``TimedFollower``: its changes of speed,
+stops and turns, as the planner flew them), so that a steady cruise and the planner's way of
+flying can be told apart on one path.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -137,6 +140,8 @@ class PathFollower:
     a recording's length, are those of the constant speed.
     """
 
+    takes_off = False
+
     def __init__(self, path_xy: np.ndarray, height: float, speed: float,
                  wave: SpeedWave | None = None):
         self.points = np.asarray(path_xy, dtype=float)
@@ -151,6 +156,11 @@ class PathFollower:
         if wave is not None and wave.swing >= 2.0 * speed:
             raise RecordError(f"a speed swing of {wave.swing:g} m/s would stop a vehicle "
                               f"cruising at {speed:g} m/s: it must be less than {2 * speed:g}")
+
+    @property
+    def start_yaw(self) -> float:
+        """The heading the vehicle stands at before take-off: along the path's first half metre."""
+        return _heading(self.points)
 
     def _speed_and_travel(self, t: float) -> tuple[float, float]:
         """The speed at ``t`` and the arc length travelled by then."""
@@ -177,6 +187,98 @@ class PathFollower:
             velocity=np.array([tangent[0], tangent[1], 0.0]) * speed,
             yaw=math.atan2(tangent[1], tangent[0]),
         )
+
+
+@dataclass(frozen=True)
+class FlownMotion:
+    """A recorded simulated flight: its ``world`` of ``seed`` as its ``profile`` built it (a
+    realistic world has thin poles an ideal one lacks), and where it truly had the vehicle:
+    ``times`` (N,) seconds, increasing, ``positions`` (N, 3) metres and ``yaws`` (N,) radians
+    from east, world ENU."""
+
+    world: str
+    seed: int
+    profile: str
+    times: np.ndarray
+    positions: np.ndarray
+    yaws: np.ndarray
+
+
+#: Height above where it stood, metres, at which a flight counts as lifted off: the timed
+#: replay begins on the floor at the sample before.
+LIFT_OFF_M = 0.02
+
+
+class TimedFollower:
+    """Targets that fly a recorded flight's own motion again, in time, take-off included.
+
+    Time 0 is the flight's last sample on the floor before it lifted off (rose ``LIFT_OFF_M``
+    above where it stood); the target at ``t`` is the flight's true position and yaw ``t``
+    seconds later, linearly interpolated, with their central differences (``np.gradient``:
+    velocity, acceleration and yaw rate) as feed-forward, until its last airborne point
+    (over ``AIRBORNE_M``, before it touched down); after that, a hover there. The flight's
+    truth is exact at its frames' stamps (on the IMU's 5 ms grid), so its differences need no
+    smoothing.
+    """
+
+    takes_off = True
+
+    def __init__(self, flown: FlownMotion):
+        times, positions = np.asarray(flown.times, float), np.asarray(flown.positions, float)
+        if not len(times) == len(positions) == len(flown.yaws):
+            raise RecordError("a flown motion needs one time, position and yaw per sample")
+        lifted = np.flatnonzero(positions[:, 2] > positions[0, 2] + LIFT_OFF_M)
+        airborne = np.flatnonzero(positions[:, 2] > AIRBORNE_M)
+        if len(airborne) == 0:
+            raise RecordError("the flight never flew: no motion to fly again")
+        span = slice(max(lifted[0] - 1, 0), airborne[-1] + 1)
+        self.times = times[span] - times[span.start]
+        if np.any(np.diff(self.times) <= 0.0):
+            raise RecordError("the flown motion's times must increase")
+        self.positions = positions[span]
+        self.yaws = np.unwrap(np.asarray(flown.yaws, float)[span])
+        self.velocities = np.gradient(self.positions, self.times, axis=0)
+        self.accelerations = np.gradient(self.velocities, self.times, axis=0)
+        self.yaw_rates = np.gradient(self.yaws, self.times)
+        self.length = float(np.sum(np.linalg.norm(np.diff(self.positions[:, :2], axis=0),
+                                                  axis=1)))
+
+    @property
+    def span(self) -> float:
+        """Seconds of the flight's motion flown again."""
+        return float(self.times[-1])
+
+    @property
+    def start_yaw(self) -> float:
+        """The heading the flight stood at before it lifted off."""
+        return float(self.yaws[0])
+
+    def target(self, t: float) -> ControlTarget:
+        if t >= self.span:
+            return ControlTarget(position=self.positions[-1], velocity=np.zeros(3),
+                                 acceleration=np.zeros(3), yaw=float(self.yaws[-1]),
+                                 yaw_rate=0.0)
+        t = max(t, 0.0)
+
+        def at(values: np.ndarray) -> np.ndarray:
+            return np.array([np.interp(t, self.times, column) for column in values.T])
+
+        return ControlTarget(position=at(self.positions), velocity=at(self.velocities),
+                             acceleration=at(self.accelerations),
+                             yaw=float(np.interp(t, self.times, self.yaws)),
+                             yaw_rate=float(np.interp(t, self.times, self.yaw_rates)))
+
+
+class Follower(Protocol):
+    """What the recorded vehicle flies after standing still: a :class:`PathFollower` after
+    the recorder's climb, or a :class:`TimedFollower`, which ``takes_off`` itself."""
+
+    length: float
+    takes_off: bool
+
+    @property
+    def start_yaw(self) -> float: ...
+    def target(self, t: float) -> ControlTarget: ...
 
 
 #: Least true height, metres, of the points of a flown path that the recorder follows: the rest
@@ -226,12 +328,14 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
         sensor: SensorOptions | None = None, renderer: Renderer | None = None,
         vehicle_seed: int | None = None, wave: SpeedWave | None = None,
-        speed: float = SPEED, path: np.ndarray | None = None) -> RecordSummary:
+        speed: float = SPEED, path: np.ndarray | None = None,
+        follower: Follower | None = None) -> RecordSummary:
     """Fly ``route`` for ``duration`` simulated seconds at ``speed`` m/s, sending every sample
     to ``sink``. ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the
     errors the vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave``
     swings the cruise's speed (:class:`PathFollower`); ``path`` (M, 2), the path to follow
-    instead of the route's own (:func:`route_along`).
+    instead of the route's own (:func:`route_along`); ``follower``, what to fly after the climb
+    instead of the path at ``speed`` (a :class:`TimedFollower`).
 
     Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
     after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
@@ -239,18 +343,20 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     lost frames are not written). ``renderer`` must draw the camera head's render camera.
     """
     dt = 1.0 / imu.rate_hz
-    path = route_path(world, route) if path is None else path
-    follower = PathFollower(path, route.cruise_height, speed, wave)
+    if follower is None:
+        path = route_path(world, route) if path is None else path
+        follower = PathFollower(path, route.cruise_height, speed, wave)
     quad = Quadrotor(vehicle, world.obstacle_clearance,
                      position=np.array([route.start[0], route.start[1], 0.0]),
-                     yaw=_heading(path))
+                     yaw=follower.start_yaw)
     unit = seed if vehicle_seed is None else vehicle_seed
     imu_model = ImuModel(imu, np.random.default_rng([seed, 1]), np.random.default_rng([unit, 1]))
     head = CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), sensor, world.name,
                       np.random.default_rng([seed, 3]), np.random.default_rng([unit, 3]))
     owned = renderer is None
     renderer = renderer or Renderer(world, head.render_camera)
-    climb_seconds = route.cruise_height * CLIMB_SECONDS_PER_METRE + SETTLE_SECONDS
+    climb_seconds = 0.0 if follower.takes_off else \
+        route.cruise_height * CLIMB_SECONDS_PER_METRE + SETTLE_SECONDS
     ticks = int(round(duration * imu.rate_hz))
     next_frame, frames = 0.0, 0
     try:
@@ -265,7 +371,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
                                    capture.depth)
                     frames += 1
                 next_frame += 1.0 / camera.rate_hz
-            _command(quad, follower, t, route, climb_seconds)
+            _command(quad, follower, t, climb_seconds)
             truth = quad.step(dt)
             gyro, accel = imu_model.measure(truth, dt, thrust=quad.thrust)
             # The sample describes [t, t + dt); ground truth is the state at t.
@@ -282,9 +388,8 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     return RecordSummary(world.name, route.name, duration, ticks + 1, frames, follower.length)
 
 
-def _command(quad: Quadrotor, follower: PathFollower, t: float, route: Route,
-             climb_seconds: float) -> None:
-    """Stand still, then climb over the start, then follow the path."""
+def _command(quad: Quadrotor, follower: Follower, t: float, climb_seconds: float) -> None:
+    """Stand still, then climb over the start for ``climb_seconds``, then follow."""
     if t < STATIC_SECONDS:
         return
     if not quad.armed:
@@ -302,10 +407,10 @@ def _heading(path: np.ndarray) -> float:
 
 
 def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: VehicleOptions,
-                   imu: ImuOptions, *, duration: float,
+                   imu: ImuOptions, *, duration: float | None,
                    sim_camera: SensorOptions | None = None,
                    wave: SpeedWave | None = None, speed: float = SPEED,
-                   along: np.ndarray | None = None) -> RecordSummary:
+                   along: FlownMotion | None = None, timed: bool = False) -> RecordSummary:
     """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``,
     in ``sim.profile``: realistic, through the camera sensor ``sim_camera`` (default
     ``[sim_camera]``'s defaults; its lens is written into ``sensor.yaml``, and the mounting
@@ -316,10 +421,19 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting),
     ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``speed`` is
     the cruise's, m/s (at most the vehicle's ``xy_vel_max``); ``wave`` swings it
-    (:class:`PathFollower`). ``along``: another flight's true positions (N, 3) in this world,
-    followed instead of the seed's route (:func:`route_along`).
+    (:class:`PathFollower`). ``along``: another flight, in whose world and seed (its world as
+    it flew it, the sensors of ``sim.profile``) its path is followed at ``speed`` instead of
+    the seed's route (:func:`route_along`), or, ``timed``, its motion flown again in time,
+    take-off included (:class:`TimedFollower`; no ``wave``); there a ``duration`` of None
+    records all of it and a second of hover.
     """
-    if not (math.isfinite(duration) and duration > 0.0):
+    if timed and (along is None or wave is not None):
+        raise RecordError("a timed recording flies a flight's own motion again: it needs the "
+                          "flight and takes no speed wave")
+    follower = TimedFollower(along) if timed else None
+    if duration is None and follower is not None:
+        duration = STATIC_SECONDS + follower.span + 1.0
+    if not (duration is not None and math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
     fastest = speed + (wave.swing / 2.0 if wave is not None else 0.0)  # PathFollower's peak
     if not (math.isfinite(speed) and speed > 0.0 and fastest <= vehicle.xy_vel_max):
@@ -329,9 +443,13 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise RecordError(f"{out}: exists and is not empty; choose a new folder")
-    world = build_world(sim.world, sim.seed, sim.profile)
-    route, path = (world.routes[sim.seed % len(world.routes)], None) if along is None \
-        else route_along(world, along)
+    if along is None:
+        world = build_world(sim.world, sim.seed, sim.profile)
+        route, path = world.routes[sim.seed % len(world.routes)], None
+    else:
+        sim = replace(sim, world=along.world, seed=along.seed)
+        world = build_world(along.world, along.seed, along.profile)
+        route, path = route_along(world, along.positions)
     sensor = (sim_camera or SensorOptions()).for_profile(sim.profile)
     imu = imu.for_profile(sim.profile)
     distortion = tuple(sensor.distortion) if sensor and sensor.distortion else (0.0,) * 4
@@ -339,7 +457,8 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
                      _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.noise_for(sim.seed),
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
-                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave, speed=speed, path=path)
+                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave, speed=speed, path=path,
+                   follower=follower)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:
