@@ -204,35 +204,68 @@ def test_record_along_flies_the_recorded_flights_own_path(recording, tmp_path):
 
 
 def test_record_along_timed_flies_the_flights_own_motion_again(recording, tmp_path):
-    """``sim record --along --timed``: after standing still, the recorder flies the flight's
-    true motion from its lift-off (the climb, the offset swing's turns, the arcs) at the same
-    pace: at each moment after lift-off the recorded vehicle is where the flight was as long
-    after its own, within the controller's tracking (a tenth of a second's lag at 2 m/s as it
-    accelerates, a few centimetres at rest), and faces as it did."""
+    """``sim record --along --timed``: after standing as long as the flight stood on the
+    floor, the recorder flies the flight's true motion from its lift-off (the climb, the
+    offset swing's turns, the arcs) at the same pace, on the flight's clock (less the time
+    before its first frame): at each moment the recorded vehicle is where the flight was,
+    within the controller's tracking (a tenth of a second's lag at 2 m/s as it accelerates, a
+    few centimetres at rest), and faces as it did."""
+    from companion.recording.replay import flown_path
     from drivers.dataset.euroc import read_groundtruth
-    from drivers.sim.record import STATIC_SECONDS
 
     out = tmp_path / "timed"
     assert cli.main(["sim", "record", "--along", recording["recording"]["path"], "--timed",
                      "--set", "camera.width=160", "--set", "camera.height=120",
                      "--out", str(out)]) == 0
-    samples = _log_vins(recording)
-    t = np.array([sample["t"] for sample in samples])
-    flown = np.array([sample["truth_position"] for sample in samples])
-    yaw = np.unwrap(np.radians([sample["truth_yaw_deg"] for sample in samples]))
+    truth = flown_path(recording["recording"]["path"])  # every frame's true pose
+    t, flown, yaw = truth.times, truth.positions, np.unwrap(truth.yaws)
     standing = np.flatnonzero(flown[:, 2] > flown[0, 2] + 0.02)[0] - 1
     airborne = np.flatnonzero(flown[:, 2] > 0.3)
     flying = slice(standing, airborne[-1] + 1)
     assert np.ptp(flown[flying, 0]) > 4.0 and np.ptp(yaw) > np.radians(15.0)  # it went, turned
     recorded = read_groundtruth(out)
-    at = np.searchsorted(recorded.t_ns, (STATIC_SECONDS + t[flying] - t[standing]) * 1e9)
+    at = np.searchsorted(recorded.t_ns, (t[flying] - t[0]) * 1e9)
     error = np.linalg.norm(recorded.position[at] - flown[flying], axis=1)
     assert np.median(error) < 0.15 and error.max() < 0.35, (np.median(error), error.max())
     recorded_yaw = np.array([yaw_of(quat_to_rot(q)) for q in recorded.q_W_B[at]])
     yaw_error = np.degrees(np.angle(np.exp(1j * (recorded_yaw - yaw[flying]))))
     assert np.abs(yaw_error).max() < 3.0, np.abs(yaw_error).max()
-    assert recorded.t_ns[-1] * 1e-9 == pytest.approx(STATIC_SECONDS + t[airborne[-1]]
-                                                     - t[standing] + 1.0, abs=0.01)
+    assert recorded.t_ns[-1] * 1e-9 == pytest.approx(t[airborne[-1]] - t[0] + 1.0, abs=0.01)
+
+
+def test_a_flight_recorded_by_another_version_can_be_flown_again(recording, tmp_path):
+    """``--along`` needs only a recording's mission, its simulator profile and its true poses:
+    a flight whose recorded config holds a key this version does not know (one since removed,
+    or added by a newer one), which ``companion replay`` refuses, still gives its path."""
+    from mcap.reader import make_reader
+
+    from companion.recording import topics
+    from companion.recording.replay import flown_path
+    from companion.recording.writer import COMPANION_METADATA
+
+    source, copy = recording["recording"]["path"], tmp_path / "other-version.mcap"
+    with open(source, "rb") as recorded, open(copy, "wb") as out:
+        reader = make_reader(recorded)
+        metadata = next(record.metadata for record in reader.iter_metadata()
+                        if record.name == COMPANION_METADATA)
+        writer = mcap.writer.Writer(out)
+        writer.start()
+        writer.add_metadata(COMPANION_METADATA, {
+            **metadata, "config": metadata["config"] + "\n[vins_future]\nknob = 1\n"})
+        channels = {}
+        for schema, channel, message in reader.iter_messages(topics=[topics.TRANSFORMS.name]):
+            if channel.id not in channels:
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id)
+            writer.add_message(channels[channel.id], message.log_time, message.data,
+                               message.publish_time)
+        writer.finish()
+    assert cli.main(["replay", str(copy)]) == 2  # the replay needs the config itself
+    original, other = flown_path(source), flown_path(copy)
+    assert (other.world, other.seed, other.profile) == (original.world, original.seed, "ideal")
+    np.testing.assert_array_equal(other.positions, original.positions)
+    np.testing.assert_array_equal(other.times, original.times)
 
 
 def _log_vins(recording) -> list[dict]:

@@ -13,8 +13,10 @@ from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import read_camera, read_depth_png, read_groundtruth, read_imu
 from drivers.sim.imu import ImuOptions
 from drivers.sim.options import SimOptions
-from drivers.sim.record import (PATH_CLEARANCE, FlownMotion, RecordError, TimedFollower,
-                                record_dataset, route_along, route_path, smooth_path)
+from drivers.sim.imu import ImuModel, flight_generators
+from drivers.sim.record import (PATH_CLEARANCE, STATIC_SECONDS, FlownMotion, RecordError,
+                                TimedFollower, record_dataset, route_along, route_path,
+                                smooth_path)
 from autonomy.planning.speed_wave import SpeedWave
 from drivers.sim.render import RenderError, Renderer
 from drivers.sim.quadrotor import VehicleOptions
@@ -293,8 +295,13 @@ def test_a_timed_follower_flies_the_flights_motion_from_its_lift_off():
     """The flight's climb, speeds, stop and turn in place come back at the same times after
     it lifted off, with their rates as feed-forward; after its last airborne point, a hover
     there."""
-    follower = TimedFollower(_flight_with_a_stop_and_a_turn())
+    flown = _flight_with_a_stop_and_a_turn()
+    follower = TimedFollower(flown)
     assert follower.takes_off
+    assert follower.standing_s == pytest.approx(2.0)  # as long as the flight stood
+    late = TimedFollower(replace(flown, times=flown.times[30:], positions=flown.positions[30:],
+                                 yaws=flown.yaws[30:]))
+    assert late.standing_s == STATIC_SECONDS  # its first 0.5 s on the floor is too short
     # from its last sample on the floor, 2.0 s, to its last over 0.3 m, 12.65 s
     assert follower.span == pytest.approx(10.65)
     assert follower.length == pytest.approx(10.0)
@@ -343,6 +350,28 @@ def test_a_timed_follower_refuses_a_flight_it_cannot_fly_again():
         TimedFollower(replace(flown, times=flown.times[:-1]))
     with pytest.raises(RecordError, match="must increase"):
         TimedFollower(replace(flown, times=np.full_like(flown.times, 100.0)))
+
+
+def test_a_recording_along_a_flight_draws_the_flights_imu(tmp_path):
+    """Seed 3's recording along a flight of seed 3 reads gravity through the scale and
+    misalignment matrix the flight's IMU had (``SimulatedVehicle``'s draw), not through the
+    one the recorder's own route of seed 3 draws: standing still with every other error off,
+    the mean specific force is that matrix times g."""
+    imu = ImuOptions(gyro_noise_density=0.0, accel_noise_density=0.0, gyro_bias_random_walk=0.0,
+                     accel_bias_random_walk=0.0, accel_vibration_amplitude=0.0,
+                     gyro_vibration_amplitude=0.0, gyro_turn_on_bias=0.0,
+                     accel_turn_on_bias=0.0, gyro_warmup_drift=0.0, accel_warmup_drift=0.0)
+    flight = replace(_flight_with_a_stop_and_a_turn(), seed=3)  # the world and seed it flew
+    record_dataset(tmp_path / "along", SimOptions(profile="realistic"),
+                   CameraOptions(width=32, height=24), VehicleOptions(), imu, duration=1.0,
+                   along=flight, timed=True)
+    read = read_imu(tmp_path / "along").accel.mean(axis=0)
+    gravity = np.array([0.0, 0.0, 9.80665])
+    flights = ImuModel(imu, *flight_generators(3, 3))._accel_matrix @ gravity
+    recorders = ImuModel(imu, np.random.default_rng([3, 1]),
+                         np.random.default_rng([3, 1]))._accel_matrix @ gravity
+    np.testing.assert_allclose(read, flights, atol=1e-4)
+    assert np.abs(read - recorders).max() > 1e-3
 
 
 def test_recording_refuses_a_timed_flight_without_a_flight_or_with_a_speed_wave(tmp_path):

@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import tomllib
 from collections import defaultdict
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -864,10 +865,10 @@ def flown_path(path: Path) -> FlownMotion:
     flies again. ReplayError for a recording of no simulated flight or without the truth."""
     from drivers.sim.record import FlownMotion
 
-    config, mission = recorded_config(path)
-    if mission is None:
+    metadata = _metadata(path)
+    if "mission" not in metadata:
         raise ReplayError(f"{path}: not the recording of a simulated flight (no mission)")
-    flown = simulated_mission(mission)
+    flown = simulated_mission(_mission(metadata["mission"], path))
     poses = {t: _transform(decoded) for topic, t, decoded in
              _read(path, [topics.TRANSFORMS.name])
              if (decoded.parent_frame_id, decoded.child_frame_id) == (topics.LOCAL, topics.TRUTH)}
@@ -875,9 +876,25 @@ def flown_path(path: Path) -> FlownMotion:
         raise ReplayError(f"{path}: no true pose (local -> truth on {topics.TRANSFORMS.name})")
     times = sorted(poses)
     return FlownMotion(
-        world=flown.world, seed=flown.seed, profile=config.sim.profile,
+        world=flown.world, seed=flown.seed, profile=_recorded_profile(metadata, path),
         times=np.array(times) / 1e9, positions=np.array([poses[t][:3, 3] for t in times]),
         yaws=np.array([yaw_of(poses[t][:3, :3]) for t in times]))
+
+
+def _recorded_profile(metadata: dict[str, str], path: Path) -> str:
+    """The simulator's profile in a recording's config, read alone, so that a recording made
+    by another version of the application (a config key since added or removed) still gives
+    it."""
+    from drivers.sim.options import PROFILES
+
+    try:
+        profile = tomllib.loads(metadata.get("config", "")).get("sim", {}).get("profile")
+    except tomllib.TOMLDecodeError as error:
+        raise ReplayError(f"{path}: its recorded config is not TOML ({error})") from None
+    if profile not in PROFILES:
+        raise ReplayError(f"{path}: its recorded config names no simulator profile "
+                          f"({', '.join(PROFILES)})")
+    return profile
 
 
 def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:

@@ -246,6 +246,17 @@ def _scale_misalignment(rng: np.random.Generator, scale: float, cross: float) ->
     return np.eye(3) + spread * rng.standard_normal((3, 3))
 
 
+def flight_generators(seed: int, vehicle_seed: int) -> tuple[np.random.Generator,
+                                                             np.random.Generator]:
+    """The generators of a simulated flight's IMU (``drivers.sim.serve.SimulatedVehicle``):
+    its noise's from ``seed``, its vehicle's (the scale and misalignment matrices) from
+    ``vehicle_seed``. ``sim record --along`` draws with them, so that it flies the flight's
+    own IMU; the recorder's own routes keep theirs (``record.fly``), so that its recordings
+    stay what the docs' tables measured."""
+    return (np.random.default_rng(np.random.SeedSequence(seed).spawn(3)[0]),
+            np.random.default_rng(np.random.SeedSequence(vehicle_seed).spawn(1)[0]))
+
+
 class ImuModel:
     """Turns IMU truth into measurements with the error sources of :class:`ImuOptions`.
 

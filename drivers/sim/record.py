@@ -28,7 +28,7 @@ from autonomy.planning.speed_wave import SpeedWave
 from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import EurocWriter
 from drivers.sim.camera import CameraHead
-from drivers.sim.imu import ImuModel, ImuOptions
+from drivers.sim.imu import ImuModel, ImuOptions, flight_generators
 from drivers.sim.options import SimOptions
 from drivers.sim.render import Renderer
 from drivers.sim.sensor import SensorOptions
@@ -141,6 +141,7 @@ class PathFollower:
     """
 
     takes_off = False
+    standing_s = STATIC_SECONDS
 
     def __init__(self, path_xy: np.ndarray, height: float, speed: float,
                  wave: SpeedWave | None = None):
@@ -213,7 +214,8 @@ class TimedFollower:
     """Targets that fly a recorded flight's own motion again, in time, take-off included.
 
     Time 0 is the flight's last sample on the floor before it lifted off (rose ``LIFT_OFF_M``
-    above where it stood); the target at ``t`` is the flight's true position and yaw ``t``
+    above where it stood), ``standing_s`` after its first sample (at least
+    ``STATIC_SECONDS``); the target at ``t`` is the flight's true position and yaw ``t``
     seconds later, linearly interpolated, with their central differences (``np.gradient``:
     velocity, acceleration and yaw rate) as feed-forward, until its last airborne point
     (over ``AIRBORNE_M``, before it touched down); after that, a hover there. The flight's
@@ -232,6 +234,7 @@ class TimedFollower:
         if len(airborne) == 0:
             raise RecordError("the flight never flew: no motion to fly again")
         span = slice(max(lifted[0] - 1, 0), airborne[-1] + 1)
+        self.standing_s = max(float(times[span.start] - times[0]), STATIC_SECONDS)
         self.times = times[span] - times[span.start]
         if np.any(np.diff(self.times) <= 0.0):
             raise RecordError("the flown motion's times must increase")
@@ -270,11 +273,13 @@ class TimedFollower:
 
 
 class Follower(Protocol):
-    """What the recorded vehicle flies after standing still: a :class:`PathFollower` after
-    the recorder's climb, or a :class:`TimedFollower`, which ``takes_off`` itself."""
+    """What the recorded vehicle flies after standing still for ``standing_s``: a
+    :class:`PathFollower` after the recorder's climb, or a :class:`TimedFollower`, which
+    ``takes_off`` itself."""
 
     length: float
     takes_off: bool
+    standing_s: float
 
     @property
     def start_yaw(self) -> float: ...
@@ -329,13 +334,15 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         sensor: SensorOptions | None = None, renderer: Renderer | None = None,
         vehicle_seed: int | None = None, wave: SpeedWave | None = None,
         speed: float = SPEED, path: np.ndarray | None = None,
-        follower: Follower | None = None) -> RecordSummary:
+        follower: Follower | None = None, as_flight: bool = False) -> RecordSummary:
     """Fly ``route`` for ``duration`` simulated seconds at ``speed`` m/s, sending every sample
     to ``sink``. ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the
     errors the vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave``
     swings the cruise's speed (:class:`PathFollower`); ``path`` (M, 2), the path to follow
     instead of the route's own (:func:`route_along`); ``follower``, what to fly after the climb
-    instead of the path at ``speed`` (a :class:`TimedFollower`).
+    instead of the path at ``speed`` (a :class:`TimedFollower`); ``as_flight``: the IMU
+    drawn as a simulated flight of these seeds draws it (``imu.flight_generators``: its
+    vehicle's matrices, its turn-on biases), not as the recorder's own routes do.
 
     Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
     after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
@@ -350,7 +357,9 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
                      position=np.array([route.start[0], route.start[1], 0.0]),
                      yaw=follower.start_yaw)
     unit = seed if vehicle_seed is None else vehicle_seed
-    imu_model = ImuModel(imu, np.random.default_rng([seed, 1]), np.random.default_rng([unit, 1]))
+    imu_model = ImuModel(imu, *(flight_generators(seed, unit) if as_flight else
+                                (np.random.default_rng([seed, 1]),
+                                 np.random.default_rng([unit, 1]))))
     head = CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), sensor, world.name,
                       np.random.default_rng([seed, 3]), np.random.default_rng([unit, 3]))
     owned = renderer is None
@@ -390,15 +399,16 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
 
 def _command(quad: Quadrotor, follower: Follower, t: float, climb_seconds: float) -> None:
     """Stand still, then climb over the start for ``climb_seconds``, then follow."""
-    if t < STATIC_SECONDS:
+    standing = follower.standing_s
+    if t < standing:
         return
     if not quad.armed:
         quad.arm()
-    if t < STATIC_SECONDS + climb_seconds:
+    if t < standing + climb_seconds:
         start = follower.target(0.0)
         quad.set_target(ControlTarget(position=start.position, yaw=start.yaw))
     else:
-        quad.set_target(follower.target(t - STATIC_SECONDS - climb_seconds))
+        quad.set_target(follower.target(t - standing - climb_seconds))
 
 
 def _heading(path: np.ndarray) -> float:
@@ -422,17 +432,18 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``speed`` is
     the cruise's, m/s (at most the vehicle's ``xy_vel_max``); ``wave`` swings it
     (:class:`PathFollower`). ``along``: another flight, in whose world and seed (its world as
-    it flew it, the sensors of ``sim.profile``) its path is followed at ``speed`` instead of
-    the seed's route (:func:`route_along`), or, ``timed``, its motion flown again in time,
-    take-off included (:class:`TimedFollower`; no ``wave``); there a ``duration`` of None
-    records all of it and a second of hover.
+    it flew it, the sensors of ``sim.profile``, its IMU drawn as the flight drew it) its path
+    is followed at ``speed`` instead of the seed's route (:func:`route_along`), or,
+    ``timed``, its motion flown again in time, take-off included, after standing as long as
+    it stood (:class:`TimedFollower`; no ``wave``); there a ``duration`` of None records all
+    of it and a second of hover.
     """
     if timed and (along is None or wave is not None):
         raise RecordError("a timed recording flies a flight's own motion again: it needs the "
                           "flight and takes no speed wave")
     follower = TimedFollower(along) if timed else None
     if duration is None and follower is not None:
-        duration = STATIC_SECONDS + follower.span + 1.0
+        duration = follower.standing_s + follower.span + 1.0
     if not (duration is not None and math.isfinite(duration) and duration > 0.0):
         raise RecordError(f"duration must be a positive number of seconds, got {duration}")
     fastest = speed + (wave.swing / 2.0 if wave is not None else 0.0)  # PathFollower's peak
@@ -458,7 +469,7 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
         return fly(world, route, writer, duration=duration, seed=sim.noise_for(sim.seed),
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
                    vehicle_seed=sim.vehicle_for(sim.seed), wave=wave, speed=speed, path=path,
-                   follower=follower)
+                   follower=follower, as_flight=along is not None)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:

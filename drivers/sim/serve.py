@@ -24,7 +24,7 @@ from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
 from drivers.sim.faults import PACKET_LOSS, FaultSchedule, FaultyLink
-from drivers.sim.imu import ImuModel, ImuOptions
+from drivers.sim.imu import ImuModel, ImuOptions, flight_generators
 from drivers.sim.options import CLOCK_MODES
 from drivers.sim.mock_px4 import MockPx4, Px4Options
 from drivers.sim.quadrotor import Collision, Quadrotor, VehicleOptions
@@ -80,14 +80,12 @@ class SimulatedVehicle:
         self.imu_options = imu_options or ImuOptions().for_profile("ideal")
         self.dt = 1.0 / self.imu_options.rate_hz
         clearance = getattr(world, "obstacle_clearance", None) if world is not None else None
-        imu_seed, estimator_seed, link_seed = np.random.SeedSequence(seed).spawn(3)
-        vehicle_imu_seed = np.random.SeedSequence(
-            seed if vehicle_seed is None else vehicle_seed).spawn(1)[0]
+        _, estimator_seed, link_seed = np.random.SeedSequence(seed).spawn(3)
         self.vehicle = Quadrotor(vehicle_options or VehicleOptions(), clearance,
                                  position=start_position(world) if start is None else start,
                                  yaw=start_yaw)
-        self.imu = ImuModel(self.imu_options, np.random.default_rng(imu_seed),
-                            np.random.default_rng(vehicle_imu_seed))
+        self.imu = ImuModel(self.imu_options, *flight_generators(
+            seed, seed if vehicle_seed is None else vehicle_seed))
         self.link = FaultyLink(link, np.random.default_rng(link_seed))
         self.faults = faults or FaultSchedule()
         self._rebooted = False
