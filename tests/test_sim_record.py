@@ -303,6 +303,10 @@ def test_a_timed_follower_flies_the_flights_motion_from_its_lift_off():
     late = TimedFollower(replace(flown, times=flown.times[30:], positions=flown.positions[30:],
                                  yaws=flown.yaws[30:]))
     assert late.standing_s == STATIC_SECONDS  # its first 0.5 s on the floor is too short
+    descending = np.column_stack([flown.positions[:, :2],
+                                  np.linspace(1.5, 0.5, len(flown.times))])
+    in_the_air = TimedFollower(replace(flown, positions=descending))  # recorded once airborne
+    assert in_the_air.span == pytest.approx(flown.times[-1] - flown.times[0])
     # from its last sample on the floor, 2.0 s, to its last over 0.3 m, 12.65 s
     assert follower.span == pytest.approx(10.65)
     assert follower.length == pytest.approx(10.0)

@@ -240,7 +240,8 @@ class TimedFollower:
         airborne = np.flatnonzero(positions[:, 2] > AIRBORNE_M)
         if len(airborne) == 0:
             raise RecordError("the flight never flew: no motion to fly again")
-        span = slice(max(lifted[0] - 1, 0), airborne[-1] + 1)
+        # a recording that began in the air never lifts off in it: flown from its first sample
+        span = slice(max(lifted[0] - 1, 0) if len(lifted) else 0, airborne[-1] + 1)
         self.standing_s = max(float(times[span.start] - times[0]), STATIC_SECONDS)
         self.times = times[span] - times[span.start]
         if np.any(np.diff(self.times) <= 0.0):
