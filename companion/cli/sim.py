@@ -85,8 +85,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                              "flight met (docs/vins.md)")
     record.add_argument("--timed", action="store_true",
                         help="with --along: fly the flight's own motion again in time (its "
-                             "changes of speed, stops and turns, from when it reached its "
-                             "height), not a steady cruise along its path; not with --speed")
+                             "take-off, changes of speed, stops and turns, from its lift-off), "
+                             "not a steady cruise along its path; not with --speed")
     record.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="dataset folder to create (must be new or empty)")
     record.set_defaults(command=_sim_record)

@@ -225,9 +225,9 @@ class TimedFollower:
     ``AIRBORNE_M``, before it touched down); after that, a hover there. The average is
     needed: the truth is the pose at each frame's exposure under the frame's stamp, which a
     realistic camera jitters (1 ms at 2 m/s is 2 mm), and the raw second difference, fed to
-    the controller as attitude, rocked the vehicle in pitch at the frame rate (15 deg/s rms
-    on sewer 0 seed 3's cruise, where the flight's own is 5.7; averaged, 5.8; none fed
-    forward, 1.7 and a lag of up to 0.8 m as it accelerates).
+    the controller as attitude, rocked the vehicle in pitch at the frame rate (measured once,
+    docs/simulator.md: 15 deg/s rms on sewer 0 seed 3's cruise, where the flight's own is
+    5.7; averaged, 5.8; none fed forward, 1.7 and a lag of up to 0.8 m).
     """
 
     takes_off = True
