@@ -271,12 +271,11 @@ class TimedFollower:
                                  yaw_rate=0.0)
         t = max(t, 0.0)
 
-        def at(values: np.ndarray) -> np.ndarray:
-            return np.array([np.interp(t, self.times, column) for column in values.T])
+        def at(values: np.ndarray, grid: np.ndarray = self.times) -> np.ndarray:
+            return np.array([np.interp(t, grid, column) for column in values.T])
 
         return ControlTarget(position=at(self.positions), velocity=at(self.velocities),
-                             acceleration=np.array([np.interp(t, self._grid, column) for column
-                                                    in self._accelerations.T]),
+                             acceleration=at(self._accelerations, self._grid),
                              yaw=float(np.interp(t, self.times, self.yaws)),
                              yaw_rate=float(np.interp(t, self.times, self.yaw_rates)))
 
