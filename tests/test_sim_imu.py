@@ -11,7 +11,7 @@ import pytest
 
 from autonomy.geometry import GRAVITY
 from autonomy.options import OptionError
-from drivers.sim.imu import ImuModel, ImuOptions
+from drivers.sim.imu import ImuModel, ImuOptions, px4_accel_scales
 from drivers.sim.quadrotor import ImuTruth
 
 TRUTH = ImuTruth(angular_velocity=np.array([0.1, -0.2, 0.3]),
@@ -53,6 +53,7 @@ def test_realistic_defaults_are_the_cited_figures():
     # ICM-42688-P (DS-000347): sensitivity tolerance 0.5 %, cross-axis 1.25 % / 1 %.
     assert (options.gyro_scale_error, options.gyro_cross_axis) == (0.005, 0.0125)
     assert (options.accel_scale_error, options.accel_cross_axis) == (0.005, 0.01)
+    assert options.accel_calibrated and options.accel_calibration_tilt_deg == 3.0  # assumed
     # PX4's calibration dead bands (0.01 rad/s, 0.05 m/s^2, vector norms) over three axes.
     assert options.gyro_turn_on_bias * math.sqrt(3) == pytest.approx(0.01)
     assert options.accel_turn_on_bias * math.sqrt(3) == pytest.approx(0.05)
@@ -316,7 +317,7 @@ def test_a_constant_truth_reads_as_the_runs_matrix_times_it():
 
 
 def test_the_matrices_spread_as_the_datasheet_tolerances_from_run_to_run():
-    options = ImuOptions()
+    options = dataclasses.replace(ImuOptions(), accel_calibrated=False)  # the chip's own
     diagonal = np.eye(3, dtype=bool)
     gyro, accel = [], []
     for seed in range(1000):
@@ -331,6 +332,73 @@ def test_the_matrices_spread_as_the_datasheet_tolerances_from_run_to_run():
         assert errors[:, diagonal].std() == pytest.approx(scale, rel=0.06)
         assert errors[:, ~diagonal].std() == pytest.approx(cross, rel=0.06)
         assert abs(errors[:, ~diagonal].mean()) < 0.1 * cross
+
+
+# --- PX4's six-orientation accelerometer calibration -----------------------------------------
+
+#: PX4's orientations (accelerometer_calibration.cpp), FRD: tail down, nose down, left, right,
+#: upside down, right side up.
+PX4_REFERENCES = GRAVITY * np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1],
+                                     [0, 0, -1]], dtype=float)
+
+
+def test_px4_scales_take_a_sensitivity_error_out_whatever_the_offset():
+    sensitivity = np.array([1.004, 0.995, 1.003])
+    offset = np.array([0.03, -0.02, 0.05])
+    scales = px4_accel_scales(PX4_REFERENCES * sensitivity + offset)
+    np.testing.assert_allclose(scales, 1.0 / sensitivity, rtol=1e-14)
+
+
+def test_px4_scales_read_a_tilted_placement_as_too_little_sensitivity():
+    """Tail down tilted by d about y reads g (cos d, 0, -sin d): the x offset is -c with
+    c = g (1 - cos d) / 2, so A = [[a, 0, b], [c, g, 0], [c, 0, g]] with a = g (1 + cos d) / 2
+    and b = -g sin d; det A = g (a g - b c), and the scales are g diag(A^-1) = g (g^2, a g - b c,
+    a g) / det A: x too large by about d^2 / 4, z too small by far less (-b c / g^2)."""
+    tilt = math.radians(4.0)
+    readings = PX4_REFERENCES.copy()
+    readings[0] = GRAVITY * np.array([math.cos(tilt), 0.0, -math.sin(tilt)])
+    g, a, b, c = (GRAVITY, GRAVITY * (1 + math.cos(tilt)) / 2, -GRAVITY * math.sin(tilt),
+                  GRAVITY * (1 - math.cos(tilt)) / 2)
+    determinant = g * (a * g - b * c)
+    np.testing.assert_allclose(px4_accel_scales(readings),
+                               g * np.array([g * g, a * g - b * c, a * g]) / determinant,
+                               rtol=1e-14)
+
+
+def test_calibration_divides_the_accelerometer_rows_and_leaves_the_gyro_alone():
+    raw = dataclasses.replace(ImuOptions(), accel_calibrated=False)
+    for seed in range(20):
+        calibrated = ImuModel(ImuOptions(), np.random.default_rng(seed))
+        chip = ImuModel(raw, np.random.default_rng(seed))
+        scales = np.diag(calibrated.accel_matrix) / np.diag(chip.accel_matrix)
+        np.testing.assert_allclose(calibrated.accel_matrix, np.diag(scales) @ chip.accel_matrix,
+                                   rtol=1e-12)
+        np.testing.assert_array_equal(calibrated.gyro_matrix, chip.gyro_matrix)
+        assert np.abs(scales - 1.0).max() < 0.05
+
+
+def test_level_placements_leave_only_second_order_sensitivity_and_the_cross_axis_terms():
+    level = dataclasses.replace(ImuOptions(), accel_calibration_tilt_deg=0.0)
+    raw = dataclasses.replace(ImuOptions(), accel_calibrated=False)
+    off_diagonal = ~np.eye(3, dtype=bool)
+    for seed in range(200):
+        calibrated = ImuModel(level, np.random.default_rng(seed)).accel_matrix
+        chip = ImuModel(raw, np.random.default_rng(seed)).accel_matrix
+        # (M^-1)_ii M_ii - 1 is a product of two errors of 1 %: far under the chip's 0.5 %.
+        assert np.abs(np.diag(calibrated) - 1.0).max() < 1e-3
+        np.testing.assert_allclose(calibrated[off_diagonal], chip[off_diagonal], atol=5e-4)
+
+
+def test_a_placements_tilt_leaves_scales_too_large_by_about_its_square():
+    """Each scale is 2 / (cos d+ + cos d-) to leading order, d+- the two placements' tilts
+    (two components of N(0, t^2) each): on average 1 + t^2."""
+    tilt = math.radians(3.0)
+    options = ImuOptions()
+    diagonals = np.array([np.diag(ImuModel(options, np.random.default_rng(seed)).accel_matrix)
+                          for seed in range(1000)])
+    # 3000 axes of a spread about 1.7 t^2: the mean's standard error is about 3 % of t^2.
+    assert diagonals.mean() - 1.0 == pytest.approx(tilt**2, rel=0.15)
+    assert (diagonals > 1.0).mean() > 0.6
 
 
 # --- turn-on bias and warm-up ------------------------------------------------------------------
@@ -406,6 +474,7 @@ def test_bad_inputs_are_rejected():
                         ("vibration_frequency_hz", 0.0), ("vibration_cutoff_hz", -30.0),
                         ("vibration_phase_walk", math.nan), ("gyro_scale_error", 0.5),
                         ("accel_cross_axis", -0.01), ("gyro_turn_on_bias", -1e-3),
-                        ("accel_warmup_drift", math.inf), ("warmup_time_constant_s", 0.0)):
+                        ("accel_warmup_drift", math.inf), ("warmup_time_constant_s", 0.0),
+                        ("accel_calibration_tilt_deg", -1.0), ("accel_calibrated", "yes")):
         with pytest.raises(OptionError, match=name):
             ImuOptions(**{name: value})

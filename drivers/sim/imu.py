@@ -61,8 +61,24 @@ the model is made)::
    gyroscope and accelerometer specification tables): sensitivity scale factor tolerance +-0.5 %
    (both), cross-axis sensitivity +-1.25 % (gyro) and +-1 % (accel); the datasheet's +- figure
    is used as one standard deviation. ``M`` acts before the bias is added, and vibration is
-   real motion, so it passes through ``M`` too. (PX4's six-point accelerometer calibration fits
-   per-axis scales, so the accelerometer's diagonal is on the conservative side.)
+   real motion, so it passes through ``M`` too.
+
+   The accelerometer's ``M_a`` is then what PX4's six-orientation calibration leaves of it
+   (``accel_calibrated``): ``diag(s) M_a``, with ``s`` the per-axis scales that PX4 fits and
+   stores (``src/modules/commander/accelerometer_calibration.cpp``, ``do_accel_calibration``:
+   the offset from each axis's pair of opposite orientations, ``A`` the rows of the tail-down,
+   left and upside-down readings less it, ``T = A^-1 g``, ``set_scale(T.diag())``; applied as
+   ``(raw - offset) * scale`` in ``src/lib/sensor_calibration/Accelerometer.hpp``, ``Correct``).
+   The model runs that fit on the six still, noise-free readings of this vehicle, each
+   orientation placed with a tilt about each horizontal axis drawn ``N(0, tilt^2)``: level
+   placements give ``s = diag(M_a^-1)``, which takes the sensitivity errors out to second
+   order and leaves the cross-axis ones (PX4 keeps only the diagonal); a tilt ``d`` reads
+   ``g cos d`` on its axis, so each scale comes out ``1 / cos d`` too large, about ``tilt^2``
+   on average. PX4 accepts any orientation within 5 m/s^2 of its axis (``calibration_routines
+   .cpp``, ``detect_orientation``, ``accel_err_thr``), so the tilt is the person's placement:
+   ``accel_calibration_tilt_deg = 3`` is ASSUMED (a vehicle set on its sides by hand). The
+   gyroscope gets no such correction: PX4's ``Gyroscope::Correct`` applies offsets and the
+   board rotation only.
 
 4. Turn-on bias and warm-up: ``b(t) = b_walk(t) + b_final + (b_0 - b_final) exp(-t / tau)``
    with ``b_0 ~ N(0, sigma_on^2)`` and ``b_final - b_0 ~ N(0, sigma_warm^2)`` per axis, both
@@ -82,8 +98,8 @@ The model is deterministic from its ``rng``, and each error source draws from a 
 own, so switching one source off leaves every other source's numbers as they were and an
 ablation changes one thing only. ``rng`` itself draws the white noise and walk (12 normals a
 sample); three children spawned from its seed sequence (``Generator.spawn``, which leaves the
-parent's stream untouched) draw the matrices ``M_g`` and ``M_a`` (always both, 18 normals),
-the biases ``b_0`` and ``b_final`` (12 normals) and the vibration's phases and phase walk. With
+parent's stream untouched) draw the matrices ``M_g`` and ``M_a`` (always both, 18 normals,
+then the calibration's 12 tilts), the biases ``b_0`` and ``b_final`` (12 normals) and the vibration's phases and phase walk. With
 every new effect off (:meth:`ImuOptions.for_profile` ``"ideal"``) the output is bit for bit
 that of the white-noise-and-walk model alone.
 """
@@ -96,7 +112,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from autonomy.geometry import GRAVITY
+from autonomy.geometry import GRAVITY, so3_exp
 from autonomy.options import option, validate
 from autonomy.vins.preintegration import (ICM42688P_ACCEL_NOISE_DENSITY,
                                           ICM42688P_GYRO_NOISE_DENSITY)
@@ -190,6 +206,16 @@ class ImuOptions:
         0.01, ge=0.0, le=0.1,
         doc="std of each accelerometer cross-axis sensitivity, fraction (ICM-42688-P: +-1 %)",
     )
+    accel_calibrated: bool = option(
+        True, doc="the accelerometer as PX4's six-orientation calibration leaves it: per-axis "
+                  "scales fitted and divided out (accelerometer_calibration.cpp); false: the "
+                  "chip's raw sensitivity errors",
+    )
+    accel_calibration_tilt_deg: float = option(
+        3.0, ge=0.0, le=20.0,
+        doc="std of each calibration orientation's tilt about each horizontal axis, degrees "
+            "(assumed: placed by hand; PX4 accepts up to 5 m/s^2 off the axis)",
+    )
     gyro_turn_on_bias: float = option(
         0.01 / math.sqrt(3.0), ge=0.0, le=1.0,
         doc="std of each gyroscope bias at power-on, rad/s (PX4's gyro calibration dead band, "
@@ -246,6 +272,40 @@ def _scale_misalignment(rng: np.random.Generator, scale: float, cross: float) ->
     return np.eye(3) + spread * rng.standard_normal((3, 3))
 
 
+#: PX4's sensor frame (FRD) from the model's body frame (FLU); its own inverse.
+_FRD_FROM_FLU = np.diag([1.0, -1.0, -1.0])
+
+
+def px4_accel_scales(readings: np.ndarray) -> np.ndarray:
+    """The per-axis scales PX4's six-orientation accelerometer calibration stores, from the
+    mean readings ``(6, 3)`` (FRD, m/s^2) of its orientations in the order tail down
+    ``[g, 0, 0]``, nose down ``[-g, 0, 0]``, left ``[0, g, 0]``, right, upside down
+    ``[0, 0, g]``, right side up (``accelerometer_calibration.cpp``, ``do_accel_calibration``,
+    board rotation identity): ``offset_i`` the mean of axis ``i`` over its two orientations,
+    ``A`` the rows tail down, left and upside down less the offset, ``scale = diag(A^-1 g)``.
+    """
+    readings = np.asarray(readings, dtype=float)
+    offset = (0.5 * (readings[0::2] + readings[1::2])).diagonal()
+    return np.diag(np.linalg.inv(readings[0::2] - offset) * GRAVITY).copy()
+
+
+def _px4_calibrated(matrix: np.ndarray, rng: np.random.Generator, tilt: float) -> np.ndarray:
+    """``diag(s) matrix``: an accelerometer ``matrix`` (FLU) as PX4's calibration leaves it,
+    ``s`` fitted on its still readings in the six orientations, each tilted about its two
+    horizontal axes by ``N(0, tilt^2)`` radians (12 normals from ``rng``). The scales are the
+    same in FLU and FRD: a diagonal is unchanged by the axes' signs."""
+    matrix_frd = _FRD_FROM_FLU @ matrix @ _FRD_FROM_FLU
+    readings = []
+    for orientation, tilts in enumerate(rng.standard_normal((6, 2)) * tilt):
+        axis, sign = divmod(orientation, 2)
+        reference = np.zeros(3)
+        reference[axis] = GRAVITY * (-1.0 if sign else 1.0)
+        rotation = np.zeros(3)
+        rotation[[a for a in range(3) if a != axis]] = tilts
+        readings.append(matrix_frd @ so3_exp(rotation) @ reference)
+    return np.diag(px4_accel_scales(np.array(readings))) @ matrix
+
+
 def flight_generators(seed: int, vehicle_seed: int) -> tuple[np.random.Generator,
                                                              np.random.Generator]:
     """The generators of a simulated flight's IMU (``drivers.sim.serve.SimulatedVehicle``):
@@ -299,6 +359,9 @@ class ImuModel:
                                                     o.gyro_cross_axis)
             self._accel_matrix = _scale_misalignment(matrix_rng, o.accel_scale_error,
                                                      o.accel_cross_axis)
+            if o.accel_calibrated:
+                self._accel_matrix = _px4_calibrated(
+                    self._accel_matrix, matrix_rng, math.radians(o.accel_calibration_tilt_deg))
         self._bias_start: np.ndarray | None = None  # b_0, gyro then accel
         self._bias_final: np.ndarray | None = None  # b_final
         if o.enabled and (o.gyro_turn_on_bias or o.accel_turn_on_bias
@@ -353,7 +416,8 @@ class ImuModel:
 
     @property
     def accel_matrix(self) -> np.ndarray:
-        """This run's accelerometer scale-and-misalignment matrix ``M_a`` (identity when off)."""
+        """This run's accelerometer scale-and-misalignment matrix ``M_a`` (identity when off),
+        as PX4's calibration leaves it when ``accel_calibrated``."""
         return np.eye(3) if self._accel_matrix is None else self._accel_matrix.copy()
 
     def _vibration_gain(self, frequency: float, dt: float) -> complex:
