@@ -333,7 +333,7 @@ def test_takeoff_climbs_to_the_takeoff_altitude_then_holds_and_land_disarms(benc
     bench.arm()
     assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
                          math.nan) == mavlink.MAV_RESULT_ACCEPTED
-    bench.run(4.0)
+    bench.run(6.0)  # PX4's smoothed climb, the default: over 4 s (below)
     assert bench.px4.mode == px4_protocol.AUTO_LOITER
     assert bench.vehicle.state.position[2] == pytest.approx(2.5, abs=0.3)
     assert bench.last("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
@@ -346,7 +346,7 @@ def test_takeoff_climbs_to_the_takeoff_altitude_then_holds_and_land_disarms(benc
 
 def smoothed_takeoff_rates(parameters=None, seconds=6.0) -> np.ndarray:
     """The vertical speed, every tick, of a smoothed take-off to MIS_TAKEOFF_ALT (2.5 m)."""
-    bench = Bench(Px4Options(smooth_takeoff=True), parameters=parameters)
+    bench = Bench(Px4Options(), parameters=parameters)
     try:
         bench.arm()
         assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan,
@@ -369,6 +369,22 @@ def test_a_smoothed_takeoff_climbs_as_px4s():
     assert 1.0 < rates.max() < 1.5  # 2.5 m does not leave room to reach 1.5 m/s at 0.5 m/s²
     assert np.abs(np.diff(rates) / DT).max() < 0.5 * 1.2  # the vehicle lags its setpoint
     assert len(rates) * DT > 4.0  # a velocity step climbs 2.5 m in under 2 s
+
+
+def test_the_step_takeoff_climbs_at_the_takeoff_speed_at_once():
+    """``smooth_takeoff = false``, the take-off the earlier measurements flew: a velocity step
+    to MPC_TKO_SPEED (1.5 m/s), stopped by the position hold at the height."""
+    bench = Bench(Px4Options(smooth_takeoff=False))
+    try:
+        bench.arm()
+        assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan,
+                             math.nan, math.nan) == mavlink.MAV_RESULT_ACCEPTED
+        bench.run(1.0)
+        assert bench.vehicle.state.velocity[2] == pytest.approx(1.5, abs=0.1)
+        bench.run(2.0)
+        assert bench.px4.mode == px4_protocol.AUTO_LOITER
+    finally:
+        bench.close()
 
 
 def test_a_smoothed_takeoff_honours_its_ramp_time():
@@ -631,7 +647,7 @@ def test_a_takeoff_without_a_ramp_accelerates_past_the_ramps_limit():
 def test_a_takeoff_armed_into_again_starts_from_rest():
     """Disarmed mid-climb (a forced disarm: the vehicle falls) and armed again in the same
     mode, the climb starts from rest, not where the interrupted one had got to."""
-    bench = Bench(Px4Options(smooth_takeoff=True))
+    bench = Bench(Px4Options())
     try:
         bench.arm()
         bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,

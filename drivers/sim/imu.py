@@ -74,8 +74,8 @@ the model is made)::
    placements give ``s = diag(M_a^-1)``, which takes the sensitivity errors out to second
    order and leaves the cross-axis ones (PX4 keeps only the diagonal); a tilt ``d`` reads
    ``g cos d`` on its axis, so each scale comes out ``1 / cos d`` too large, about ``tilt^2``
-   on average. PX4 accepts any orientation within 5 m/s^2 of its axis (``calibration_routines
-   .cpp``, ``detect_orientation``, ``accel_err_thr``), so the tilt is the person's placement:
+   on average. PX4 accepts any orientation within 5 m/s^2 of its axis (``src/modules/commander/
+   calibration_routines.cpp``, ``detect_orientation``, ``accel_err_thr``), so the tilt is the person's placement:
    ``accel_calibration_tilt_deg = 3`` is ASSUMED (a vehicle set on its sides by hand). The
    gyroscope gets no such correction: PX4's ``Gyroscope::Correct`` applies offsets and the
    board rotation only.
