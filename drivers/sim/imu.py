@@ -74,11 +74,11 @@ the model is made)::
    placements give ``s = diag(M_a^-1)``, which takes the sensitivity errors out to second
    order and leaves the cross-axis ones (PX4 keeps only the diagonal); a tilt ``d`` reads
    ``g cos d`` on its axis, so each scale comes out ``1 / cos d`` too large, about ``tilt^2``
-   on average. PX4 accepts any orientation within 5 m/s^2 of its axis (``src/modules/commander/
-   calibration_routines.cpp``, ``detect_orientation``, ``accel_err_thr``), so the tilt is the person's placement:
-   ``accel_calibration_tilt_deg = 3`` is ASSUMED (a vehicle set on its sides by hand). The
-   gyroscope gets no such correction: PX4's ``Gyroscope::Correct`` applies offsets and the
-   board rotation only.
+   on average. PX4 accepts any orientation within 5 m/s^2 of its axis (``src/modules/
+   commander/calibration_routines.cpp``, ``detect_orientation``, ``accel_err_thr``), so the
+   tilt is the person's placement: ``accel_calibration_tilt_deg = 3`` is ASSUMED (a vehicle
+   set on its sides by hand). The gyroscope gets no such correction: PX4's
+   ``Gyroscope::Correct`` applies offsets and the board rotation only.
 
 4. Turn-on bias and warm-up: ``b(t) = b_walk(t) + b_final + (b_0 - b_final) exp(-t / tau)``
    with ``b_0 ~ N(0, sigma_on^2)`` and ``b_final - b_0 ~ N(0, sigma_warm^2)`` per axis, both
@@ -99,7 +99,8 @@ own, so switching one source off leaves every other source's numbers as they wer
 ablation changes one thing only. ``rng`` itself draws the white noise and walk (12 normals a
 sample); three children spawned from its seed sequence (``Generator.spawn``, which leaves the
 parent's stream untouched) draw the matrices ``M_g`` and ``M_a`` (always both, 18 normals,
-then the calibration's 12 tilts), the biases ``b_0`` and ``b_final`` (12 normals) and the vibration's phases and phase walk. With
+then the calibration's 12 tilts), the biases ``b_0`` and ``b_final`` (12 normals) and the
+vibration's phases and phase walk. With
 every new effect off (:meth:`ImuOptions.for_profile` ``"ideal"``) the output is bit for bit
 that of the white-noise-and-walk model alone.
 """
