@@ -117,6 +117,7 @@ from autonomy.geometry import GRAVITY, so3_exp
 from autonomy.options import option, validate
 from autonomy.vins.preintegration import (ICM42688P_ACCEL_NOISE_DENSITY,
                                           ICM42688P_GYRO_NOISE_DENSITY)
+from drivers.mavlink.frames import R_FLU_FRD
 from drivers.sim.quadrotor import ImuTruth
 
 #: Hover rotor speed of PX4's X500 simulation model, Hz: sqrt(m g / (4 k)) / (2 pi) with
@@ -273,10 +274,6 @@ def _scale_misalignment(rng: np.random.Generator, scale: float, cross: float) ->
     return np.eye(3) + spread * rng.standard_normal((3, 3))
 
 
-#: PX4's sensor frame (FRD) from the model's body frame (FLU); its own inverse.
-_FRD_FROM_FLU = np.diag([1.0, -1.0, -1.0])
-
-
 def px4_accel_scales(readings: np.ndarray) -> np.ndarray:
     """The per-axis scales PX4's six-orientation accelerometer calibration stores, from the
     mean readings ``(6, 3)`` (FRD, m/s^2) of its orientations in the order tail down
@@ -295,7 +292,7 @@ def _px4_calibrated(matrix: np.ndarray, rng: np.random.Generator, tilt: float) -
     ``s`` fitted on its still readings in the six orientations, each tilted about its two
     horizontal axes by ``N(0, tilt^2)`` radians (12 normals from ``rng``). The scales are the
     same in FLU and FRD: a diagonal is unchanged by the axes' signs."""
-    matrix_frd = _FRD_FROM_FLU @ matrix @ _FRD_FROM_FLU
+    matrix_frd = R_FLU_FRD @ matrix @ R_FLU_FRD  # FRD, PX4's sensor frame (its own inverse)
     readings = []
     for orientation, tilts in enumerate(rng.standard_normal((6, 2)) * tilt):
         axis, sign = divmod(orientation, 2)
