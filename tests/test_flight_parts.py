@@ -224,11 +224,36 @@ def test_watchdog_stays_quiet_when_disarmed_and_survives_a_failing_send():
         time.sleep(0.1)
         assert calls == []  # not armed
         watchdog.arm(True)
+        watchdog.fed(1.0)
+        now.value = 2.0
         assert _wait_until(lambda: len(calls) >= 2)  # kept trying after the error
         assert watchdog.fired == 0
     finally:
         watchdog.close()
     assert not any(t.name == "setpoint-watchdog" for t in threading.enumerate())
+
+
+def test_watchdog_armed_again_after_a_pause_waits_for_the_next_setpoint():
+    """The link lost in offboard: the application stops commanding, then commands again when
+    it is back. The setpoint from before the pause is not a late loop; the deadline runs
+    from the first setpoint after it (the fault matrix's packet loss at take-off fired one
+    stop between the loop's arm and its next setpoint)."""
+    now, sent = _Now(), []
+    watchdog = SetpointWatchdog(now, lambda t: sent.append(t), deadline_s=0.1, period_s=0.01)
+    watchdog.start()
+    try:
+        watchdog.arm(True)
+        watchdog.fed(0.0)
+        watchdog.arm(False)  # the link lost: no setpoints for a while
+        now.value = 5.0
+        watchdog.arm(True)  # the link back; the loop has not sent yet
+        time.sleep(0.1)
+        assert sent == [] and watchdog.fired == 0
+        watchdog.fed(5.0)
+        now.value = 5.5  # and now the loop is late
+        assert _wait_until(lambda: len(sent) >= 1)
+    finally:
+        watchdog.close()
 
 
 # ---------------------------------------------------------------- frames

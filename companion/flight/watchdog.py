@@ -49,7 +49,15 @@ class SetpointWatchdog:
         self._in_charge = False
 
     def arm(self, armed: bool) -> None:
-        """Watch (True) only while the application commands the vehicle with setpoints."""
+        """Watch (True) only while the application commands the vehicle with setpoints.
+
+        Arming again after a pause forgets the setpoint sent before it: a pause in commanding
+        (the link lost, PX4 flying a mode of its own) is not a late loop, and the deadline runs
+        from the first setpoint after it. Without this the watchdog could see the old setpoint
+        between the loop's ``arm(True)`` and its ``fed``, and send a stop the loop was about to
+        send anyway (the fault matrix's packet loss at take-off, docs/reliability.md)."""
+        if armed and not self._armed:
+            self._last_setpoint_t = None  # written before _armed: _check reads in that order
         self._armed = armed
 
     @property
@@ -70,8 +78,10 @@ class SetpointWatchdog:
         return self.period_s if self._in_charge else self.deadline_s / 4.0
 
     def _check(self) -> None:
-        last = self._last_setpoint_t
-        if not self._armed or last is None:
+        if not self._armed:
+            return
+        last = self._last_setpoint_t  # read after _armed: None until fed since arming
+        if last is None:
             return
         now = self._now()
         if now - last <= self.deadline_s:
