@@ -76,14 +76,13 @@ def test_after_an_imu_gap_near_an_obstacle_the_vins_restarts_where_the_vehicle_i
 
 
 def test_after_an_imu_gap_that_loses_the_map_the_vins_restarts_where_it_last_saw_it():
-    """The same gap on the flight PX4's own take-off times (``[px4] smooth_takeoff``): it falls
+    """The same gap on the flight PX4's own take-off times (the mock's default): it falls
     just after a turn. The gap's first two frames see 7 of the window's 119 landmarks, enough
     for PnP; from then on 3, too few, and nothing else in view is metric (docs/vins.md, "An IMU
     gap in flight"). The VINS restarts standing still where the second of those frames put
     it: 0.84 m off at the landing, where the estimate from before the gap, 1.5 m behind the
     vehicle once it had braked, left it 1.41 m off."""
-    summary = fly("dome", faults=[Fault.parse("imu_gap@obstacle:0.5+2")], goal=(-11, -15, 1.5),
-                  overrides=("px4.smooth_takeoff=true",))
+    summary = fly("dome", faults=[Fault.parse("imu_gap@obstacle:0.5+2")], goal=(-11, -15, 1.5))
     assert_safe_landing(summary)
     assert summary["failsafes"] == ["IMU silent"], summary["failsafes"]
     assert summary["vins_resets"] <= 4, summary["vins_resets"]

@@ -333,7 +333,7 @@ def test_takeoff_climbs_to_the_takeoff_altitude_then_holds_and_land_disarms(benc
     bench.arm()
     assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
                          math.nan) == mavlink.MAV_RESULT_ACCEPTED
-    bench.run(6.0)  # the step; PX4's smoothed climb takes over 4 s (below)
+    bench.run(6.0)  # PX4's smoothed climb, the default: over 4 s (below)
     assert bench.px4.mode == px4_protocol.AUTO_LOITER
     assert bench.vehicle.state.position[2] == pytest.approx(2.5, abs=0.3)
     assert bench.last("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
@@ -346,7 +346,7 @@ def test_takeoff_climbs_to_the_takeoff_altitude_then_holds_and_land_disarms(benc
 
 def smoothed_takeoff_rates(parameters=None, seconds=6.0) -> np.ndarray:
     """The vertical speed, every tick, of a smoothed take-off to MIS_TAKEOFF_ALT (2.5 m)."""
-    bench = Bench(Px4Options(smooth_takeoff=True), parameters=parameters)
+    bench = Bench(Px4Options(), parameters=parameters)
     try:
         bench.arm()
         assert bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan,
@@ -647,7 +647,7 @@ def test_a_takeoff_without_a_ramp_accelerates_past_the_ramps_limit():
 def test_a_takeoff_armed_into_again_starts_from_rest():
     """Disarmed mid-climb (a forced disarm: the vehicle falls) and armed again in the same
     mode, the climb starts from rest, not where the interrupted one had got to."""
-    bench = Bench(Px4Options(smooth_takeoff=True))
+    bench = Bench(Px4Options())
     try:
         bench.arm()
         bench.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
