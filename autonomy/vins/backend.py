@@ -237,12 +237,16 @@ class BackendError(RuntimeError):
 
 @dataclass(frozen=True)
 class _Keyframe:
-    """A keyframe's observations, ``ids`` sorted, ``normalised`` undistorted in the same order."""
+    """A keyframe's observations, ``ids`` sorted, ``normalised`` undistorted in the same order;
+    the iSAM2 slots of the factors made of the IMU since the keyframe before it
+    (``interval_slots``: the preintegrated factor, the drag's), and whether it flew then."""
 
     index: int
     t: float
     ids: np.ndarray
     normalised: np.ndarray
+    interval_slots: tuple[int, ...] = ()
+    airborne: bool = False
 
 
 def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float,
@@ -438,21 +442,21 @@ class SlidingWindowSmoother:
         # taken before the update, which may leave the smoother unusable; not computed here
         # for callers that never read covariances
         good_covariance = self._known_pose_covariance
-        keyframe = self._keyframe(good.index + 1, t, ids, normalised)
+        keyframe = self._keyframe(good.index + 1, t, ids, normalised, airborne and not still)
         try:
-            self._update_with_vision(keyframe, pim, still, airborne)
+            self._update_with_vision(keyframe, pim, still)
             self._check_sane(self.latest)
             return True
         except (RuntimeError, ValueError) as error:
             self.resets += 1
             self.last_failure = f"keyframe {keyframe.index} at t={keyframe.t:.3f}: {error}"
             self._rebuild(good, good_keyframe, GaugeAnchor.at(good.T_W_B, good_covariance),
-                          keyframe, pim, still, airborne)
+                          keyframe, pim, still)
             return False
 
     def _rebuild(self, good: KeyframeState, good_keyframe: _Keyframe, anchor: GaugeAnchor,
                  keyframe: _Keyframe, pim: gtsam.PreintegratedCombinedMeasurements,
-                 still: bool, airborne: bool) -> None:
+                 still: bool) -> None:
         """Start over from ``good`` with its uncertainty widened (its position and yaw carried
         by ``anchor``), then add ``keyframe`` with its IMU factor only (the observations of
         both are kept for later landmarks)."""
@@ -460,13 +464,67 @@ class SlidingWindowSmoother:
                                               REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
         try:
             self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
-            graph, values, stamps = self._imu_step(keyframe, pim, still, airborne)
-            self._smoother.update(graph, values, stamps,
-                                  eliminate_last=self._eliminated_last(keyframe.index))
+            graph, values, stamps, interval = self._imu_step(keyframe, pim, still)
+            slots = self._smoother.update(graph, values, stamps,
+                                          eliminate_last=self._eliminated_last(keyframe.index))
+            keyframe = replace(keyframe, interval_slots=tuple(slots[:interval]))
             self._read_estimate(keyframe, self._window + [keyframe])
         except (RuntimeError, ValueError) as error:
             raise BackendError(f"the rebuilt smoother refused keyframe {keyframe.index} at "
                                f"t={keyframe.t:.3f}: {error}") from error
+
+    @property
+    def window_keyframes(self) -> list[tuple[int, float]]:
+        """The window's keyframes, oldest first: index and time."""
+        return [(keyframe.index, keyframe.t) for keyframe in self._window]
+
+    def retime(self, times, pims) -> bool:
+        """Move the window's keyframes to ``times`` (one per keyframe, oldest first, increasing)
+        and replace the factors of the IMU between them by ``pims``, preintegrated over the new
+        intervals (one per pair of consecutive keyframes), then solve. For a camera time offset
+        that has moved since the keyframes were added: their images were exposed at other
+        times than they were filed at. The oldest keyframe's own interval went into the
+        marginal with the keyframe before it and stays as it was; the landmarks' factors do
+        not depend on time. Returns True when the update was used, False when it failed and
+        the smoother was started again from the newest keyframe, moved (a reset, as in
+        :meth:`add_keyframe`)."""
+        window = self._window
+        if len(times) != len(window) or len(pims) != len(window) - 1:
+            raise ValueError(f"retiming a window of {len(window)} keyframes needs as many times "
+                             f"and one IMU interval fewer, got {len(times)} and {len(pims)}")
+        if np.any(np.diff(times) <= 0.0):
+            raise ValueError("retimed keyframes must stay in increasing time order")
+        good = replace(self.latest, t=float(times[-1]))
+        good_covariance = self._known_pose_covariance
+        moved = [replace(keyframe, t=float(t)) for keyframe, t in zip(window, times)]
+        graph, stamps, removed, counts = gtsam.NonlinearFactorGraph(), {}, [], []
+        for before, keyframe, pim in zip(moved, moved[1:], pims):
+            factors = self._interval_factors(before.index, keyframe.index, pim,
+                                             keyframe.airborne)
+            for factor in factors:
+                graph.add(factor)
+            counts.append(len(factors))
+            removed.extend(keyframe.interval_slots)
+        for keyframe in moved:
+            stamps.update(dict.fromkeys(_variables(keyframe.index), keyframe.t))
+        try:
+            slots = self._smoother.update(graph, gtsam.Values(), stamps, remove=removed)
+            ends = np.cumsum(counts)
+            moved[1:] = [replace(keyframe, interval_slots=tuple(slots[end - count:end]))
+                         for keyframe, count, end in zip(moved[1:], counts, ends)]
+            self._pose_covariance = self._covariances = None
+            self._read_estimate(moved[-1], moved)
+            self._check_sane(self.latest)
+            return True
+        except (RuntimeError, ValueError) as error:
+            self.resets += 1
+            self.last_failure = f"retiming keyframes {moved[0].index}-{moved[-1].index}: {error}"
+            sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
+                                                  REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
+            newest = moved[-1]
+            self.start(good, sigmas, newest.ids, newest.normalised,
+                       GaugeAnchor.at(good.T_W_B, good_covariance))
+            return False
 
     def pose_covariance(self, max_age_s: float = 0.0) -> np.ndarray:
         """The latest keyframe pose's covariance (6x6, rotation then position, body frame):
@@ -543,36 +601,46 @@ class SlidingWindowSmoother:
         return FixedLagSmoother(self.options.smoother_lag_s, params, self.update_listener)
 
     @staticmethod
-    def _keyframe(index: int, t: float, ids, normalised) -> _Keyframe:
+    def _keyframe(index: int, t: float, ids, normalised, airborne: bool = False) -> _Keyframe:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         normalised = (np.zeros((0, 2)) if normalised is None
                       else np.asarray(normalised, dtype=float).reshape(-1, 2))
         order = np.argsort(ids)
-        return _Keyframe(index, float(t), ids[order], normalised[order])
+        return _Keyframe(index, float(t), ids[order], normalised[order], airborne=airborne)
 
-    def _imu_step(self, keyframe: _Keyframe, pim, still: bool, airborne: bool):
+    def _imu_step(self, keyframe: _Keyframe, pim, still: bool):
+        """The new keyframe's variables at the IMU's prediction, its interval's factors first
+        in the graph (their number is returned last), then its priors."""
         good = self.latest
-        k, i = keyframe.index, good.index
+        k = keyframe.index
         predicted = pim.predict(gtsam.NavState(gtsam.Pose3(good.T_W_B), good.velocity),
                                 _bias(good.bias_g, good.bias_a))
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         values.insert(X(k), predicted.pose())
         values.insert(V(k), predicted.velocity())
         values.insert(B(k), _bias(good.bias_g, good.bias_a))
-        graph.add(gtsam.CombinedImuFactor(X(i), V(i), X(k), V(k), B(i), B(k), pim))
+        interval = self._interval_factors(good.index, k, pim, keyframe.airborne and not still)
+        for factor in interval:
+            graph.add(factor)
         if self._keyframe_prior is not None:
             graph.add(gtsam.PriorFactorPose3(X(k), predicted.pose(), self._keyframe_prior))
         if still:
             graph.add(gtsam.PriorFactorVector(V(k), np.zeros(3), self._zero_velocity))
-        elif airborne and self.options.drag_coefficient > 0.0 and \
-                pim.deltaTij() <= MAX_INTERVAL_S:
-            graph.add(drag_factor((X(i), V(i), V(k), B(i)), pim, self.options.drag_coefficient,
-                                  self.options.drag_noise, self.options.huber_k))
         self._poses[k] = predicted.pose().matrix()
         stamps = {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
         if self.options.estimate_camera_mounting:
             stamps[MOUNTING] = keyframe.t  # never older than the lag: never marginalised
-        return graph, values, stamps
+        return graph, values, stamps, len(interval)
+
+    def _interval_factors(self, i: int, k: int, pim, airborne: bool) -> list:
+        """The factors the IMU's interval from keyframe ``i`` to ``k`` makes: the preintegrated
+        one, and in free flight with ``drag_coefficient`` the rotor drag's."""
+        factors = [gtsam.CombinedImuFactor(X(i), V(i), X(k), V(k), B(i), B(k), pim)]
+        if airborne and self.options.drag_coefficient > 0.0 and pim.deltaTij() <= MAX_INTERVAL_S:
+            factors.append(drag_factor((X(i), V(i), V(k), B(i)), pim,
+                                       self.options.drag_coefficient, self.options.drag_noise,
+                                       self.options.huber_k))
+        return factors
 
     def _eliminated_last(self, k: int) -> tuple[int, ...]:
         """The keys the smoother eliminates last (:mod:`autonomy.vins.fixed_lag`): keyframe
@@ -581,9 +649,8 @@ class SlidingWindowSmoother:
             return (*_variables(k), MOUNTING)
         return _variables(k)
 
-    def _update_with_vision(self, keyframe: _Keyframe, pim, still: bool,
-                            airborne: bool) -> None:
-        graph, values, stamps = self._imu_step(keyframe, pim, still, airborne)
+    def _update_with_vision(self, keyframe: _Keyframe, pim, still: bool) -> None:
+        graph, values, stamps, interval = self._imu_step(keyframe, pim, still)
         window = self._window + [keyframe]
         seen = _in_sorted(keyframe.ids, self._landmarks.ids)
         tracks, xy = self._consistent_observations(keyframe, seen)
@@ -600,6 +667,7 @@ class SlidingWindowSmoother:
                                       remove=removed)
         if hold is not self._hold:
             self._hold = None if hold is None else replace(hold, slot=slots[-1])
+        window[-1] = keyframe = replace(keyframe, interval_slots=tuple(slots[:interval]))
         for _ in range(self.options.extra_iterations):
             self._smoother.update()
         self._read_estimate(keyframe, window)

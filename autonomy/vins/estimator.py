@@ -69,6 +69,9 @@ from autonomy.vins.time_offset import PairRotations, TimeOffset, TimeOffsetEstim
 #: ``OFFSET_BACKLOG`` (a fast turn), the estimator sees only the last ``OFFSET_BACKLOG`` frames.
 OFFSET_PER_FRAME = 3
 OFFSET_BACKLOG = 8
+#: The window is moved to the offset in use once it differs by more than this from the offset
+#: any of the window's keyframes was filed at, seconds (:meth:`Vins._retime_window`).
+RETIME_TOLERANCE_S = 0.001
 
 
 @dataclass(frozen=True)
@@ -150,6 +153,8 @@ class Vins:
                                          o.gyro_alignment)
                            if o.estimate_gyro_alignment or any(o.gyro_alignment) else None)
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
+        #: the time offset each keyframe of the window was filed at, by keyframe index
+        self._keyframe_offsets: dict[int, float] = {}
         self._gap: ImuGap | None = None
         self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
         self._on_ground = False
@@ -315,6 +320,7 @@ class Vins:
     def _start(self, state: KeyframeState, sigmas: PriorSigmas, tracks: Tracks) -> None:
         self.backend.start(state, sigmas, tracks.ids, tracks.normalised)
         self._keyframe_tracks = tracks
+        self._filed_keyframe()
         self._set_anchor_from_backend()
         self._stillness.clear()
         self._stillness.add(state.t, state.T_W_B[:3, :3], tracks)
@@ -434,11 +440,9 @@ class Vins:
         """The frame at ``t`` to the smoother, with a zero-velocity prior when it stands still
         on the ground (:mod:`autonomy.vins.stillness`), by its tracks and the IMU's
         ``predicted`` attitude."""
-        latest = self.backend.latest
-        pim = self.backend.preintegration()
-        pieces = self._imu.pieces(latest.t, t)
-        for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
-            pim.integrateMeasurement(accel, gyro, dt)
+        if self._offset_estimator is not None:
+            self._retime_window()
+        pim = self._preintegrate(self.backend.latest.t, t)
         still = self._on_ground and self._stillness.still(t, predicted.R_W_B, tracks)
         # the drag factor's free flight: off the ground (by the caller) and moved since the
         # start, so not waiting for the take-off (an armed vehicle just landed still counts)
@@ -448,14 +452,66 @@ class Vins:
             self._last_reset_t = t
         self.zero_velocity_keyframes += still
         self._keyframe_tracks = tracks
+        self._filed_keyframe()
         self._set_anchor_from_backend()
         self._stillness.add(t, self._anchor.state.R_W_B, tracks)
+
+    def _preintegrate(self, t0: float, t1: float):
+        """The IMU from ``t0`` to ``t1`` preintegrated at the latest keyframe's biases."""
+        pim = self.backend.preintegration()
+        pieces = self._imu.pieces(t0, t1)
+        for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
+            pim.integrateMeasurement(accel, gyro, dt)
+        return pim
+
+    def _filed_keyframe(self) -> None:
+        """Note the offset in use for the keyframe just filed; forget those out of the window."""
+        window = {index for index, _ in self.backend.window_keyframes}
+        self._keyframe_offsets = {index: offset for index, offset
+                                  in self._keyframe_offsets.items() if index in window}
+        self._keyframe_offsets[self.backend.latest.index] = self._last_offset_s
+
+    def _retime_window(self) -> None:
+        """Move the window's keyframes to the exposure times the offset in use gives their
+        stamps, the IMU between them preintegrated again, once it differs by more than
+        :data:`RETIME_TOLERANCE_S` from the offset one of them was filed at.
+
+        Why: a vehicle's first flight starts from ``time_offset_s`` (0), and the take-off's
+        climb, with no rotation, shows the offset nothing; its first estimate comes as the
+        vehicle pitches into the cruise, when every keyframe of the window has been filed a
+        whole offset (15-18 ms in the simulator's realistic camera) away from its exposure.
+        From rest that skews the onset's baselines by ``2 td / dt``, the landmarks made from
+        them set the scale, and the rest of the flight keeps it (docs/vins.md, "The window
+        moved with the time offset"). The keyframe filed at offset ``o_k`` was stamped
+        ``t_k + o_k``; at the offset ``o`` now in use it was exposed at ``t_k + o_k - o``."""
+        offset = self._last_offset_s
+        window = self.backend.window_keyframes
+        filed = [self._keyframe_offsets.get(index) for index, _ in window]
+        if None in filed or max(abs(o - offset) for o in filed) <= RETIME_TOLERANCE_S:
+            return
+        times = [t + o - offset for (_, t), o in zip(window, filed)]
+        first = self._imu.first_time
+        if first is None or first > times[0] or np.any(np.diff(times) <= 0.0):
+            return  # the IMU does not reach back so far: the window stays as it was filed
+        pims = [self._preintegrate(t0, t1) for t0, t1 in zip(times, times[1:])]
+        if not self.backend.retime(times, pims):
+            self._last_reset_t = times[-1]
+        self._keyframe_offsets = {index: offset for index, _ in self.backend.window_keyframes}
+        self._set_anchor_from_backend()
 
     def _set_anchor_from_backend(self) -> None:
         s = self.backend.latest
         self._anchor = _Anchor(NavState(s.t, s.T_W_B[:3, :3], s.T_W_B[:3, 3], s.velocity),
                                s.bias_g, s.bias_a)
-        self._imu.discard_before(s.t)
+        self._imu.discard_before(self._imu_kept_from(s.t))
+
+    def _imu_kept_from(self, latest_t: float) -> float:
+        """The IMU is kept from the latest keyframe on, and with ``estimate_time_offset`` from
+        the window's oldest, as far again as the offset may move, to retime the window."""
+        if self._offset_estimator is None:
+            return latest_t
+        oldest = self.backend.window_keyframes[0][1]
+        return oldest - 2.0 * self.options.max_time_offset_s
 
     def _propagate_to(self, t: float) -> NavState:
         a = self._anchor
