@@ -10,6 +10,7 @@ rebuild, and each move of the hold, pins a keyframe, and its uncertainty is carr
 import math
 
 import numpy as np
+import pytest
 from gtsam.symbol_shorthand import V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
@@ -260,3 +261,57 @@ def test_the_white_noise_and_the_bias_walk_are_scaled_apart():
     assert np.allclose(default.params.getBiasAccCovariance(), (2.0 * 3e-3) ** 2 * eye)
     assert np.allclose(default.params.getAccelerometerCovariance(), (2.0 * 6.865e-4) ** 2 * eye)
     assert np.allclose(default.params.getGyroscopeCovariance(), (2.0 * 4.8869e-05) ** 2 * eye)
+
+
+def swaying_smoother(times: np.ndarray, options: VinsOptions) -> SlidingWindowSmoother:
+    """A smoother with keyframes at ``times``, each interval's IMU preintegrated from a
+    body that sways along x (``a = sin(2 pi t)`` m/s^2, level, no turn) over exactly that
+    interval, from rest at ``times[0]``."""
+    smoother = SlidingWindowSmoother(PinholeCamera.from_hfov(640, 480, math.radians(90.0)),
+                                     np.eye(4), NOISE, options)
+    smoother.start(KeyframeState(0, float(times[0]), np.eye(4), np.zeros(3), np.zeros(3),
+                                 np.zeros(3)),
+                   PriorSigmas.with_bias_priors(options, (0.017, 0.017, 0.005), 0.01, 0.02))
+    for t0, t1 in zip(times, times[1:]):
+        smoother.add_keyframe(float(t1), swaying_pim(smoother, t0, t1), [], None)
+    return smoother
+
+
+def swaying_pim(smoother: SlidingWindowSmoother, t0: float, t1: float):
+    """The swaying body's IMU from ``t0`` to ``t1``, sampled at the middle of each step."""
+    pim = smoother.preintegration()
+    edges = np.linspace(t0, t1, max(2, int(round((t1 - t0) / IMU_DT)) + 1))
+    for a, b in zip(edges, edges[1:]):
+        middle = 0.5 * (a + b)
+        pim.integrateMeasurement([math.sin(2 * math.pi * middle), 0.0, GRAVITY], np.zeros(3),
+                                 b - a)
+    return pim
+
+
+def test_a_retimed_window_is_the_window_filed_at_the_new_times():
+    """A camera time offset that moves: keyframes filed 18 ms late, then moved to their true
+    times with the IMU preintegrated again over the new intervals (``retime``), give the
+    window that was filed at the true times from the start; then the window goes on."""
+    true_times = np.arange(8) * 0.1
+    filed = swaying_smoother(true_times + 0.018, VinsOptions())
+    right = swaying_smoother(true_times, VinsOptions())
+    pims = [swaying_pim(filed, t0, t1) for t0, t1 in zip(true_times, true_times[1:])]
+    assert filed.retime(true_times, pims)
+    assert [t for _, t in filed.window_keyframes] == pytest.approx(true_times.tolist())
+    assert filed.latest.t == pytest.approx(true_times[-1])
+    np.testing.assert_allclose(filed.latest.velocity, right.latest.velocity, atol=1e-4)
+    np.testing.assert_allclose(filed.latest.T_W_B, right.latest.T_W_B, atol=1e-4)
+    speed = (1.0 - math.cos(2 * math.pi * true_times[-1])) / (2 * math.pi)  # from rest
+    assert filed.latest.velocity[0] == pytest.approx(speed, abs=1e-3)
+    t = true_times[-1] + 0.1
+    assert filed.add_keyframe(t, swaying_pim(filed, true_times[-1], t), [], None)
+    assert filed.resets == 0
+
+
+def test_a_retime_that_does_not_fit_the_window_is_refused():
+    smoother = swaying_smoother(np.arange(4) * 0.1, VinsOptions())
+    with pytest.raises(ValueError, match="4 keyframes needs as many times"):
+        smoother.retime([0.0, 0.1, 0.2], [])
+    with pytest.raises(ValueError, match="increasing time order"):
+        smoother.retime([0.0, 0.2, 0.1, 0.3],
+                        [swaying_pim(smoother, 0.0, 0.1)] * 3)

@@ -19,6 +19,7 @@ import pytest
 from autonomy.geometry import R_BODY_CAMERA, make_pose, so3_exp
 from autonomy.options import OptionError
 from autonomy.vins import VinsOptions
+from autonomy.vins.estimator import RETIME_TOLERANCE_S
 from autonomy.vins.time_offset import (
     TimeOffset, TimeOffsetEstimator, exp_so3, fit_rotation, log_so3,
 )
@@ -35,6 +36,7 @@ GOAL_S = 0.002  # issue 23: the offset recovered to within 2 ms
 MAX_POSITION_ERROR_M = 0.03
 MAX_ERROR_WITH_OFFSET_M = 0.08
 CONVERGED_BY_S = 7.0
+MOVED_BY_FRAME = 130  # 6.5 s: the offset known half a second since, the window 1.5 s long
 
 
 # ------------------------------------------------------------------ options
@@ -277,6 +279,25 @@ def test_with_a_hidden_offset_the_flight_is_tracked_throughout(runs, td):
     run = runs[(td, "on")]
     assert run.resets == 0 and "LOST" not in run.health
     assert run.position_errors().max() < MAX_ERROR_WITH_OFFSET_M
+
+
+@pytest.mark.parametrize("td", [0.015, -0.015])
+def test_the_window_is_moved_to_the_offset_in_use(flights, td):
+    """The offset moves from 0 to ``td`` as the vehicle pitches (5.5-6 s); at each keyframe the
+    window's keyframes are moved to the exposure times the offset in use then gives their
+    stamps (docs/vins.md, "The window moved with the time offset"). Half a second later,
+    with keyframes filed at offsets ``td`` apart still in the window, each sits at its stamp
+    less the offset the newest was filed at."""
+    run = run_vins_offset(flights[td], VinsOptions(estimate_time_offset=True),
+                          max_frames=MOVED_BY_FRAME)
+    backend, stamps = run.vins.backend, np.array(run.stamps)
+    offset = run.offsets[run.exposures.index(backend.latest.t)]
+    assert abs(offset - td) < GOAL_S
+    oldest = backend.window_keyframes[0][1]
+    filed_at = np.array(run.offsets)[np.array(run.exposures) >= oldest - 1e-9]
+    assert np.ptp(filed_at) > 0.5 * abs(td)  # the window spans the offset's move
+    for _, t in backend.window_keyframes:
+        assert np.abs(stamps - offset - t).min() <= RETIME_TOLERANCE_S, t
 
 
 def test_with_estimation_off_the_stamps_are_used_as_they_are(runs):

@@ -32,7 +32,10 @@ Frame times: a frame's stamp ``t`` may be late by the camera-IMU time offset ``t
 unsynchronised camera). Everything above runs at the frame's exposure time on the IMU's clock,
 ``t - td``: ``td`` is ``time_offset_s``, or, with ``estimate_time_offset``, estimated online by
 :mod:`autonomy.vins.time_offset` (the camera's rotation between frames against the gyro's) and
-applied from the next frame on. The caller keeps using its stamps: :class:`FrameUpdate` and its
+applied from the next frame on; when it has moved by more than :data:`RETIME_TOLERANCE_S` since
+a keyframe of the window was filed, the window's keyframes are moved to the exposure times it
+now gives their stamps and the IMU between them is preintegrated again
+(:meth:`Vins._retime_window`). The caller keeps using its stamps: :class:`FrameUpdate` and its
 sparse map carry ``t``, with the offset that was subtracted.
 
 Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate is
