@@ -58,6 +58,8 @@ MOVED_BY_FRAME = 130  # 6.5 s: the offset known half a second since, the window 
     ({"time_offset_max_sigma_s": -0.001}, "time_offset_max_sigma_s"),
     ({"time_offset_max_step_s": 0.0}, "time_offset_max_step_s"),
     ({"time_offset_max_step_s": math.inf}, "time_offset_max_step_s"),
+    ({"retime_window": True}, "retime_window"),  # without estimate_time_offset
+    ({"retime_window": "yes", "estimate_time_offset": True}, "retime_window"),
 ])
 def test_bad_time_offset_options_are_refused_with_their_name(changes, key):
     with pytest.raises(OptionError) as error:
@@ -283,13 +285,13 @@ def test_with_a_hidden_offset_the_flight_is_tracked_throughout(runs, td):
 
 @pytest.mark.parametrize("td", [0.015, -0.015])
 def test_the_window_is_moved_to_the_offset_in_use(flights, td):
-    """The offset moves from 0 to ``td`` as the vehicle pitches (5.5-6 s); at each keyframe the
-    window's keyframes are moved to the exposure times the offset in use then gives their
-    stamps (docs/vins.md, "The window moved with the time offset"). Half a second later,
-    with keyframes filed at offsets ``td`` apart still in the window, each sits at its stamp
-    less the offset the newest was filed at."""
-    run = run_vins_offset(flights[td], VinsOptions(estimate_time_offset=True),
-                          max_frames=MOVED_BY_FRAME)
+    """The offset moves from 0 to ``td`` as the vehicle pitches (5.5-6 s); with
+    ``retime_window``, at each keyframe the window's keyframes are moved to the exposure times
+    the offset in use then gives their stamps (docs/vins.md, "The window moved with the time
+    offset"). Half a second later, with keyframes filed at offsets ``td`` apart still in the
+    window, each sits at its stamp less the offset the newest was filed at."""
+    options = VinsOptions(estimate_time_offset=True, retime_window=True)
+    run = run_vins_offset(flights[td], options, max_frames=MOVED_BY_FRAME)
     backend, stamps = run.vins.backend, np.array(run.stamps)
     offset = run.offsets[run.exposures.index(backend.latest.t)]
     assert abs(offset - td) < GOAL_S

@@ -32,8 +32,9 @@ Frame times: a frame's stamp ``t`` may be late by the camera-IMU time offset ``t
 unsynchronised camera). Everything above runs at the frame's exposure time on the IMU's clock,
 ``t - td``: ``td`` is ``time_offset_s``, or, with ``estimate_time_offset``, estimated online by
 :mod:`autonomy.vins.time_offset` (the camera's rotation between frames against the gyro's) and
-applied from the next frame on; when it has moved by more than :data:`RETIME_TOLERANCE_S` since
-a keyframe of the window was filed, the window's keyframes are moved to the exposure times it
+applied from the next frame on; with ``retime_window``, when it has moved by more than
+:data:`RETIME_TOLERANCE_S` since a keyframe of the window was filed, the window's keyframes are
+moved to the exposure times it
 now gives their stamps and the IMU between them is preintegrated again
 (:meth:`Vins._retime_window`). The caller keeps using its stamps: :class:`FrameUpdate` and its
 sparse map carry ``t``, with the offset that was subtracted.
@@ -443,7 +444,7 @@ class Vins:
         """The frame at ``t`` to the smoother, with a zero-velocity prior when it stands still
         on the ground (:mod:`autonomy.vins.stillness`), by its tracks and the IMU's
         ``predicted`` attitude."""
-        if self._offset_estimator is not None:
+        if self._offset_estimator is not None and self.options.retime_window:
             self._retime_window()
         pim = self._preintegrate(self.backend.latest.t, t)
         still = self._on_ground and self._stillness.still(t, predicted.R_W_B, tracks)
@@ -509,9 +510,9 @@ class Vins:
         self._imu.discard_before(self._imu_kept_from(s.t))
 
     def _imu_kept_from(self, latest_t: float) -> float:
-        """The IMU is kept from the latest keyframe on, and with ``estimate_time_offset`` from
-        the window's oldest, as far again as the offset may move, to retime the window."""
-        if self._offset_estimator is None:
+        """The IMU is kept from the latest keyframe on, and with ``retime_window`` from the
+        window's oldest, as far again as the offset may move, to retime the window."""
+        if self._offset_estimator is None or not self.options.retime_window:
             return latest_t
         oldest = self.backend.window_keyframes[0][1]
         return oldest - 2.0 * self.options.max_time_offset_s

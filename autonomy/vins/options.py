@@ -175,6 +175,11 @@ class VinsOptions:
                                             "(enough rotational excitation), seconds")
     time_offset_max_step_s: float = option(0.002, gt=0.0, le=0.05, doc="largest change of the "
                                            "estimate per frame, seconds")
+    retime_window: bool = option(False, doc="with estimate_time_offset, move the window's "
+                                 "keyframes to the times the offset gives their stamps when "
+                                 "it moves, the IMU between them preintegrated again (off: "
+                                 "measured, docs/vins.md, \"The window moved with the time "
+                                 "offset\")")
     # --- the gyro's response to yaw (autonomy/vins/gyro_alignment.py, docs/vins.md)
     estimate_gyro_alignment: bool = option(False, doc="estimate the gyro's response to the "
                                            "yaw rate against the camera's rotation online and "
@@ -238,6 +243,9 @@ class VinsOptions:
         if self.time_offset_pair_s >= self.time_offset_window_s:
             raise OptionError("time_offset_pair_s", "must be shorter than time_offset_window_s"
                               f" ({self.time_offset_window_s}), got {self.time_offset_pair_s}")
+        if self.retime_window and not self.estimate_time_offset:
+            raise OptionError("retime_window", "needs estimate_time_offset = true (a fixed "
+                              "offset never moves)")
         if self.estimate_gyro_alignment and not self.estimate_time_offset:
             raise OptionError("estimate_gyro_alignment", "needs estimate_time_offset = true "
                               "(the gyro is aligned on the time-offset estimator's frame pairs)")
