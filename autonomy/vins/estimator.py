@@ -34,10 +34,9 @@ unsynchronised camera). Everything above runs at the frame's exposure time on th
 :mod:`autonomy.vins.time_offset` (the camera's rotation between frames against the gyro's) and
 applied from the next frame on; with ``retime_window``, when it has moved by more than
 :data:`RETIME_TOLERANCE_S` since a keyframe of the window was filed, the window's keyframes are
-moved to the exposure times it
-now gives their stamps and the IMU between them is preintegrated again
-(:meth:`Vins._retime_window`). The caller keeps using its stamps: :class:`FrameUpdate` and its
-sparse map carry ``t``, with the offset that was subtracted.
+moved to the exposure times it now gives their stamps and the IMU between them is
+preintegrated again (:meth:`Vins._retime_window`). The caller keeps using its stamps:
+:class:`FrameUpdate` and its sparse map carry ``t``, with the offset that was subtracted.
 
 Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate is
 estimated on the time offset's frame pairs and every sample is corrected by it before use
@@ -487,7 +486,9 @@ class Vins:
         From rest that skews the onset's baselines by ``2 td / dt``, the landmarks made from
         them set the scale, and the rest of the flight keeps it (docs/vins.md, "The window
         moved with the time offset"). The keyframe filed at offset ``o_k`` was stamped
-        ``t_k + o_k``; at the offset ``o`` now in use it was exposed at ``t_k + o_k - o``."""
+        ``t_k + o_k``; at the offset ``o`` now in use it was exposed at ``t_k + o_k - o``.
+        Keyframes already marginalised stay as filed: the climb's, whose error then shows as
+        a long path (why it is off by default)."""
         offset = self._last_offset_s
         window = self.backend.window_keyframes
         filed = [self._keyframe_offsets.get(index) for index, _ in window]
