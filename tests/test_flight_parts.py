@@ -4,6 +4,7 @@ frame alignment, the simulated camera (the navigation decisions: test_navigation
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import re
 import threading
@@ -187,11 +188,20 @@ def _wait_until(condition, seconds=2.0) -> bool:
     return condition()
 
 
-def test_watchdog_sends_the_stop_when_setpoints_go_stale_and_yields_when_they_resume():
-    now, sent = _Now(), []
-    watchdog = SetpointWatchdog(now, lambda t: sent.append(t), deadline_s=0.2, period_s=0.01)
+@contextlib.contextmanager
+def _running_watchdog(now: _Now, send_stop, deadline_s: float):
+    """A started watchdog sending at 100 Hz, closed (its thread joined) afterwards."""
+    watchdog = SetpointWatchdog(now, send_stop, deadline_s=deadline_s, period_s=0.01)
     watchdog.start()
     try:
+        yield watchdog
+    finally:
+        watchdog.close()
+
+
+def test_watchdog_sends_the_stop_when_setpoints_go_stale_and_yields_when_they_resume():
+    now, sent = _Now(), []
+    with _running_watchdog(now, sent.append, deadline_s=0.2) as watchdog:
         watchdog.arm(True)
         watchdog.fed(0.0)
         now.value = 0.1
@@ -205,8 +215,6 @@ def test_watchdog_sends_the_stop_when_setpoints_go_stale_and_yields_when_they_re
         count = len(sent)
         time.sleep(0.1)
         assert len(sent) == count
-    finally:
-        watchdog.close()
 
 
 def test_watchdog_stays_quiet_when_disarmed_and_survives_a_failing_send():
@@ -216,9 +224,7 @@ def test_watchdog_stays_quiet_when_disarmed_and_survives_a_failing_send():
     def failing(t):
         calls.append(t)
         raise OSError("link gone")
-    watchdog = SetpointWatchdog(now, failing, deadline_s=0.1, period_s=0.01)
-    watchdog.start()
-    try:
+    with _running_watchdog(now, failing, deadline_s=0.1) as watchdog:
         watchdog.fed(0.0)
         now.value = 1.0
         time.sleep(0.1)
@@ -228,8 +234,6 @@ def test_watchdog_stays_quiet_when_disarmed_and_survives_a_failing_send():
         now.value = 2.0
         assert _wait_until(lambda: len(calls) >= 2)  # kept trying after the error
         assert watchdog.fired == 0
-    finally:
-        watchdog.close()
     assert not any(t.name == "setpoint-watchdog" for t in threading.enumerate())
 
 
@@ -239,9 +243,7 @@ def test_watchdog_armed_again_after_a_pause_waits_for_the_next_setpoint():
     from the first setpoint after it (the fault matrix's packet loss at take-off fired one
     stop between the loop's arm and its next setpoint)."""
     now, sent = _Now(), []
-    watchdog = SetpointWatchdog(now, lambda t: sent.append(t), deadline_s=0.1, period_s=0.01)
-    watchdog.start()
-    try:
+    with _running_watchdog(now, sent.append, deadline_s=0.1) as watchdog:
         watchdog.arm(True)
         watchdog.fed(0.0)
         watchdog.arm(False)  # the link lost: no setpoints for a while
@@ -252,8 +254,6 @@ def test_watchdog_armed_again_after_a_pause_waits_for_the_next_setpoint():
         watchdog.fed(5.0)
         now.value = 5.5  # and now the loop is late
         assert _wait_until(lambda: len(sent) >= 1)
-    finally:
-        watchdog.close()
 
 
 # ---------------------------------------------------------------- frames

@@ -460,10 +460,8 @@ class SlidingWindowSmoother:
         """Start over from ``good`` with its uncertainty widened (its position and yaw carried
         by ``anchor``), then add ``keyframe`` with its IMU factor only (the observations of
         both are kept for later landmarks)."""
-        sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
-                                              REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
         try:
-            self.start(good, sigmas, good_keyframe.ids, good_keyframe.normalised, anchor)
+            self._start_over(good, good_keyframe, anchor)
             graph, values, stamps, interval = self._imu_step(keyframe, pim, still)
             slots = self._smoother.update(graph, values, stamps,
                                           eliminate_last=self._eliminated_last(keyframe.index))
@@ -519,12 +517,16 @@ class SlidingWindowSmoother:
         except (RuntimeError, ValueError) as error:
             self.resets += 1
             self.last_failure = f"retiming keyframes {moved[0].index}-{moved[-1].index}: {error}"
-            sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
-                                                  REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
-            newest = moved[-1]
-            self.start(good, sigmas, newest.ids, newest.normalised,
-                       GaugeAnchor.at(good.T_W_B, good_covariance))
+            self._start_over(good, moved[-1], GaugeAnchor.at(good.T_W_B, good_covariance))
             return False
+
+    def _start_over(self, state: KeyframeState, keyframe: _Keyframe,
+                    anchor: GaugeAnchor) -> None:
+        """A new smoother at ``state`` with its uncertainty widened (its position and yaw
+        carried by ``anchor``), ``keyframe``'s observations kept for later landmarks."""
+        sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
+                                              REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
+        self.start(state, sigmas, keyframe.ids, keyframe.normalised, anchor)
 
     def pose_covariance(self, max_age_s: float = 0.0) -> np.ndarray:
         """The latest keyframe pose's covariance (6x6, rotation then position, body frame):
