@@ -351,6 +351,7 @@ class SlidingWindowSmoother:
         self._covariances: tuple[int, np.ndarray, np.ndarray] | None = None
         self._anchor: GaugeAnchor | None = None
         self._hold: _GaugeHold | None = None
+        self._kept_from: float | None = None
         self._known_pose_covariance = np.full((6, 6), np.nan)
         self._landmarks = Landmarks.empty()
 
@@ -470,6 +471,14 @@ class SlidingWindowSmoother:
         except (RuntimeError, ValueError) as error:
             raise BackendError(f"the rebuilt smoother refused keyframe {keyframe.index} at "
                                f"t={keyframe.t:.3f}: {error}") from error
+
+    def keep_window_from(self, t: float | None) -> None:
+        """Keep every keyframe and landmark stamped at or after ``t`` in the window, however
+        old, from the next update on; None lets them go (:mod:`autonomy.vins.fixed_lag`).
+        A smoother started again keeps the same."""
+        self._kept_from = None if t is None else float(t)
+        if self._smoother is not None:
+            self._smoother.kept_from = self._kept_from
 
     @property
     def window_keyframes(self) -> list[tuple[int, float]]:
@@ -600,7 +609,9 @@ class SlidingWindowSmoother:
         params.relinearizeSkip = 1
         params.findUnusedFactorSlots = True
         params.setFactorization(self.options.factorization.upper())
-        return FixedLagSmoother(self.options.smoother_lag_s, params, self.update_listener)
+        smoother = FixedLagSmoother(self.options.smoother_lag_s, params, self.update_listener)
+        smoother.kept_from = self._kept_from
+        return smoother
 
     @staticmethod
     def _keyframe(index: int, t: float, ids, normalised, airborne: bool = False) -> _Keyframe:
@@ -686,7 +697,7 @@ class SlidingWindowSmoother:
         hold = self._hold
         if not self.options.hold_gauge:
             return [], hold
-        kept = [kf for kf in self._window if kf.t >= newest_t - self.options.smoother_lag_s]
+        kept = [kf for kf in self._window if kf.t >= self._smoother.cutoff(newest_t)]
         if hold is not None and any(kf.index == hold.index for kf in kept):
             return [], hold
         removed = [] if hold is None or hold.slot is None else [hold.slot]

@@ -35,7 +35,9 @@ unsynchronised camera). Everything above runs at the frame's exposure time on th
 applied from the next frame on; with ``retime_window``, when it has moved by more than
 :data:`RETIME_TOLERANCE_S` since a keyframe of the window was filed, the window's keyframes are
 moved to the exposure times it now gives their stamps and the IMU between them is
-preintegrated again (:meth:`Vins._retime_window`). The caller keeps using its stamps:
+preintegrated again (:meth:`Vins._retime_window`); with ``takeoff_window_s`` too, the window
+stops sliding when the vehicle first moves and keeps its keyframes until the offset is known
+(:meth:`Vins._keep_window_open`). The caller keeps using its stamps:
 :class:`FrameUpdate` and its sparse map carry ``t``, with the offset that was subtracted.
 
 Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate is
@@ -158,6 +160,9 @@ class Vins:
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
         #: the time offset each keyframe of the window was filed at, by keyframe index
         self._keyframe_offsets: dict[int, float] = {}
+        #: the take-off's window (:meth:`_keep_window_open`): kept from this time; done once
+        self._window_kept_from: float | None = None
+        self._window_kept_done = False
         self._gap: ImuGap | None = None
         self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
         self._on_ground = False
@@ -445,6 +450,7 @@ class Vins:
         ``predicted`` attitude."""
         if self._offset_estimator is not None and self.options.retime_window:
             self._retime_window()
+            self._keep_window_open(t)
         pim = self._preintegrate(self.backend.latest.t, t)
         still = self._on_ground and self._stillness.still(t, predicted.R_W_B, tracks)
         # the drag factor's free flight: off the ground (by the caller) and moved since the
@@ -503,6 +509,33 @@ class Vins:
             self._last_reset_t = times[-1]
         self._keyframe_offsets = {index: offset for index, _ in self.backend.window_keyframes}
         self._set_anchor_from_backend()
+
+    def _keep_window_open(self, t: float) -> None:
+        """With ``takeoff_window_s``: when the vehicle first moves with the time offset not yet
+        known, the window stops sliding and keeps every keyframe it then holds and every one
+        after; once the offset is known (its sigma within ``time_offset_max_sigma_s``, the
+        window retimed to it just before), or ``takeoff_window_s`` after the window's start,
+        the keyframe at ``t`` lets them go and the window is the lag's again. Once a flight.
+
+        Why: the take-off's climb shows the offset nothing, so its keyframes are filed at the
+        offset the flight started from; with the lag alone they are marginalised before
+        anything shows it, and what they made of the landmarks' depths stays in the window's
+        marginal, which the retiming cannot reach (docs/vins.md, "The window moved with the
+        time offset"). Kept open, they are moved with the rest of the window."""
+        if self.options.takeoff_window_s <= 0.0 or self._window_kept_done:
+            return
+        offset = self._offset_estimator.offset
+        known = offset.sigma is not None and offset.sigma <= self.options.time_offset_max_sigma_s
+        if self._window_kept_from is None:
+            if self._moved and not known:
+                self._window_kept_from = self.backend.window_keyframes[0][1]
+                self.backend.keep_window_from(self._window_kept_from)
+            elif self._moved:
+                self._window_kept_done = True  # known before it moved: nothing to keep
+            return
+        if known or t - self._window_kept_from > self.options.takeoff_window_s:
+            self.backend.keep_window_from(None)
+            self._window_kept_done = True
 
     def _set_anchor_from_backend(self) -> None:
         s = self.backend.latest

@@ -24,6 +24,12 @@ velocity or bias). Measured, not proven: no refusal on any of the 35 recordings 
 the bias alone last, the first version, still met two in mid-window. The solution is the same for
 any ordering.
 
+The window can be kept open (:attr:`FixedLagSmoother.kept_from`): every variable stamped at or
+after a time stays however old it grows, until the caller lets it go; the next update then
+marginalises all that the lag leaves behind. What it is for: a keyframe filed at a wrong camera
+time offset can be moved while it is in the window, not once it is in the marginal
+(:meth:`autonomy.vins.estimator.Vins._keep_window_open`).
+
 Every update re-eliminates the whole window (``extraReelimKeys``) so that the constraint
 groups order all of it; a new keyframe sees most of the window's landmarks, so iSAM2 would
 re-eliminate nearly all of it anyway (docs/benchmarks.md, "VINS back-end").
@@ -58,6 +64,14 @@ class FixedLagSmoother:
         self._isam = gtsam.ISAM2(params)
         self._stamps: dict[int, float] = {}
         self._last: frozenset[int] = frozenset()
+        #: variables stamped at or after this time are not marginalised (None: the lag alone)
+        self.kept_from: float | None = None
+
+    def cutoff(self, newest: float) -> float:
+        """The update at ``newest`` marginalises the variables stamped before this time: the
+        lag's, or :attr:`kept_from` when that is earlier."""
+        cutoff = newest - self.lag
+        return cutoff if self.kept_from is None else min(cutoff, self.kept_from)
 
     def update(self, graph: gtsam.NonlinearFactorGraph | None = None,
                values: gtsam.Values | None = None, stamps: Mapping[int, float] | None = None,
@@ -65,7 +79,7 @@ class FixedLagSmoother:
                remove: Collection[int] = ()) -> list[int]:
         """Add ``graph`` with the new variables ``values``, (re)stamp the variables in
         ``stamps`` (seconds), remove the factors at the iSAM2 slots ``remove``, solve, and
-        marginalise every variable older than the lag. ``eliminate_last`` are the keys
+        marginalise every variable older than the lag (or :attr:`kept_from`). ``eliminate_last`` are the keys
         eliminated last from now on (they must be in the window); without them, those named
         before, until they are marginalised. Returns the slots of ``graph``'s factors, in
         order. A factor removed in the update that marginalises its variables never enters
@@ -83,8 +97,8 @@ class FixedLagSmoother:
                              "its new variables")
         self._stamps.update(stamps)
         self._last = last
-        newest = max(self._stamps.values())
-        old = [key for key, t in self._stamps.items() if t < newest - self.lag]
+        cutoff = self.cutoff(max(self._stamps.values()))
+        old = [key for key, t in self._stamps.items() if t < cutoff]
         params = gtsam.ISAM2UpdateParams()
         params.constrainedKeys = self._groups(old)
         # one set of the few new keys, not a GTSAM look-up per key of the window

@@ -180,6 +180,12 @@ class VinsOptions:
                                  "it moves, the IMU between them preintegrated again (off: "
                                  "measured, docs/vins.md, \"The window moved with the time "
                                  "offset\")")
+    takeoff_window_s: float = option(0.0, ge=0.0, le=20.0, doc="with retime_window, the "
+                                     "window stops sliding when the vehicle first moves and "
+                                     "keeps every keyframe until the time offset is known, at "
+                                     "most this long, seconds, so that the climb's keyframes are "
+                                     "moved to it too (0: the lag alone; docs/vins.md, \"The "
+                                     "take-off's window kept open\")")
     # --- the gyro's response to yaw (autonomy/vins/gyro_alignment.py, docs/vins.md)
     estimate_gyro_alignment: bool = option(False, doc="estimate the gyro's response to the "
                                            "yaw rate against the camera's rotation online and "
@@ -246,6 +252,12 @@ class VinsOptions:
         if self.retime_window and not self.estimate_time_offset:
             raise OptionError("retime_window", "needs estimate_time_offset = true (a fixed "
                               "offset never moves)")
+        if self.takeoff_window_s > 0.0 and not self.retime_window:
+            raise OptionError("takeoff_window_s", "needs retime_window = true (a window kept "
+                              "open for the offset is moved to it by the retiming)")
+        if 0.0 < self.takeoff_window_s < self.smoother_lag_s:
+            raise OptionError("takeoff_window_s", "must be 0 or at least smoother_lag_s "
+                              f"({self.smoother_lag_s}), got {self.takeoff_window_s}")
         if self.estimate_gyro_alignment and not self.estimate_time_offset:
             raise OptionError("estimate_gyro_alignment", "needs estimate_time_offset = true "
                               "(the gyro is aligned on the time-offset estimator's frame pairs)")
