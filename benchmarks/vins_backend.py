@@ -1,7 +1,7 @@
 """Speed of the VINS back-end on one core: milliseconds per keyframe on simulated flights.
 
     python benchmarks/vins_backend.py [--duration 20] [--worlds mine sewer dome] [--dataset DIR]
-        [--set KEY=VALUE ...]
+        [--base KEY=VALUE ...] [--set KEY=VALUE ...]
 
 Records a simulated flight per world (seed 0; or uses the EuRoC/ASL dataset given), pins the
 process to one CPU (and OpenCV to one thread), and runs the whole VINS over it with the
@@ -15,7 +15,8 @@ evaluation asks for at every keyframe and the odometry every ``covariance_period
 ``--set`` (``[vins]`` keys, TOML
 values: ``--set drag_coefficient=0.3``) each flight is also run with those options, default and
 variant twice in turn (A B A B) so that the host's load falls on both alike, and both are
-reported. Prints one JSON object.
+reported; ``--base`` settings go into both (the default is then the defaults with them: an
+option that needs another, timed against that other alone). Prints one JSON object.
 """
 
 import argparse
@@ -76,14 +77,14 @@ def measure(root: Path, options: VinsOptions) -> dict:
             **timing, "resets": score["resets"]}
 
 
-def measure_pair(root: Path, variant: VinsOptions | None) -> dict:
-    """The default options' run; with a ``variant``, both twice in turn (A B A B), each timing
-    the mean of its two runs."""
+def measure_pair(root: Path, default: VinsOptions, variant: VinsOptions | None) -> dict:
+    """The ``default`` options' run; with a ``variant``, both twice in turn (A B A B), each
+    timing the mean of its two runs."""
     if variant is None:
-        return measure(root, VinsOptions())
+        return measure(root, default)
     runs = {"default": [], "variant": []}
     for _ in range(2):
-        runs["default"].append(measure(root, VinsOptions()))
+        runs["default"].append(measure(root, default))
         runs["variant"].append(measure(root, variant))
     result = {}
     for name, pair in runs.items():
@@ -92,11 +93,9 @@ def measure_pair(root: Path, variant: VinsOptions | None) -> dict:
     return result
 
 
-def parse_variant(settings: list[str]) -> VinsOptions | None:
-    """``VinsOptions`` with the ``KEY=VALUE`` settings (TOML values), or None for none;
+def parse_options(settings: list[str], start: VinsOptions | None = None) -> VinsOptions:
+    """``start`` (the defaults when None) with the ``KEY=VALUE`` settings (TOML values);
     ValueError naming the setting that is not one."""
-    if not settings:
-        return None
     changes = {}
     for setting in settings:
         key, _, value = setting.partition("=")
@@ -105,7 +104,7 @@ def parse_variant(settings: list[str]) -> VinsOptions | None:
         except tomllib.TOMLDecodeError as error:
             raise ValueError(f"--set {setting}: {value!r} is not a TOML value ({error})") from None
     try:
-        return dataclasses.replace(VinsOptions(), **changes)
+        return dataclasses.replace(start or VinsOptions(), **changes)
     except (TypeError, OptionError) as error:
         raise ValueError(f"--set {' '.join(settings)}: {error}") from None
 
@@ -115,18 +114,21 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=20.0)
     parser.add_argument("--worlds", nargs="+", default=list(WORLD_NAMES), choices=WORLD_NAMES)
     parser.add_argument("--dataset", type=Path, help="a recorded dataset instead of new flights")
+    parser.add_argument("--base", action="append", default=[], metavar="KEY=VALUE",
+                        help="a [vins] option of both the default and the variant")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a [vins] option of a variant timed beside the defaults")
     args = parser.parse_args()
     try:
-        variant = parse_variant(args.set)
+        default = parse_options(args.base)
+        variant = parse_options(args.base + args.set) if args.set else None
     except ValueError as error:
         parser.error(str(error))
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     cv2.setNumThreads(1)
     if args.dataset is not None:
-        print(json.dumps({"cpus": 1, "variant": args.set,
-                          "runs": [measure_pair(args.dataset, variant)]}))
+        print(json.dumps({"cpus": 1, "base": args.base, "variant": args.set,
+                          "runs": [measure_pair(args.dataset, default, variant)]}))
         return
     runs = []
     with tempfile.TemporaryDirectory() as scratch:
@@ -134,8 +136,9 @@ def main() -> None:
             root = Path(scratch) / world
             record_dataset(root, SimOptions(world=world, seed=0), CameraOptions(),
                            VehicleOptions(), ImuOptions(), duration=args.duration)
-            runs.append({"world": world, **measure_pair(root, variant)})
-    print(json.dumps({"cpus": 1, "duration_s": args.duration, "variant": args.set,
+            runs.append({"world": world, **measure_pair(root, default, variant)})
+    print(json.dumps({"cpus": 1, "duration_s": args.duration, "base": args.base,
+                      "variant": args.set,
                       "runs": runs}))
 
 

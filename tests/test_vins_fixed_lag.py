@@ -77,6 +77,28 @@ def test_it_estimates_and_marginalises_as_gtsams_fixed_lag_smoother():
     np.testing.assert_allclose(covariance, gtsams.marginalCovariance(X(40)), rtol=1e-6)
 
 
+def test_a_window_kept_open_keeps_its_variables_until_let_go():
+    """Kept from 0.45 s: however long the chain grows, nothing stamped since leaves the window,
+    and what came before leaves as the lag says; let go, the next update leaves the lag's
+    window alone."""
+    smoother = FixedLagSmoother(LAG, isam2_params())
+    chain = fly_a_pose_chain(smoother, 40)
+    for k in chain:
+        if k == 10:
+            smoother.kept_from = 0.45
+        if k == 30:
+            break
+    estimate = smoother.calculateEstimate()
+    assert not estimate.exists(X(4)) and not estimate.exists(B(4))
+    assert all(estimate.exists(X(k)) and estimate.exists(B(k)) for k in range(5, 31))
+    smoother.kept_from = None
+    assert next(chain) == 31
+    estimate = smoother.calculateEstimate()
+    window = round(LAG / STEP)
+    assert not estimate.exists(X(31 - window - 1))
+    assert all(estimate.exists(X(k)) for k in range(31 - window + 1, 32))
+
+
 def test_the_variable_to_eliminate_last_must_be_in_the_window():
     smoother = FixedLagSmoother(LAG, isam2_params())
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()

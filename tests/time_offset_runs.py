@@ -58,7 +58,8 @@ class OffsetRun:
     ``backend_ms``: the time :meth:`Vins.add_frame` took on each keyframe, ``other_ms`` on
     each other frame; ``offset_ms``: per frame, ``(keyframe, ms)`` spent in the time-offset
     estimator's frame work during it; ``offset_imu_s``: total time in its IMU work;
-    ``windows``: every window's own solution, ``(stamp, offset, sigma)`` in seconds."""
+    ``windows``: every window's own solution, ``(stamp, offset, sigma)`` in seconds;
+    ``window_s``: per frame, the time the smoother's window spans, oldest keyframe to newest."""
 
     stamps: list = field(default_factory=list)
     exposures: list = field(default_factory=list)
@@ -73,6 +74,7 @@ class OffsetRun:
     offset_imu_s: float = 0.0
     imu_samples: int = 0
     windows: list = field(default_factory=list)
+    window_s: list = field(default_factory=list)
     resets: int = 0
     vins: Vins | None = None
     data: object = None
@@ -130,6 +132,8 @@ def run_vins_offset(root: Path, options: VinsOptions, *,
         run.positions.append(None if update.T_W_B is None else update.T_W_B[:3, 3].copy())
         run.velocities.append(None if update.velocity_W is None else update.velocity_W.copy())
         run.health.append(update.health.state.name)
+        window = vins.backend.window_keyframes if vins.backend.started else []
+        run.window_s.append(window[-1][1] - window[0][1] if window else 0.0)
     run.resets = vins.resets
     return run
 

@@ -79,11 +79,11 @@ class FixedLagSmoother:
                remove: Collection[int] = ()) -> list[int]:
         """Add ``graph`` with the new variables ``values``, (re)stamp the variables in
         ``stamps`` (seconds), remove the factors at the iSAM2 slots ``remove``, solve, and
-        marginalise every variable older than the lag (or :attr:`kept_from`). ``eliminate_last`` are the keys
-        eliminated last from now on (they must be in the window); without them, those named
-        before, until they are marginalised. Returns the slots of ``graph``'s factors, in
-        order. A factor removed in the update that marginalises its variables never enters
-        their marginal."""
+        marginalise every variable older than the lag (or :attr:`kept_from`).
+        ``eliminate_last`` are the keys eliminated last from now on (they must be in the
+        window); without them, those named before, until they are marginalised. Returns the
+        slots of ``graph``'s factors, in order. A factor removed in the update that
+        marginalises its variables never enters their marginal."""
         graph = gtsam.NonlinearFactorGraph() if graph is None else graph
         values = gtsam.Values() if values is None else values
         stamps = dict(stamps or {})
