@@ -728,7 +728,10 @@ def test_a_comparison_counts_what_changed_on_the_trials_both_runs_flew():
     assert gt == {"trials": 8, "success": [4, 4], "collision": [0, 0],
                   "mean_speed_mps": [speed, speed], "least_clearance_m": [1.2, 1.2],
                   "vins_error_median_m": [0.5, 0.5], "identical": 8, "changed": [],
-                  "time_ratio": {"median": 1.0, "min": 1.0, "max": 1.0, "trials": 4}}
+                  "time_ratio": {"median": 1.0, "min": 1.0, "max": 1.0, "trials": 4},
+                  "vins_at_end": {"worst_m": [0.5, 0.5], "over_far": [0, 0], "long": [0, 0],
+                                  "scale_off_median_pct": [None, None], "nearer": 0,
+                                  "farther": 0}}
     assert estimated["success"] == [4, 4] and estimated["collision"] == [0, 1]
     assert estimated["identical"] == 5
     assert estimated["changed"] == [
@@ -737,6 +740,30 @@ def test_a_comparison_counts_what_changed_on_the_trials_both_runs_flew():
     assert estimated["least_clearance_m"] == [1.2, 0.3]
     # of the three successes in both runs, one flew 0.8 of the time: the median is 1
     assert estimated["time_ratio"] == {"median": 1.0, "min": 0.8, "max": 1.0, "trials": 3}
+
+
+def _ended(record: dict, error: float, scale: float | None) -> dict:
+    split = None if scale is None else {"distance_m": 50.0, "scale": scale}
+    return {**record, "position_error_m": error, "position_error_split": split}
+
+
+def test_a_comparison_judges_the_vins_at_the_end_as_issue_24_does():
+    """Worst, over 1 m, nearer and farther, paths made long and the median |scale - 1|, per
+    run, on made-up errors at the end; a trial that raised has none and counts in neither."""
+    before, after = _flown_records(1, 1), _flown_records(1, 1)  # 4 GT trials, 4 estimated
+    gt = [i for i, r in enumerate(before) if r["depth"] == "gt"]
+    for i, (b, a) in zip(gt, [((0.4, 1.01), (0.3, 0.995)), ((2.5, 0.95), (0.9, 1.02)),
+                              ((0.6, None), (0.7, 1.03)), ((0.2, 1.002), (0.2, 1.002))]):
+        before[i], after[i] = _ended(before[i], *b), _ended(after[i], *a)
+    after[gt[3]] = nav.error_record(
+        nav.Trial(**{k: after[gt[3]][k] for k in ("world", "pair", "depth", "index", "seed")}),
+        "Traceback\nValueError: no such pair", timeout_s=120.0)
+    end = nav_compare.compare_runs(before, after)["sources"]["gt"]["vins_at_end"]
+    assert end["worst_m"] == [2.5, 0.9] and end["over_far"] == [1, 0]
+    assert (end["nearer"], end["farther"]) == (2, 1)  # the trial that raised: neither
+    assert end["long"] == [2, 2]  # 1.01, 1.002 before; 1.02, 1.03 after
+    # |scale - 1| before 1.0, 5.0, 0.2 %; after 0.5, 2.0, 3.0 %
+    assert end["scale_off_median_pct"] == [pytest.approx(1.0), pytest.approx(2.0)]
 
 
 def test_a_run_compared_with_itself_is_identical_but_for_the_trials_that_raised():
@@ -781,6 +808,7 @@ def test_eval_nav_compare_reports_the_comparison_of_two_runs_files(tmp_path, cap
     assert text.startswith(f"## Navigation runs compared: {before} → {after}")
     assert ("| estimated | 8 | 5 | 4 → 4 | 0 → 1 | 0.77 → 0.77 | 1.20 → 0.30 | 0.50 → 0.50 | "
             "1.00 | 0.80–1.00 | 3 |") in text
+    assert "| estimated | 0.50 → 0.50 | 0.50 → 0.50 | 0 → 0 | 0 | 0 | 0 → 0 | n/a → n/a |" in text
     assert "- sewer pair 1 estimated seed 1: success → collision" in text
     assert markdown.read_text() == text
 

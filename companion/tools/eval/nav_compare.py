@@ -13,7 +13,10 @@ Per depth source, over the common trials: each run's numbers as ``eval nav`` cou
 VINS error at the end), the trials that changed outcome, the trials flown identically, and for
 the trials both runs brought to the goal the ratio after/before of their times to the goal
 (``time_to_goal_s``, Offboard to goal): median, range and count. A ratio below 1 is a faster
-flight after the change.
+flight after the change. And the VINS at the end of navigation, as issue 24 judges it
+(:func:`_vins_at_the_end`): each run's worst error, the trials over :data:`FAR_M`, the paths
+the VINS made long (``position_error_split.scale`` above 1) and the median ``|scale - 1|``;
+and the trials that ended nearer and farther after the change.
 
 Either run may be partial (an interrupted ``--runs`` file): only common trials are compared,
 and the trials one run flew alone are counted, not compared. Runs with no trial in common, or
@@ -23,6 +26,7 @@ flown to different time limits (an outcome depends on the limit), are not compar
 from __future__ import annotations
 
 import collections
+import math
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +41,8 @@ SAME_FLIGHT_KEYS = ("outcome", "time_to_goal_s", "navigation_time_s", "flight_ti
 #: The numbers of :func:`~companion.tools.eval.nav.count` a comparison gives for each run.
 COMPARED_COUNTS = ("success", "collision", "mean_speed_mps", "least_clearance_m",
                    "vins_error_median_m")
+#: A VINS error at the end of navigation beyond this is a miss of issue 24's worst, metres.
+FAR_M = 1.0
 
 
 def read_run(path: Path) -> list[dict]:
@@ -88,11 +94,43 @@ def _compare_source(pairs: list[tuple[dict, dict]]) -> dict:
         "time_ratio": {"median": float(np.median(ratios)) if ratios else None,
                        "min": min(ratios, default=None), "max": max(ratios, default=None),
                        "trials": len(ratios)},
+        "vins_at_end": _vins_at_the_end(pairs),
     }
 
 
+def _vins_at_the_end(pairs: list[tuple[dict, dict]]) -> dict:
+    """Per run (before, after): the worst VINS error at the end of navigation, the trials
+    over :data:`FAR_M`, the trials whose path the VINS made long and the median |scale - 1|
+    in percent (None where no trial has the number); of the trials with an error in both
+    runs, how many ended nearer and farther after."""
+    runs = []
+    for k in (0, 1):
+        errors = [pair[k]["position_error_m"] for pair in pairs
+                  if _finite(pair[k].get("position_error_m"))]
+        scales = [scale for scale in (_scale(pair[k]) for pair in pairs) if scale is not None]
+        runs.append({"worst_m": max(errors, default=None),
+                     "over_far": sum(error > FAR_M for error in errors),
+                     "long": sum(scale > 1.0 for scale in scales),
+                     "scale_off_median_pct": (float(np.median(np.abs(np.subtract(scales, 1.0))))
+                                              * 100.0 if scales else None)})
+    both = [(b["position_error_m"], a["position_error_m"]) for b, a in pairs
+            if _finite(b.get("position_error_m")) and _finite(a.get("position_error_m"))]
+    return {**{key: [run[key] for run in runs] for key in runs[0]},
+            "nearer": sum(a < b for b, a in both), "farther": sum(a > b for b, a in both)}
+
+
+def _scale(record: dict) -> float | None:
+    """The VINS's path over the truth's at the end of navigation, None when not kept."""
+    scale = (record.get("position_error_split") or {}).get("scale")
+    return scale if _finite(scale) else None
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
 def _positive(seconds) -> bool:
-    return isinstance(seconds, (int, float)) and seconds > 0
+    return _finite(seconds) and seconds > 0
 
 
 def _same_flight(before: dict, after: dict) -> bool:
@@ -118,7 +156,7 @@ def format_markdown(comparison: dict, before: str, after: str) -> str:
         "range | over |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    changes = []
+    changes, vins_rows = [], []
     for source, numbers in comparison["sources"].items():
         ratio = numbers["time_ratio"]
         cells = [nav.SOURCE_NAMES[source], numbers["trials"], numbers["identical"],
@@ -128,10 +166,30 @@ def format_markdown(comparison: dict, before: str, after: str) -> str:
                  _arrow(numbers["vins_error_median_m"], ".2f"), show(ratio["median"], ".2f"),
                  f"{show(ratio['min'], '.2f')}–{show(ratio['max'], '.2f')}", ratio["trials"]]
         lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+        vins_rows.append(_vins_row(nav.SOURCE_NAMES[source], numbers))
         changes += [f"- {c['trial']}: {c['before']} → {c['after']}" for c in numbers["changed"]]
+    lines += [
+        "",
+        f"The VINS at the end of navigation: worst error; trials over {FAR_M:g} m; nearer and "
+        "farther after, of the trials with an error in both runs; paths the VINS made long "
+        "(scale above 1); the median of |scale − 1|.",
+        "",
+        f"| depth | median m | worst m | over {FAR_M:g} m | nearer | farther | long | "
+        "median \\|scale − 1\\| % |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        *vins_rows,
+    ]
     if changes:
         lines += ["", "Changed outcomes:", "", *changes]
     return "\n".join(lines)
+
+
+def _vins_row(name: str, numbers: dict) -> str:
+    end = numbers["vins_at_end"]
+    cells = [name, _arrow(numbers["vins_error_median_m"], ".2f"), _arrow(end["worst_m"], ".2f"),
+             _arrow(end["over_far"], "d"), end["nearer"], end["farther"],
+             _arrow(end["long"], "d"), _arrow(end["scale_off_median_pct"], ".2f")]
+    return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
 def _arrow(values: list, spec: str) -> str:
