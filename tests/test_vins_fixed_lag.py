@@ -78,14 +78,14 @@ def test_it_estimates_and_marginalises_as_gtsams_fixed_lag_smoother():
 
 
 def test_a_window_kept_open_keeps_its_variables_until_let_go():
-    """Kept from 0.45 s: however long the chain grows, nothing stamped since leaves the window,
-    and what came before leaves as the lag says; let go, the next update leaves the lag's
-    window alone."""
+    """Kept from 0.5 s, a variable's own stamp: however long the chain grows, nothing stamped
+    then or since leaves the window, and what came before leaves as the lag says; let go, the
+    next update leaves the lag's window alone."""
     smoother = FixedLagSmoother(LAG, isam2_params())
     chain = fly_a_pose_chain(smoother, 40)
     for k in chain:
         if k == 10:
-            smoother.kept_from = 0.45
+            smoother.kept_from = 5 * STEP  # X(5)'s stamp
         if k == 30:
             break
     estimate = smoother.calculateEstimate()

@@ -308,6 +308,29 @@ def test_a_retimed_window_is_the_window_filed_at_the_new_times():
     assert filed.resets == 0
 
 
+def test_a_kept_window_keeps_every_keyframe_through_a_retime():
+    """Kept open from its first keyframe (``keep_window_from``, the take-off's window), a
+    window of 2.4 s keeps all of its keyframes when a retime moves them 18 ms earlier than
+    the time it was kept from, the gauge hold on one of them; let go, it is the lag's again."""
+    true_times = np.arange(25) * 0.1
+    filed_times = true_times + 0.018
+    smoother = swaying_smoother(filed_times[:1], VinsOptions())
+    smoother.keep_window_from(filed_times[0])
+    for t0, t1 in zip(filed_times, filed_times[1:]):
+        assert smoother.add_keyframe(float(t1), swaying_pim(smoother, t0, t1), [], None)
+    assert len(smoother.window_keyframes) == len(true_times)
+    pims = [swaying_pim(smoother, t0, t1) for t0, t1 in zip(true_times, true_times[1:])]
+    assert smoother.retime(true_times, pims)
+    assert [t for _, t in smoother.window_keyframes] == pytest.approx(true_times.tolist())
+    assert smoother.gauge_keyframe in [index for index, _ in smoother.window_keyframes]
+    smoother.keep_window_from(None)
+    t = true_times[-1] + 0.1
+    assert smoother.add_keyframe(t, swaying_pim(smoother, true_times[-1], t), [], None)
+    lag = VinsOptions().smoother_lag_s
+    assert t - lag - 1e-9 <= smoother.window_keyframes[0][1] < t - lag + 0.1
+    assert smoother.resets == 0
+
+
 def test_a_retime_that_does_not_fit_the_window_is_refused():
     smoother = swaying_smoother(np.arange(4) * 0.1, VinsOptions())
     with pytest.raises(ValueError, match="4 keyframes needs as many times"):

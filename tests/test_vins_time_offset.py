@@ -313,7 +313,7 @@ def test_the_take_offs_window_is_kept_open_until_the_offset_is_known(flights, td
     camera's stamps ``td`` off and the offset unknown, and keeps the climb until the vehicle
     pitches and the offset is known (5.5-6 s); then it is the lag's again. Moved to the offset
     with the rest of the window, the climb no longer leaves its error in the marginal. Measured
-    on this flight, the VINS ends 6.2 / 7.2 mm from the truth (td = +15 / -15 ms), as it does
+    on this flight, the VINS ends 6.3 / 7.2 mm from the truth (td = +15 / -15 ms), as it does
     started from the true offset (6.7 / 6.2 mm), where with the retiming alone it ends 21.6 /
     15.0 mm off (docs/vins.md, "The take-off's window kept open")."""
     options = VinsOptions(estimate_time_offset=True, retime_window=True, takeoff_window_s=8.0)

@@ -515,7 +515,11 @@ class SlidingWindowSmoother:
         for keyframe in moved:
             stamps.update(dict.fromkeys(_variables(keyframe.index), keyframe.t))
         try:
-            slots = self._smoother.update(graph, gtsam.Values(), stamps, remove=removed)
+            # the retime moves the window, it does not slide it: keyframes moved earlier than
+            # the lag (or a kept window's start) leave with the next keyframe, the gauge hold
+            # moved off them first (_gauge_move), not in this update
+            slots = self._smoother.update(graph, gtsam.Values(), stamps, remove=removed,
+                                          slide=False)
             ends = np.cumsum(counts)
             moved[1:] = [replace(keyframe, interval_slots=tuple(slots[end - count:end]))
                          for keyframe, count, end in zip(moved[1:], counts, ends)]

@@ -37,6 +37,7 @@ re-eliminate nearly all of it anyway (docs/benchmarks.md, "VINS back-end").
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Collection, Iterable, Mapping
 
 import gtsam
@@ -76,14 +77,15 @@ class FixedLagSmoother:
     def update(self, graph: gtsam.NonlinearFactorGraph | None = None,
                values: gtsam.Values | None = None, stamps: Mapping[int, float] | None = None,
                eliminate_last: Collection[int] | None = None,
-               remove: Collection[int] = ()) -> list[int]:
+               remove: Collection[int] = (), slide: bool = True) -> list[int]:
         """Add ``graph`` with the new variables ``values``, (re)stamp the variables in
         ``stamps`` (seconds), remove the factors at the iSAM2 slots ``remove``, solve, and
         marginalise every variable older than the lag (or :attr:`kept_from`).
         ``eliminate_last`` are the keys eliminated last from now on (they must be in the
         window); without them, those named before, until they are marginalised. Returns the
         slots of ``graph``'s factors, in order. A factor removed in the update that
-        marginalises its variables never enters their marginal."""
+        marginalises its variables never enters their marginal. ``slide=False``: this update
+        marginalises nothing (one that moves the window's stamps, not one that adds to it)."""
         graph = gtsam.NonlinearFactorGraph() if graph is None else graph
         values = gtsam.Values() if values is None else values
         stamps = dict(stamps or {})
@@ -97,7 +99,7 @@ class FixedLagSmoother:
                              "its new variables")
         self._stamps.update(stamps)
         self._last = last
-        cutoff = self.cutoff(max(self._stamps.values()))
+        cutoff = self.cutoff(max(self._stamps.values())) if slide else -math.inf
         old = [key for key, t in self._stamps.items() if t < cutoff]
         params = gtsam.ISAM2UpdateParams()
         params.constrainedKeys = self._groups(old)

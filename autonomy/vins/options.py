@@ -182,10 +182,10 @@ class VinsOptions:
                                  "offset\")")
     takeoff_window_s: float = option(0.0, ge=0.0, le=20.0, doc="with retime_window, the "
                                      "window stops sliding when the vehicle first moves and "
-                                     "keeps every keyframe until the time offset is known, at "
-                                     "most this long, seconds, so that the climb's keyframes are "
-                                     "moved to it too (0: the lag alone; docs/vins.md, \"The "
-                                     "take-off's window kept open\")")
+                                     "keeps every keyframe until the time offset is known, the "
+                                     "window spanning at most this long, seconds, so that the "
+                                     "climb's keyframes are moved to it too (0: the lag alone; "
+                                     "docs/vins.md, \"The take-off's window kept open\")")
     # --- the gyro's response to yaw (autonomy/vins/gyro_alignment.py, docs/vins.md)
     estimate_gyro_alignment: bool = option(False, doc="estimate the gyro's response to the "
                                            "yaw rate against the camera's rotation online and "
