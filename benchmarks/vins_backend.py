@@ -93,20 +93,21 @@ def measure_pair(root: Path, default: VinsOptions, variant: VinsOptions | None) 
     return result
 
 
-def parse_options(settings: list[str], start: VinsOptions | None = None) -> VinsOptions:
-    """``start`` (the defaults when None) with the ``KEY=VALUE`` settings (TOML values);
-    ValueError naming the setting that is not one."""
+def parse_options(settings: list[str], flags: str) -> VinsOptions:
+    """The defaults with the ``KEY=VALUE`` settings (TOML values) given by ``flags`` (for the
+    message); ValueError naming the setting that is not one."""
     changes = {}
     for setting in settings:
         key, _, value = setting.partition("=")
         try:
             changes[key] = tomllib.loads(f"v = {value}")["v"]
         except tomllib.TOMLDecodeError as error:
-            raise ValueError(f"--set {setting}: {value!r} is not a TOML value ({error})") from None
+            raise ValueError(f"{flags} {setting}: {value!r} is not a TOML value ({error})"
+                             ) from None
     try:
-        return dataclasses.replace(start or VinsOptions(), **changes)
+        return dataclasses.replace(VinsOptions(), **changes)
     except (TypeError, OptionError) as error:
-        raise ValueError(f"--set {' '.join(settings)}: {error}") from None
+        raise ValueError(f"{flags} {' '.join(settings)}: {error}") from None
 
 
 def main() -> None:
@@ -120,8 +121,8 @@ def main() -> None:
                         help="a [vins] option of a variant timed beside the defaults")
     args = parser.parse_args()
     try:
-        default = parse_options(args.base)
-        variant = parse_options(args.base + args.set) if args.set else None
+        default = parse_options(args.base, "--base")
+        variant = parse_options(args.base + args.set, "--base/--set") if args.set else None
     except ValueError as error:
         parser.error(str(error))
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
