@@ -472,6 +472,11 @@ class SlidingWindowSmoother:
             raise BackendError(f"the rebuilt smoother refused keyframe {keyframe.index} at "
                                f"t={keyframe.t:.3f}: {error}") from error
 
+    @property
+    def kept_from(self) -> float | None:
+        """The time the window is kept open from (:meth:`keep_window_from`), None when not."""
+        return self._kept_from
+
     def keep_window_from(self, t: float | None) -> None:
         """Keep every keyframe and landmark stamped at or after ``t`` in the window, however
         old, from the next update on; None lets them go (:mod:`autonomy.vins.fixed_lag`).

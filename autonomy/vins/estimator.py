@@ -160,8 +160,7 @@ class Vins:
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
         #: the time offset each keyframe of the window was filed at, by keyframe index
         self._keyframe_offsets: dict[int, float] = {}
-        #: the take-off's window (:meth:`_keep_window_open`): kept from this time; done once
-        self._window_kept_from: float | None = None
+        #: the take-off's window (:meth:`_keep_window_open`) was kept and let go: once a flight
         self._window_kept_done = False
         self._gap: ImuGap | None = None
         self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
@@ -526,14 +525,14 @@ class Vins:
             return
         offset = self._offset_estimator.offset
         known = offset.sigma is not None and offset.sigma <= self.options.time_offset_max_sigma_s
-        if self._window_kept_from is None:
+        kept_from = self.backend.kept_from
+        if kept_from is None:
             if self._moved and not known:
-                self._window_kept_from = self.backend.window_keyframes[0][1]
-                self.backend.keep_window_from(self._window_kept_from)
+                self.backend.keep_window_from(self.backend.window_keyframes[0][1])
             elif self._moved:
                 self._window_kept_done = True  # known before it moved: nothing to keep
             return
-        if known or t - self._window_kept_from > self.options.takeoff_window_s:
+        if known or t - kept_from > self.options.takeoff_window_s:
             self.backend.keep_window_from(None)
             self._window_kept_done = True
 

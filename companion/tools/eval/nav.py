@@ -384,8 +384,8 @@ def count(records: list[dict]) -> dict:
     least clearance, and the median and worst VINS error at the end of navigation (module
     docstring; None where no trial has the number)."""
     successes = [r for r in records if r["outcome"] == "success"]
-    clearances = _numbers(records, "min_clearance_m")
-    vins_errors = _numbers(records, "position_error_m")
+    clearances = finite_values(records, "min_clearance_m")
+    vins_errors = finite_values(records, "position_error_m")
     return {"trials": len(records),
             **{name: sum(r["outcome"] == name for r in records) for name in OUTCOMES},
             "mean_time_s": mean_or_none([r["flight_time_s"] for r in successes]),
@@ -397,11 +397,15 @@ def count(records: list[dict]) -> dict:
             "vins_error_worst_m": max(vins_errors, default=None)}
 
 
-def _numbers(records: list[dict], key: str) -> list[float]:
+def finite_values(records: list[dict], key: str) -> list[float]:
     """The finite values of ``key`` in ``records`` (records of trials that raised, or from
     before the key was kept, have none)."""
-    return [r[key] for r in records
-            if isinstance(r.get(key), (int, float)) and math.isfinite(r[key])]
+    return [r[key] for r in records if finite(r.get(key))]
+
+
+def finite(value) -> bool:
+    """Is ``value`` a finite number (a record's number that was kept and means something)?"""
+    return isinstance(value, (int, float)) and math.isfinite(value)
 
 
 def write_runs(records: list[dict], out: Path) -> Path:

@@ -26,7 +26,6 @@ flown to different time limits (an outcome depends on the limit), are not compar
 from __future__ import annotations
 
 import collections
-import math
 from pathlib import Path
 
 import numpy as np
@@ -105,8 +104,7 @@ def _vins_at_the_end(pairs: list[tuple[dict, dict]]) -> dict:
     runs, how many ended nearer and farther after."""
     runs = []
     for k in (0, 1):
-        errors = [pair[k]["position_error_m"] for pair in pairs
-                  if _finite(pair[k].get("position_error_m"))]
+        errors = nav.finite_values([pair[k] for pair in pairs], "position_error_m")
         scales = [scale for scale in (_scale(pair[k]) for pair in pairs) if scale is not None]
         runs.append({"worst_m": max(errors, default=None),
                      "over_far": sum(error > FAR_M for error in errors),
@@ -114,7 +112,7 @@ def _vins_at_the_end(pairs: list[tuple[dict, dict]]) -> dict:
                      "scale_off_median_pct": (float(np.median(np.abs(np.subtract(scales, 1.0))))
                                               * 100.0 if scales else None)})
     both = [(b["position_error_m"], a["position_error_m"]) for b, a in pairs
-            if _finite(b.get("position_error_m")) and _finite(a.get("position_error_m"))]
+            if nav.finite(b.get("position_error_m")) and nav.finite(a.get("position_error_m"))]
     return {**{key: [run[key] for run in runs] for key in runs[0]},
             "nearer": sum(a < b for b, a in both), "farther": sum(a > b for b, a in both)}
 
@@ -122,15 +120,11 @@ def _vins_at_the_end(pairs: list[tuple[dict, dict]]) -> dict:
 def _scale(record: dict) -> float | None:
     """The VINS's path over the truth's at the end of navigation, None when not kept."""
     scale = (record.get("position_error_split") or {}).get("scale")
-    return scale if _finite(scale) else None
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and math.isfinite(value)
+    return scale if nav.finite(scale) else None
 
 
 def _positive(seconds) -> bool:
-    return _finite(seconds) and seconds > 0
+    return nav.finite(seconds) and seconds > 0
 
 
 def _same_flight(before: dict, after: dict) -> bool:
