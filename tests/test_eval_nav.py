@@ -731,7 +731,9 @@ def test_a_comparison_counts_what_changed_on_the_trials_both_runs_flew():
                   "time_ratio": {"median": 1.0, "min": 1.0, "max": 1.0, "trials": 4},
                   "vins_at_end": {"worst_m": [0.5, 0.5], "over_far": [0, 0], "long": [0, 0],
                                   "scale_off_median_pct": [None, None], "nearer": 0,
-                                  "farther": 0}}
+                                  "farther": 0, "sign_test_p": None,
+                                  "change_median_m": 0.0, "seeds_nearer": 0,
+                                  "seeds_farther": 0}}
     assert estimated["success"] == [4, 4] and estimated["collision"] == [0, 1]
     assert estimated["identical"] == 5
     assert estimated["changed"] == [
@@ -764,6 +766,30 @@ def test_a_comparison_judges_the_vins_at_the_end_as_issue_24_does():
     assert end["long"] == [2, 2]  # 1.01, 1.002 before; 1.02, 1.03 after
     # |scale - 1| before 1.0, 5.0, 0.2 %; after 0.5, 2.0, 3.0 %
     assert end["scale_off_median_pct"] == [pytest.approx(1.0), pytest.approx(2.0)]
+
+
+def _gt_errors_changed(after_errors: dict[int, list[float]]):
+    """``_flown_records(0, 2)``'s GT trials ending 1 m off before, and after as given by seed
+    (seeds 0 and 1, four trials each, in the run's order)."""
+    before = [_ended(r, 1.0, None) if r["depth"] == "gt" else r for r in _flown_records(0, 2)]
+    errors = {seed: iter(values) for seed, values in after_errors.items()}
+    after = [_ended(r, next(errors[r["seed"]]), None) if r["depth"] == "gt" else r
+             for r in before]
+    return nav_compare.compare_runs(before, after)["sources"]["gt"]["vins_at_end"]
+
+
+def test_a_comparison_weighs_the_nearer_trials_against_a_coin_and_counts_seeds():
+    """The sign test's p, the median change and the seeds nearer, on made-up errors: seed 0
+    nearer on three trials of four, seed 1 farther on two, one trial unchanged."""
+    end = _gt_errors_changed({0: [0.5, 0.6, 0.7, 1.5], 1: [1.2, 1.3, 0.9, 1.0]})
+    assert (end["nearer"], end["farther"]) == (4, 3)
+    assert end["sign_test_p"] == pytest.approx(1.0)  # 4 of 7: no evidence either way
+    # changes -0.5 -0.4 -0.3 -0.1 0 +0.2 +0.3 +0.5; seed 0's median -0.35, seed 1's +0.1
+    assert end["change_median_m"] == pytest.approx(-0.05)
+    assert (end["seeds_nearer"], end["seeds_farther"]) == (1, 1)
+    every = _gt_errors_changed({0: [0.9] * 4, 1: [0.8] * 4})
+    assert every["sign_test_p"] == pytest.approx(2 / 2 ** 8)  # 8 of 8 nearer, two-sided
+    assert (every["seeds_nearer"], every["seeds_farther"]) == (2, 0)
 
 
 def test_a_run_compared_with_itself_is_identical_but_for_the_trials_that_raised():
@@ -808,7 +834,8 @@ def test_eval_nav_compare_reports_the_comparison_of_two_runs_files(tmp_path, cap
     assert text.startswith(f"## Navigation runs compared: {before} → {after}")
     assert ("| estimated | 8 | 5 | 4 → 4 | 0 → 1 | 0.77 → 0.77 | 1.20 → 0.30 | 0.50 → 0.50 | "
             "1.00 | 0.80–1.00 | 3 |") in text
-    assert "| estimated | 0.50 → 0.50 | 0.50 → 0.50 | 0 → 0 | 0 | 0 | 0 → 0 | n/a → n/a |" in text
+    assert ("| estimated | 0.50 → 0.50 | 0.50 → 0.50 | 0 → 0 | 0 | 0 | n/a | +0.00 | 0 | 0 | "
+            "0 → 0 | n/a → n/a |") in text
     assert "- sewer pair 1 estimated seed 1: success → collision" in text
     assert markdown.read_text() == text
 

@@ -16,7 +16,16 @@ the trials both runs brought to the goal the ratio after/before of their times t
 flight after the change. And the VINS at the end of navigation, as issue 24 judges it
 (:func:`_vins_at_the_end`): each run's worst error, the trials over :data:`FAR_M`, the paths
 the VINS made long (``position_error_split.scale`` above 1) and the median ``|scale - 1|``;
-and the trials that ended nearer and farther after the change.
+and the trials that ended nearer and farther after the change, with the median change and
+how sure it is (:func:`_paired_change`).
+
+Flights are chaotic: one that changes at all lands anywhere within its spread, so a count of
+nearer trials is judged against a coin: the exact two-sided sign test's p, the chance of a
+split at least as uneven if the change did nothing. And every trial of a seed flies that seed's
+vehicle and its draw of the sensors' noise (``SimOptions.vehicle_for``, ``noise_for``), so the
+trials of one seed are one draw, not independent ones: the change is also counted per seed (the
+median change of its trials), and an arm is judged over seeds (docs/vins.md, "The take-off's
+window kept open").
 
 Either run may be partial (an interrupted ``--runs`` file): only common trials are compared,
 and the trials one run flew alone are counted, not compared. Runs with no trial in common, or
@@ -29,6 +38,7 @@ import collections
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binomtest
 
 from companion.report import show
 from companion.tools.eval import nav
@@ -100,8 +110,8 @@ def _compare_source(pairs: list[tuple[dict, dict]]) -> dict:
 def _vins_at_the_end(pairs: list[tuple[dict, dict]]) -> dict:
     """Per run (before, after): the worst VINS error at the end of navigation, the trials
     over :data:`FAR_M`, the trials whose path the VINS made long and the median |scale - 1|
-    in percent (None where no trial has the number); of the trials with an error in both
-    runs, how many ended nearer and farther after."""
+    in percent (None where no trial has the number); and :func:`_paired_change` of the
+    trials with an error in both runs."""
     runs = []
     for k in (0, 1):
         errors = nav.finite_values([pair[k] for pair in pairs], "position_error_m")
@@ -111,10 +121,28 @@ def _vins_at_the_end(pairs: list[tuple[dict, dict]]) -> dict:
                      "long": sum(scale > 1.0 for scale in scales),
                      "scale_off_median_pct": (float(np.median(np.abs(np.subtract(scales, 1.0))))
                                               * 100.0 if scales else None)})
-    both = [(b["position_error_m"], a["position_error_m"]) for b, a in pairs
-            if nav.finite(b.get("position_error_m")) and nav.finite(a.get("position_error_m"))]
-    return {**{key: [run[key] for run in runs] for key in runs[0]},
-            "nearer": sum(a < b for b, a in both), "farther": sum(a > b for b, a in both)}
+    both = [pair for pair in pairs if all(nav.finite(record.get("position_error_m"))
+                                          for record in pair)]
+    return {**{key: [run[key] for run in runs] for key in runs[0]}, **_paired_change(both)}
+
+
+def _paired_change(pairs: list[tuple[dict, dict]]) -> dict:
+    """Of trials with a VINS error at the end in both runs: how many ended nearer and farther
+    after; the exact two-sided sign test's p of that split (ties left out; None without a
+    change); the median of the changes (after - before, metres; None without trials); and
+    the seeds whose trials' median change is below and above zero."""
+    changes = [a["position_error_m"] - b["position_error_m"] for b, a in pairs]
+    nearer, farther = sum(c < 0 for c in changes), sum(c > 0 for c in changes)
+    by_seed = collections.defaultdict(list)
+    for (before, _), change in zip(pairs, changes):
+        by_seed[before["seed"]].append(change)
+    seed_medians = [float(np.median(c)) for c in by_seed.values()]
+    return {"nearer": nearer, "farther": farther,
+            "sign_test_p": (binomtest(nearer, nearer + farther).pvalue
+                            if nearer + farther else None),
+            "change_median_m": float(np.median(changes)) if changes else None,
+            "seeds_nearer": sum(m < 0 for m in seed_medians),
+            "seeds_farther": sum(m > 0 for m in seed_medians)}
 
 
 def _scale(record: dict) -> float | None:
@@ -165,12 +193,16 @@ def format_markdown(comparison: dict, before: str, after: str) -> str:
     lines += [
         "",
         f"The VINS at the end of navigation: worst error; trials over {FAR_M:g} m; nearer and "
-        "farther after, of the trials with an error in both runs; paths the VINS made long "
+        "farther after, of the trials with an error in both runs, with the sign test's p "
+        "(two-sided: the chance of a split at least as uneven if the change did nothing) and "
+        "the median change (after − before); the seeds nearer and farther (a seed's trials "
+        "share its vehicle and noise: the median change of each); paths the VINS made long "
         "(scale above 1); the median of |scale − 1|.",
         "",
-        f"| depth | median m | worst m | over {FAR_M:g} m | nearer | farther | long | "
+        f"| depth | median m | worst m | over {FAR_M:g} m | nearer | farther | sign test p | "
+        "median change m | seeds nearer | seeds farther | long | "
         "median \\|scale − 1\\| % |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         *vins_rows,
     ]
     if changes:
@@ -182,7 +214,8 @@ def _vins_row(name: str, numbers: dict) -> str:
     end = numbers["vins_at_end"]
     cells = [name, _arrow(numbers["vins_error_median_m"], ".2f"), _arrow(end["worst_m"], ".2f"),
              _arrow(end["over_far"], "d"), end["nearer"], end["farther"],
-             _arrow(end["long"], "d"), _arrow(end["scale_off_median_pct"], ".2f")]
+             show(end["sign_test_p"], ".2g"), show(end["change_median_m"], "+.2f"),
+             end["seeds_nearer"], end["seeds_farther"], _arrow(end["long"], "d"), _arrow(end["scale_off_median_pct"], ".2f")]
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
