@@ -375,3 +375,17 @@ def test_the_realistic_cameras_hidden_offset_is_recovered_within_2_ms(tmp_path):
     late = stamps >= CONVERGED_BY_S + 0.5
     assert late.any()
     assert np.abs(offsets[late] - hidden).max() < GOAL_S
+
+
+@pytest.mark.parametrize("setting, words", [
+    ("sim.profile=ideal", "--set takes [vins] options only, got sim.profile=ideal"),
+    ("vins.retime_window=maybe", "vins.retime_window"),
+    ("vins.no_such_option=1", "no_such_option"),
+])
+def test_the_offset_runs_command_refuses_a_setting_it_cannot_use(tmp_path, capsys, setting,
+                                                                  words):
+    """``python -m tests.time_offset_runs`` names a bad ``--set`` before it reads anything."""
+    from tests.time_offset_runs import main
+    with pytest.raises(SystemExit) as stopped:
+        main([str(tmp_path), "--set", setting])
+    assert stopped.value.code == 2 and words in capsys.readouterr().err

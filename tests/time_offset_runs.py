@@ -169,8 +169,8 @@ def _time_the_offset_estimator(vins: Vins, run: OffsetRun) -> list:
 
 
 def summarise(run: OffsetRun, true_offset: float, until: float = 5.5) -> dict:
-    """ATE, position errors (all, and up to ``until``), the offset's convergence and the
-    update times of ``run``, for JSON."""
+    """ATE, position errors (the largest, up to ``until`` and at the last pose), the offset's
+    convergence, the longest window and the update times of ``run``, for JSON."""
     ate, distance = run.ate()
     offsets, stamps = np.array(run.offsets), np.array(run.stamps)
     error = np.abs(offsets - true_offset)
@@ -181,8 +181,10 @@ def summarise(run: OffsetRun, true_offset: float, until: float = 5.5) -> dict:
         "time_offset_error_ms": 1e3 * (offsets[-1] - true_offset),
         "within_2ms_from_s": float(stamps[within[0]]) if within else None,
         "position_error_max_m": float(run.position_errors().max()),
+        "position_error_end_m": float(run.position_errors()[-1]),
         f"position_error_max_m_until_{until:g}s": float(run.position_errors(until).max()),
         "resets": run.resets, "keyframes": len(run.backend_ms),
+        "window_s_max": max(run.window_s, default=0.0),
         "keyframe_ms_median": float(np.median(run.backend_ms)),
         "keyframe_ms_p95": float(np.percentile(run.backend_ms, 95)),
         "other_frame_ms_median": float(np.median(run.other_ms)),
@@ -227,13 +229,16 @@ def _offset_cost(run: OffsetRun) -> dict:
 
 
 def main(argv=None) -> None:
-    """``python -m tests.time_offset_runs DATASET --td-ms 15 [--estimate]``: the numbers of
-    docs/vins.md ("The camera-IMU time offset", and the windows' statistics of "The time
-    offset's windows and the rotors' vibration") for one recording, as JSON; ``--windows
-    FILE`` writes every window's solution there, one JSON line each."""
+    """``python -m tests.time_offset_runs DATASET --td-ms 15 [--estimate] [--set vins.KEY=V]``:
+    the numbers of docs/vins.md ("The camera-IMU time offset", the windows' statistics of "The
+    time offset's windows and the rotors' vibration", the end errors and window spans of "The
+    take-off's window kept open") for one recording, as JSON; ``--windows FILE`` writes every
+    window's solution there, one JSON line each."""
     import argparse
     import json
     import tempfile
+
+    from companion.config import ConfigError, load_config
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("dataset", type=Path)
@@ -246,8 +251,19 @@ def main(argv=None) -> None:
                         help="time_offset_s: the fixed or starting offset, ms")
     parser.add_argument("--windows", type=Path, default=None, metavar="FILE",
                         help="write each window's stamp, offset and sigma (s, ms, ms) here")
+    parser.add_argument("--set", action="append", default=[], metavar="vins.KEY=VALUE",
+                        help="a [vins] option over the flags above, e.g. "
+                             "vins.retime_window=true; repeatable")
     args = parser.parse_args(argv)
-    options = VinsOptions(estimate_time_offset=args.estimate, time_offset_s=args.offset_ms * 1e-3)
+    foreign = [text for text in args.set if not text.startswith("vins.")]
+    if foreign:
+        parser.error(f"--set takes [vins] options only, got {', '.join(foreign)}")
+    try:
+        options = load_config(None, [f"vins.estimate_time_offset={str(args.estimate).lower()}",
+                                     f"vins.time_offset_s={args.offset_ms * 1e-3!r}",
+                                     *args.set]).vins
+    except ConfigError as error:
+        parser.error(str(error))
     with tempfile.TemporaryDirectory() as folder:
         root = (shift_recording(args.dataset, Path(folder) / "shifted", args.td_ms * 1e-3)
                 if args.td_ms else args.dataset)
@@ -258,7 +274,8 @@ def main(argv=None) -> None:
             json.dumps({"stamp_s": stamp, "offset_ms": 1e3 * td, "sigma_ms": 1e3 * sigma}) + "\n"
             for stamp, td, sigma in run.windows), encoding="ascii")
     print(json.dumps({"dataset": str(args.dataset), "td_ms": args.td_ms, "estimate": args.estimate,
-                      "start_offset_ms": args.offset_ms, **summarise(run, true * 1e-3)}))
+                      "start_offset_ms": args.offset_ms, "set": args.set,
+                      **summarise(run, true * 1e-3)}))
 
 
 if __name__ == "__main__":
