@@ -2,7 +2,6 @@
 flight, and the scoring gives the known answers for a trace with known errors (the true pose
 moved by a fixed rigid motion, landmarks 10 % too deep)."""
 
-import collections
 import dataclasses
 import json
 import math
@@ -478,33 +477,6 @@ def test_the_bound_solves_the_smoothers_own_factors_under_the_starts_gauge_alone
     np.testing.assert_allclose(keyframes.causal_batch[-1], keyframes.whole_flight_batch[-1],
                                atol=1e-3)
     np.testing.assert_array_equal(keyframes.fixed_lag[-1], fixed_lag[max(fixed_lag)])
-
-
-def _projection_sigmas(dataset, options: VinsOptions) -> dict[int, list[float]]:
-    """The pixel sigma of every projection factor the smoother was given on ``dataset``, by
-    landmark key, in the order of the keyframes that saw it."""
-    log = FactorLog()
-    run_vins(read_vio_dataset(dataset), options, consistency=False, factor_log=log)
-    seen = collections.defaultdict(list)
-    for factor in log.factors:
-        if isinstance(factor, gtsam.GenericProjectionFactorCal3_S2):
-            pose, landmark = factor.keys()
-            seen[landmark].append((gtsam.Symbol(pose).index(),
-                                   factor.noiseModel().noise().sigmas()[0]))
-    return {landmark: [sigma for _, sigma in sorted(views)] for landmark, views in seen.items()}
-
-
-def test_an_old_tracks_observations_weigh_less_with_pixel_sigma_per_frame(simulated):
-    """Each observation weighs as its track's age in the front-end says: pixel_sigma at birth,
-    0.05 px more for each frame since, so a landmark's later views weigh less; at 0 every
-    observation weighs the same."""
-    plain = _projection_sigmas(simulated, VinsOptions())
-    assert {sigma for views in plain.values() for sigma in views} == {1.0}
-    aged = _projection_sigmas(simulated, VinsOptions(pixel_sigma_per_frame=0.05))
-    ages = np.array([(sigma - 1.0) / 0.05 + 1 for views in aged.values() for sigma in views])
-    np.testing.assert_allclose(ages, np.round(ages), atol=1e-9)  # whole frames
-    assert ages.min() == 1 and ages.max() >= 20  # from a track's birth to tens of frames
-    assert all(np.all(np.diff(views) > 0) for views in aged.values())  # older at each view
 
 
 def test_eval_vio_bound_reports_the_smoother_beside_both_batches(simulated, capsys):

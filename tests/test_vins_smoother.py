@@ -338,15 +338,3 @@ def test_a_retime_that_does_not_fit_the_window_is_refused():
     with pytest.raises(ValueError, match="increasing time order"):
         smoother.retime([0.0, 0.2, 0.1, 0.3],
                         [swaying_pim(smoother, 0.0, 0.1)] * 3)
-
-
-@pytest.mark.parametrize("ages", [[1], [0, 3], [1, 2, 3]])
-def test_a_keyframe_whose_track_ages_do_not_fit_its_features_is_refused(ages):
-    """One age per feature, each at least 1 (born in this frame): anything else is the
-    caller's mistake, named, and the smoother is left as it was."""
-    smoother = next(turning_in_place_unseeing(VinsOptions(), seconds=0.05))
-    pim = smoother.preintegration()
-    pim.integrateMeasurement(np.array([0.0, 0.0, GRAVITY]), np.zeros(3), IMU_DT)
-    with pytest.raises(ValueError, match="a keyframe's ages must be one per feature"):
-        smoother.add_keyframe(0.1, pim, [4, 7], [[0.0, 0.0], [0.1, 0.0]], ages=ages)
-    assert smoother.resets == 0 and smoother.latest.index == 1

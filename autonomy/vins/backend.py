@@ -237,8 +237,8 @@ class BackendError(RuntimeError):
 
 @dataclass(frozen=True)
 class _Keyframe:
-    """A keyframe's observations, ``ids`` sorted, ``normalised`` undistorted and ``ages`` in
-    the same order; the iSAM2 slots of the factors made of the IMU since the keyframe before it
+    """A keyframe's observations, ``ids`` sorted, ``normalised`` undistorted in the same order;
+    the iSAM2 slots of the factors made of the IMU since the keyframe before it
     (``interval_slots``: the preintegrated factor, the drag's), and whether it flew then."""
 
     index: int
@@ -247,14 +247,6 @@ class _Keyframe:
     normalised: np.ndarray
     interval_slots: tuple[int, ...] = ()
     airborne: bool = False
-    #: each feature's track age in frames (1: born in this frame), None when not told
-    ages: np.ndarray | None = None
-
-    def age(self, track: int) -> int:
-        """The age of ``track``'s feature in this keyframe, frames (1 when not told)."""
-        if self.ages is None:
-            return 1
-        return int(self.ages[np.searchsorted(self.ids, track)])
 
 
 def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float,
@@ -339,7 +331,6 @@ class SlidingWindowSmoother:
         self._pixel_noise = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k),
             gtsam.noiseModel.Isotropic.Sigma(2, options.pixel_sigma))
-        self._aged_noise: dict[int, gtsam.noiseModel.Base] = {}  # by age, _pixel_noise_at
         self._keyframe_prior = None if options.keyframe_prior_position_sigma == 0.0 else \
             gtsam.noiseModel.Diagonal.Sigmas(np.r_[[options.keyframe_prior_rotation_sigma] * 3,
                                                    [options.keyframe_prior_position_sigma] * 3])
@@ -439,11 +430,9 @@ class SlidingWindowSmoother:
         self._landmarks = Landmarks.empty()
 
     def add_keyframe(self, t: float, pim: gtsam.PreintegratedCombinedMeasurements, ids,
-                     normalised, still: bool = False, airborne: bool = False,
-                     ages=None) -> bool:
+                     normalised, still: bool = False, airborne: bool = False) -> bool:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
-        features it sees (``ages``: their tracks' ages in frames, for
-        ``pixel_sigma_per_frame``; None counts each as new); ``still``: it stands still, and gets a zero-velocity prior
+        features it sees; ``still``: it stands still, and gets a zero-velocity prior
         (:mod:`autonomy.vins.stillness`); ``airborne``: it flies, and the interval gets the
         rotor drag's factor (with ``drag_coefficient``; :mod:`autonomy.vins.drag`). Returns
         True when the update was used, False when it failed and the smoother was rebuilt (a
@@ -454,8 +443,7 @@ class SlidingWindowSmoother:
         # taken before the update, which may leave the smoother unusable; not computed here
         # for callers that never read covariances
         good_covariance = self._known_pose_covariance
-        keyframe = self._keyframe(good.index + 1, t, ids, normalised, airborne and not still,
-                                  ages)
+        keyframe = self._keyframe(good.index + 1, t, ids, normalised, airborne and not still)
         try:
             self._update_with_vision(keyframe, pim, still)
             self._check_sane(self.latest)
@@ -635,21 +623,12 @@ class SlidingWindowSmoother:
         return smoother
 
     @staticmethod
-    def _keyframe(index: int, t: float, ids, normalised, airborne: bool = False,
-                  ages=None) -> _Keyframe:
+    def _keyframe(index: int, t: float, ids, normalised, airborne: bool = False) -> _Keyframe:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         normalised = (np.zeros((0, 2)) if normalised is None
                       else np.asarray(normalised, dtype=float).reshape(-1, 2))
         order = np.argsort(ids)
-        if ages is not None:
-            ages = np.asarray(ages, dtype=np.int64).reshape(-1)
-            if ages.shape != ids.shape or (ages < 1).any():
-                raise ValueError(f"a keyframe's ages must be one per feature, each at least 1; "
-                                 f"got {ages.shape[0]} for {ids.shape[0]} features, least "
-                                 f"{ages.min(initial=1)}")
-            ages = ages[order]
-        return _Keyframe(index, float(t), ids[order], normalised[order], airborne=airborne,
-                         ages=ages)
+        return _Keyframe(index, float(t), ids[order], normalised[order], airborne=airborne)
 
     def _imu_step(self, keyframe: _Keyframe, pim, still: bool):
         """The new keyframe's variables at the IMU's prediction, its interval's factors first
@@ -699,7 +678,7 @@ class SlidingWindowSmoother:
         tracks, xy = self._consistent_observations(keyframe, seen)
         observed_pixels = self._pixels(xy)
         for track, pixel in zip(tracks, observed_pixels):
-            graph.add(self._projection(keyframe, int(track), pixel))
+            graph.add(self._projection(keyframe.index, int(track), pixel))
             stamps[L(int(track))] = keyframe.t
         fresh = ~seen & ~_in_sorted(keyframe.ids, self._retired)
         self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
@@ -776,32 +755,15 @@ class SlidingWindowSmoother:
         if len(tracks):
             self._retired = np.union1d(self._retired, tracks)
 
-    def _projection(self, keyframe: _Keyframe, track: int, pixel: np.ndarray):
-        """The factor of ``keyframe`` seeing landmark ``track`` at ideal-pinhole ``pixel``,
-        weighed by the track's age there (:meth:`_pixel_noise_at`): through the mounting's
-        estimate with ``estimate_camera_mounting``."""
-        noise = self._pixel_noise_at(keyframe.age(track))
+    def _projection(self, index: int, track: int, pixel: np.ndarray):
+        """The factor of keyframe ``index`` seeing landmark ``track`` at ideal-pinhole
+        ``pixel``: through the mounting's estimate with ``estimate_camera_mounting``."""
         if self.options.estimate_camera_mounting:
-            return gtsam_unstable.ProjectionFactorPPPCal3_S2(pixel, noise, X(keyframe.index),
+            return gtsam_unstable.ProjectionFactorPPPCal3_S2(pixel, self._pixel_noise, X(index),
                                                              MOUNTING, L(track), self._K)
-        return gtsam.GenericProjectionFactorCal3_S2(pixel, noise, X(keyframe.index),
+        return gtsam.GenericProjectionFactorCal3_S2(pixel, self._pixel_noise, X(index),
                                                     L(track), self._K, False, False,
                                                     self._body_P_camera)
-
-    def _pixel_noise_at(self, age: int):
-        """The Huber-robust pixel noise of an observation ``age`` frames into its track:
-        sigma ``pixel_sigma + (age - 1) pixel_sigma_per_frame``, the Huber threshold in units
-        of it."""
-        per_frame = self.options.pixel_sigma_per_frame
-        if per_frame == 0.0 or age <= 1:
-            return self._pixel_noise
-        noise = self._aged_noise.get(age)
-        if noise is None:
-            noise = self._aged_noise[age] = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(self.options.huber_k),
-                gtsam.noiseModel.Isotropic.Sigma(
-                    2, self.options.pixel_sigma + (age - 1) * per_frame))
-        return noise
 
     @staticmethod
     def _observed(window: list[_Keyframe], tracks: np.ndarray):
@@ -873,7 +835,7 @@ class SlidingWindowSmoother:
             values.insert(L(track), result.points[m])
             stamps[L(track)] = newest.t
             for j in np.flatnonzero(mask[m]):
-                graph.add(self._projection(window[j], track, track_pixels[j]))
+                graph.add(self._projection(window[j].index, track, track_pixels[j]))
 
     def _landmark_room(self, observed: int) -> int:
         """New landmarks this keyframe may add: what is left of the budget ``n``; with

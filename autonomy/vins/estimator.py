@@ -456,7 +456,7 @@ class Vins:
         # start, so not waiting for the take-off (an armed vehicle just landed still counts)
         airborne = not self._on_ground and self._moved and not still
         if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still,
-                                         airborne, tracks.ages):
+                                         airborne):
             self._last_reset_t = t
         self.zero_velocity_keyframes += still
         self._keyframe_tracks = tracks

@@ -49,14 +49,6 @@ class VinsOptions:
                                          "sooner, pixels")
     # --- measurement noise
     pixel_sigma: float = option(1.0, gt=0.0, le=20.0, doc="feature position noise, pixels")
-    # A frame-to-frame track gathers error as it ages (eval vio's track_error_by_age: about
-    # 0.1 px at 2-4 frames, 0.8 px past 20 on the hallway), and it is that late error that
-    # walks the scale (docs/vins.md, "The hallway open loop")
-    pixel_sigma_per_frame: float = option(0.0, ge=0.0, le=1.0, doc="feature position noise "
-                                          "added per frame of the track's age, pixels: an "
-                                          "observation of a track n frames old weighs as "
-                                          "pixel_sigma + (n - 1) times this (0: every "
-                                          "observation at pixel_sigma)")
     huber_k: float = option(1.345, gt=0.0, doc="Huber threshold on the whitened "
                             "reprojection error (in pixel_sigma units)")
     imu_noise_scale: float = option(2.0, ge=1.0, le=100.0, doc="multiplies the IMU's white-noise"
