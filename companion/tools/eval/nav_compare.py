@@ -215,7 +215,8 @@ def _vins_row(name: str, numbers: dict) -> str:
     cells = [name, _arrow(numbers["vins_error_median_m"], ".2f"), _arrow(end["worst_m"], ".2f"),
              _arrow(end["over_far"], "d"), end["nearer"], end["farther"],
              show(end["sign_test_p"], ".2g"), show(end["change_median_m"], "+.2f"),
-             end["seeds_nearer"], end["seeds_farther"], _arrow(end["long"], "d"), _arrow(end["scale_off_median_pct"], ".2f")]
+             end["seeds_nearer"], end["seeds_farther"], _arrow(end["long"], "d"),
+             _arrow(end["scale_off_median_pct"], ".2f")]
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
