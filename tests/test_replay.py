@@ -16,7 +16,9 @@ import contextlib
 import io
 import json
 import math
+import types
 
+import cv2
 import mcap.writer
 import numpy as np
 import pytest
@@ -73,6 +75,7 @@ def test_a_replay_with_the_flights_own_config_is_the_flight(recording, own):
     # every frame the flight's VINS finished (the last one taken may have come as it ended)
     assert recording["frames"] - 1 <= report["frames"] <= recording["frames"]
     assert report["vins_same_frames"] == report["frames"]
+    assert report["lossy_frames"] == 0  # PNG: the frames the flight tracked
     assert report["frames_with_depth"]["replayed"] == report["frames_with_depth"]["recorded"]
     # measured 0.0002 apart (0.0003 with the true depth in millimetres, per frame up to 0.08)
     assert report["abs_rel"]["replayed"] == pytest.approx(report["abs_rel"]["recorded"],
@@ -158,6 +161,23 @@ def test_the_table_gives_the_vins_error_and_leaves_out_the_stages_not_replayed(o
     alone = format_report({**report, "stages": ["vins"]})
     assert line in alone.splitlines() and "planner agreement" not in alone
     assert "VINS error          - (no truth" in format_report({**report, "vins_error": None})
+    assert "lossy images" not in format_report(report)
+    assert "  lossy images        5 stored as JPEG, not the frames the flight tracked" in \
+        format_report({**report, "lossy_frames": 5})
+
+
+def test_a_replay_counts_the_images_the_recorder_stored_lossy():
+    """JPEG images are not the frames the flight tracked, so the report counts them; PNG ones
+    are. The images are real encodings (as the recorder writes them), the message around them
+    only what the decoder hands the replayer: its bytes and format."""
+    from companion.recording.replay import VINS_ONLY, _Replayer
+
+    replayer = _Replayer(load_config(None), None, VINS_ONLY)
+    image = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    for t, image_format in enumerate(("jpeg", "png", "jpeg")):
+        encoded = cv2.imencode("." + image_format, image)[1].tobytes()
+        replayer._on_camera_image(t, types.SimpleNamespace(data=encoded, format=image_format))
+    assert replayer.report.lossy_frames == 2 and len(replayer.frames) == 3
 
 
 def test_a_replayed_vins_in_another_world_frame_is_tied_as_the_flight_tied_its_own():

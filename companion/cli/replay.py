@@ -62,6 +62,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
 def format_report(report: dict) -> str:
     lines = [f"  frames              {report['frames']} ({report['vins_same_frames']} with the "
              "flight's own VINS state)",
+             *_lossy(report),
              f"  VINS lost frames    {report['vins_lost_frames']}",
              f"  VINS error          {_vins_error(report['vins_error'])}"]
     if "depth" in report["stages"]:
@@ -70,6 +71,15 @@ def format_report(report: dict) -> str:
         lines.append("  (the VINS alone: no depth, planner or failsafes)")
     lines.append(f"  stage medians (ms)  {report['timings_ms']}")
     return "\n".join(lines)
+
+
+def _lossy(report: dict) -> list[str]:
+    """A line saying that JPEG images keep a replay from being the flight, when they did."""
+    if not report["lossy_frames"]:
+        return []
+    return [f"  lossy images        {report['lossy_frames']} stored as JPEG, not the frames the "
+            "flight tracked: the replay drifts from the flight, so read a config against the "
+            "replay of the recording's own, or record with [recorder] camera_format = \"png\""]
 
 
 def _depth_and_planner(report: dict) -> list[str]:

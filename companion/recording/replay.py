@@ -119,11 +119,14 @@ class ReplayReport:
     ``vins_error``: the recorded and the replayed VINS against the simulator's truth where
     navigation ended (:func:`_vins_at_end`), None for a recording without the truth or the
     tie to PX4's local frame. ``stages``: those replayed (:data:`ALL_STAGES`, or
-    :data:`VINS_ONLY`, when the depth, planner and failsafe fields stay empty)."""
+    :data:`VINS_ONLY`, when the depth, planner and failsafe fields stay empty).
+    ``lossy_frames``: camera images the recorder stored lossy (JPEG), which are not the frames
+    the flight tracked, so the replay drifts from the flight (module docstring)."""
 
     stages: tuple = ALL_STAGES
     frames: int = 0
     vins_same_frames: int = 0
+    lossy_frames: int = 0
     frames_without_truth: int = 0
     frames_with_depth: dict = field(default_factory=lambda: {"recorded": 0, "replayed": 0})
     abs_rel: dict = field(default_factory=lambda: {"recorded": math.nan, "replayed": math.nan})
@@ -141,6 +144,7 @@ class ReplayReport:
         agreement = self.same_decision / self.rounds if self.rounds else None
         return {"stages": list(self.stages), "frames": self.frames,
                 "vins_same_frames": self.vins_same_frames,
+                "lossy_frames": self.lossy_frames,
                 "frames_without_truth": self.frames_without_truth,
                 "frames_with_depth": self.frames_with_depth,
                 "abs_rel": {k: _rounded(v) for k, v in self.abs_rel.items()},
@@ -348,6 +352,7 @@ class _Replayer:
         bgr = cv2.imdecode(np.frombuffer(message.data, np.uint8), cv2.IMREAD_COLOR)
         if bgr is None:
             raise ReplayError(f"the camera image at t={t * 1e-9:.3f} does not decode")
+        self.report.lossy_frames += message.format != "png"
         self.frames[t] = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def _on_truth_depth(self, t, message) -> None:
