@@ -20,21 +20,19 @@ option that needs another, timed against that other alone). Prints one JSON obje
 """
 
 import argparse
-import dataclasses
 import json
 import os
 import statistics
 import tempfile
 import time
-import tomllib
 from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
 
-from autonomy.options import OptionError
 from autonomy.vins import VinsOptions
 from autonomy.vins.backend import SlidingWindowSmoother
+from companion.config import ConfigError, load_config
 from companion.tools.eval.vio import read_vio_dataset, run_vins, score_vio
 from drivers.camera.options import CameraOptions
 from drivers.sim.imu import ImuOptions
@@ -94,20 +92,14 @@ def measure_pair(root: Path, default: VinsOptions, variant: VinsOptions | None) 
 
 
 def parse_options(settings: list[str], flags: str) -> VinsOptions:
-    """The defaults with the ``KEY=VALUE`` settings (TOML values) given by ``flags`` (for the
-    message); ValueError naming the setting that is not one."""
-    changes = {}
-    for setting in settings:
-        key, _, value = setting.partition("=")
-        try:
-            changes[key] = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError as error:
-            raise ValueError(f"{flags} {setting}: {value!r} is not a TOML value ({error})"
-                             ) from None
+    """The defaults with the ``KEY=VALUE`` settings given by ``flags``, each read as the
+    config's ``--set vins.KEY=VALUE`` (:func:`companion.config.load_config`); ValueError
+    naming the setting that is not one."""
     try:
-        return dataclasses.replace(VinsOptions(), **changes)
-    except (TypeError, OptionError) as error:
-        raise ValueError(f"{flags} {' '.join(settings)}: {error}") from None
+        return load_config(None, [f"vins.{setting}" for setting in settings]).vins
+    except ConfigError as error:
+        setting = error.source.removeprefix("--set vins.")
+        raise ValueError(f"{flags} {setting}: {error.message}") from None
 
 
 def main() -> None:
