@@ -218,6 +218,47 @@ def test_every_pair_by_default():
     assert sorted({t.pair for t in trials}) == list(range(len(build_world("dome", 0).routes)))
 
 
+def test_the_vins_flies_the_tracks_asked_for_the_trackers_by_default():
+    assert {t.mission().tracks for t in nav.plan_trials(["dome"], [0], 2, seed=0)} == {"tracker"}
+    truth = nav.plan_trials(["dome"], [0], 2, seed=0, tracks="truth")
+    assert {t.mission().tracks for t in truth} == {"truth"}
+    assert {nav.trial_record(t, _summary(), timeout_s=120.0)["tracks"] for t in truth} == {
+        "truth"}
+
+
+def test_truth_tracks_on_the_realistic_profile_are_refused_before_any_flight(monkeypatch):
+    monkeypatch.setattr(nav, "run_trials", lambda *a, **k: pytest.fail("flew"))
+    realistic = load_config(None, ["sim.profile=realistic"])
+    with pytest.raises(EvaluationError, match="truth tracks need the ideal profile"):
+        nav.evaluate_navigation(realistic, worlds=["dome"], pairs=[0], trials=1,
+                                tracks="truth")
+    with pytest.raises(EvaluationError, match="tracks must be one of"):
+        nav.evaluate_navigation(Config(), worlds=["dome"], pairs=[0], trials=1,
+                                tracks="oracle")
+
+
+def test_eval_nav_tells_the_user_truth_tracks_need_the_ideal_config(capsys):
+    assert main(["eval", "nav", "--quick", "--tracks", "truth"]) == 1
+    assert "truth tracks need the ideal profile" in capsys.readouterr().err
+    assert main(["eval", "nav", "--compare", "a.jsonl", "b.jsonl", "--tracks", "truth"]) == 2
+    assert "--compare flies nothing; drop --tracks" in capsys.readouterr().err
+
+
+def test_runs_on_different_tracks_do_not_merge_and_the_report_names_the_truths(tmp_path):
+    truth = [{**r, "tracks": "truth"} for r in _flown_records(1, 1)]
+    parts = [_write(tmp_path / "tracker.jsonl", _flown_records(0, 1)),
+             _write(tmp_path / "truth.jsonl", truth)]
+    with pytest.raises(EvaluationError, match=r"different track sources \(tracker, truth\)"):
+        nav.read_runs(parts)
+    records = nav.read_runs(parts[1:])
+    assert "seed 1, 120 s to reach the goal, the VINS on truth tracks" in nav.format_markdown(
+        nav.summarise(records), records)
+    # a record from before the tracks were kept is the tracker's
+    old = [{k: v for k, v in r.items() if k != "tracks"} for r in _flown_records(2, 1)]
+    merged = nav.read_runs([_write(tmp_path / "old.jsonl", old), parts[0]])
+    assert sorted({r["seed"] for r in merged}) == [0, 2] and len(merged) == 2 * len(old)
+
+
 @pytest.mark.parametrize("kwargs, words", [
     (dict(worlds=["moon"]), "unknown world 'moon'"),
     (dict(worlds=[]), "no world"),
@@ -676,6 +717,7 @@ def test_a_resumed_run_flies_only_what_it_lacks_and_reports_the_whole(monkeypatc
     (lambda done: [{**r, "revision": "0" * 40} for r in done], "different code revisions"),
     (lambda done: [{**r, "config_hash": "0" * 16} for r in done], "different configs"),
     (lambda done: [{**r, "libraries": "python 3.0"} for r in done], "different library versions"),
+    (lambda done: [{**r, "tracks": "truth"} for r in done], "different track sources"),
     (lambda done: done + done[:1], "recorded more than once"),
     (lambda done: [{**done[0], "seed": 7}], "dome pair 0 gt seed 7 was flown but is not in "
                                             "this run's plan"),

@@ -105,6 +105,7 @@ def _add_eval_rescale(actions: argparse._SubParsersAction,
 def _add_eval_nav(actions: argparse._SubParsersAction,
                   configured: argparse.ArgumentParser) -> None:
     from drivers.sim.options import WORLD_NAMES
+    from drivers.sim.truth_tracks import TRACK_SOURCES
 
     # defaults (None here) are companion.tools.eval.nav's, resolved by _eval_nav: the parser
     # does not import the simulator
@@ -136,6 +137,11 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                          help="simulated seconds of navigation to reach the goal, the "
                               "application's [flight] mission_timeout_s in the trials "
                               "(default: 120)")
+    command.add_argument("--tracks", choices=TRACK_SOURCES, metavar="SOURCE",
+                         help="the VINS's feature tracks, as sim fly --tracks: tracker (the "
+                              "default), or truth, early-error, late-error (ideal profile "
+                              "only: --config config/sim.toml) to bound what a better tracker "
+                              "would give navigation")
     command.add_argument("--workers", type=common.positive_int, metavar="N",
                          help="trials flown at once, each in its own process (default: the "
                               "number of CPUs)")
@@ -301,8 +307,8 @@ def _compare_nav(args: argparse.Namespace) -> int:
 
 #: The options of ``eval nav`` that choose what to fly, which ``--merge`` and ``--compare``
 #: do not take.
-_NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "workers", "cluster",
-                       "quick")
+_NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "tracks", "workers",
+                       "cluster", "quick")
 
 
 def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> list[dict]:
@@ -326,6 +332,6 @@ def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> lis
         worlds, pairs, trials = (args.worlds or [nav.QUICK_WORLD])[:1], [0], 1
     _, records = nav.evaluate_navigation(
         config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
-        workers=args.workers, cluster=args.cluster, progress=sys.stderr, done=done,
+        tracks=args.tracks or "tracker", workers=args.workers, cluster=args.cluster, progress=sys.stderr, done=done,
         on_record=None if runs is None else lambda record: nav.append_run(record, runs))
     return records

@@ -60,7 +60,21 @@ GOAL_DRIFT_ALLOWANCE = 1.0
 #: How often ``--go-after`` looks whether the mission waits for the go yet, seconds.
 WAITING_POLL_S = 0.05
 
-__all__ = ["DEPTH_SOURCES", "SimError", "SimMission", "run", "fly", "format_summary"]
+__all__ = ["DEPTH_SOURCES", "SimError", "SimMission", "check_track_source", "run", "fly",
+           "format_summary"]
+
+
+def check_track_source(config, tracks: str) -> None:
+    """SimError unless ``config`` can fly the VINS on ``tracks`` (a key of
+    :data:`~drivers.sim.truth_tracks.TRACK_SOURCES`): anything but the tracker's needs the
+    ideal profile."""
+    if tracks not in TRACK_SOURCES:
+        raise SimError(f"tracks must be one of {', '.join(TRACK_SOURCES)}, got {tracks!r}")
+    if tracks != "tracker" and config.sim.profile != "ideal":
+        raise SimError("truth tracks need the ideal profile ([sim] profile = \"ideal\"): the "
+                       "realistic camera's lens, mounting error and late stamps are not the "
+                       "configured camera the truth is projected through (--config "
+                       "config/sim.toml flies the ideal profile)")
 
 
 def run(config, mission: SimMission, *, plot: Path | None = None,
@@ -75,14 +89,7 @@ def run(config, mission: SimMission, *, plot: Path | None = None,
     if mission.depth not in DEPTH_SOURCES:
         raise SimError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, "
                        f"got {mission.depth!r}")
-    if mission.tracks not in TRACK_SOURCES:
-        raise SimError(f"tracks must be one of {', '.join(TRACK_SOURCES)}, "
-                       f"got {mission.tracks!r}")
-    if mission.tracks != "tracker" and config.sim.profile != "ideal":
-        raise SimError("truth tracks need the ideal profile ([sim] profile = \"ideal\"): the "
-                       "realistic camera's lens, mounting error and late stamps are not the "
-                       "configured camera the truth is projected through (--config "
-                       "config/sim.toml flies the ideal profile)")
+    check_track_source(config, mission.tracks)
     if mission.link not in LINKS:
         raise SimError(f"link must be one of {', '.join(LINKS)}, got {mission.link!r}")
     for table in (config.mavlink, config.px4):

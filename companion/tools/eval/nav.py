@@ -107,18 +107,20 @@ QUICK_WORLD = "dome"
 @dataclass(frozen=True)
 class Trial:
     """One flight: ``pair`` of ``world`` on ``depth`` (a key of :data:`DEPTH_SOURCES`), the
-    ``index``-th trial of its pair, flying ``seed``."""
+    ``index``-th trial of its pair, flying ``seed``, its VINS on ``tracks`` (``sim fly
+    --tracks``: the tracker's, or the truth's, to bound what a better tracker could give)."""
 
     world: str
     pair: int
     depth: str
     index: int
     seed: int
+    tracks: str = "tracker"
 
     def mission(self) -> simulated.SimMission:
         """The simulated mission this trial flies (lockstep)."""
         return simulated.SimMission(world=self.world, seed=self.seed, pair=self.pair,
-                                 depth=DEPTH_SOURCES[self.depth])
+                                    depth=DEPTH_SOURCES[self.depth], tracks=self.tracks)
 
 
 def trial_seed(base: int, index: int) -> int:
@@ -130,7 +132,7 @@ def trial_seed(base: int, index: int) -> int:
 
 
 def plan_trials(worlds: Iterable[str], pairs: Iterable[int] | None, trials: int,
-                seed: int) -> list[Trial]:
+                seed: int, tracks: str = "tracker") -> list[Trial]:
     """Every trial to fly: per world (in the order given, duplicates dropped) each pair of
     ``pairs`` (default: all the world's pairs) × ``trials`` × both depth sources, the two
     sources of one seed side by side. EvaluationError for an unknown world, a pair the world
@@ -146,7 +148,7 @@ def plan_trials(worlds: Iterable[str], pairs: Iterable[int] | None, trials: int,
     if unknown:
         raise EvaluationError(f"unknown world {unknown[0]!r}; choose from "
                               f"{', '.join(WORLD_NAMES)}")
-    return [Trial(world, pair, depth, k, trial_seed(seed, k))
+    return [Trial(world, pair, depth, k, trial_seed(seed, k), tracks)
             for world in worlds for pair in _pairs_of(world, pairs, seed)
             for k in range(trials) for depth in DEPTH_SOURCES]
 
@@ -332,6 +334,7 @@ def run_trials(config, trials: list[Trial], *, workers: int | None = None,
 
 def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] | None = None,
                         trials: int = TRIALS, seed: int = 0, timeout_s: float = TIMEOUT_S,
+                        tracks: str = "tracker",
                         workers: int | None = None, cluster: str | None = None,
                         progress: TextIO | None = None,
                         done: Iterable[dict] = (),
@@ -343,12 +346,18 @@ def evaluate_navigation(config, *, worlds: Iterable[str], pairs: Iterable[int] |
     ``done``: records of this evaluation flown before (a run resumed, ``--resume``). Their
     trials are not flown again; they must come from the same code and config as this run
     (:func:`check_provenance`), and they join the records returned, in the order of the plan.
-    Every record carries the code's revision and the config's hash (:mod:`provenance`)."""
-    planned = plan_trials(worlds, pairs, trials, seed)
+    Every record carries the code's revision and the config's hash (:mod:`provenance`).
+    ``tracks``: the VINS's feature tracks (:class:`Trial`); EvaluationError for a source the
+    config's profile cannot fly, before any trial starts."""
+    try:
+        simulated.check_track_source(config, tracks)
+    except simulated.SimError as error:
+        raise EvaluationError(str(error)) from None
+    planned = plan_trials(worlds, pairs, trials, seed, tracks)
     flown = trial_config(config, timeout_s)
     stamp = provenance.stamp(flown)
     done = list(done)
-    check_provenance([*done, stamp])
+    check_provenance([*done, {**stamp, "tracks": tracks}])
     finished = {trial_key(r) for r in done}
     if len(finished) < len(done):
         raise EvaluationError("a trial is recorded more than once in the records resumed")
@@ -571,12 +580,14 @@ def refuse_mixed_time_limits(records: Iterable[dict], verb: str) -> float:
 
 
 def check_provenance(records: Iterable[dict]) -> None:
-    """EvaluationError unless ``records`` all come from one revision of the code, one config
-    and one set of library versions (their ``revision``, ``config_hash`` and ``libraries``;
-    records from before these were kept lack them, and merge only with each other)."""
+    """EvaluationError unless ``records`` all come from one revision of the code, one config,
+    one set of library versions and one source of feature tracks (their ``revision``,
+    ``config_hash``, ``libraries`` and ``tracks``; records from before these were kept lack
+    them, and merge only with each other, a record without ``tracks`` counting as the
+    tracker's)."""
     provenance = _provenance(records)
     for key, what in (("revision", "code revisions"), ("config_hash", "configs"),
-                      ("libraries", "library versions")):
+                      ("libraries", "library versions"), ("tracks", "track sources")):
         if len(provenance[key]) > 1:
             raise EvaluationError(f"the records come from different {what} "
                                   f"({', '.join(provenance[key])}); one evaluation is flown "
@@ -584,11 +595,14 @@ def check_provenance(records: Iterable[dict]) -> None:
 
 
 def _provenance(records: Iterable[dict]) -> dict[str, list[str]]:
-    """The distinct ``revision``, ``config_hash`` and ``libraries`` values of ``records``, in
-    order, "none recorded" for records from before these were kept."""
+    """The distinct ``revision``, ``config_hash``, ``libraries`` and ``tracks`` values of
+    ``records``, in order: "none recorded" for records from before the first three were
+    kept, "tracker" for those from before ``tracks`` was."""
     records = list(records)
-    return {key: list(dict.fromkeys(str(r.get(key, "none recorded")) for r in records))
-            for key in ("revision", "config_hash", "libraries")}
+    missing = {"revision": "none recorded", "config_hash": "none recorded",
+               "libraries": "none recorded", "tracks": "tracker"}
+    return {key: list(dict.fromkeys(str(r.get(key, default)) for r in records))
+            for key, default in missing.items()}
 
 
 def trial_key(record: dict) -> tuple:
@@ -651,8 +665,10 @@ def _flown(records: list[dict]) -> str:
     else:
         seeds_text = "seeds " + ", ".join(map(str, seeds))
     limits = " or ".join(f"{t:g}" for t in sorted({r["timeout_s"] for r in records}))
+    tracks = {r.get("tracks", "tracker") for r in records} - {"tracker"}
     return (f"{trials} per start/goal pair and depth source, {seeds_text}, "
-            f"{limits} s to reach the goal")
+            f"{limits} s to reach the goal"
+            + "".join(f", the VINS on {source} tracks" for source in sorted(tracks)))
 
 
 def _row(world: str, source: str, numbers: dict, records: list[dict]) -> str:
