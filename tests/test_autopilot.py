@@ -235,7 +235,9 @@ def test_connects_and_streams_imu_at_200hz_in_flu_on_the_companion_clock():
         assert len(samples) == pytest.approx(200, abs=2)
         np.testing.assert_allclose(np.diff([s.t for s in samples]), DT, atol=1e-5)
         theta = autopilot.timesync.offset
-        assert abs(theta) <= DT  # the simulator's boot time is the SimClock's time
+        # the simulator's boot time is the SimClock's time: the IMU is stamped on the camera's
+        # clock to well under a millisecond (half a tick off costs a flight ~1 % of its scale)
+        assert abs(theta) <= 1e-4
         truth = {round(t / DT): (gyro, accel) for t, gyro, accel in flight.truth}
         for sample in samples:
             # the sample holding over [t, t + DT) is the one the IMU integrated up to t + DT
@@ -255,7 +257,7 @@ def test_timesync_converges_both_ways():
         assert await until(flight.clock,
                            lambda: flight.sim.px4.timesync_offset_ns is not None, 3.0)
         await flight.clock.sleep(2.0)
-        assert abs(flight.autopilot.timesync.offset) <= DT
+        assert abs(flight.autopilot.timesync.offset) <= 1e-4
         assert abs(flight.sim.px4.timesync_offset_ns) <= DT * 1e9
         assert flight.autopilot.stats()["timesync_answered"] >= 1
         assert flight.autopilot.time_synced

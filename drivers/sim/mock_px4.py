@@ -324,7 +324,7 @@ class MockPx4:
         self.options = options or Px4Options()
         self.parameters = self._parameter_table(parameters or {})
         self._rng = rng if rng is not None else np.random.default_rng(0)
-        self._min_interval = 1.0 / physics_rate_hz
+        self._min_interval = 1.0 / physics_rate_hz  # the physics tick: streams and link reads
         #: The signing key PX4 has now (None: none, signing off).
         self.signing_key: bytes | None = None
         self._use_key(load_key(self.options))
@@ -734,12 +734,25 @@ class MockPx4:
                 and self.time < self._setpoint.time + self.parameters["COM_OF_LOSS_T"])
 
     def _handle_timesync(self, message) -> None:
-        """Answer requests (tc1 == 0) with our boot time; use answers to our own requests."""
+        """Answer requests (tc1 == 0) with our boot time; use answers to our own requests.
+
+        PX4 stamps its answer as its receiver handles the request and sends it at once
+        (src/modules/mavlink/mavlink_timesync.cpp, ``MavlinkTimesync::handle_message``:
+        ``rsync.tc1 = now * 1000ULL`` with ``now = hrt_absolute_time()``), so only the link's
+        delays, about equal both ways, lie between the companion's send and its receipt, as
+        the NTP midpoint it takes assumes. This mock reads the link once a physics tick: in
+        lockstep a request, sent just after one tick, is handled at the next, while the answer
+        reaches the companion at once. Stamped at the tick, the answer would put the companion's estimate
+        of our clock half a tick (2.5 ms at 200 Hz) off, and every IMU sample would reach its
+        VINS that much early against the camera: about 1 % of path scale in a simulated flight
+        with exact sensors (docs/vins.md, "The mock's clock half a tick off"). So the answer
+        is stamped at the middle of the tick it waited, where equal legs put it."""
         if mavlink.MAVLINK_MSG_ID_TIMESYNC in self.suppressed_streams:
             return
         now_ns = self._boot_ns()
         if message.tc1 == 0:
-            self.link.send(self.link.mav.timesync_encode(now_ns, message.ts1))
+            answered_ns = now_ns - int(round(self._min_interval * 0.5e9))
+            self.link.send(self.link.mav.timesync_encode(answered_ns, message.ts1))
         elif message.ts1 == self._timesync_sent_ns:
             # offset = remote - local, with the remote stamp taken halfway through the round trip
             self.timesync_offset_ns = (2 * message.tc1 - message.ts1 - now_ns) // 2
