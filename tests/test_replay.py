@@ -245,7 +245,8 @@ def test_record_along_timed_flies_the_flights_own_motion_again(recording, tmp_pa
     standing = np.flatnonzero(flown[:, 2] > flown[0, 2] + 0.02)[0] - 1
     airborne = np.flatnonzero(flown[:, 2] > 0.3)
     flying = slice(standing, airborne[-1] + 1)
-    assert np.ptp(flown[flying, 0]) > 4.0 and np.ptp(yaw) > np.radians(15.0)  # it went, turned
+    # it went, and turned (12.7 degrees in all since 2026-12-05's clock fix; 15 and more before)
+    assert np.ptp(flown[flying, 0]) > 4.0 and np.ptp(yaw) > np.radians(10.0)
     recorded = read_groundtruth(out)
     at = np.searchsorted(recorded.t_ns, (t[flying] - t[0]) * 1e9)
     error = np.linalg.norm(recorded.position[at] - flown[flying], axis=1)
