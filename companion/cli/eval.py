@@ -332,6 +332,7 @@ def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> lis
         worlds, pairs, trials = (args.worlds or [nav.QUICK_WORLD])[:1], [0], 1
     _, records = nav.evaluate_navigation(
         config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
-        tracks=args.tracks or "tracker", workers=args.workers, cluster=args.cluster, progress=sys.stderr, done=done,
+        tracks=args.tracks or "tracker", workers=args.workers, cluster=args.cluster,
+        progress=sys.stderr, done=done,
         on_record=None if runs is None else lambda record: nav.append_run(record, runs))
     return records
