@@ -37,12 +37,13 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 
 def test_blocked_beside_a_door_it_backs_off_along_its_trail_and_goes_through():
     """The sewer's pair 2 on true depth, the vehicle standing at -150° (along the route's
-    first leg, at -151°; -175° until 2026-12-05, below), the planner counting the height gap to the waypoint as plain
-    distance (``height_gap_in_time = false``, the cost before 2026-12-02): the arcs bring it
-    too high and south of the hallway's east entrance against the room's wall beside the
-    opening, where no arc clears the door's edge even after turning to face the hallway. It backs off 2 m along its trail, twice at most,
-    and from there flies into the 3 m hallway (without backing off, the no-safe-primitive
-    failsafe ends the flight at the door, 57 m from the goal). A 50 s mission timeout cuts the
+    first leg, at -151°; -175° until 2026-12-05, below), the planner counting the height gap
+    to the waypoint as plain distance (``height_gap_in_time = false``, the cost before
+    2026-12-02): the arcs bring it too high and south of the hallway's east entrance against
+    the room's wall beside the opening, where no arc clears the door's edge even after turning
+    to face the hallway. It backs off 2 m along its trail, twice at most, and from there
+    flies into the 3 m hallway (without backing off, the no-safe-primitive failsafe ends the
+    flight at the door, 57 m from the goal). A 50 s mission timeout cuts the
     flight short: the door is what is tested, not the 110 s to the goal. (Which approach meets
     the door's edge, and how many back-offs it takes, is chaotic: any change to the VINS moves
     it. Measured with the landmark top-up: from -175° two back-offs and through; from -160°,

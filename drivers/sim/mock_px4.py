@@ -742,11 +742,12 @@ class MockPx4:
         delays, about equal both ways, lie between the companion's send and its receipt, as
         the NTP midpoint it takes assumes. This mock reads the link once a physics tick: in
         lockstep a request, sent just after one tick, is handled at the next, while the answer
-        reaches the companion at once. Stamped at the tick, the answer would put the companion's estimate
-        of our clock half a tick (2.5 ms at 200 Hz) off, and every IMU sample would reach its
-        VINS that much early against the camera: about 1 % of path scale in a simulated flight
-        with exact sensors (docs/vins.md, "The mock's clock half a tick off"). So the answer
-        is stamped at the middle of the tick it waited, where equal legs put it."""
+        reaches the companion at once. Stamped at the tick, the answer would put the
+        companion's estimate of our clock half a tick (2.5 ms at 200 Hz) off, and every IMU
+        sample would reach its VINS that much early against the camera: about 1 % of path
+        scale in a simulated flight with exact sensors (docs/vins.md, "The mock's clock half a
+        tick off"). So the answer is stamped at the middle of the tick it waited, where equal
+        legs put it."""
         if mavlink.MAVLINK_MSG_ID_TIMESYNC in self.suppressed_streams:
             return
         now_ns = self._boot_ns()
