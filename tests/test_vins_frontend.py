@@ -50,6 +50,8 @@ def test_defaults_are_vins_mono_but_lucas_kanade_and_bad_options_fail_where_made
         FrontendOptions(pyramid_levels=5)
     with pytest.raises(OptionError, match="lk_window"):
         FrontendOptions(lk_window=20)
+    with pytest.raises(OptionError, match="anchor_window"):
+        FrontendOptions(anchor_window=14)
     with pytest.raises(OptionError, match="max_features"):
         FrontendOptions(max_features=0)
 
@@ -160,8 +162,9 @@ def test_rgb_and_grey_give_the_same_tracks():
     assert np.array_equal(a.pixels, b.pixels)
 
 
-def test_ids_are_never_reused_and_min_distance_holds_over_a_sequence():
-    tracker = FeatureTracker(CAMERA, options=FrontendOptions(clahe=True))
+@pytest.mark.parametrize("anchor_age", [0, 2])
+def test_ids_are_never_reused_and_min_distance_holds_over_a_sequence(anchor_age):
+    tracker = FeatureTracker(CAMERA, options=FrontendOptions(clahe=True, anchor_age=anchor_age))
     seen_ids: set[int] = set()
     alive: set[int] = set()
     base = texture(3, (600, 800))
@@ -280,30 +283,50 @@ def test_tracks_down_a_tunnel_do_not_creep_outward(seed):
     assert abs(default) < 0.5 * wide
 
 
+def median_error_by_age(options: FrontendOptions, seed: int, spans) -> list[float]:
+    """The median distance of tracks from their points down a :class:`Tunnel`, for each
+    ``(low, high)`` span of ages (high excluded), each span holding over 1000 observations."""
+    ages, errors, _ = tunnel_track_errors(options, seed)
+    medians = []
+    for low, high in spans:
+        aged = (ages >= low) & (ages < high)
+        assert aged.sum() > 1000
+        medians.append(float(np.median(np.linalg.norm(errors[aged], axis=1))))
+    return medians
+
+
 @pytest.mark.parametrize("seed", [2, 3])
 def test_the_affine_refinement_halves_the_error_of_tracks_down_a_tunnel(seed):
     """Flying forward a feature's patch grows a few percent a frame, and Lucas-Kanade's
     translation errs by a share of it in the same direction every frame, so a track's error
     grows linearly with its age (affine_refine.py). Refined under an affine warp, tracks 5 to
     19 frames old are at most half as far from their points in the median."""
-    plain = tunnel_track_errors(FrontendOptions(), seed)
-    refined = tunnel_track_errors(FrontendOptions(affine_refinement=True), seed)
-    for low, high in ((5, 10), (10, 20)):
-        medians = []
-        for ages, errors, _ in (plain, refined):
-            aged = (ages >= low) & (ages < high)
-            assert aged.sum() > 1000
-            medians.append(np.median(np.linalg.norm(errors[aged], axis=1)))
-        assert medians[1] < 0.5 * medians[0], (low, high, medians)
+    spans = ((5, 10), (10, 20))
+    plain = median_error_by_age(FrontendOptions(), seed, spans)
+    refined = median_error_by_age(FrontendOptions(affine_refinement=True), seed, spans)
+    assert all(r < 0.5 * p for p, r in zip(plain, refined)), (plain, refined)
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_anchored_tracks_stop_gathering_error_down_a_tunnel(seed):
+    """Found against their patch of the frame they were two frames old in (anchored_tracks.py),
+    tracks 10 frames and older are at most half as far from their points in the median as
+    Lucas-Kanade's from frame to frame, whose error grows with every frame."""
+    spans = ((10, 20), (20, 1000))
+    plain = median_error_by_age(FrontendOptions(), seed, spans)
+    anchored = median_error_by_age(FrontendOptions(anchor_age=2), seed, spans)
+    assert all(a < 0.5 * p for p, a in zip(plain, anchored)), (plain, anchored)
 
 
 @pytest.mark.skipif(not (EUROC / "mav0" / "cam0").is_dir(),
                     reason=f"EuRoC V1_01 not found at {EUROC}")
-def test_real_euroc_frames_keep_their_tracks():
+@pytest.mark.parametrize("anchor_age", [0, 2])
+def test_real_euroc_frames_keep_their_tracks(anchor_age):
     from drivers.dataset.euroc import read_camera
 
     stream = read_camera(EUROC)
-    tracker = FeatureTracker(stream.camera, stream.distortion)
+    tracker = FeatureTracker(stream.camera, stream.distortion,
+                             FrontendOptions(anchor_age=anchor_age))
     previous = None
     for path in stream.paths[:40]:
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)

@@ -29,6 +29,8 @@ some seeds and worse on others, it moves the realistic profile's mean scale from
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -77,6 +79,100 @@ def with_gradients(image: np.ndarray) -> np.ndarray:
                       cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3, scale=SOBEL_SCALE)])
 
 
+@dataclass(frozen=True)
+class Templates:
+    """Patches prepared for :func:`fit_affine`, row ``i`` describing patch ``i``: the patch
+    normalised to zero mean (``values``, (N, M)) and its contrast (``contrast``), the
+    inverse-compositional steepest-descent images transposed (``steepest_t``, (N, 6, M)) and
+    their Hessian's inverse (``inverse``, (N, 6, 6)); ``usable`` is false for a flat patch or
+    a singular Hessian."""
+
+    values: np.ndarray
+    contrast: np.ndarray
+    steepest_t: np.ndarray
+    inverse: np.ndarray
+    usable: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.usable)
+
+    def take(self, rows) -> "Templates":
+        """The patches of ``rows`` (indices or a boolean mask), in that order."""
+        return Templates(self.values[rows], self.contrast[rows], self.steepest_t[rows],
+                         self.inverse[rows], self.usable[rows])
+
+    @staticmethod
+    def join(a: "Templates", b: "Templates") -> "Templates":
+        """``a``'s patches followed by ``b``'s."""
+        return Templates(*(np.concatenate([x, y]) for x, y in
+                           zip((a.values, a.contrast, a.steepest_t, a.inverse, a.usable),
+                               (b.values, b.contrast, b.steepest_t, b.inverse, b.usable))))
+
+
+def _offsets(half: int) -> tuple[np.ndarray, np.ndarray]:
+    """A ``2 half + 1`` square patch's pixel offsets from its centre, x and y, row by row."""
+    offsets = np.arange(-half, half + 1, dtype=float)
+    return tuple(a.ravel() for a in np.meshgrid(offsets, offsets))
+
+
+def prepare_templates(image: np.ndarray, centres: np.ndarray, *, half: int) -> Templates:
+    """The ``2 half + 1`` square patches of ``image`` (:func:`with_gradients` of a grey image)
+    around ``centres`` (N, 2), made ready for :func:`fit_affine`."""
+    ux, uy = _offsets(half)
+    centres = np.asarray(centres, float).reshape(-1, 2)
+    sampled = bilinear(image, centres[:, :1] + ux, centres[:, 1:] + uy)  # (N, M, 3)
+    values, contrast = _normalised(sampled[..., 0])
+    gx, gy = sampled[..., 1], sampled[..., 2]
+    steepest = np.stack([gx * ux, gx * uy, gy * ux, gy * uy, gx, gy], axis=2)  # (N, M, 6)
+    steepest_t = np.ascontiguousarray(steepest.transpose(0, 2, 1))  # (N, 6, M)
+    hessian = steepest_t @ steepest
+    eigenvalues = np.linalg.eigvalsh(hessian)  # ascending
+    usable = (contrast > 1e-3) & (eigenvalues[:, 0] > 1e-8 * eigenvalues[:, -1])
+    inverse = np.zeros_like(hessian)
+    inverse[usable] = np.linalg.inv(hessian[usable])
+    return Templates(values, contrast, steepest_t, inverse, usable)
+
+
+def fit_affine(templates: Templates, current: np.ndarray, guesses: np.ndarray,
+               linear: np.ndarray | None = None, *, half: int, iterations: int = 20,
+               epsilon: float = 0.005) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each template's patch found in ``current`` (a grey image) under ``u -> c + A u`` by
+    inverse-compositional Gauss-Newton from ``c = guesses`` and ``A = linear`` (the identity
+    when None). Returns ``c`` (N, 2), ``A`` (N, 2, 2) and whether each converged (a last step
+    of the patch's centre under ``epsilon`` pixels, the warp finite, the template usable)."""
+    ux, uy = _offsets(half)
+    n = len(templates)
+    current = current.astype(np.float32)
+    centre = np.asarray(guesses, float).reshape(-1, 2).copy()
+    linear = (np.tile(np.eye(2), (n, 1, 1)) if linear is None
+              else np.asarray(linear, float).reshape(-1, 2, 2).copy())
+    active = templates.usable.copy()
+    converged = np.zeros(n, bool)
+    for _ in range(iterations):
+        k = np.flatnonzero(active)
+        if not len(k):
+            break
+        c, a = centre[k], linear[k]
+        wx = c[:, :1] + a[:, 0, :1] * ux + a[:, 0, 1:] * uy
+        wy = c[:, 1:] + a[:, 1, :1] * ux + a[:, 1, 1:] * uy
+        warped, warped_std = _normalised(bilinear(current, wx, wy))
+        error = (warped * (templates.contrast[k] / np.maximum(warped_std, 1e-9))[:, None]
+                 - templates.values[k])
+        step = np.einsum("nij,nj->ni", templates.inverse[k],
+                         (templates.steepest_t[k] @ error[:, :, None])[:, :, 0])
+        a = a @ _inverse_2x2(np.eye(2) + step[:, :4].reshape(-1, 2, 2))
+        moved = (a @ step[:, 4:, None])[:, :, 0]
+        centre[k], linear[k] = c - moved, a
+        done = np.linalg.norm(moved, axis=1) < epsilon
+        converged[k[done]] = True
+        # A singular step leaves a warp that is not finite: that track is given up, not
+        # sampled again.
+        lost = ~(np.isfinite(a).all(axis=(1, 2)) & np.isfinite(moved).all(axis=1))
+        converged[k[lost]] = False
+        active[k[done | lost]] = False
+    return centre, linear, converged
+
+
 def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
                   guesses: np.ndarray, *, half: int, iterations: int = 20,
                   epsilon: float = 0.005, max_shift: float = 0.5,
@@ -88,48 +184,13 @@ def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
     (a last step of the patch's centre under ``epsilon`` pixels) within ``max_shift`` of its
     guess, the patch's linear map within ``max_deformation`` of the identity in every entry.
     A patch whose Hessian is singular to working precision (a flat one) is not refined."""
-    starts = np.asarray(starts, float).reshape(-1, 2)
     guesses = np.asarray(guesses, float).reshape(-1, 2)
-    n = len(starts)
-    offsets = np.arange(-half, half + 1, dtype=float)
-    ux, uy = (a.ravel() for a in np.meshgrid(offsets, offsets))
-    sampled = bilinear(previous, starts[:, :1] + ux, starts[:, 1:] + uy)  # (N, M, 3)
-    template, template_std = _normalised(sampled[..., 0])
-    gx, gy = sampled[..., 1], sampled[..., 2]
-    steepest = np.stack([gx * ux, gx * uy, gy * ux, gy * uy, gx, gy], axis=2)  # (N, M, 6)
-    steepest_t = np.ascontiguousarray(steepest.transpose(0, 2, 1))  # (N, 6, M)
-    hessian = steepest_t @ steepest
-    eigenvalues = np.linalg.eigvalsh(hessian)  # ascending
-    usable = (template_std > 1e-3) & (eigenvalues[:, 0] > 1e-8 * eigenvalues[:, -1])
-    inverse = np.zeros_like(hessian)
-    inverse[usable] = np.linalg.inv(hessian[usable])
-
-    current = current.astype(np.float32)
-    centre, linear = guesses.copy(), np.tile(np.eye(2), (n, 1, 1))
-    active = usable.copy()
-    converged = np.zeros(n, bool)
-    for _ in range(iterations):
-        k = np.flatnonzero(active)
-        if not len(k):
-            break
-        c, a = centre[k], linear[k]
-        wx = c[:, :1] + a[:, 0, :1] * ux + a[:, 0, 1:] * uy
-        wy = c[:, 1:] + a[:, 1, :1] * ux + a[:, 1, 1:] * uy
-        warped, warped_std = _normalised(bilinear(current, wx, wy))
-        error = warped * (template_std[k] / np.maximum(warped_std, 1e-9))[:, None] - template[k]
-        step = np.einsum("nij,nj->ni", inverse[k], (steepest_t[k] @ error[:, :, None])[:, :, 0])
-        a = a @ _inverse_2x2(np.eye(2) + step[:, :4].reshape(-1, 2, 2))
-        moved = (a @ step[:, 4:, None])[:, :, 0]
-        centre[k], linear[k] = c - moved, a
-        done = np.linalg.norm(moved, axis=1) < epsilon
-        converged[k[done]] = True
-        # A singular step leaves a warp that is not finite: that track is given up (its
-        # guess kept), not sampled again.
-        lost = ~(np.isfinite(a).all(axis=(1, 2)) & np.isfinite(moved).all(axis=1))
-        converged[k[lost]] = False
-        active[k[done | lost]] = False
+    templates = prepare_templates(previous, starts, half=half)
+    centre, linear, converged = fit_affine(templates, current, guesses, half=half,
+                                           iterations=iterations, epsilon=epsilon)
     deformation = np.abs(linear - np.eye(2)).max(axis=(1, 2))
-    refined = (usable & converged  # converged: a finite warp (the loop gives others up)
+    refined = (converged
                & (np.linalg.norm(centre - guesses, axis=1) <= max_shift)
                & (deformation <= max_deformation))
     return np.where(refined[:, None], centre, guesses), refined
+

@@ -12,7 +12,11 @@ The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracke
    (off by default; not VINS-Mono's) each surviving track is then refined under an affine
    warp of its patch (``affine_refine.py``);
 3. RANSAC on the fundamental matrix between the two frames' *undistorted* positions, expressed
-   as pixels of the camera's ideal pinhole (so the threshold means pixels);
+   as pixels of the camera's ideal pinhole (so the threshold means pixels); with
+   ``anchor_age`` (off by default; not VINS-Mono's) each track RANSAC keeps that is that old
+   or older is then found against its own patch of the frame it reached that age in, under
+   the affine map gathered since, so that it stops gathering each frame's error
+   (``anchored_tracks.py``);
 4. features are ranked by age; walking from the oldest, each one that is not within
    ``min_distance`` of an older kept feature is kept and masks a disc of that radius;
 5. Shi-Tomasi corners fill the unmasked image up to ``max_features``, each with a new id.
@@ -31,6 +35,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera, undistort_points
 from autonomy.options import OptionError, option, validate
 from autonomy.vins.affine_refine import refine_affine, with_gradients
+from autonomy.vins.anchored_tracks import Anchors
 
 
 @dataclass(frozen=True)
@@ -65,6 +70,19 @@ class FrontendOptions:
     affine_refinement: bool = option(False, doc="refine each track under an affine warp of "
                                      "its patch (affine_refine.py: a patch that grows in "
                                      "forward flight biases Lucas-Kanade's translation)")
+    anchor_age: int = option(0, ge=0, le=1000, doc="from this age on, a track is found "
+                             "against its own patch of the frame it reached the age in, "
+                             "under the affine map gathered since, so it stops gathering "
+                             "error (anchored_tracks.py); 0: off")
+    anchor_window: int = option(15, ge=5, le=101, doc="side of an anchor's patch, pixels "
+                                "(odd)")
+    anchor_max_shift: float = option(1.0, gt=0.0, doc="an anchor fitting further than this "
+                                     "from Lucas-Kanade's answer is given up and the track "
+                                     "anchored again, pixels")
+    anchor_max_deformation: float = option(1.0, gt=0.0, doc="an anchor whose affine map "
+                                           "strays further than this from the identity in "
+                                           "any entry is given up and the track anchored "
+                                           "again")
     ransac: bool = option(True, doc="reject tracks that break the epipolar geometry "
                           "(fundamental-matrix RANSAC)")
     ransac_threshold: float = option(1.0, gt=0.0, doc="RANSAC epipolar distance limit, "
@@ -78,8 +96,9 @@ class FrontendOptions:
 
     def __post_init__(self) -> None:
         validate(self)
-        if self.lk_window % 2 == 0:
-            raise OptionError("lk_window", f"must be odd, got {self.lk_window}")
+        for name in ("lk_window", "anchor_window"):
+            if getattr(self, name) % 2 == 0:
+                raise OptionError(name, f"must be odd, got {getattr(self, name)}")
         if 0 < self.retry_pyramid_levels <= self.pyramid_levels:
             raise OptionError("retry_pyramid_levels", "must be 0 or more than pyramid_levels "
                               f"({self.pyramid_levels}), got {self.retry_pyramid_levels}")
@@ -184,6 +203,10 @@ class FeatureTracker:
         self._normalised = np.zeros((0, 2))
         self._ids = np.zeros(0, np.int64)
         self._ages = np.zeros(0, np.int64)
+        o = self.options
+        self._anchors = (Anchors(half=o.anchor_window // 2, max_shift=o.anchor_max_shift,
+                                 max_deformation=o.anchor_max_deformation)
+                         if o.anchor_age else None)
         if not hasattr(self, "_next_id"):
             self._next_id = 0
             self._frame = -1
@@ -250,6 +273,11 @@ class FeatureTracker:
                 normalised = undistort_points(self.camera, self.distortion, forward)
                 judged = self._epipolar(normalised_prev, normalised, keep)
             lost, rejected = int((~keep).sum()), int((keep & ~judged).sum())
+            if self._anchors is not None:
+                self._anchors.keep(judged)
+                forward[judged] = self._anchors.follow(gray, forward[judged])
+                normalised[judged] = undistort_points(self.camera, self.distortion,
+                                                      forward[judged])
             pixels, ids, ages = forward[judged], ids[judged], ages[judged] + 1
             normalised = normalised[judged]
         else:
@@ -272,6 +300,8 @@ class FeatureTracker:
                 cv2.circle(mask, (int(x), int(y)), o.min_distance, 0, -1)
         crowded = int(len(ids) - keep.sum())
         pixels, ids, ages, normalised = pixels[keep], ids[keep], ages[keep], normalised[keep]
+        if self._anchors is not None:
+            self._anchors.keep(keep)
 
         wanted = o.max_features - len(ids)
         detected = 0
@@ -288,6 +318,11 @@ class FeatureTracker:
                 ages = np.concatenate([ages, np.ones(detected, np.int64)])
                 normalised = np.concatenate(
                     [normalised, undistort_points(self.camera, self.distortion, new)])
+                if self._anchors is not None:
+                    self._anchors.extend(detected)
+        if self._anchors is not None:
+            due = (ages >= o.anchor_age) & ~self._anchors.anchored
+            self._anchors.anchor(gray, pixels, np.flatnonzero(due))
 
         self._previous = gray
         if o.affine_refinement:
