@@ -70,6 +70,8 @@ class FrontendOptions:
     affine_refinement: bool = option(False, doc="refine each track under an affine warp of "
                                      "its patch (affine_refine.py: a patch that grows in "
                                      "forward flight biases Lucas-Kanade's translation)")
+    # Off: nearer on the ideal camera's navigation benchmark, not on the realistic camera's
+    # (docs/vins.md, "Tracks that stop gathering error"), at three times the front-end's time.
     anchor_age: int = option(0, ge=0, le=1000, doc="from this age on, a track is found "
                              "against its own patch of the frame it reached the age in, "
                              "under the affine map gathered since, so it stops gathering "
