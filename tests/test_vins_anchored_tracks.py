@@ -80,3 +80,19 @@ def test_rows_follow_their_tracks_through_keep_extend_and_anchor():
     assert anchors.anchored.all()
     found = anchors.follow(frame, kept_points + [1.2, 0.3])
     assert np.linalg.norm(found - (kept_points + [1.0, 0.5]), axis=1).max() < 0.1
+
+
+def test_an_anchor_that_fits_beyond_the_border_keeps_lucas_kanades_answer():
+    """A track Lucas-Kanade kept inside the border is never moved out of it by its anchor (the
+    tracker indexes its mask at the rounded position): there the answer stands and the anchor
+    is given up."""
+    base = crop(texture(0, BIG))
+    points = np.array([[636.5, 200.0], [636.5, 300.0], [320.0, 240.0]])
+    anchors = Anchors(half=7, max_shift=1.0, max_deformation=1.0, border=1)
+    anchors.extend(len(points))
+    anchors.anchor(base, points, np.arange(len(points)))
+    frame = crop(warped(texture(0, BIG), np.eye(2), [2.0, 0.0]))
+    guesses = np.array([[637.9, 200.0], [637.9, 300.0], [322.3, 240.0]])  # inside: x <= 638
+    found = anchors.follow(frame, guesses)
+    assert np.array_equal(found[:2], guesses[:2]) and not anchors.anchored[:2].any()
+    assert anchors.anchored[2] and abs(found[2, 0] - 322.0) < 0.1

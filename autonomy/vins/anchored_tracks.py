@@ -39,8 +39,9 @@ class Anchors:
     """The anchors of a tracker's tracks, row ``i`` for its track ``i``: the anchor patch
     (prepared for ``fit_affine``), the affine map gathered since and whether there is one."""
 
-    def __init__(self, *, half: int, max_shift: float, max_deformation: float):
+    def __init__(self, *, half: int, max_shift: float, max_deformation: float, border: int = 0):
         self.half, self.max_shift, self.max_deformation = half, max_shift, max_deformation
+        self.border = border
         self._patches = self._none(0)
         self._linear = np.zeros((0, 2, 2))
         self.anchored = np.zeros(0, bool)
@@ -69,14 +70,19 @@ class Anchors:
 
     def follow(self, gray: np.ndarray, found: np.ndarray) -> np.ndarray:
         """``found`` (Lucas-Kanade's positions of the tracks in ``gray``, one per row) with
-        each anchored track moved to where its anchor fits; the failed anchors given up."""
+        each anchored track moved to where its anchor fits; the failed anchors given up, and
+        those that fit closer than ``border`` pixels to the image's edge."""
         rows = np.flatnonzero(self.anchored)
         self.reanchored = 0
         if not len(rows):
             return found
         centre, linear, converged = fit_affine(self._patches.take(rows), gray, found[rows],
                                                self._linear[rows], half=self.half)
-        good = (converged
+        h, w = gray.shape
+        b = self.border
+        inside = ((centre[:, 0] >= b) & (centre[:, 0] <= w - 1 - b)
+                  & (centre[:, 1] >= b) & (centre[:, 1] <= h - 1 - b))
+        good = (converged & inside
                 & (np.linalg.norm(centre - found[rows], axis=1) <= self.max_shift)
                 & (np.abs(linear - np.eye(2)).max(axis=(1, 2)) <= self.max_deformation))
         found = found.copy()

@@ -207,7 +207,7 @@ class FeatureTracker:
         self._ages = np.zeros(0, np.int64)
         o = self.options
         self._anchors = (Anchors(half=o.anchor_window // 2, max_shift=o.anchor_max_shift,
-                                 max_deformation=o.anchor_max_deformation)
+                                 max_deformation=o.anchor_max_deformation, border=o.border)
                          if o.anchor_age else None)
         if not hasattr(self, "_next_id"):
             self._next_id = 0
