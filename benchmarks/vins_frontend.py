@@ -6,8 +6,9 @@ Feeds the EuRoC V1_01 cam0 images, cropped to their central 640x480 (principal p
 to match), through FeatureTracker.track with cv2.setNumThreads(1). Baseline in the same run:
 goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and, interleaved
 on the same frames, the default tracker with the affine refinement of its tracks
-(``affine_refinement``), with anchored tracks (``anchor_age = 2``) and the tracker of before 2026-11-28 (VINS-Mono's 21 px Lucas-Kanade
-window, no second try on a deeper pyramid; docs/vins.md). Prints one JSON object.
+(``affine_refinement``), with anchored tracks (``anchor_age = 2``) and the tracker of before
+2026-11-28 (VINS-Mono's 21 px Lucas-Kanade window, no second try on a deeper pyramid;
+docs/vins.md). Prints one JSON object.
 """
 
 import argparse

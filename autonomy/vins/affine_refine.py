@@ -21,6 +21,9 @@ A refinement that does not converge, moves the track further than ``max_shift`` 
 Lucas-Kanade's answer or deforms the patch by more than ``max_deformation`` keeps
 Lucas-Kanade's position: the refinement only ever sharpens a track the tracker kept.
 
+Its two halves, :func:`prepare_templates` (a patch made ready once) and :func:`fit_affine` (the
+fit from a given map), also serve ``anchored_tracks.py``, whose templates outlive a frame.
+
 Off by default (``FrontendOptions.affine_refinement``): on the simulator's flights it halves
 the error of tracks 10 frames and older, but the trajectories scored with it are better on
 some seeds and worse on others, it moves the realistic profile's mean scale from 0.999 to
@@ -193,4 +196,3 @@ def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
                & (np.linalg.norm(centre - guesses, axis=1) <= max_shift)
                & (deformation <= max_deformation))
     return np.where(refined[:, None], centre, guesses), refined
-

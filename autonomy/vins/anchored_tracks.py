@@ -98,6 +98,7 @@ class Anchors:
         if not len(rows):
             return
         fresh = prepare_templates(with_gradients(gray), pixels[rows], half=self.half)
+        # The fresh patches appended, then moved into their rows.
         self._patches = Templates.join(self._patches, fresh)
         order = np.arange(len(self.anchored))
         order[rows] = len(self.anchored) + np.arange(len(rows))

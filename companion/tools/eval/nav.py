@@ -665,10 +665,10 @@ def _flown(records: list[dict]) -> str:
     else:
         seeds_text = "seeds " + ", ".join(map(str, seeds))
     limits = " or ".join(f"{t:g}" for t in sorted({r["timeout_s"] for r in records}))
-    truths = [source for source in _provenance(records)["tracks"] if source != "tracker"]
+    sources = [source for source in _provenance(records)["tracks"] if source != "tracker"]
     return (f"{trials} per start/goal pair and depth source, {seeds_text}, "
             f"{limits} s to reach the goal"
-            + "".join(f", the VINS on {source} tracks" for source in truths))
+            + "".join(f", the VINS on {source} tracks" for source in sources))
 
 
 def _row(world: str, source: str, numbers: dict, records: list[dict]) -> str:
