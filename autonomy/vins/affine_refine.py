@@ -21,8 +21,11 @@ A refinement that does not converge, moves the track further than ``max_shift`` 
 Lucas-Kanade's answer or deforms the patch by more than ``max_deformation`` keeps
 Lucas-Kanade's position: the refinement only ever sharpens a track the tracker kept.
 
-Its two halves, :func:`prepare_templates` (a patch made ready once) and :func:`fit_affine` (the
-fit from a given map), also serve ``anchored_tracks.py``, whose templates outlive a frame.
+Its two halves, :func:`prepare_templates` (a patch made ready once) and :func:`fit_warp` (the
+fit from a given warp), also serve ``anchored_tracks.py``, whose templates outlive a frame and
+whose patches may be fitted under a homography as well: the warp is kept as a 3x3 matrix ``G``
+from the patch's offsets, scaled to [-1, 1], to the image's pixels, the affine map being the
+homography whose last row is ``(0, 0, 1)``.
 
 Off by default (``FrontendOptions.affine_refinement``): on the simulator's flights it halves
 the error of tracks 10 frames and older, but the trajectories scored with it are better on
@@ -66,14 +69,6 @@ def _normalised(patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centred, np.sqrt(np.mean(centred**2, axis=1))
 
 
-def _inverse_2x2(m: np.ndarray) -> np.ndarray:
-    """The inverses of a stack of 2x2 matrices (N, 2, 2), in closed form."""
-    determinant = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
-    adjugate = np.stack([np.stack([m[:, 1, 1], -m[:, 0, 1]], axis=1),
-                         np.stack([-m[:, 1, 0], m[:, 0, 0]], axis=1)], axis=1)
-    return adjugate / determinant[:, None, None]
-
-
 def with_gradients(image: np.ndarray) -> np.ndarray:
     """``(H, W, 3)`` float32: a grey image, its d/dx and its d/dy, per pixel (the template
     side of :func:`refine_affine`, computed once per frame)."""
@@ -82,13 +77,24 @@ def with_gradients(image: np.ndarray) -> np.ndarray:
                       cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3, scale=SOBEL_SCALE)])
 
 
+#: The warps a patch is fitted under, each with its number of parameters: the affine map
+#: ``u -> c + A u`` and the homography (eight parameters: the affine map's six and the
+#: perspective's two, which an affine map fitted to a plane seen at a slant turns into an
+#: offset of its centre; ``anchored_tracks.py``).
+WARP_PARAMETERS = {"affine": 6, "homography": 8}
+
+#: A patch whose Hessian's least eigenvalue is below this share of its largest is not fitted
+#: (a flat patch, or an edge, along which it would slide).
+MIN_EIGENVALUE_RATIO = 1e-8
+
+
 @dataclass(frozen=True)
 class Templates:
-    """Patches prepared for :func:`fit_affine`, row ``i`` describing patch ``i``: the patch
+    """Patches prepared for :func:`fit_warp`, row ``i`` describing patch ``i``: the patch
     normalised to zero mean (``values``, (N, M)) and its contrast (``contrast``), the
-    inverse-compositional steepest-descent images transposed (``steepest_t``, (N, 6, M)) and
-    their Hessian's inverse (``inverse``, (N, 6, 6)); ``usable`` is false for a flat patch or
-    a singular Hessian."""
+    inverse-compositional steepest-descent images transposed (``steepest_t``, (N, P, M), ``P``
+    the warp's parameters) and their Hessian's inverse (``inverse``, (N, P, P)); ``usable`` is
+    false for a flat patch or a singular Hessian."""
 
     values: np.ndarray
     contrast: np.ndarray
@@ -112,68 +118,117 @@ class Templates:
                                (b.values, b.contrast, b.steepest_t, b.inverse, b.usable))))
 
 
-def _offsets(half: int) -> tuple[np.ndarray, np.ndarray]:
-    """A ``2 half + 1`` square patch's pixel offsets from its centre, x and y, row by row."""
-    offsets = np.arange(-half, half + 1, dtype=float)
+def _scaled_offsets(half: int) -> tuple[np.ndarray, np.ndarray]:
+    """A ``2 half + 1`` square patch's pixel offsets from its centre over ``half`` (so in
+    [-1, 1], which keeps the warp's parameters of one magnitude), x and y, row by row."""
+    offsets = np.arange(-half, half + 1, dtype=float) / half
     return tuple(a.ravel() for a in np.meshgrid(offsets, offsets))
 
 
-def prepare_templates(image: np.ndarray, centres: np.ndarray, *, half: int) -> Templates:
-    """The ``2 half + 1`` square patches of ``image`` (:func:`with_gradients` of a grey image)
-    around ``centres`` (N, 2), made ready for :func:`fit_affine`."""
-    ux, uy = _offsets(half)
+def identity_warps(centres: np.ndarray, *, half: int) -> np.ndarray:
+    """(N, 3, 3): the warps from a patch's scaled offsets to image pixels that leave the
+    patches as they are, centred at ``centres`` (N, 2)."""
     centres = np.asarray(centres, float).reshape(-1, 2)
-    sampled = bilinear(image, centres[:, :1] + ux, centres[:, 1:] + uy)  # (N, M, 3)
+    warps = np.tile(np.diag([float(half), float(half), 1.0]), (len(centres), 1, 1))
+    warps[:, :2, 2] = centres
+    return warps
+
+
+def warp_centres(warps: np.ndarray) -> np.ndarray:
+    """(N, 2): where the warps put their patches' centres."""
+    return warps[:, :2, 2] / warps[:, 2:, 2]
+
+
+def centre_jacobians(warps: np.ndarray, *, half: int) -> np.ndarray:
+    """(N, 2, 2): each warp's derivative at its patch's centre, image pixels per patch pixel
+    (the affine map's ``A``; for a homography ``G``, ``(G[:2, :2] g22 - G[:2, 2] G[2, :2]) /
+    (g22^2 half)``)."""
+    g22 = warps[:, 2, 2][:, None, None]
+    return ((warps[:, :2, :2] * g22 - warps[:, :2, 2:] * warps[:, 2:, :2])
+            / (g22**2 * half))
+
+
+def prepare_templates(image: np.ndarray, centres: np.ndarray, *, half: int,
+                      warp: str = "affine") -> Templates:
+    """The ``2 half + 1`` square patches of ``image`` (:func:`with_gradients` of a grey image)
+    around ``centres`` (N, 2), made ready for :func:`fit_warp` under ``warp``
+    (:data:`WARP_PARAMETERS`). The steepest-descent images are the patch's gradient times the
+    warp's Jacobian at the identity, in the scaled offsets ``s``: for the affine map ``(gx sx,
+    gx sy, gy sx, gy sy, gx, gy)``, for the homography also ``-(gx sx + gy sy) (sx, sy)``."""
+    sx, sy = _scaled_offsets(half)
+    centres = np.asarray(centres, float).reshape(-1, 2)
+    sampled = bilinear(image, centres[:, :1] + half * sx, centres[:, 1:] + half * sy)
     values, contrast = _normalised(sampled[..., 0])
-    gx, gy = sampled[..., 1], sampled[..., 2]
-    steepest = np.stack([gx * ux, gx * uy, gy * ux, gy * uy, gx, gy], axis=2)  # (N, M, 6)
-    steepest_t = np.ascontiguousarray(steepest.transpose(0, 2, 1))  # (N, 6, M)
-    hessian = steepest_t @ steepest
+    gx, gy = sampled[..., 1] * half, sampled[..., 2] * half  # per unit of scaled offset
+    columns = [gx * sx, gx * sy, gy * sx, gy * sy, gx, gy]
+    if warp == "homography":
+        radial = gx * sx + gy * sy
+        columns += [-radial * sx, -radial * sy]
+    elif warp != "affine":
+        raise ValueError(f"unknown warp {warp!r}: one of {', '.join(WARP_PARAMETERS)}")
+    steepest_t = np.ascontiguousarray(np.stack(columns, axis=1))  # (N, P, M)
+    hessian = steepest_t @ steepest_t.transpose(0, 2, 1)
     eigenvalues = np.linalg.eigvalsh(hessian)  # ascending
-    usable = (contrast > 1e-3) & (eigenvalues[:, 0] > 1e-8 * eigenvalues[:, -1])
+    usable = (contrast > 1e-3) & (eigenvalues[:, 0] > MIN_EIGENVALUE_RATIO * eigenvalues[:, -1])
     inverse = np.zeros_like(hessian)
     inverse[usable] = np.linalg.inv(hessian[usable])
     return Templates(values, contrast, steepest_t, inverse, usable)
 
 
-def fit_affine(templates: Templates, current: np.ndarray, guesses: np.ndarray,
-               linear: np.ndarray | None = None, *, half: int, iterations: int = 20,
-               epsilon: float = 0.005) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each template's patch found in ``current`` (a grey image) under ``u -> c + A u`` by
-    inverse-compositional Gauss-Newton from ``c = guesses`` and ``A = linear`` (the identity
-    when None). Returns ``c`` (N, 2), ``A`` (N, 2, 2) and whether each converged (a last step
-    of the patch's centre under ``epsilon`` pixels, the warp finite, the template usable)."""
-    ux, uy = _offsets(half)
-    n = len(templates)
+def _parameter_warps(p: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): the warps of parameters ``p`` (N, 6 or 8) about the identity."""
+    h = np.tile(np.eye(3), (len(p), 1, 1))
+    h[:, :2, :2] += p[:, :4].reshape(-1, 2, 2)
+    h[:, :2, 2] = p[:, 4:6]
+    if p.shape[1] == 8:
+        h[:, 2, :2] = p[:, 6:]
+    return h
+
+
+def fit_warp(templates: Templates, current: np.ndarray, guesses: np.ndarray,
+             warps: np.ndarray | None = None, *, half: int, iterations: int = 20,
+             epsilon: float = 0.005) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each template's patch found in ``current`` (a grey image) under the warp ``G`` (3x3,
+    from the patch's scaled offsets to pixels; affine or a homography, as the templates were
+    prepared) by inverse-compositional Gauss-Newton, from ``warps`` (N, 3, 3) moved to centre
+    on ``guesses`` (N, 2), or from :func:`identity_warps` there when None. Each step
+    ``dp = H^-1 sum SD^T e`` is composed inverted, ``G <- G W(dp)^-1``. Returns the centres
+    (N, 2), the warps and whether each converged (a last step of the patch's centre under
+    ``epsilon`` pixels, the warp finite, the template usable)."""
+    sx, sy = _scaled_offsets(half)
+    guesses = np.asarray(guesses, float).reshape(-1, 2)
+    if warps is None:
+        warps = identity_warps(guesses, half=half)
+    else:
+        # Moved onto the guesses: G <- T(guess - centre) G.
+        warps = np.asarray(warps, float).reshape(-1, 3, 3).copy()
+        warps[:, :2, :] += (guesses - warp_centres(warps))[:, :, None] * warps[:, 2:, :]
     current = current.astype(np.float32)
-    centre = np.asarray(guesses, float).reshape(-1, 2).copy()
-    linear = (np.tile(np.eye(2), (n, 1, 1)) if linear is None
-              else np.asarray(linear, float).reshape(-1, 2, 2).copy())
     active = templates.usable.copy()
-    converged = np.zeros(n, bool)
+    converged = np.zeros(len(templates), bool)
     for _ in range(iterations):
         k = np.flatnonzero(active)
         if not len(k):
             break
-        c, a = centre[k], linear[k]
-        wx = c[:, :1] + a[:, 0, :1] * ux + a[:, 0, 1:] * uy
-        wy = c[:, 1:] + a[:, 1, :1] * ux + a[:, 1, 1:] * uy
-        warped, warped_std = _normalised(bilinear(current, wx, wy))
+        g = warps[k]
+        hx, hy, hw = (g[:, i, :1] * sx + g[:, i, 1:2] * sy + g[:, i, 2:] for i in range(3))
+        warped, warped_std = _normalised(bilinear(current, hx / hw, hy / hw))
         error = (warped * (templates.contrast[k] / np.maximum(warped_std, 1e-9))[:, None]
                  - templates.values[k])
         step = np.einsum("nij,nj->ni", templates.inverse[k],
                          (templates.steepest_t[k] @ error[:, :, None])[:, :, 0])
-        a = a @ _inverse_2x2(np.eye(2) + step[:, :4].reshape(-1, 2, 2))
-        moved = (a @ step[:, 4:, None])[:, :, 0]
-        centre[k], linear[k] = c - moved, a
-        done = np.linalg.norm(moved, axis=1) < epsilon
-        converged[k[done]] = True
+        before = warp_centres(g)
+        with np.errstate(all="ignore"):
+            g = g @ np.linalg.inv(_parameter_warps(step))
+            g = g / g[:, 2:, 2:]
+        warps[k] = g
         # A singular step leaves a warp that is not finite: that track is given up, not
         # sampled again.
-        lost = ~(np.isfinite(a).all(axis=(1, 2)) & np.isfinite(moved).all(axis=1))
-        converged[k[lost]] = False
+        lost = ~np.isfinite(g).all(axis=(1, 2))
+        done = ~lost & (np.linalg.norm(warp_centres(g) - before, axis=1) < epsilon)
+        converged[k[done]] = True
         active[k[done | lost]] = False
-    return centre, linear, converged
+    return warp_centres(warps), warps, converged
 
 
 def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
@@ -189,9 +244,10 @@ def refine_affine(previous: np.ndarray, current: np.ndarray, starts: np.ndarray,
     A patch whose Hessian is singular to working precision (a flat one) is not refined."""
     guesses = np.asarray(guesses, float).reshape(-1, 2)
     templates = prepare_templates(previous, starts, half=half)
-    centre, linear, converged = fit_affine(templates, current, guesses, half=half,
-                                           iterations=iterations, epsilon=epsilon)
-    deformation = np.abs(linear - np.eye(2)).max(axis=(1, 2))
+    centre, warps, converged = fit_warp(templates, current, guesses, half=half,
+                                        iterations=iterations, epsilon=epsilon)
+    with np.errstate(invalid="ignore"):
+        deformation = np.abs(centre_jacobians(warps, half=half) - np.eye(2)).max(axis=(1, 2))
     refined = (converged
                & (np.linalg.norm(centre - guesses, axis=1) <= max_shift)
                & (deformation <= max_deformation))

@@ -32,18 +32,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from autonomy.vins.affine_refine import Templates, fit_affine, prepare_templates, with_gradients
+from autonomy.vins.affine_refine import (WARP_PARAMETERS, Templates, centre_jacobians, fit_warp,
+                                         identity_warps, prepare_templates, with_gradients)
 
 
 class Anchors:
     """The anchors of a tracker's tracks, row ``i`` for its track ``i``: the anchor patch
-    (prepared for ``fit_affine``), the affine map gathered since and whether there is one."""
+    (prepared for ``fit_warp`` under ``warp``, affine or a homography), the warp gathered since
+    and whether there is one."""
 
-    def __init__(self, *, half: int, max_shift: float, max_deformation: float, border: int = 0):
+    def __init__(self, *, half: int, max_shift: float, max_deformation: float, border: int = 0,
+                 warp: str = "affine"):
+        if warp not in WARP_PARAMETERS:
+            raise ValueError(f"unknown warp {warp!r}: one of {', '.join(WARP_PARAMETERS)}")
         self.half, self.max_shift, self.max_deformation = half, max_shift, max_deformation
-        self.border = border
+        self.border, self.warp = border, warp
         self._patches = self._none(0)
-        self._linear = np.zeros((0, 2, 2))
+        self._warps = np.zeros((0, 3, 3))
         self.anchored = np.zeros(0, bool)
         self.reanchored = 0  # anchors given up at the last follow()
 
@@ -52,20 +57,21 @@ class Anchors:
 
     def _none(self, n: int) -> Templates:
         """``n`` placeholder patches (not usable)."""
-        m = (2 * self.half + 1) ** 2
-        return Templates(np.zeros((n, m)), np.zeros(n), np.zeros((n, 6, m)),
-                         np.zeros((n, 6, 6)), np.zeros(n, bool))
+        m, p = (2 * self.half + 1) ** 2, WARP_PARAMETERS[self.warp]
+        return Templates(np.zeros((n, m)), np.zeros(n), np.zeros((n, p, m)),
+                         np.zeros((n, p, p)), np.zeros(n, bool))
 
     def keep(self, rows) -> None:
         """Keep the rows ``rows`` selects (indices or a mask), in that order."""
         self._patches = self._patches.take(rows)
-        self._linear = self._linear[rows]
+        self._warps = self._warps[rows]
         self.anchored = self.anchored[rows]
 
     def extend(self, n: int) -> None:
         """Add ``n`` rows for new tracks, not anchored."""
         self._patches = Templates.join(self._patches, self._none(n))
-        self._linear = np.concatenate([self._linear, np.tile(np.eye(2), (n, 1, 1))])
+        self._warps = np.concatenate([self._warps, identity_warps(np.zeros((n, 2)),
+                                                                  half=self.half)])
         self.anchored = np.concatenate([self.anchored, np.zeros(n, bool)])
 
     def follow(self, gray: np.ndarray, found: np.ndarray) -> np.ndarray:
@@ -76,18 +82,21 @@ class Anchors:
         self.reanchored = 0
         if not len(rows):
             return found
-        centre, linear, converged = fit_affine(self._patches.take(rows), gray, found[rows],
-                                               self._linear[rows], half=self.half)
+        centre, warps, converged = fit_warp(self._patches.take(rows), gray, found[rows],
+                                            self._warps[rows], half=self.half)
         h, w = gray.shape
         b = self.border
-        inside = ((centre[:, 0] >= b) & (centre[:, 0] <= w - 1 - b)
-                  & (centre[:, 1] >= b) & (centre[:, 1] <= h - 1 - b))
-        good = (converged & inside
-                & (np.linalg.norm(centre - found[rows], axis=1) <= self.max_shift)
-                & (np.abs(linear - np.eye(2)).max(axis=(1, 2)) <= self.max_deformation))
+        with np.errstate(invalid="ignore"):  # a lost fit's warp is NaN: not good
+            inside = ((centre[:, 0] >= b) & (centre[:, 0] <= w - 1 - b)
+                      & (centre[:, 1] >= b) & (centre[:, 1] <= h - 1 - b))
+            deformation = np.abs(centre_jacobians(warps, half=self.half)
+                                 - np.eye(2)).max(axis=(1, 2))
+            good = (converged & inside
+                    & (np.linalg.norm(centre - found[rows], axis=1) <= self.max_shift)
+                    & (deformation <= self.max_deformation))
         found = found.copy()
         found[rows[good]] = centre[good]
-        self._linear[rows[good]] = linear[good]
+        self._warps[rows[good]] = warps[good]
         self.anchored[rows[~good]] = False
         self.reanchored = int((~good).sum())
         return found
@@ -97,11 +106,12 @@ class Anchors:
         of the tracker's tracks)."""
         if not len(rows):
             return
-        fresh = prepare_templates(with_gradients(gray), pixels[rows], half=self.half)
+        fresh = prepare_templates(with_gradients(gray), pixels[rows], half=self.half,
+                                  warp=self.warp)
         # The fresh patches appended, then moved into their rows.
         self._patches = Templates.join(self._patches, fresh)
         order = np.arange(len(self.anchored))
         order[rows] = len(self.anchored) + np.arange(len(rows))
         self._patches = self._patches.take(order)
-        self._linear[rows] = np.eye(2)
+        self._warps[rows] = identity_warps(pixels[rows], half=self.half)
         self.anchored[rows] = fresh.usable

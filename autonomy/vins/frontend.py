@@ -34,7 +34,7 @@ import numpy as np
 
 from autonomy.geometry import PinholeCamera, undistort_points
 from autonomy.options import OptionError, option, validate
-from autonomy.vins.affine_refine import refine_affine, with_gradients
+from autonomy.vins.affine_refine import WARP_PARAMETERS, refine_affine, with_gradients
 from autonomy.vins.anchored_tracks import Anchors
 
 
@@ -74,17 +74,20 @@ class FrontendOptions:
     # (docs/vins.md, "Tracks that stop gathering error"), at three times the front-end's time.
     anchor_age: int = option(0, ge=0, le=1000, doc="from this age on, a track is found "
                              "against its own patch of the frame it reached the age in, "
-                             "under the affine map gathered since, so it stops gathering "
+                             "under the warp gathered since, so it stops gathering "
                              "error (anchored_tracks.py); 0: off")
     anchor_window: int = option(15, ge=5, le=101, doc="side of an anchor's patch, pixels "
                                 "(odd)")
+    anchor_warp: str = option("affine", choices=tuple(WARP_PARAMETERS), doc="the warp an "
+                              "anchor's patch is fitted under: affine, or a homography (a "
+                              "wall seen at a slant, which an affine map fits off its centre)")
     anchor_max_shift: float = option(1.0, gt=0.0, doc="an anchor fitting further than this "
                                      "from Lucas-Kanade's answer is given up and the track "
                                      "anchored again, pixels")
-    anchor_max_deformation: float = option(1.0, gt=0.0, doc="an anchor whose affine map "
-                                           "strays further than this from the identity in "
-                                           "any entry is given up and the track anchored "
-                                           "again")
+    anchor_max_deformation: float = option(1.0, gt=0.0, doc="an anchor whose warp's "
+                                           "derivative at its centre strays further than "
+                                           "this from the identity in any entry is given "
+                                           "up and the track anchored again")
     ransac: bool = option(True, doc="reject tracks that break the epipolar geometry "
                           "(fundamental-matrix RANSAC)")
     ransac_threshold: float = option(1.0, gt=0.0, doc="RANSAC epipolar distance limit, "
@@ -207,7 +210,8 @@ class FeatureTracker:
         self._ages = np.zeros(0, np.int64)
         o = self.options
         self._anchors = (Anchors(half=o.anchor_window // 2, max_shift=o.anchor_max_shift,
-                                 max_deformation=o.anchor_max_deformation, border=o.border)
+                                 max_deformation=o.anchor_max_deformation, border=o.border,
+                                 warp=o.anchor_warp)
                          if o.anchor_age else None)
         if not hasattr(self, "_next_id"):
             self._next_id = 0
