@@ -6,7 +6,8 @@ Feeds the EuRoC V1_01 cam0 images, cropped to their central 640x480 (principal p
 to match), through FeatureTracker.track with cv2.setNumThreads(1). Baseline in the same run:
 goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and, interleaved
 on the same frames, the default tracker with the affine refinement of its tracks
-(``affine_refinement``), with anchored tracks (``anchor_age = 2``) and the tracker of before
+(``affine_refinement``), with anchored tracks (``anchor_age = 2``, under the affine map and
+under a homography, ``anchor_warp``) and the tracker of before
 2026-11-28 (VINS-Mono's 21 px Lucas-Kanade window, no second try on a deeper pyramid;
 docs/vins.md). Prints one JSON object.
 """
@@ -44,6 +45,8 @@ def main() -> None:
         "affine": FeatureTracker(camera, stream.distortion,
                                  FrontendOptions(affine_refinement=True)),
         "anchored": FeatureTracker(camera, stream.distortion, FrontendOptions(anchor_age=2)),
+        "anchored_homography": FeatureTracker(
+            camera, stream.distortion, FrontendOptions(anchor_age=2, anchor_warp="homography")),
         "lk21": FeatureTracker(camera, stream.distortion,
                                FrontendOptions(lk_window=21, retry_pyramid_levels=0)),
     }

@@ -162,9 +162,12 @@ def test_rgb_and_grey_give_the_same_tracks():
     assert np.array_equal(a.pixels, b.pixels)
 
 
-@pytest.mark.parametrize("anchor_age", [0, 2])
-def test_ids_are_never_reused_and_min_distance_holds_over_a_sequence(anchor_age):
-    tracker = FeatureTracker(CAMERA, options=FrontendOptions(clahe=True, anchor_age=anchor_age))
+ANCHORS = [{}, {"anchor_age": 2}, {"anchor_age": 2, "anchor_warp": "homography"}]
+
+
+@pytest.mark.parametrize("anchors", ANCHORS)
+def test_ids_are_never_reused_and_min_distance_holds_over_a_sequence(anchors):
+    tracker = FeatureTracker(CAMERA, options=FrontendOptions(clahe=True, **anchors))
     seen_ids: set[int] = set()
     alive: set[int] = set()
     base = texture(3, (600, 800))
@@ -320,13 +323,12 @@ def test_anchored_tracks_stop_gathering_error_down_a_tunnel(seed):
 
 @pytest.mark.skipif(not (EUROC / "mav0" / "cam0").is_dir(),
                     reason=f"EuRoC V1_01 not found at {EUROC}")
-@pytest.mark.parametrize("anchor_age", [0, 2])
-def test_real_euroc_frames_keep_their_tracks(anchor_age):
+@pytest.mark.parametrize("anchors", ANCHORS)
+def test_real_euroc_frames_keep_their_tracks(anchors):
     from drivers.dataset.euroc import read_camera
 
     stream = read_camera(EUROC)
-    tracker = FeatureTracker(stream.camera, stream.distortion,
-                             FrontendOptions(anchor_age=anchor_age))
+    tracker = FeatureTracker(stream.camera, stream.distortion, FrontendOptions(**anchors))
     previous = None
     for path in stream.paths[:40]:
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)

@@ -13,19 +13,26 @@ the tracker's 0.84 % (docs/vins.md, "The hallway open loop").
 Shi and Tomasi's remedy ("Good Features to Track", CVPR 1994, section 4: monitoring a feature
 against its first appearance under an affine map) is this module's: once a track is
 ``anchor_age`` frames old its patch in that frame becomes its anchor, and in every later frame
-the track is where the anchor fits under the affine map ``u -> c + A u`` gathered since
-(``affine_refine.fit_affine``, from Lucas-Kanade's position and the last frame's ``A``). The
-error is then the fit's in this frame, not a sum over frames. A fit that does not converge,
-lands further than ``max_shift`` from Lucas-Kanade's answer or deforms the patch beyond
-``max_deformation`` keeps Lucas-Kanade's answer, and the track is anchored again on this
-frame: an anchor is given up where its patch no longer looks like itself (an occlusion, a
-change of view an affine map does not describe), never followed into a wrong match.
+the track is where the anchor fits under the warp gathered since (``affine_refine.fit_warp``,
+from Lucas-Kanade's position and the last frame's warp). The error is then the fit's in this
+frame, not a sum over frames. A fit that does not converge, lands further than ``max_shift``
+from Lucas-Kanade's answer or deforms the patch beyond ``max_deformation`` keeps Lucas-Kanade's
+answer, and the track is anchored again on this frame: an anchor is given up where its patch
+no longer looks like itself (an occlusion, a change of view the warp does not describe), never
+followed into a wrong match.
+
+The warp is the affine map ``u -> c + A u`` or a homography (``warp``). A patch on a wall seen
+at a slant grows more on its near side than on its far one as the camera nears it: the view's
+second-order term, which an affine map fitted over the patch turns into an offset of its centre
+of ``-A E[u u^T] h`` (``h`` the homography's last row, ``E[u u^T]`` the window's second
+moment). Flying forward it points outward, frame after frame, and lengthens the VINS's
+scale; the homography describes the plane's view exactly (docs/vins.md, "Anchored tracks
+under a homography").
 
 Off by default (``FrontendOptions.anchor_age``): on the simulator's ideal camera it brings the
-navigation benchmark's VINS error near issue 24's goal, on the realistic camera (its lens's
-distortion drawn into the image, which an affine map in distorted pixels does not follow) it
-is no better than Lucas-Kanade, and it triples the front-end's time (docs/vins.md, "Tracks
-that stop gathering error").
+navigation benchmark's VINS error near issue 24's goal, on the realistic camera it is no
+better than Lucas-Kanade, and it triples the front-end's time or more (docs/vins.md, "Tracks
+that stop gathering error" and "Anchored tracks under a homography").
 """
 
 from __future__ import annotations
