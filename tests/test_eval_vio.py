@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from autonomy.geometry import PinholeCamera, make_pose, rot_to_quat, rot_z, so3_exp
+from autonomy.lens import CameraModel, Rectifier
 from autonomy.messages import SparseMap
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInit
@@ -354,6 +355,42 @@ def test_a_frame_stamped_after_the_ground_truth_ends_is_run(tmp_path):
     result = evaluate_vio(tmp_path, VinsOptions(), consistency=False)
     assert result["frames"] == 22
     assert {"track_error_px_median", "track_error_px_p90", "track_error_by_age"} <= set(result)
+
+
+LENS = (-0.28, 0.07, 2e-4, 2e-5)
+
+
+def test_rectified_the_frames_and_depth_are_the_flight_applications_and_the_lens_is_gone(
+        tmp_path):
+    """With ``rectify`` the VINS sees each frame as the flight application's rectifier makes it
+    (the lens undone onto the pinhole of its intrinsics) and the depth images moved alike; the
+    camera it is built for has no distortion left. A recording without distortion is left as it
+    is."""
+    _write_dataset(tmp_path, seconds=0.2, distortion=LENS)
+    raw = read_vio_dataset(tmp_path)
+    data = vio.rectified(raw)
+    assert not any(data.camera.distortion) and data.camera.camera == raw.camera.camera
+    rectify = Rectifier(CameraModel(CAMERA, "radtan", LENS), CAMERA)
+    for frame, raw_frame in zip(vio_frames(data), vio_frames(raw)):
+        assert np.array_equal(frame.image, rectify(raw_frame.image))
+        truth = read_depth_png(frame.depth_path)
+        np.testing.assert_array_equal(vio.read_frame_depth(frame.depth_path, data),
+                                      rectify.depth(truth))
+    assert not np.array_equal(frame.image, raw_frame.image)  # the lens did move pixels
+    _write_dataset(tmp_path / "pinhole", seconds=0.2)
+    pinhole = read_vio_dataset(tmp_path / "pinhole")
+    assert vio.rectified(pinhole) is pinhole
+
+
+def test_eval_vio_rectify_runs_on_a_distorted_recording_and_truth_tracks_stay_refused(
+        tmp_path, capsys):
+    """``--rectify`` scores a distorted recording through the rectifier; truth tracks still
+    need a recording made through an exact camera, rectified or not."""
+    _write_dataset(tmp_path, seconds=1.0, distortion=LENS)
+    status, captured = _eval_vio(capsys, tmp_path, "--rectify", "--json")
+    assert status == 0 and json.loads(captured.out)["frames"] == 21
+    status, captured = _eval_vio(capsys, tmp_path, "--rectify", "--tracks", "truth")
+    assert status == 1 and "lens is distorted" in captured.err
 
 
 def test_an_image_of_the_wrong_size_is_named(tmp_path):

@@ -47,6 +47,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "of each track's first six frames only / gathered after them only "
                           "(a recording of the ideal profile, with depth0; docs/vins.md) "
                           "(default: %(default)s)")
+    vio.add_argument("--rectify", action="store_true",
+                     help="rectify every frame (and depth image) onto the ideal pinhole before "
+                          "the VINS sees it, as the flight application does; without it the "
+                          "VINS tracks the raw frames and undistorts its points, as VINS-Mono "
+                          "on EuRoC")
     vio.set_defaults(command=_eval_vio)
 
     depth = actions.add_parser(
@@ -188,7 +193,8 @@ def _eval_vio(args: argparse.Namespace, config: Config) -> int:
     try:
         result = evaluation.evaluate_vio(args.dataset, config.vins, frontend=config.vins_frontend,
                                          static=config.vins_init, max_frames=args.max_frames,
-                                         bound=args.bound, track_source=args.tracks)
+                                         bound=args.bound, track_source=args.tracks,
+                                         rectify=args.rectify)
     except evaluation.EvaluationError as error:
         print(f"eval vio: {error}", file=sys.stderr)
         return common.EXIT_FAILED

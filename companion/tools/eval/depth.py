@@ -150,7 +150,7 @@ def tracked_frames(data: VioDataset, options: DepthEvalOptions, max_frames: int 
             raise EvaluationError(f"{data.root}: frame at t={frame.t:.3f} s has no depth0 image")
         imu.before_frame(vins, frame.t)
         update = vins.add_frame(frame.t, vins.track(frame.image))
-        yield frame, update, read_frame_depth(frame.depth_path, data.camera.camera)
+        yield frame, update, read_frame_depth(frame.depth_path, data)
 
 
 def _record(trace: DepthTrace, result: MetricDepth, truth: np.ndarray,

@@ -14,7 +14,7 @@ import math
 import re
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
@@ -25,6 +25,7 @@ from scipy.integrate import trapezoid
 from autonomy.geometry import (
     PinholeCamera, invert_pose, make_pose, quat_to_rot, so3_log, yaw_alignment,
 )
+from autonomy.lens import CameraModel, Rectifier
 from autonomy.messages import Frame, ImuSample, SparseMap
 from autonomy.trajectory import (
     align_umeyama, ate_rmse, interpolate_poses, nees, path_length, pose_error_body,
@@ -61,7 +62,8 @@ class VioDataset:
     """The streams of a dataset the evaluation needs, checked for use.
 
     ``depth`` maps a camera timestamp (ns) to its ground-truth depth image; it is None when the
-    dataset has no ``depth0`` stream (the real EuRoC recordings).
+    dataset has no ``depth0`` stream (the real EuRoC recordings). ``rectifier``, when set,
+    resamples every frame and depth image as they are read (:func:`rectified`).
     """
 
     root: Path
@@ -70,6 +72,7 @@ class VioDataset:
     truth: GroundTruthTable
     noise: ImuNoise
     depth: dict[int, Path] | None
+    rectifier: Rectifier | None = None
 
 
 @dataclass(frozen=True)
@@ -191,17 +194,35 @@ def read_vio_dataset(root: Path) -> VioDataset:
     return VioDataset(root, camera, imu, truth, noise, depth_paths)
 
 
+def rectified(data: VioDataset) -> VioDataset:
+    """``data`` as the flight application sees its camera: every frame and depth image
+    resampled through the lens onto the ideal pinhole of the lens's intrinsics
+    (:class:`autonomy.lens.Rectifier`, which ``drivers.camera.calibration`` runs on each frame
+    before any stage sees it), the camera then without distortion; ``data`` itself where the
+    lens has none. Without it the VINS tracks the raw frames and undistorts its points, as
+    VINS-Mono does on EuRoC."""
+    stream = data.camera
+    if not any(stream.distortion):
+        return data
+    model = CameraModel(stream.camera, "radtan", stream.distortion)
+    return replace(data, camera=replace(stream, distortion=(0.0,) * len(stream.distortion)),
+                   rectifier=Rectifier(model, model.rectified()))
+
+
 def evaluate_vio(root: Path, options: VinsOptions, *, frontend: FrontendOptions | None = None,
                  static: StaticInitOptions | None = None, max_frames: int | None = None,
                  consistency: bool = True, bound: bool = False,
-                 track_source: str = "tracker") -> dict:
+                 track_source: str = "tracker", rectify: bool = False) -> dict:
     """Run the VINS over the dataset at ``root`` (:func:`run_vins`) and score it
     (:func:`score_vio`); ``consistency`` false skips the NEES and the marginal covariance it
     needs at every keyframe (a quarter of the time); ``bound`` adds ``bound``, what the
     smoother's own factors allow (:func:`bound_vio`); ``track_source`` other than the tracker's
     runs it on the tracker's tracks with every pixel the truth's, or with part of the
-    tracker's error (:func:`run_vins`)."""
+    tracker's error (:func:`run_vins`); ``rectify`` runs it on the frames rectified as in
+    flight (:func:`rectified`)."""
     data = read_vio_dataset(root)
+    if rectify:
+        data = rectified(data)
     log = FactorLog() if bound else None
     trace = run_vins(data, options, frontend=frontend, static=static, max_frames=max_frames,
                      consistency=consistency, factor_log=log, track_source=track_source)
@@ -267,7 +288,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         true_pose = _true_pose(frame.t, truth_t, data.truth) if truth_known else None
         depth = None
         if exact is not None:  # not timed: no stage of the estimator's
-            depth = _exact_frame_depth(frame, truth_known, stream.camera)
+            depth = _exact_frame_depth(frame, truth_known, data)
             tracks = exact(Frame(frame.t, frame.image, depth, true_pose), tracks)
         resets_before = vins.backend.resets
         middle = time.perf_counter()
@@ -281,7 +302,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         born = truth_known and bool((np.asarray(tracks.ages) == 1).any())
         if (depth is None and frame.depth_path is not None
                 and (born or update.sparse_map is not None)):
-            depth = read_frame_depth(frame.depth_path, stream.camera)
+            depth = read_frame_depth(frame.depth_path, data)
         if truth_known:
             tracking.observe(tracks, true_pose, depth)
         if update.sparse_map is not None and depth is not None:
@@ -308,20 +329,20 @@ def _truth_tracks(data: VioDataset, source: str) -> TruthTracks | None:
     if data.depth is None:
         raise EvaluationError(f"{data.root}: truth tracks need the true depth of every frame "
                               "(depth0/, which 'companion sim record' writes)")
-    if any(stream.distortion):
+    if any(stream.distortion) or data.rectifier is not None:
         raise EvaluationError(f"{data.root}: truth tracks need an exact camera, and this one's "
                               "lens is distorted: record the ideal profile ('companion sim "
                               "record --set sim.profile=ideal')")
     return replacement
 
 
-def _exact_frame_depth(frame: VioFrame, truth_known: bool, camera) -> np.ndarray:
+def _exact_frame_depth(frame: VioFrame, truth_known: bool, data: VioDataset) -> np.ndarray:
     """The true depth a truth-track frame needs, or :class:`EvaluationError` naming what is
     missing."""
     if frame.depth_path is None or not truth_known:
         raise EvaluationError(f"truth tracks: the frame at {frame.t:.3f} s has no "
                               + ("depth image" if frame.depth_path is None else "ground truth"))
-    return read_frame_depth(frame.depth_path, camera)
+    return read_frame_depth(frame.depth_path, data)
 
 
 def build_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOptions | None = None,
@@ -343,8 +364,10 @@ def vio_frames(data: VioDataset, max_frames: int | None = None) -> Iterator[VioF
     count = len(stream.paths) if max_frames is None else min(max_frames, len(stream.paths))
     for k in range(count):
         depth_path = data.depth.get(int(stream.t_ns[k])) if data.depth is not None else None
-        yield VioFrame(float(frame_t[k]), _read_image(stream.paths[k], stream.camera),
-                       depth_path)
+        image = _read_image(stream.paths[k], stream.camera)
+        if data.rectifier is not None:
+            image = data.rectifier(image)
+        yield VioFrame(float(frame_t[k]), image, depth_path)
 
 
 def score_vio(trace: VioTrace, data: VioDataset) -> dict:
@@ -475,14 +498,15 @@ def _read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def read_frame_depth(path: Path, camera: PinholeCamera) -> np.ndarray:
-    """A frame's ground-truth depth image (float32 metres, NaN unknown), checked for size."""
+def read_frame_depth(path: Path, data: VioDataset) -> np.ndarray:
+    """A frame's ground-truth depth image of ``data``'s camera (float32 metres, NaN unknown),
+    checked for size, rectified with the frames where they are."""
     try:
         depth = read_depth_png(path)
     except DatasetError as error:
         raise EvaluationError(str(error)) from None
-    _check_size(path, depth, camera)
-    return depth
+    _check_size(path, depth, data.camera.camera)
+    return depth if data.rectifier is None else data.rectifier.depth(depth)
 
 
 def _check_size(path: Path, image: np.ndarray, camera: PinholeCamera) -> None:
