@@ -83,6 +83,14 @@ def with_gradients(image: np.ndarray) -> np.ndarray:
 #: offset of its centre; ``anchored_tracks.py``).
 WARP_PARAMETERS = {"affine": 6, "homography": 8}
 
+def warp_parameters(warp: str) -> int:
+    """How many parameters ``warp`` has (:data:`WARP_PARAMETERS`); ValueError naming the known
+    warps for any other."""
+    if warp not in WARP_PARAMETERS:
+        raise ValueError(f"unknown warp {warp!r}: one of {', '.join(WARP_PARAMETERS)}")
+    return WARP_PARAMETERS[warp]
+
+
 #: A patch whose Hessian's least eigenvalue is below this share of its largest is not fitted
 #: (a flat patch, or an edge, along which it would slide).
 MIN_EIGENVALUE_RATIO = 1e-8
@@ -161,11 +169,9 @@ def prepare_templates(image: np.ndarray, centres: np.ndarray, *, half: int,
     values, contrast = _normalised(sampled[..., 0])
     gx, gy = sampled[..., 1] * half, sampled[..., 2] * half  # per unit of scaled offset
     columns = [gx * sx, gx * sy, gy * sx, gy * sy, gx, gy]
-    if warp == "homography":
+    if warp_parameters(warp) == 8:  # the homography's last row
         radial = gx * sx + gy * sy
         columns += [-radial * sx, -radial * sy]
-    elif warp != "affine":
-        raise ValueError(f"unknown warp {warp!r}: one of {', '.join(WARP_PARAMETERS)}")
     steepest_t = np.ascontiguousarray(np.stack(columns, axis=1))  # (N, P, M)
     hessian = steepest_t @ steepest_t.transpose(0, 2, 1)
     eigenvalues = np.linalg.eigvalsh(hessian)  # ascending

@@ -39,8 +39,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from autonomy.vins.affine_refine import (WARP_PARAMETERS, Templates, centre_jacobians, fit_warp,
-                                         identity_warps, prepare_templates, with_gradients)
+from autonomy.vins.affine_refine import (Templates, centre_jacobians, fit_warp, identity_warps,
+                                         prepare_templates, warp_parameters, with_gradients)
 
 
 class Anchors:
@@ -50,10 +50,9 @@ class Anchors:
 
     def __init__(self, *, half: int, max_shift: float, max_deformation: float, border: int = 0,
                  warp: str = "affine"):
-        if warp not in WARP_PARAMETERS:
-            raise ValueError(f"unknown warp {warp!r}: one of {', '.join(WARP_PARAMETERS)}")
         self.half, self.max_shift, self.max_deformation = half, max_shift, max_deformation
         self.border, self.warp = border, warp
+        self._parameters = warp_parameters(warp)
         self._patches = self._none(0)
         self._warps = np.zeros((0, 3, 3))
         self.anchored = np.zeros(0, bool)
@@ -64,7 +63,7 @@ class Anchors:
 
     def _none(self, n: int) -> Templates:
         """``n`` placeholder patches (not usable)."""
-        m, p = (2 * self.half + 1) ** 2, WARP_PARAMETERS[self.warp]
+        m, p = (2 * self.half + 1) ** 2, self._parameters
         return Templates(np.zeros((n, m)), np.zeros(n), np.zeros((n, p, m)),
                          np.zeros((n, p, p)), np.zeros(n, bool))
 
