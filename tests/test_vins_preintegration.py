@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 from autonomy.geometry import GRAVITY, quat_to_rot, so3_exp, so3_log
-from autonomy.vins.preintegration import (ImuNoise, preintegrate, predict,
+from autonomy.vins.preintegration import (ImuNoise, gyro_axes_density, preintegrate, predict,
                                           prediction_covariance)
 
 EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_01"
@@ -113,6 +113,40 @@ def test_bad_inputs_raise(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         preintegrate(**args)
+
+
+def test_gyro_axes_density_carries_the_rotation_error_of_gyros_with_misdrawn_axes():
+    """Gyros that read ``(I + M) omega``, ``M`` drawn with the sigmas given (scale on the
+    diagonal, cross-axis off it), preintegrate a turning interval off by a spread that the
+    density integrated over the interval states, per axis (docs/vins.md, "The gyro's axes as
+    noise"): 0 at rest, ``s_s^2 theta_z^2`` on z and ``s_c^2 theta_z^2`` on x, y for a yaw."""
+    rng = np.random.default_rng(3)
+    scale_sigma, cross_sigma = 0.005, 0.0125
+    n, h = 40, 0.005
+    rates = np.column_stack([0.3 * np.sin(np.linspace(0, 3, n)), -0.6 + 0.01 * np.arange(n),
+                             np.full(n, 0.9)])
+    truth = preintegrate(rates, np.zeros((n, 3)), h, np.zeros(3), np.zeros(3))
+    errors = []
+    for _ in range(2000):
+        M = rng.normal(0.0, cross_sigma, (3, 3))
+        M[np.diag_indices(3)] = rng.normal(0.0, scale_sigma, 3)
+        read = preintegrate(rates @ (np.eye(3) + M).T, np.zeros((n, 3)), h, np.zeros(3),
+                            np.zeros(3))
+        errors.append(so3_log(truth.delta_R.T @ read.delta_R))
+    rotation = rates.T @ np.full(n, h)
+    stated = gyro_axes_density(rotation, n * h, scale_sigma, cross_sigma) * n * h
+    np.testing.assert_allclose(np.var(errors, axis=0), stated, rtol=0.1)
+    yaw = gyro_axes_density([0.0, 0.0, 0.2], 0.1, scale_sigma, cross_sigma) * 0.1
+    np.testing.assert_allclose(yaw, 0.04 * np.array([cross_sigma**2, cross_sigma**2,
+                                                     scale_sigma**2]))
+    assert not gyro_axes_density(np.zeros(3), 0.1, scale_sigma, cross_sigma).any()
+
+
+@pytest.mark.parametrize("rotation, duration", [
+    ([0.1, 0.0, 0.0], 0.0), ([0.1, 0.0, 0.0], -0.1), ([np.nan, 0.0, 0.0], 0.1)])
+def test_gyro_axes_density_refuses_an_interval_it_cannot_weigh(rotation, duration):
+    with pytest.raises(ValueError, match="positive duration and finite"):
+        gyro_axes_density(rotation, duration, 0.005, 0.0125)
 
 
 # ------------------------------------------------------------------ real EuRoC V1_01

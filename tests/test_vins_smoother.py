@@ -16,6 +16,7 @@ from gtsam.symbol_shorthand import V, X
 from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.trajectory import pose_error_body
 from autonomy.vins import ImuNoise, VinsOptions
+from autonomy.vins.preintegration import gyro_axes_density
 from autonomy.vins.backend import (
     GaugeAnchor, KeyframeState, PriorSigmas, SlidingWindowSmoother, imu_params,
     released_covariance,
@@ -261,6 +262,33 @@ def test_the_white_noise_and_the_bias_walk_are_scaled_apart():
     assert np.allclose(default.params.getBiasAccCovariance(), (2.0 * 3e-3) ** 2 * eye)
     assert np.allclose(default.params.getAccelerometerCovariance(), (2.0 * 6.865e-4) ** 2 * eye)
     assert np.allclose(default.params.getGyroscopeCovariance(), (2.0 * 4.8869e-05) ** 2 * eye)
+
+
+def test_gyro_axes_noise_weighs_only_the_turning_intervals_gyro_less():
+    """With ``gyro_axes_noise`` the preintegration of an interval that turns carries the
+    axes' errors over that turn in its rotation's covariance, on top of the white noise; one
+    that does not turn, and every interval without the option, is weighed as before."""
+    camera = PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0)
+    on = SlidingWindowSmoother(camera, np.eye(4), NOISE, VinsOptions(gyro_axes_noise=True))
+    off = SlidingWindowSmoother(camera, np.eye(4), NOISE, VinsOptions())
+    for smoother in (on, off):
+        smoother.start(KeyframeState(0, 0.0, np.eye(4), np.zeros(3), np.zeros(3), np.zeros(3)),
+                       PriorSigmas.with_bias_priors(smoother.options, (0.017, 0.017, 0.005),
+                                                    0.01, 0.02))
+
+    def rotation_variance(smoother, rate):
+        pim = smoother.preintegration(rate * 0.1, 0.1)
+        for _ in range(20):
+            pim.integrateMeasurement(np.array([0.0, 0.0, GRAVITY]), rate, IMU_DT)
+        return np.diag(pim.preintMeasCov())[:3]
+
+    white = rotation_variance(off, np.zeros(3))
+    turn = np.array([0.0, 1.0, 2.0])  # rad/s: a pitch and a yaw over 0.1 s
+    added = gyro_axes_density(turn * 0.1, 0.1, 0.005, 0.014) * 0.1
+    assert added[0] > 1e3 * white[0]  # the turn's part outweighs the white noise
+    np.testing.assert_allclose(rotation_variance(on, turn), white + added, rtol=0.02)
+    np.testing.assert_allclose(rotation_variance(on, np.zeros(3)), white, rtol=1e-9)
+    np.testing.assert_allclose(rotation_variance(off, turn), white, rtol=0.02)
 
 
 def swaying_smoother(times: np.ndarray, options: VinsOptions) -> SlidingWindowSmoother:

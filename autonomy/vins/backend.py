@@ -74,7 +74,7 @@ from autonomy.vins.landmarks import (
     Gate, depth_sigma, gate_candidates, observation_limit_px, spread_choice, widest_ray_angle,
 )
 from autonomy.vins.options import VinsOptions
-from autonomy.vins.preintegration import ImuNoise
+from autonomy.vins.preintegration import ImuNoise, gyro_axes_density
 
 #: Floors under the IMU densities, so a noiseless recording still gives a well-posed problem.
 #: The bias walks' are 1.9 and 30 times under EuRoC's (1.9e-5, 3e-3), the presets' figures; a
@@ -250,14 +250,16 @@ class _Keyframe:
 
 
 def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float,
-               gyro_scale: float = 1.0) -> gtsam.PreintegrationCombinedParams:
+               gyro_scale: float = 1.0,
+               gyro_extra=(0.0, 0.0, 0.0)) -> gtsam.PreintegrationCombinedParams:
     """GTSAM preintegration parameters for a z-up world from continuous noise densities: the
-    white noise's times ``white_scale`` (the gyro's times ``gyro_scale`` too), the bias random
-    walk's times ``walk_scale``."""
+    white noise's times ``white_scale`` (the gyro's times ``gyro_scale`` too, plus the squared
+    densities ``gyro_extra`` per axis: :func:`gyro_axes_density`), the bias random walk's times
+    ``walk_scale``."""
     params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
     eye = np.eye(3)
     params.setGyroscopeCovariance((white_scale * gyro_scale * max(
-        noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye)
+        noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye + np.diag(gyro_extra))
     params.setAccelerometerCovariance(
         (white_scale * max(noise.accel_noise_density, _DENSITY_FLOOR["accel"])) ** 2 * eye)
     params.setIntegrationCovariance(1e-8 * eye)
@@ -320,6 +322,7 @@ class SlidingWindowSmoother:
                  options: VinsOptions):
         self.options = options
         self.camera = camera
+        self._noise = noise
         self.params = imu_params(noise, options.imu_noise_scale, options.imu_bias_walk_scale,
                                  options.gyro_noise_scale)
         self._T_B_C = np.asarray(T_B_C, dtype=float)
@@ -388,10 +391,20 @@ class SlidingWindowSmoother:
         estimate."""
         return self._T_B_C
 
-    def preintegration(self) -> gtsam.PreintegratedCombinedMeasurements:
-        """An empty preintegration at the latest keyframe's biases."""
+    def preintegration(self, rotation=None,
+                       duration: float = 0.0) -> gtsam.PreintegratedCombinedMeasurements:
+        """An empty preintegration at the latest keyframe's biases. With ``gyro_axes_noise``,
+        for an interval of ``duration`` seconds that turns by ``rotation`` (rad, body frame), its
+        gyro weighed less by the axes' errors over that turn (:func:`gyro_axes_density`)."""
         s = self.latest
-        return gtsam.PreintegratedCombinedMeasurements(self.params, _bias(s.bias_g, s.bias_a))
+        params = self.params
+        if self.options.gyro_axes_noise and rotation is not None:
+            o = self.options
+            params = imu_params(self._noise, o.imu_noise_scale, o.imu_bias_walk_scale,
+                                o.gyro_noise_scale, gyro_axes_density(
+                                    rotation, duration, o.gyro_scale_sigma,
+                                    o.gyro_cross_axis_sigma))
+        return gtsam.PreintegratedCombinedMeasurements(params, _bias(s.bias_g, s.bias_a))
 
     def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None,
               anchor: GaugeAnchor | None = None) -> None:

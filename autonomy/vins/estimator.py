@@ -465,9 +465,11 @@ class Vins:
         self._stillness.add(t, self._anchor.state.R_W_B, tracks)
 
     def _preintegrate(self, t0: float, t1: float):
-        """The IMU from ``t0`` to ``t1`` preintegrated at the latest keyframe's biases."""
-        pim = self.backend.preintegration()
+        """The IMU from ``t0`` to ``t1`` preintegrated at the latest keyframe's biases (its
+        gyro weighed by the interval's turn with ``gyro_axes_noise``)."""
         pieces = self._imu.pieces(t0, t1)
+        rotation = (pieces.gyro - self.backend.latest.bias_g).T @ pieces.dt
+        pim = self.backend.preintegration(rotation, float(pieces.dt.sum()))
         for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
             pim.integrateMeasurement(accel, gyro, dt)
         return pim

@@ -191,12 +191,17 @@ class VinsOptions:
                                            "yaw rate against the camera's rotation online and "
                                            "correct the gyro by it (needs "
                                            "estimate_time_offset: its frame pairs)")
-    gyro_cross_axis_sigma: float = option(0.014, gt=0.0, le=0.2, doc="the estimate's prior: "
-                                          "sigma of the x and y axes' response to the z rate "
-                                          "(cross-axis sensitivity with the mounting's error), "
-                                          "fraction")
-    gyro_scale_sigma: float = option(0.005, gt=0.0, le=0.2, doc="the estimate's prior: sigma "
-                                     "of the z axis' scale error, fraction")
+    gyro_cross_axis_sigma: float = option(0.014, gt=0.0, le=0.2, doc="sigma of each axis' "
+                                          "response to the others' rates (cross-axis "
+                                          "sensitivity with the mounting's error), fraction: "
+                                          "the estimate's prior, and gyro_axes_noise's weight")
+    gyro_scale_sigma: float = option(0.005, gt=0.0, le=0.2, doc="sigma of each axis' scale "
+                                     "error, fraction: the estimate's prior (the z axis'), "
+                                     "and gyro_axes_noise's weight")
+    gyro_axes_noise: bool = option(False, doc="weigh each keyframe interval's gyro less by "
+                                   "what the two sigmas above make of its turn, as noise "
+                                   "(autonomy/vins/preintegration.py gyro_axes_density; "
+                                   "docs/vins.md, \"The gyro's axes as noise\")")
     gyro_alignment: tuple[float, ...] = option(
         (0.0, 0.0, 0.0), doc="the gyro's response to the yaw rate (x, y and z axes, fractions) "
         "calibrated on an earlier flight of this vehicle (eval vio's gyro_alignment column): "

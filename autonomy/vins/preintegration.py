@@ -131,6 +131,33 @@ def _as_vec3(name: str, x) -> np.ndarray:
     return a
 
 
+def gyro_axes_density(rotation, duration: float, scale_sigma: float,
+                      cross_axis_sigma: float) -> np.ndarray:
+    """The gyro's scale and cross-axis errors over one interval, as the white-noise density
+    (squared, per axis, rad^2/s) that carries them: a weight, not an estimate.
+
+    A gyro reads ``(I + M) omega``, ``M``'s diagonal (scale errors) of sigma ``s_s`` and its
+    off-diagonal (cross-axis responses) of sigma ``s_c``. Over an interval of ``duration`` T
+    whose rotation is ``theta = int omega dt`` the preintegrated rotation is off by ``M theta``
+    (to first order), of variance per axis
+
+        var_i = s_s^2 theta_i^2 + s_c^2 (|theta|^2 - theta_i^2),
+
+    and white noise of density ``q`` integrates to ``q T`` over it, so ``q_i = var_i / T``.
+    Errors of a few tenths of a percent are nothing at hover and, at a cruise's roll and pitch
+    rates, many times the white noise: docs/vins.md, "The gyro's axes as noise". ``M`` is one
+    matrix for the whole flight, which the intervals' independent noise does not say; the
+    smoother only learns to trust the camera's rotation over the gyro's where they turn.
+    """
+    theta = np.asarray(rotation, dtype=float).reshape(3)
+    if not (duration > 0.0 and np.isfinite(theta).all()):
+        raise ValueError(f"a rotation needs a positive duration and finite components, got "
+                         f"{theta.tolist()} over {duration} s")
+    squares = theta**2
+    return (scale_sigma**2 * squares
+            + cross_axis_sigma**2 * (squares.sum() - squares)) / duration
+
+
 def preintegrate(gyro, accel, dt, bias_g, bias_a, noise: ImuNoise | None = None, *,
                  bias_random_walk: bool = True) -> Preintegrated:
     """Preintegrate ``N`` IMU samples held over the intervals ``dt`` (seconds).
