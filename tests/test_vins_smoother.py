@@ -277,9 +277,10 @@ def test_gyro_axes_noise_weighs_only_the_turning_intervals_gyro_less():
                                                     0.01, 0.02))
 
     def rotation_variance(smoother, rate):
-        pim = smoother.preintegration(rate * 0.1, 0.1)
-        for _ in range(20):
-            pim.integrateMeasurement(np.array([0.0, 0.0, GRAVITY]), rate, IMU_DT)
+        gyro, dt = np.tile(rate, (20, 1)), np.full(20, IMU_DT)  # 0.1 s
+        pim = smoother.preintegration(gyro, dt)
+        for sample, step in zip(gyro, dt):
+            pim.integrateMeasurement(np.array([0.0, 0.0, GRAVITY]), sample, step)
         return np.diag(pim.preintMeasCov())[:3]
 
     white = rotation_variance(off, np.zeros(3))

@@ -323,8 +323,7 @@ class SlidingWindowSmoother:
         self.options = options
         self.camera = camera
         self._noise = noise
-        self.params = imu_params(noise, options.imu_noise_scale, options.imu_bias_walk_scale,
-                                 options.gyro_noise_scale)
+        self.params = self._imu_params()
         self._T_B_C = np.asarray(T_B_C, dtype=float)
         self._body_P_camera = gtsam.Pose3(self._T_B_C)
         self._mounting_prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[
@@ -391,19 +390,25 @@ class SlidingWindowSmoother:
         estimate."""
         return self._T_B_C
 
-    def preintegration(self, rotation=None,
-                       duration: float = 0.0) -> gtsam.PreintegratedCombinedMeasurements:
+    def _imu_params(self, gyro_extra=(0.0, 0.0, 0.0)) -> gtsam.PreintegrationCombinedParams:
+        """The options' preintegration parameters, the gyro's covariance plus ``gyro_extra``."""
+        o = self.options
+        return imu_params(self._noise, o.imu_noise_scale, o.imu_bias_walk_scale,
+                          o.gyro_noise_scale, gyro_extra)
+
+    def preintegration(self, gyro=None, dt=None) -> gtsam.PreintegratedCombinedMeasurements:
         """An empty preintegration at the latest keyframe's biases. With ``gyro_axes_noise``,
-        for an interval of ``duration`` seconds that turns by ``rotation`` (rad, body frame), its
-        gyro weighed less by the axes' errors over that turn (:func:`gyro_axes_density`)."""
+        for the interval whose gyro samples ``gyro`` (N, 3, rad/s) are held over ``dt`` (N,
+        seconds), its gyro weighed less by the axes' errors over the interval's turn, the
+        samples less the bias integrated (:func:`gyro_axes_density`)."""
         s = self.latest
         params = self.params
-        if self.options.gyro_axes_noise and rotation is not None:
-            o = self.options
-            params = imu_params(self._noise, o.imu_noise_scale, o.imu_bias_walk_scale,
-                                o.gyro_noise_scale, gyro_axes_density(
-                                    rotation, duration, o.gyro_scale_sigma,
-                                    o.gyro_cross_axis_sigma))
+        if self.options.gyro_axes_noise and gyro is not None:
+            dt = np.asarray(dt, dtype=float)
+            rotation = (np.asarray(gyro, dtype=float) - s.bias_g).T @ dt
+            params = self._imu_params(gyro_axes_density(
+                rotation, float(dt.sum()), self.options.gyro_scale_sigma,
+                self.options.gyro_cross_axis_sigma))
         return gtsam.PreintegratedCombinedMeasurements(params, _bias(s.bias_g, s.bias_a))
 
     def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None,

@@ -468,8 +468,7 @@ class Vins:
         """The IMU from ``t0`` to ``t1`` preintegrated at the latest keyframe's biases (its
         gyro weighed by the interval's turn with ``gyro_axes_noise``)."""
         pieces = self._imu.pieces(t0, t1)
-        rotation = (pieces.gyro - self.backend.latest.bias_g).T @ pieces.dt
-        pim = self.backend.preintegration(rotation, float(pieces.dt.sum()))
+        pim = self.backend.preintegration(pieces.gyro, pieces.dt)
         for gyro, accel, dt in zip(pieces.gyro, pieces.accel, pieces.dt):
             pim.integrateMeasurement(accel, gyro, dt)
         return pim

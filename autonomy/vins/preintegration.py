@@ -145,7 +145,7 @@ def gyro_axes_density(rotation, duration: float, scale_sigma: float,
 
     and white noise of density ``q`` integrates to ``q T`` over it, so ``q_i = var_i / T``.
     Errors of a few tenths of a percent are nothing at hover and, at a cruise's roll and pitch
-    rates, many times the white noise: docs/vins.md, "The gyro's axes as noise". ``M`` is one
+    rates, about as large as the white noise or larger: docs/vins.md, "The gyro's axes as noise". ``M`` is one
     matrix for the whole flight, which the intervals' independent noise does not say; the
     smoother only learns to trust the camera's rotation over the gyro's where they turn.
     """
