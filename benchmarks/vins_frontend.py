@@ -1,6 +1,6 @@
 """Speed of the VINS front-end on one core: median milliseconds per 640x480 frame.
 
-    python benchmarks/vins_frontend.py [--frames 95] [--dataset ../shared/data/euroc_v1_01]
+    python benchmarks/vins_frontend.py [--frames 95] [--skip 0] [--dataset DIR]
 
 Feeds the EuRoC V1_01 cam0 images, cropped to their central 640x480 (principal point moved
 to match), through FeatureTracker.track with cv2.setNumThreads(1). Baseline in the same run:
@@ -31,6 +31,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=95)
     parser.add_argument("--dataset", type=Path, default=DEFAULT)
+    parser.add_argument("--skip", type=int, default=0, help="frames skipped first (a "
+                        "recording's take-off, to time its cruise)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     stream = read_camera(args.dataset)
@@ -39,7 +41,7 @@ def main() -> None:
     camera = replace(stream.camera, width=640, height=480, cx=stream.camera.cx - x0,
                      cy=stream.camera.cy - y0)
     frames = [np.ascontiguousarray(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)[y0:y0 + 480, x0:x0 + 640])
-              for p in stream.paths[:args.frames]]
+              for p in stream.paths[args.skip:args.skip + args.frames]]
     tracker = FeatureTracker(camera, stream.distortion)
     variants = {
         "affine": FeatureTracker(camera, stream.distortion,

@@ -5,6 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
+from autonomy.vins.affine_refine import SampledImage
 from autonomy.vins.anchored_tracks import Anchors
 
 from tests.test_vins_frontend import BIG, crop, texture
@@ -22,7 +23,7 @@ def anchored_grid(image: np.ndarray) -> tuple[Anchors, np.ndarray]:
     points = np.array([(x, y) for x in range(120, 540, 60) for y in range(100, 400, 60)], float)
     anchors = Anchors(half=7, max_shift=1.0, max_deformation=1.0)
     anchors.extend(len(points))
-    anchors.anchor(image, points, np.arange(len(points)))
+    anchors.anchor(SampledImage(image), points, np.arange(len(points)))
     assert anchors.anchored.all()
     return anchors, points
 
@@ -40,7 +41,7 @@ def test_an_anchor_finds_its_point_under_a_growing_warp_from_a_rough_guess():
         shift = centre - linear @ centre + [1.5 * k, -0.7 * k]
         frame = warped(base, linear, shift).astype(np.uint8)
         truth = points @ linear.T + shift
-        found = anchors.follow(frame, truth + rng.uniform(-0.4, 0.4, truth.shape))
+        found = anchors.follow(SampledImage(frame), truth + rng.uniform(-0.4, 0.4, truth.shape))
         assert anchors.reanchored == 0 and anchors.anchored.all()
         assert np.median(np.linalg.norm(found - truth, axis=1)) < 0.05
         assert np.linalg.norm(found - truth, axis=1).max() < 0.2
@@ -56,7 +57,7 @@ def test_an_anchor_that_disagrees_with_lucas_kanade_is_given_up_for_its_answer()
     truth = points + [2.0, 1.0]
     guesses = truth.copy()
     guesses[:3] += [2.5, 0.0]
-    found = anchors.follow(frame, guesses)
+    found = anchors.follow(SampledImage(frame), guesses)
     assert np.array_equal(found[:3], guesses[:3])
     assert not anchors.anchored[:3].any() and anchors.anchored[3:].all()
     assert anchors.reanchored == 3
@@ -77,9 +78,10 @@ def test_rows_follow_their_tracks_through_keep_extend_and_anchor():
     frame = crop(warped(texture(0, BIG), np.eye(2), [1.0, 0.5]))
     kept_points = np.vstack([points[keep], [[300.0, 200.0], [330.0, 260.0], [270.0, 320.0],
                                             [360.0, 150.0]]])
-    anchors.anchor(base, kept_points, np.arange(len(kept_points) - 4, len(kept_points)))
+    anchors.anchor(SampledImage(base), kept_points,
+                   np.arange(len(kept_points) - 4, len(kept_points)))
     assert anchors.anchored.all()
-    found = anchors.follow(frame, kept_points + [1.2, 0.3])
+    found = anchors.follow(SampledImage(frame), kept_points + [1.2, 0.3])
     assert np.linalg.norm(found - (kept_points + [1.0, 0.5]), axis=1).max() < 0.1
 
 
@@ -91,10 +93,10 @@ def test_an_anchor_that_fits_beyond_the_border_keeps_lucas_kanades_answer():
     points = np.array([[636.5, 200.0], [636.5, 300.0], [320.0, 240.0]])
     anchors = Anchors(half=7, max_shift=1.0, max_deformation=1.0, border=1)
     anchors.extend(len(points))
-    anchors.anchor(base, points, np.arange(len(points)))
+    anchors.anchor(SampledImage(base), points, np.arange(len(points)))
     frame = crop(warped(texture(0, BIG), np.eye(2), [2.0, 0.0]))
     guesses = np.array([[637.9, 200.0], [637.9, 300.0], [322.3, 240.0]])  # inside: x <= 638
-    found = anchors.follow(frame, guesses)
+    found = anchors.follow(SampledImage(frame), guesses)
     assert np.array_equal(found[:2], guesses[:2]) and not anchors.anchored[:2].any()
     assert anchors.anchored[2] and abs(found[2, 0] - 322.0) < 0.1
 
@@ -118,14 +120,14 @@ def test_a_homography_anchor_has_no_outward_error_on_a_wall_seen_at_a_slant():
     for warp in ("affine", "homography"):
         anchors = Anchors(half=7, max_shift=1.0, max_deformation=1.0, warp=warp)
         anchors.extend(len(points))
-        anchors.anchor(base, points, np.arange(len(points)))
+        anchors.anchor(SampledImage(base), points, np.arange(len(points)))
         for share in np.linspace(0.2, 1.0, 5):
             H = side_wall_approached(share)
             frame = cv2.warpPerspective(base, H, (640, 480), flags=cv2.INTER_CUBIC,
                                         borderMode=cv2.BORDER_REFLECT)
             moved = np.column_stack([points, np.ones(len(points))]) @ H.T
             truth = moved[:, :2] / moved[:, 2:]
-            found = anchors.follow(frame, truth + 0.3)
+            found = anchors.follow(SampledImage(frame), truth + 0.3)
             assert anchors.anchored.all()
         errors[warp] = found - truth
     assert errors["affine"][:, 0].mean() > 0.04  # outward: +x on the right

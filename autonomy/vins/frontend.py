@@ -34,7 +34,7 @@ import numpy as np
 
 from autonomy.geometry import PinholeCamera, undistort_points
 from autonomy.options import OptionError, option, validate
-from autonomy.vins.affine_refine import WARP_PARAMETERS, refine_affine, with_gradients
+from autonomy.vins.affine_refine import WARP_PARAMETERS, SampledImage, refine_affine
 from autonomy.vins.anchored_tracks import Anchors
 
 
@@ -203,7 +203,7 @@ class FeatureTracker:
     def reset(self) -> None:
         """Forget every track (ids keep increasing, so none is ever reused)."""
         self._previous: np.ndarray | None = None
-        self._previous_template: np.ndarray | None = None  # with_gradients(_previous)
+        self._previous_sampled: SampledImage | None = None  # _previous, for refine_affine
         self._pixels = np.zeros((0, 2), np.float32)
         self._normalised = np.zeros((0, 2))
         self._ids = np.zeros(0, np.int64)
@@ -223,8 +223,10 @@ class FeatureTracker:
             maxLevel=levels - 1, criteria=self._criteria)
         return moved.reshape(-1, 2), status.ravel().astype(bool)
 
-    def _follow(self, gray: np.ndarray, points: np.ndarray, levels: int):
-        """``points`` of the previous image tracked into ``gray`` on ``levels`` pyramid levels,
+    def _follow(self, gray: np.ndarray, points: np.ndarray, levels: int,
+                sampled: SampledImage | None):
+        """``points`` of the previous image tracked into ``gray`` (``sampled``, the same made
+        ready for the affine refinement) on ``levels`` pyramid levels,
         and whether each is kept: both directions converged, it landed inside the border and
         its round trip came back within ``forward_backward_threshold``."""
         o = self.options
@@ -234,7 +236,7 @@ class FeatureTracker:
         round_trip = np.linalg.norm(backward - points, axis=1)
         keep = ok & ok_back & (round_trip <= o.forward_backward_threshold)
         if o.affine_refinement and keep.any():
-            forward[keep], _ = refine_affine(self._previous_template, gray, points[keep],
+            forward[keep], _ = refine_affine(self._previous_sampled, sampled, points[keep],
                                              forward[keep], half=o.lk_window // 2)
         b = o.border  # after the refinement, which may move a track by up to 0.5 px
         inside = ((forward[:, 0] >= b) & (forward[:, 0] <= w - 1 - b)
@@ -264,24 +266,27 @@ class FeatureTracker:
             gray = self._clahe.apply(gray)
         self._frame += 1
         h, w = gray.shape
+        # Made once a frame for the patches fitted with sub-pixel warps, when any are.
+        sampled = (SampledImage(gray) if o.affine_refinement or self._anchors is not None
+                   else None)
         pixels, ids, ages = self._pixels, self._ids, self._ages
         normalised_prev = self._normalised
         lost = rejected = 0
         if len(ids) and self._previous is not None:
-            forward, keep = self._follow(gray, pixels, o.pyramid_levels)
+            forward, keep = self._follow(gray, pixels, o.pyramid_levels, sampled)
             normalised = undistort_points(self.camera, self.distortion, forward)
             judged = self._epipolar(normalised_prev, normalised, keep)
             if o.retry_pyramid_levels and len(ids) >= 8 and judged.mean() < 0.5:
                 # Motion beyond the small window's reach (a frame after a long gap, a jolt):
                 # most tracks lost, or converged where RANSAC rejects them. Again, all of
                 # them, from a deeper pyramid.
-                forward, keep = self._follow(gray, pixels, o.retry_pyramid_levels)
+                forward, keep = self._follow(gray, pixels, o.retry_pyramid_levels, sampled)
                 normalised = undistort_points(self.camera, self.distortion, forward)
                 judged = self._epipolar(normalised_prev, normalised, keep)
             lost, rejected = int((~keep).sum()), int((keep & ~judged).sum())
             if self._anchors is not None:
                 self._anchors.keep(judged)
-                forward[judged] = self._anchors.follow(gray, forward[judged])
+                forward[judged] = self._anchors.follow(sampled, forward[judged])
                 normalised[judged] = undistort_points(self.camera, self.distortion,
                                                       forward[judged])
             pixels, ids, ages = forward[judged], ids[judged], ages[judged] + 1
@@ -328,11 +333,10 @@ class FeatureTracker:
                     self._anchors.extend(detected)
         if self._anchors is not None:
             due = (ages >= o.anchor_age) & ~self._anchors.anchored
-            self._anchors.anchor(gray, pixels, np.flatnonzero(due))
+            self._anchors.anchor(sampled, pixels, np.flatnonzero(due))
 
         self._previous = gray
-        if o.affine_refinement:
-            self._previous_template = with_gradients(gray)
+        self._previous_sampled = sampled
         self._pixels = np.ascontiguousarray(pixels, dtype=np.float32)
         self._normalised = normalised
         self._ids, self._ages = ids, ages
