@@ -2,14 +2,17 @@
 
     python benchmarks/vins_frontend.py [--frames 95] [--skip 0] [--dataset DIR]
 
-Feeds the EuRoC V1_01 cam0 images, cropped to their central 640x480 (principal point moved
-to match), through FeatureTracker.track with cv2.setNumThreads(1). Baseline in the same run:
+Feeds the EuRoC V1_01 cam0 images, or any recording in EuRoC's folder format (``--dataset``: a
+``companion sim record`` flight, ``--skip`` its take-off to time its cruise), cropped to their
+central 640x480 (principal point moved to match), through FeatureTracker.track with
+cv2.setNumThreads(1). Baseline in the same run:
 goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and, interleaved
 on the same frames, the default tracker with the affine refinement of its tracks
 (``affine_refinement``), with anchored tracks (``anchor_age = 2``, under the affine map and
 under a homography, ``anchor_warp``) and the tracker of before
 2026-11-28 (VINS-Mono's 21 px Lucas-Kanade window, no second try on a deeper pyramid;
-docs/vins.md). Prints one JSON object.
+docs/vins.md); for the anchored trackers also the anchors given up per frame. Prints one JSON
+object.
 """
 
 import argparse
@@ -56,6 +59,7 @@ def main() -> None:
         each.track(frames[0])  # warm-up: first-call allocations
     track_ms, gftt_ms, counts, detected = [], [], [], 0
     variant_ms = {name: [] for name in variants}
+    given_up = {name: 0 for name in variants}
     for frame in frames[1:]:
         t0 = time.perf_counter()
         tracks = tracker.track(frame)
@@ -65,7 +69,7 @@ def main() -> None:
         gftt_ms.append((time.perf_counter() - t1) * 1e3)
         for name, variant in variants.items():
             start = time.perf_counter()
-            variant.track(frame)
+            given_up[name] += variant.track(frame).reanchored
             variant_ms[name].append((time.perf_counter() - start) * 1e3)
         counts.append(len(tracks))
         detected += tracks.detected
@@ -75,6 +79,8 @@ def main() -> None:
                       "gftt_only_ms_median": round(float(np.median(gftt_ms)), 3),
                       **{f"track_{name}_ms_median": round(float(np.median(times)), 3)
                          for name, times in variant_ms.items()},
+                      **{f"{name}_given_up_per_frame": round(given_up[name] / len(track_ms), 2)
+                         for name in variants if name.startswith("anchored")},
                       "features_median": int(np.median(counts)), "new_features": detected}))
 
 

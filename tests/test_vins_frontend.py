@@ -321,6 +321,25 @@ def test_anchored_tracks_stop_gathering_error_down_a_tunnel(seed):
     assert all(a < 0.5 * p for p, a in zip(plain, anchored)), (plain, anchored)
 
 
+@pytest.mark.parametrize("warp", ["affine", "homography"])
+def test_anchored_tracks_keep_their_anchors_down_a_tunnel(warp):
+    """An anchor is given up only where its fit fails; down a clean tunnel its fit converges,
+    frame after frame, so few are: about 4 % of the anchored tracks a frame, under 8 % asserted.
+    With the fit's steps undamped (they cycle between two warps) 12 % under the affine map and
+    20 % under a homography are (docs/vins.md, "Anchors that converge")."""
+    given_up = anchored = 0
+    for seed in (2, 3):
+        tunnel = Tunnel(seed)
+        tracker = FeatureTracker(TUNNEL_CAMERA,
+                                 options=FrontendOptions(anchor_age=2, anchor_warp=warp))
+        for k in range(40):
+            tracks = tracker.track(tunnel.render(k * 0.075))
+            given_up += tracks.reanchored
+            anchored += int((tracks.ages > 2).sum())  # anchored at two frames old
+    assert anchored > 3000
+    assert given_up < 0.08 * anchored, (given_up, anchored)
+
+
 @pytest.mark.skipif(not (EUROC / "mav0" / "cam0").is_dir(),
                     reason=f"EuRoC V1_01 not found at {EUROC}")
 @pytest.mark.parametrize("anchors", ANCHORS)

@@ -14,8 +14,9 @@ Gauss-Newton (Baker and Matthews, "Lucas-Kanade 20 Years On", IJCV 2004, section
 steepest-descent images and the Hessian are the template's, computed once, and each step
 ``dp = H^-1 sum SD^T e`` is composed inverted into the warp, ``W <- W o W(dp)^-1``. The
 warped patch is normalised to the template's mean and contrast every step, so an exposure
-change between frames is not read as motion. The scale no longer biases the centre; what is
-left is the frame's noise, which adds up as a random walk.
+change between frames is not read as motion. A step that raises the patch's residual is taken
+back and halved (:func:`fit_warp`). The scale no longer biases the centre; what is left is the
+frame's noise, which adds up as a random walk.
 
 A refinement that does not converge, moves the track further than ``max_shift`` from
 Lucas-Kanade's answer or deforms the patch by more than ``max_deformation`` keeps
@@ -30,7 +31,8 @@ homography whose last row is ``(0, 0, 1)``.
 Off by default (``FrontendOptions.affine_refinement``): on the simulator's flights it halves
 the error of tracks 10 frames and older, but the trajectories scored with it are better on
 some seeds and worse on others, it moves the realistic profile's mean scale from 0.999 to
-1.007 for a reason not found, and it triples the front-end's time (docs/vins.md).
+1.007 for a reason not found, and it doubles the front-end's time (docs/vins.md,
+docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -52,9 +54,9 @@ class SampledImage:
     + d fx fy`` with ``a = I00``, ``b = I10 - I00``, ``c = I01 - I00``, ``d = I11 - I10 - I01 +
     I00`` (``fx = x - x0``, ``fy = y - y0``); the four are kept per cell, so a sample is one
     gather of its cell (``cv2.remap`` nearest at the cell's integer corner, which is exact) and
-    three multiply-adds in float32. This makes the sampling of :func:`fit_warp`'s iterations,
-    the front-end's hottest loop, about three times cheaper than gathering the four corners
-    with numpy (docs/benchmarks.md)."""
+    three multiply-adds in float32, where numpy gathered the four corners one by one: the
+    sampling is most of :func:`fit_warp`'s iterations, the front-end's hottest loop with
+    anchored tracks (docs/benchmarks.md)."""
 
     def __init__(self, gray: np.ndarray):
         image = np.asarray(gray, np.float32)

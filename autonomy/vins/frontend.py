@@ -119,7 +119,8 @@ class Tracks:
     features: lost by Lucas-Kanade or the forward-backward check (on the deeper pyramid's try
     where that was made), rejected by RANSAC, dropped
     for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
-    of new features.
+    of new features; ``reanchored``, the anchors given up (their tracks kept Lucas-Kanade's
+    answer and were anchored again on this frame; 0 without ``anchor_age``).
     """
 
     frame: int
@@ -131,6 +132,7 @@ class Tracks:
     rejected: int = 0
     crowded: int = 0
     detected: int = 0
+    reanchored: int = 0
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -271,7 +273,7 @@ class FeatureTracker:
                    else None)
         pixels, ids, ages = self._pixels, self._ids, self._ages
         normalised_prev = self._normalised
-        lost = rejected = 0
+        lost = rejected = reanchored = 0
         if len(ids) and self._previous is not None:
             forward, keep = self._follow(gray, pixels, o.pyramid_levels, sampled)
             normalised = undistort_points(self.camera, self.distortion, forward)
@@ -287,6 +289,7 @@ class FeatureTracker:
             if self._anchors is not None:
                 self._anchors.keep(judged)
                 forward[judged] = self._anchors.follow(sampled, forward[judged])
+                reanchored = self._anchors.reanchored
                 normalised[judged] = undistort_points(self.camera, self.distortion,
                                                       forward[judged])
             pixels, ids, ages = forward[judged], ids[judged], ages[judged] + 1
@@ -342,4 +345,5 @@ class FeatureTracker:
         self._ids, self._ages = ids, ages
         return Tracks(frame=self._frame, ids=ids.copy(), pixels=pixels.astype(float),
                       normalised=normalised.copy(), ages=ages.copy(), lost=lost,
-                      rejected=rejected, crowded=crowded, detected=detected)
+                      rejected=rejected, crowded=crowded, detected=detected,
+                      reanchored=reanchored)
