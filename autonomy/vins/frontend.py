@@ -66,12 +66,12 @@ class FrontendOptions:
     forward_backward_threshold: float = option(1.0, gt=0.0, doc="largest forward-backward "
                                                "round-trip error kept, pixels")
     # Off: it halves the tracks' error, but the flights it scores are not better (docs/vins.md,
-    # "Tracks refined under an affine warp") and it triples the front-end's time.
+    # "Tracks refined under an affine warp") and it doubles the front-end's time.
     affine_refinement: bool = option(False, doc="refine each track under an affine warp of "
                                      "its patch (affine_refine.py: a patch that grows in "
                                      "forward flight biases Lucas-Kanade's translation)")
-    # Off: nearer on the ideal camera's navigation benchmark, not on the realistic camera's
-    # (docs/vins.md, "Tracks that stop gathering error"), at three times the front-end's time.
+    # Off: nearer on the ideal camera's navigation benchmark, not on the realistic camera's with
+    # its time charged, twice the front-end's (docs/vins.md, "Anchors that converge").
     anchor_age: int = option(0, ge=0, le=1000, doc="from this age on, a track is found "
                              "against its own patch of the frame it reached the age in, "
                              "under the warp gathered since, so it stops gathering "
