@@ -257,10 +257,10 @@ def fit_warp(templates: Templates, current: SampledImage, guesses: np.ndarray,
 
     A step that raises the patch's residual (mean squared ``e``) is taken back and halved,
     from the warp of the least residual yet. Inverse-compositional steps use the template's
-    gradients for the frame's: where the two patches differ by more than a shift and a warp
-    (noise, blur, a change of light) the full step can overshoot, and undamped it cycled
-    between two warps on a quarter of the realistic camera's patches, which then never
-    converged (docs/vins.md, "Anchors that converge").
+    gradients for the frame's: where the two patches differ by more than a warp (noise, blur,
+    a change of light) the full step can overshoot, and undamped it cycled between two warps
+    on many of the realistic camera's patches, which then never converged (docs/vins.md,
+    "Anchors that converge").
 
     Returns the centres (N, 2), the warps and whether each converged (a last step of the
     patch's centre under ``epsilon`` pixels, the warp finite, the template usable)."""
@@ -320,8 +320,8 @@ def refine_affine(previous: SampledImage, current: SampledImage, starts: np.ndar
                   epsilon: float = 0.005, max_shift: float = 0.5,
                   max_deformation: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
     """``guesses`` (N, 2), Lucas-Kanade's positions in ``current`` of the features at
-    ``starts`` in ``previous`` (both grey images, :class:`SampledImage`),
-    refined under an affine warp of the ``2 half + 1`` square patch (module docstring).
+    ``starts`` in ``previous`` (both grey images, :class:`SampledImage`), refined under an
+    affine warp of the ``2 half + 1`` square patch (module docstring).
     Returns the positions and whether each was refined (else it is its guess): converged
     (a last step of the patch's centre under ``epsilon`` pixels) within ``max_shift`` of its
     guess, the patch's linear map within ``max_deformation`` of the identity in every entry.

@@ -228,9 +228,9 @@ class FeatureTracker:
     def _follow(self, gray: np.ndarray, points: np.ndarray, levels: int,
                 sampled: SampledImage | None):
         """``points`` of the previous image tracked into ``gray`` (``sampled``, the same made
-        ready for the affine refinement) on ``levels`` pyramid levels,
-        and whether each is kept: both directions converged, it landed inside the border and
-        its round trip came back within ``forward_backward_threshold``."""
+        ready for the affine refinement) on ``levels`` pyramid levels, and whether each is
+        kept: both directions converged, it landed inside the border and its round trip came
+        back within ``forward_backward_threshold``."""
         o = self.options
         h, w = gray.shape
         forward, ok = self._lk(self._previous, gray, points, levels)
