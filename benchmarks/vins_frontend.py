@@ -37,6 +37,9 @@ def main() -> None:
     parser.add_argument("--skip", type=int, default=0, help="frames skipped first (a "
                         "recording's take-off, to time its cruise)")
     args = parser.parse_args()
+    if args.skip < 0 or args.frames < 2:
+        parser.error(f"--skip must be 0 or more and --frames 2 or more, got {args.skip} and "
+                     f"{args.frames}")
     cv2.setNumThreads(1)
     stream = read_camera(args.dataset)
     x0 = (stream.camera.width - 640) // 2
@@ -45,6 +48,9 @@ def main() -> None:
                      cy=stream.camera.cy - y0)
     frames = [np.ascontiguousarray(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)[y0:y0 + 480, x0:x0 + 640])
               for p in stream.paths[args.skip:args.skip + args.frames]]
+    if len(frames) < 2:
+        parser.error(f"{args.dataset} has {len(stream.paths)} frames: none to time after "
+                     f"--skip {args.skip}")
     tracker = FeatureTracker(camera, stream.distortion)
     variants = {
         "affine": FeatureTracker(camera, stream.distortion,

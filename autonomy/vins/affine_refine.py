@@ -205,7 +205,8 @@ def prepare_templates(image: SampledImage, centres: np.ndarray, *, half: int,
     ``s``: for the affine map ``(gx sx, gx sy, gy sx, gy sy, gx, gy)``, for the homography
     also ``-(gx sx + gy sy) (sx, sy)``. The gradient is Sobel's (:data:`SOBEL_SCALE`) of a
     patch sampled one pixel wider: bilinear interpolation at whole-pixel offsets commutes with
-    a convolution, so this is the image's Sobel interpolated at the patch's pixels."""
+    a convolution, so this is the image's Sobel interpolated at the patch's pixels (away from
+    the image's edge, where the border is replicated, not reflected as ``cv2.Sobel`` does)."""
     centres = np.asarray(centres, float).reshape(-1, 2)
     side = 2 * half + 3
     offsets = np.arange(-half - 1, half + 2, dtype=float)
@@ -263,7 +264,11 @@ def fit_warp(templates: Templates, current: SampledImage, guesses: np.ndarray,
     "Anchors that converge").
 
     Returns the centres (N, 2), the warps and whether each converged (a last step of the
-    patch's centre under ``epsilon`` pixels, the warp finite, the template usable)."""
+    patch's centre under ``epsilon`` pixels, the warp finite, the template usable). A fit whose
+    steps were halved below ``epsilon`` converged in that sense too: no step along its
+    direction lowers the residual, a stationary point of the fit if not of the frame's truth
+    (on the blurred frame of the tests, hardly nearer the point than its start). Its warp is the
+    last one, within ``epsilon`` of the best in its centre."""
     points = _patch_points(half)
     guesses = np.asarray(guesses, float).reshape(-1, 2)
     if warps is None:
@@ -284,6 +289,7 @@ def fit_warp(templates: Templates, current: SampledImage, guesses: np.ndarray,
         error = _patch_error(templates, k, current, g, points)
         cost = np.mean(error**2, axis=1)
         # A step that raised the residual is taken back and halved, from the best warp yet.
+        # (A NaN residual is not worse: its step is NaN and the track is given up below.)
         worse = cost > best_cost[k]
         better = k[~worse]
         best_cost[better], best_warps[better] = cost[~worse], g[~worse]

@@ -120,7 +120,8 @@ class Tracks:
     where that was made), rejected by RANSAC, dropped
     for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
     of new features; ``reanchored``, the anchors given up (their tracks kept Lucas-Kanade's
-    answer and were anchored again on this frame; 0 without ``anchor_age``).
+    answer, to be anchored again on this frame where they survive and their patch is usable;
+    0 without ``anchor_age``).
     """
 
     frame: int
