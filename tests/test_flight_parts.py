@@ -399,9 +399,10 @@ class _Vehicle:
         self.vehicle = Quadrotor(position=(0.0, 0.0, 1.5), yaw=t)
 
 
-def _sim_camera_frames(faults, count: int):
+def _sim_camera_frames(faults, count: int, busy_s: float = 0.0):
     """``count`` frames of a 20 Hz simulated camera yawing at 1 rad/s, cruising (the faults'
-    clock running) from t = 0."""
+    clock running) from t = 0, read by a consumer busy ``busy_s`` of simulated time after
+    each frame."""
     from drivers.sim.camera import CameraHead, SimCamera
     from drivers.sim.render import Renderer
     from drivers.sim.world import build_world
@@ -427,7 +428,11 @@ def _sim_camera_frames(faults, count: int):
             runner = asyncio.create_task(advance())
             for _ in range(count):
                 frames.append(await camera.next_frame())
-            await runner
+                if busy_s:
+                    await clock.sleep(busy_s)
+            await camera.stop()
+            runner.cancel()
+            await asyncio.gather(runner, return_exceptions=True)
         return frames, camera
 
     return asyncio.run(main())
@@ -439,8 +444,8 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_bla
                                          Fault("camera_blackout", 0.4, 0.1)), 8)
     times = np.array([f.t for f in frames])
     grid = np.arange(0.2, 0.56, 0.05)  # nothing while frozen, before 0.2 s
-    # each frame is stamped when it is rendered: at its grid time, or a tick later when the
-    # consumer came late
+    # each frame is stamped at its exposure: the tick that falls on its grid time (the first
+    # one a tick later: the clock had not ticked when the consumer first asked)
     assert np.all((times >= grid - 1e-9) & (times <= grid + 0.005 + 1e-9)), times
     assert camera.delivered == 8
     bright = [float(f.image.mean()) for f in frames]
@@ -459,12 +464,28 @@ def test_sim_camera_delivers_frames_on_its_grid_and_injects_freeze_stale_and_bla
     assert counters == [round(t / 0.05) if not 0.3 <= t < 0.4 else 5 for t in times], counters
 
 
+def test_a_busy_reader_gets_the_newest_frame_exposed_on_the_grid_with_its_pose_then():
+    """A consumer busy 80 ms after each frame of a 20 Hz camera comes late. A real camera does
+    not wait for it: it gets the newest frame exposed, at its grid time (the tick that falls
+    on it, or the next one) and showing the pose then (yawing at 1 rad/s), not a frame
+    exposed when it asked; the frames it never took are counted as dropped."""
+    frames, camera = _sim_camera_frames((), 5, busy_s=0.08)
+    times = np.array([f.t for f in frames])
+    # read at 0.005 (the first tick), 0.085, 0.165, 0.245 and 0.325 s
+    grid = np.array([0.0, 0.05, 0.15, 0.2, 0.3])
+    assert np.all((times >= grid - 1e-9) & (times <= grid + 0.005 + 1e-9)), times
+    yaws = [math.atan2(f.truth_pose[1, 0], f.truth_pose[0, 0]) for f in frames]
+    assert np.allclose(yaws, times, atol=1e-9)  # the pose at the exposure, not at the read
+    assert [f.counter for f in frames] == [0, 1, 3, 4, 6]
+    assert camera.dropped == 2
+
+
 def test_sim_camera_delivers_frames_twice_or_in_swapped_pairs_under_those_faults():
     """Repeated from 0 to 0.1 s (each frame, same stamp and image, twice), swapped pairs from
-    0.2 to 0.3 s; in order, once each, before and after."""
+    0.2 s to just before the 0.3 s frame; in order, once each, before and after."""
     frames, _ = _sim_camera_frames((Fault("frame_repeat", 0.0, 0.1),
-                                    Fault("frame_reorder", 0.2, 0.1)), 11)
-    times = [round(round(f.t / 0.05) * 0.05, 2) for f in frames]  # on the grid, a tick late
+                                    Fault("frame_reorder", 0.2, 0.09)), 11)
+    times = [round(round(f.t / 0.05) * 0.05, 2) for f in frames]  # on the grid
     assert times == [0.0, 0.0, 0.05, 0.05, 0.1, 0.15, 0.25, 0.2, 0.3, 0.35, 0.4], times
     assert frames[1].image is frames[0].image
     assert not np.array_equal(frames[6].image, frames[7].image)

@@ -28,7 +28,7 @@ from companion.flight.perception import NetworkDepth
 from companion.launch.learned_calibration import keep_learned, start_from_learned
 from companion.launch.systemd import SystemdNotifier
 from companion.recording.session import open_recording, recorded, recording_metadata
-from drivers.camera.calibration import CalibratedCamera, resolve
+from drivers.camera.calibration import CalibratedCamera, grid_stamps, resolve
 from drivers.camera.drivers import open_camera
 from drivers.clock import MonotonicClock
 from drivers.mavlink.autopilot import Autopilot
@@ -78,7 +78,8 @@ async def _fly_recorded(config, waypoints, clock, notifier, recording) -> dict:
     log.info("depth network on %s", network.provider)
     async with open_camera(config, clock) as driver:
         camera = CalibratedCamera(driver, resolve(config.camera,
-                                                  getattr(driver, "camera_model", None)))
+                                                  getattr(driver, "camera_model", None)),
+                                  grid_stamps(config.camera))
         autopilot = Autopilot.open(config.mavlink, clock)
         try:
             app = build_app(config, waypoints, autopilot=autopilot, camera=camera,

@@ -39,7 +39,7 @@ from companion.flight.app import FlightApp, format_flight
 from companion.flight.perception import NetworkDepth
 from companion.recording.session import open_recording, recorded, recording_metadata
 from companion.report import format_split, show
-from drivers.camera.calibration import CalibratedCamera
+from drivers.camera.calibration import CalibratedCamera, grid_stamps
 from drivers.mavlink.autopilot import Autopilot
 from drivers.mavlink.signing import load_key
 from drivers.sim.faults import FaultSchedule
@@ -161,7 +161,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     side = (LockstepSimulator if mission.clock == "lockstep" else ThreadedSimulator)(
         config, world, mission, (start, start_yaw), faults, waypoints[-1], progress)
     sim, camera, clock = await side.start()
-    camera = CalibratedCamera(camera, side.calibration())
+    camera = CalibratedCamera(camera, side.calibration(), grid_stamps(config.camera))
     stall = asyncio.create_task(stall_when_due(faults, sim))
     try:
         depth = TruthDepth(config.planner.max_range) if mission.depth == "truth" else \

@@ -20,6 +20,7 @@ from autonomy.messages import Frame
 from drivers.camera.base import CameraError
 from drivers.camera.kalibr import KalibrError, read_camchain
 from drivers.camera.options import CameraOptions
+from drivers.camera.stamps import GridStamps
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,11 @@ class CameraCalibration:
     T_B_C: np.ndarray
     time_offset_s: float
     source: str
+
+
+def grid_stamps(camera: CameraOptions) -> GridStamps | None:
+    """The frame-grid stamps ``[camera] stamps_from_counter`` asks for, None when off."""
+    return GridStamps.for_rate(camera.rate_hz) if camera.stamps_from_counter else None
 
 
 def resolve(camera: CameraOptions, device_model: CameraModel | None = None) -> CameraCalibration:
@@ -69,12 +75,15 @@ def resolve(camera: CameraOptions, device_model: CameraModel | None = None) -> C
 
 class CalibratedCamera:
     """A camera driver whose frames (and a simulated camera's true depth) come rectified onto
-    ``calibration.rectified`` and shifted by ``calibration.time_offset_s``. Everything else (``name``, ``dropped``, ``close``...)
-    is the wrapped driver's."""
+    ``calibration.rectified`` and shifted by ``calibration.time_offset_s``, each first
+    stamped on the camera's frame grid by ``stamps`` where given
+    (:class:`~drivers.camera.stamps.GridStamps`). Everything else (``name``, ``dropped``,
+    ``close``...) is the wrapped driver's."""
 
-    def __init__(self, camera, calibration: CameraCalibration):
+    def __init__(self, camera, calibration: CameraCalibration,
+                 stamps: GridStamps | None = None):
         self._camera = camera
-        self.calibration = calibration
+        self.calibration, self.stamps = calibration, stamps
         model = calibration.model
         needs_resampling = not model.is_pinhole or model.pinhole != calibration.rectified
         self._rectify = Rectifier(model, calibration.rectified) if needs_resampling else None
@@ -87,7 +96,8 @@ class CalibratedCamera:
 
     async def next_frame(self) -> Frame:
         frame = await self._camera.next_frame()
-        shifted = replace(frame, t=frame.t + self.calibration.time_offset_s)
+        t = frame.t if self.stamps is None else self.stamps.stamp(frame.t, frame.counter)
+        shifted = replace(frame, t=t + self.calibration.time_offset_s)
         if self._rectify is None:
             return shifted
         truth = frame.truth_depth  # a simulated camera's, aligned with its image

@@ -62,6 +62,11 @@ class CameraOptions:
     time_offset_s: float = option(
         0.0, ge=-0.5, le=0.5, doc="added to each frame's time to put it on the IMU's clock "
                                   "(Kalibr's timeshift_cam_imu: t_imu = t_cam + shift)")
+    stamps_from_counter: bool = option(
+        False, doc="stamp each frame at its counter's place on the camera's frame grid (a line "
+                   "fitted to the last frames' counters and stamps) rather than when it "
+                   "arrived: takes out a host-stamped camera's jitter "
+                   "(drivers/camera/stamps.py); a frame with no counter keeps its stamp")
     mount_x: float = option(0.10, ge=-2.0, le=2.0, doc="camera centre ahead of the body "
                             "origin (the IMU / flight controller), metres")
     mount_y: float = option(0.0, ge=-2.0, le=2.0, doc="camera centre left of the body "

@@ -21,6 +21,7 @@ frame before it began (its image, depth and number) at each new stamp.
 
 from __future__ import annotations
 
+import asyncio
 import math
 from dataclasses import replace
 
@@ -30,6 +31,7 @@ from autonomy.geometry import PinholeCamera, make_pose, quat_to_rot
 from autonomy.lens import CameraModel
 from autonomy.messages import Frame
 from drivers.camera.options import CameraOptions
+from drivers.sim.quadrotor import VehicleState
 from drivers.sim.sensor import Capture, CameraSensor, Exposure, SensorOptions, camera_twist
 
 #: The default camera mounting (``[camera]`` mount_*): optical frame looking along body x,
@@ -38,6 +40,8 @@ T_BODY_CAMERA = CameraOptions().T_B_C()
 
 #: The exposure reported for an ideal camera's frames: an instant, no gain.
 INSTANT = Exposure(0.0, 1.0)
+#: A tick this close to an instant of the frame grid, in frame periods, falls on it.
+GRID_TOLERANCE = 1e-6
 
 
 class CameraHead:
@@ -92,6 +96,9 @@ class SimCamera:
         self.sim, self.renderer, self.clock, self.head = sim, renderer, clock, head
         self.period = head.period
         self._next_index = math.ceil(clock.now() / self.period)
+        # the shutter's newest exposure: (index on the grid, time, the vehicle's state then)
+        self._exposed: tuple[int, float, VehicleState] | None = None
+        self._shutter: asyncio.Task | None = None
         self.delivered = 0
         self.dropped = 0
         self.lost = 0
@@ -105,16 +112,12 @@ class SimCamera:
         if self._again:
             return self._again.pop(0)
         while True:
-            due = self._next_index * self.period
-            await self.clock.sleep(due - self.clock.now())
-            now = self.clock.now()
-            missed = max(0, math.floor(now / self.period + 1e-9) - self._next_index)
-            self.dropped += missed
-            self._next_index += missed + 1
+            index, t_exposed, state = await self._newest_exposure()
+            self.dropped += index - self._next_index
+            self._next_index = index + 1
             if self.sim.faults.active("camera_freeze", self.sim.time):
                 continue
-            state = self.sim.vehicle.state
-            capture = self.head.shoot(self.renderer, now, state)
+            capture = self.head.shoot(self.renderer, t_exposed, state)
             if capture.stamp is None:
                 self.lost += 1
                 continue
@@ -126,6 +129,50 @@ class SimCamera:
             frame = self._deliver(replace(self._picture(capture, counter), truth_pose=truth))
             if frame is not None:
                 return frame
+
+    async def _newest_exposure(self) -> tuple[int, float, VehicleState]:
+        """``(index on the grid, time, the vehicle's state then)`` of the newest exposure not
+        yet delivered: one the shutter took while the reader was busy, else the next one,
+        waited for (taken at the tick it falls on, so that in lockstep the frame is rendered
+        and handed over while simulated time stands still)."""
+        if self._shutter is None:
+            self._shutter = asyncio.ensure_future(self._run_shutter())
+        if self._exposed is not None and self._exposed[0] >= self._next_index:
+            return self._exposed
+        if self.clock.now() < (self._next_index - GRID_TOLERANCE) * self.period:
+            await self._sleep_until(self._next_index)
+        return self._exposure_now()  # on the tick of the instant (the shutter may come after)
+
+    async def _run_shutter(self) -> None:
+        """The camera's own clock: at each instant ``k / rate_hz`` of the grid, the vehicle's
+        state is what that frame will show, whether or not anyone reads it then. A reader late
+        for a frame gets the newest one exposed, as old as it is, not one exposed when it asked
+        (a real camera does not wait for its reader)."""
+        while True:
+            await self._sleep_until(self._next_exposure_index())
+            self._exposed = self._exposure_now()
+
+    async def _sleep_until(self, index: int) -> None:
+        """Until the tick that falls on the grid's instant ``index``: within
+        :data:`GRID_TOLERANCE` of a period, which a clock stepped by adding its ticks misses by
+        rounding (a sleep of nothing would wait for the next tick)."""
+        await self.clock.sleep((index - GRID_TOLERANCE) * self.period - self.clock.now())
+
+    def _next_exposure_index(self) -> int:
+        newest = -1 if self._exposed is None else self._exposed[0]
+        return max(newest + 1, self._next_index)
+
+    def _exposure_now(self) -> tuple[int, float, VehicleState]:
+        """The exposure at the newest grid instant at or before now (a tick falls on or just
+        after it), taken now."""
+        now = self.clock.now()
+        return math.floor(now / self.period + GRID_TOLERANCE), now, self.sim.vehicle.state
+
+    async def stop(self) -> None:
+        """Stop the shutter (the simulator is stopping)."""
+        if self._shutter is not None:
+            self._shutter.cancel()
+            await asyncio.gather(self._shutter, return_exceptions=True)
 
     def _picture(self, capture, counter: int | None) -> Frame:
         """The capture, numbered ``counter``, as the image faults leave it: stale (the last

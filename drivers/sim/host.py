@@ -346,11 +346,13 @@ class LockstepSimulator(Simulator):
         self._tracker = asyncio.create_task(self.track.run(self.sim, self.clock, self.goal,
                                                            self.progress))
         self._renderer = Renderer(self.world, self.head.render_camera)
-        return self.sim, SimCamera(self.sim, self._renderer, self.clock, self.head), self.clock
+        self._camera = SimCamera(self.sim, self._renderer, self.clock, self.head)
+        return self.sim, self._camera, self.clock
 
     async def stop(self) -> None:
         self._stop.set()
         self._tracker.cancel()
+        await self._camera.stop()
         await asyncio.gather(self._server, self._tracker, return_exceptions=True)
         self._renderer.close()
 
@@ -401,6 +403,7 @@ class ThreadedSimulator(Simulator):
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+            await camera.stop()
 
     async def _pump(self, camera: SimCamera) -> None:
         while True:
