@@ -58,7 +58,7 @@ def test_a_stalled_frame_gets_its_exposure_time_and_leaves_the_fit_alone():
     assert stamps.restarts == 0
 
 
-def test_a_stepped_clock_restarts_the_fit_and_then_follows_the_new_grid():
+def test_a_stepped_clock_restarts_the_fit_and_then_follows_the_new_grid(caplog):
     counters, exposed, arrived = grid_flight(600, seed=4)
     step = 300
     exposed[step:] += 0.050  # the host's view of the camera's clock jumps by 50 ms
@@ -66,6 +66,7 @@ def test_a_stepped_clock_restarts_the_fit_and_then_follows_the_new_grid():
     stamps = GridStamps.for_rate(RATE_HZ)
     out = stamped(stamps, counters, arrived)
     assert stamps.restarts == 1
+    assert "5 frames in a row over 8.3 ms off the grid" in caplog.text
     # the frames before the restart keep the old line: when the step was not yet known
     assert np.allclose(out[step:step + RESTART_AFTER - 1] - exposed[step:step + RESTART_AFTER - 1],
                        -0.050, atol=1e-3)
@@ -76,13 +77,14 @@ def test_a_stepped_clock_restarts_the_fit_and_then_follows_the_new_grid():
     assert np.sqrt(np.mean((out[settled] - exposed[settled]) ** 2)) < 0.25 * JITTER_S
 
 
-def test_a_counter_that_goes_back_starts_a_new_grid():
+def test_a_counter_that_goes_back_starts_a_new_grid(caplog):
     first, _, arrived_first = grid_flight(200, seed=5)
     second, exposed, arrived = grid_flight(400, seed=6, start_s=1300.0, first_counter=0)
     stamps = GridStamps.for_rate(RATE_HZ)
     stamped(stamps, first, arrived_first)
     out = stamped(stamps, second, arrived)  # the driver restarted its stream from 0
     assert stamps.restarts == 1
+    assert f"frame 0 numbered before frame {first[-1]}" in caplog.text
     assert np.array_equal(out[:LEAST_FRAMES], arrived[:LEAST_FRAMES])
     settled = slice(WINDOW_FRAMES, None)
     assert np.sqrt(np.mean((out[settled] - exposed[settled]) ** 2)) < 0.25 * JITTER_S

@@ -33,9 +33,12 @@ number passes through unchanged and does not touch the fit; so does every frame 
 from __future__ import annotations
 
 import collections
+import logging
 import math
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 #: Frames the line is fitted to before it stamps any: the first ones pass through as stamped.
 LEAST_FRAMES = 10
@@ -84,7 +87,7 @@ class GridStamps:
         if last is not None and counter == last:
             return t
         if last is not None and counter < last:
-            self._restart()
+            self._restart(f"frame {counter} numbered before frame {last} (stream restarted?)")
         if len(self._points) < LEAST_FRAMES:
             self._points.append((counter, t))
             return t
@@ -95,7 +98,8 @@ class GridStamps:
             return self._line_at(counter)
         self._off_line += 1
         if self._off_line >= self.restart_after:
-            self._restart()
+            self._restart(f"{self._off_line} frames in a row over {1e3 * self.max_residual_s:.1f} "
+                          "ms off the grid (the camera's clock stepped?)")
             self._points.append((counter, t))
             return t
         return on_grid
@@ -110,7 +114,8 @@ class GridStamps:
         period = float(dn @ (t - t_mean)) / float(dn @ dn)
         return float(t_mean + period * (counter - n_mean))
 
-    def _restart(self) -> None:
+    def _restart(self, reason: str) -> None:
+        log.warning("frame stamps: %s; fitting the camera's frame grid again", reason)
         self._points.clear()
         self._off_line = 0
         self.restarts += 1
