@@ -21,7 +21,7 @@ from companion.flight.steps import ClimbWatch
 from companion.flight.watchdog import SetpointWatchdog
 from drivers.clock import SimClock
 from drivers.mavlink import px4_protocol
-from drivers.sim.host import TruthDepth, TruthTrack, free_udp_port
+from drivers.sim.host import FrameSlot, TruthDepth, TruthTrack, free_udp_port
 from drivers.mavlink.link import open_link
 from drivers.sim.faults import FaultyLink, Fault, FaultSchedule
 from drivers.sim.world import build_world
@@ -335,16 +335,33 @@ def test_the_simulated_summary_splits_the_vins_error_over_the_path():
     line = next(line for line in format_summary(summary).splitlines() if "VINS error" in line)
     assert line == "  VINS error        2.07 m"
 
+#: A flight summary's lines every flight has, for the tests of the lines that follow them.
+FLIGHT = {"final_state": "landed", "failsafes": [], "flight_time_s": 60.0,
+          "depth_rate_hz": 14.0, "loop_lag_ms_p99": 3.0, "planning_rounds": 600,
+          "stop_rounds": 9, "backoffs": 0, "vins_resets": 0}
+
+
+def test_the_summary_counts_the_frames_taken_skipped_and_lost_and_their_age():
+    """What the camera gave the VINS: skipped frames (the VINS busy past a frame's period)
+    make every later frame older and the tracks' steps longer; a recording made before the
+    counts has no such line."""
+    from companion.flight.app import format_flight
+
+    camera = {"frames": 1198, "camera_frames_dropped": 4, "camera_frames_lost": 12,
+              "frame_age_ms": {"p50": 2.2, "p95": 31.6}}
+    lines = format_flight({**FLIGHT, **camera}).splitlines()
+    assert [line for line in lines if "camera frames" in line] == [
+        "  camera frames     1198 taken, 4 skipped while busy, 12 lost by the camera; "
+        "age 2 ms median, 32 ms p95"]
+    assert not any("camera frames" in line for line in format_flight(FLIGHT).splitlines())
+
+
 def test_the_summary_ends_with_the_estimated_time_offset_and_how_to_start_from_it():
     from autonomy.vins.time_offset import TimeOffset
     from companion.flight.app import format_flight, time_offset_summary
 
-    flight = {"final_state": "landed", "failsafes": [], "flight_time_s": 60.0,
-              "depth_rate_hz": 14.0, "loop_lag_ms_p99": 3.0, "planning_rounds": 600,
-              "stop_rounds": 9, "backoffs": 0, "vins_resets": 0}
-
     def offset_line(offset: TimeOffset) -> list[str]:
-        summary = {**flight, "vins_time_offset": time_offset_summary(offset)}
+        summary = {**FLIGHT, "vins_time_offset": time_offset_summary(offset)}
         return [line for line in format_flight(summary).splitlines() if "offset" in line]
 
     estimated = TimeOffset(seconds=0.01742, sigma=0.0004, estimating=True, updates=80)
@@ -362,12 +379,8 @@ def test_the_summary_ends_with_the_estimated_gyro_alignment_and_how_to_start_fro
     from autonomy.vins.gyro_alignment import GyroAlignmentEstimate
     from companion.flight.app import format_flight, gyro_alignment_summary
 
-    flight = {"final_state": "landed", "failsafes": [], "flight_time_s": 60.0,
-              "depth_rate_hz": 14.0, "loop_lag_ms_p99": 3.0, "planning_rounds": 600,
-              "stop_rounds": 9, "backoffs": 0, "vins_resets": 0}
-
     def alignment_lines(estimate) -> list[str]:
-        summary = {**flight, "vins_gyro_alignment": gyro_alignment_summary(estimate)}
+        summary = {**FLIGHT, "vins_gyro_alignment": gyro_alignment_summary(estimate)}
         return [line for line in format_flight(summary).splitlines() if "gyro" in line]
 
     estimated = GyroAlignmentEstimate((0.0197, 0.0193, -0.0018), (0.0026, 0.0030, 0.0012), 670)
@@ -478,6 +491,23 @@ def test_a_busy_reader_gets_the_newest_frame_exposed_on_the_grid_with_its_pose_t
     assert np.allclose(yaws, times, atol=1e-9)  # the pose at the exposure, not at the read
     assert [f.counter for f in frames] == [0, 1, 3, 4, 6]
     assert camera.dropped == 2
+
+
+def test_the_real_time_simulators_frame_slot_counts_frames_replaced_untaken_and_the_lost():
+    """In real time the simulator's camera runs in its own thread and hands its frames to
+    the application's loop through a newest-frame slot, as a real driver does: frames put
+    from that thread while the application was busy are replaced, counted as dropped, and
+    the camera's own count of lost frames comes with each frame."""
+    async def scenario():
+        slot = FrameSlot(asyncio.get_running_loop())
+        thread = threading.Thread(target=lambda: [slot.put(k, lost=k // 2) for k in range(4)])
+        thread.start()
+        await asyncio.to_thread(thread.join)
+        newest = await slot.next_frame()
+        waiting = asyncio.ensure_future(slot.next_frame())
+        await asyncio.sleep(0)
+        return newest, waiting.done(), slot.dropped, slot.lost
+    assert asyncio.run(scenario()) == (3, False, 3, 1)
 
 
 def test_sim_camera_delivers_frames_twice_or_in_swapped_pairs_under_those_faults():

@@ -170,7 +170,10 @@ def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_
     with that frame's own sparse map, until PX4 holds the vehicle after the stop. When the
     VINS only saw the frames the network took, the mine's first acceleration (pitch, motion
     blur in 50 lux) lost 134 of 150 tracks in one frame and the flight stopped 1.5 s into
-    navigation on "no metric depth"."""
+    navigation on "no metric depth". The camera exposes on its own grid whatever the VINS
+    does: every instant from the camera's start at t = 0 to the end of the flight is a frame
+    taken, one skipped while the VINS was busy (none: 17 ms under the 50 ms period) or one
+    the camera lost (``[sim_camera] drop_probability``), and the summary counts each."""
     config = load_config(None, ["sim.profile=realistic", "flight.mission_timeout_s=5"])
     summary = simulated.run(config, simulated.SimMission(world="mine", pair=0))
     assert_safe_landing(summary)
@@ -178,6 +181,12 @@ def test_realistic_compute_times_the_vins_takes_every_frame_and_the_network_the_
     frames = summary["frames"]
     # every frame through the VINS, but the last when the flight ends during its 17 ms
     assert frames - 1 <= summary["vins_frames"] <= frames and frames > 200
+    assert summary["camera_frames_dropped"] == 0
+    grid_instants = summary["transitions"][-1]["t"] * config.camera.rate_hz
+    taken_or_lost = frames + summary["camera_frames_lost"]
+    assert grid_instants - 2 <= taken_or_lost <= grid_instants + 1, (taken_or_lost, grid_instants)
+    # a frame is taken within the VINS's 17 ms of its stamp (its jitter and offset aside)
+    assert 0.0 < summary["frame_age_ms"]["p50"] < 17.0, summary["frame_age_ms"]
     # the network busy from the camera's start until PX4 holds the vehicle after the
     # failsafe's stop, when nothing reads depth any more: one frame per inference, the rest
     # skipped

@@ -180,7 +180,6 @@ class FlightApp:
         s, mission, now = c.stats, c.mission, c.clock.now()
         navigation = ((s.navigation_end or now) - s.navigation_start
                       if s.navigation_start is not None else 0.0)
-        lag = np.asarray(s.loop_lag_s) if s.loop_lag_s else np.zeros(1)
         return {
             "final_state": mission.state.value,
             "reached_goal": any(t.reason == GOAL_STOP_REASON for t in mission.transitions),
@@ -193,6 +192,12 @@ class FlightApp:
             "frames": s.frames,
             "frames_out_of_order": s.frames_out_of_order,
             "frames_stale": s.frames_stale,
+            # frames the driver replaced, untaken, by a newer one (the VINS busy), and frames
+            # the camera never delivered (its counter's gaps)
+            "camera_frames_dropped": self.perception.camera.dropped,
+            "camera_frames_lost": self.perception.camera.lost,
+            # from a frame's exposure to the VINS loop taking it: a skipped frame's cost
+            "frame_age_ms": percentiles_ms(s.frame_age_s),
             # the VINS takes every frame; the depth stage the newest when its network is free
             "vins_frames": c.channels.vins.published,
             "depth_frames": c.channels.depth.published,
@@ -213,7 +218,7 @@ class FlightApp:
             "vins_gyro_alignment": gyro_alignment_summary(self.perception.vins.gyro_alignment),
             "vins_correction_m": correction_summary(s.vins_corrections_m),
             "watchdog_setpoints": self.command.watchdog.fired,
-            "loop_lag_ms_p99": float(1e3 * np.percentile(lag, 99)),
+            "loop_lag_ms_p99": percentiles_ms(s.loop_lag_s, (99,))["p99"],
             "waypoints_passed": self.navigation.route.index,
             "navigation_end": s.navigation_end_L,
             # on, and the messages it refused: unsigned, bad_signature
@@ -221,6 +226,13 @@ class FlightApp:
             # what the autopilot driver dropped and why: IMU samples, TIMESYNC samples, ...
             "autopilot_counters": c.autopilot.stats(),
         }
+
+
+def percentiles_ms(seconds: list, percents=(50, 95)) -> dict:
+    """``{"p50": ..., "p95": ...}``: the ``percents`` of ``seconds`` in milliseconds (zero
+    when there are none)."""
+    values = np.asarray(seconds) if seconds else np.zeros(1)
+    return {f"p{percent}": float(1e3 * np.percentile(values, percent)) for percent in percents}
 
 
 def correction_summary(corrections_m: list) -> dict:
@@ -268,6 +280,7 @@ def _flight_lines(summary: dict) -> list[str]:
         f"  final state       {summary['final_state']}",
         f"  failsafes         {', '.join(summary['failsafes']) or 'none'}",
         f"  flight time       {show(summary.get('flight_time_s'), '.1f', ' s')}",
+        *_camera_lines(summary),
         f"  depth rate        {show(summary.get('depth_rate_hz'), '.1f', ' Hz')}",
         f"  loop lag p99      {show(summary.get('loop_lag_ms_p99'), '.1f', ' ms')}",
         f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops, "
@@ -277,6 +290,18 @@ def _flight_lines(summary: dict) -> list[str]:
         *_gyro_alignment_lines(summary.get("vins_gyro_alignment")),
         *_signing_lines(summary.get("mavlink_signing")),
     ]
+
+
+def _camera_lines(summary: dict) -> list[str]:
+    """The frames taken, skipped and lost, and their age (absent from recordings made
+    before they were counted)."""
+    if "camera_frames_dropped" not in summary:
+        return []
+    age = summary["frame_age_ms"]
+    return [f"  camera frames     {summary['frames']} taken, "
+            f"{summary['camera_frames_dropped']} skipped while busy, "
+            f"{summary['camera_frames_lost']} lost by the camera; "
+            f"age {age['p50']:.0f} ms median, {age['p95']:.0f} ms p95"]
 
 
 def _still_keyframes(summary: dict) -> str:

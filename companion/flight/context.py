@@ -59,6 +59,7 @@ class FlightStats:
     stop_rounds: int = 0
     backoffs: int = 0
     loop_lag_s: list = field(default_factory=list)
+    frame_age_s: list = field(default_factory=list)  # each frame's, taken from the camera
     navigation_start: float | None = None
     navigation_end: float | None = None
     navigation_end_L: dict | None = None  # t and the VINS position in PX4's local frame then

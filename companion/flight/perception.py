@@ -140,6 +140,7 @@ class Perception:
                 continue
             c.channels.frames.publish(frame)
             c.stats.frames += 1
+            c.stats.frame_age_s.append(c.clock.now() - frame.t)
             update = asyncio.get_running_loop().create_future()
             for_depth.put((frame, update))
             # the IMU up to the frame's exposure (its stamp less the camera-IMU time offset)

@@ -407,26 +407,30 @@ class ThreadedSimulator(Simulator):
 
     async def _pump(self, camera: SimCamera) -> None:
         while True:
-            self.frames.put(await camera.next_frame())
+            frame = await camera.next_frame()
+            self.frames.put(frame, camera.lost)
 
 
 class FrameSlot:
     """The newest frame, put from any thread, awaited on one event loop; frames nobody took
-    before a newer one came are counted in ``dropped``."""
+    before a newer one came are counted in ``dropped``, and ``lost`` is the camera's own count
+    of the frames it never delivered (as a real driver's, :mod:`drivers.camera.base`)."""
 
     def __init__(self, loop: asyncio.AbstractEventLoop):
         self._loop = loop
         self._frame = None
         self._arrived = asyncio.Event()
         self.dropped = 0
+        self.lost = 0
 
-    def put(self, frame) -> None:
-        self._loop.call_soon_threadsafe(self._set, frame)
+    def put(self, frame, lost: int) -> None:
+        """Hand over ``frame``, with the camera's count of lost frames so far."""
+        self._loop.call_soon_threadsafe(self._set, frame, lost)
 
-    def _set(self, frame) -> None:
+    def _set(self, frame, lost: int) -> None:
         if self._frame is not None:
             self.dropped += 1
-        self._frame = frame
+        self._frame, self.lost = frame, lost
         self._arrived.set()
 
     async def next_frame(self):

@@ -222,7 +222,8 @@ _SUMMARY_KEYS = ("start", "reached_goal", "collisions", "failsafes", "final_stat
                  "flight_time_s", "navigation_time_s", "path_length_m", "min_clearance_m",
                  "closest_to_goal_m", "vins_resets", "position_error_m",
                  "position_error_split", "backoffs",
-                 "vins_correction_m", "landing_glide_m", "depth_fallbacks")
+                 "vins_correction_m", "landing_glide_m", "depth_fallbacks",
+                 "camera_frames_dropped", "camera_frames_lost", "frame_age_ms")
 
 
 def outcome(summary: dict) -> str:
