@@ -1,5 +1,7 @@
 """The affine refinement of Lucas-Kanade's tracks (autonomy/vins/affine_refine.py)."""
 
+import warnings
+
 import cv2
 import numpy as np
 import pytest
@@ -97,6 +99,23 @@ def test_a_step_that_is_not_finite_gives_the_track_up_without_a_crash():
     assert np.isfinite(refined).all()
     assert not ok[0] and np.array_equal(refined[0], truth[0] + [0.3, -0.2])
     assert ok[1:].all()
+
+
+def test_a_homography_that_folds_the_patch_gives_a_nan_residual_without_a_warning():
+    """A homography fit that wandered until part of the patch lies past the line at infinity
+    (w <= 0) has nothing in the image to compare there: its residual is NaN, which gives the
+    track up, where it was once divided by zero and clamped to the image's border; the other
+    patches are compared as before (the same image: no residual)."""
+    image = SampledImage(textured(0))
+    centres = np.array([[100.0, 80.0], [150.0, 90.0]])
+    templates = prepare_templates(image, centres, half=5, warp="homography")
+    warps = identity_warps(centres, half=5)
+    warps[0, 2, 0] = 2.5  # w = 1 + 2.5 sx: nil at sx = -0.4, negative beyond
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        error = _patch_error(templates, np.arange(2), image, warps, _patch_points(5))
+    assert np.isnan(error[0]).all()
+    assert np.abs(error[1]).max() < 1e-3
 
 
 def test_no_tracks():

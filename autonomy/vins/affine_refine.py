@@ -313,12 +313,18 @@ def fit_warp(templates: Templates, current: SampledImage, guesses: np.ndarray,
 def _patch_error(templates: Templates, rows: np.ndarray, current: SampledImage,
                  warps: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(n, M): the patches of ``current`` under ``warps`` (n, 3, 3), each brought to its
-    template's mean and contrast, less the templates of ``rows``."""
+    template's mean and contrast, less the templates of ``rows``. A homography that takes a
+    patch pixel to or past the line at infinity (``w <= 0``) has folded the patch: the image
+    has nothing there to compare (sampled, the pixel would be clamped to the image's border),
+    so that patch's residual is NaN, which gives its track up (:func:`fit_warp`)."""
     mapped = warps.astype(np.float32) @ points  # (n, 3, M): the patch's pixels, homogeneous
-    warped, warped_std = _normalised(current(mapped[:, 0] / mapped[:, 2],
-                                             mapped[:, 1] / mapped[:, 2]))
+    folded = ~(mapped[:, 2] > 0.0).all(axis=1)
+    w = np.where(folded[:, None], np.float32(1.0), mapped[:, 2])
+    warped, warped_std = _normalised(current(mapped[:, 0] / w, mapped[:, 1] / w))
     gain = (templates.contrast[rows] / np.maximum(warped_std, 1e-9)).astype(np.float32)
-    return warped * gain[:, None] - templates.values[rows]
+    error = warped * gain[:, None] - templates.values[rows]
+    error[folded] = np.nan
+    return error
 
 
 def refine_affine(previous: SampledImage, current: SampledImage, starts: np.ndarray,
