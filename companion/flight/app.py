@@ -196,7 +196,7 @@ class FlightApp:
             # the camera never delivered (its counter's gaps)
             "camera_frames_dropped": self.perception.camera.dropped,
             "camera_frames_lost": self.perception.camera.lost,
-            # from a frame's exposure to the VINS loop taking it: a skipped frame's cost
+            # from a frame's stamp to the VINS loop taking it: what skipped frames cost
             "frame_age_ms": percentiles_ms(s.frame_age_s),
             # the VINS takes every frame; the depth stage the newest when its network is free
             "vins_frames": c.channels.vins.published,
