@@ -335,6 +335,7 @@ def test_the_simulated_summary_splits_the_vins_error_over_the_path():
     line = next(line for line in format_summary(summary).splitlines() if "VINS error" in line)
     assert line == "  VINS error        2.07 m"
 
+
 #: A flight summary's lines every flight has, for the tests of the lines that follow them.
 FLIGHT = {"final_state": "landed", "failsafes": [], "flight_time_s": 60.0,
           "depth_rate_hz": 14.0, "loop_lag_ms_p99": 3.0, "planning_rounds": 600,

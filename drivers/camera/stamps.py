@@ -2,9 +2,10 @@
 
 A camera exposes its frames on a fixed grid, one every period of its own clock, and most
 number them: a RealSense frame number, an OAK's sequence number
-(:attr:`~autonomy.messages.Frame.counter`; the V4L2 driver, through OpenCV, reads none). Where the stamp is taken on the host as the frame
-arrives (an unsynchronised USB camera's: the realistic simulator's 1 ms of jitter,
-``[sim_camera] timestamp_jitter_ms``), each frame's stamp is off its exposure by its own draw
+(:attr:`~autonomy.messages.Frame.counter`; the V4L2 driver, through OpenCV, reads none).
+Where the stamp is taken on the host as the frame arrives (an unsynchronised USB camera's:
+the realistic simulator's 1 ms of jitter, ``[sim_camera] timestamp_jitter_ms``), each frame's
+stamp is off its exposure by its own draw
 of the transfer's and the scheduler's delay. The VINS takes the stamp as the exposure's time:
 at 2 m/s a 1 ms error puts the camera 2 mm off the pose the IMU reckons for it, and the IMU
 preintegrated between two keyframes spans the wrong interval, differently each time.
