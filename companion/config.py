@@ -164,6 +164,9 @@ SIMULATOR_DEFAULTS = (
     "vins.estimate_time_offset=true",
     "vins.estimate_gyro_alignment=true",
     "vins.gyro_noise_scale=10",
+    "vins_frontend.anchor_age=2",
+    "vins_frontend.anchor_warp=homography",
+    "sim_latency.vins_s=0.024",
     "planner.near_tail_share=0.9",
     "planner.far_tail_share=0.9",
 )

@@ -333,7 +333,8 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
     """config/sim-realistic.toml flies the simulator's realistic vehicle as the Orin presets fly
     a real one: valid, the realistic profile, the camera's time offset estimated as the presets
     estimate it, the gyro's yaw response estimated as a preset's first flight (no column kept
-    yet) estimates it (docs/operations.md, section 6), and the near tail counted as theirs."""
+    yet) estimates it (docs/operations.md, section 6), the near tail counted as theirs, and
+    the tracks anchored as theirs are."""
     from companion.cli import main
     from companion.launch.learned_calibration import start_from_learned
 
@@ -351,3 +352,6 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
             is True
         assert realistic.planner.near_tail_share == vehicle.planner.near_tail_share > 0.0
         assert realistic.planner.far_tail_share == vehicle.planner.far_tail_share > 0.0
+        for key in ("anchor_age", "anchor_warp"):
+            assert getattr(realistic.vins_frontend, key) == getattr(vehicle.vins_frontend, key)
+        assert realistic.vins_frontend.anchor_age > 0

@@ -106,7 +106,8 @@ def test_blocked_after_a_corners_turn_and_a_parallax_glide_it_backs_off_and_flie
     backs off and seed 0 backs off at the corner without a glide. Here the blocked rounds
     come after the glide, so that the clock does not run through a glide
     (``NoPathClock.restart``) is the unit test's
-    (tests/test_navigation.py, ``test_a_stop_by_choice_restarts_the_no_path_clock...``)."""
+    (tests/test_navigation.py, ``test_a_stop_by_choice_restarts_the_no_path_clock...``).
+    Seed 1 still shows it with the preset's anchored tracks (2026-12-06)."""
     preset = CONFIG_DIR / "sim-realistic.toml"
     config = load_config(preset, ["flight.mission_timeout_s=35", "px4.smooth_takeoff=false"])
     summary = simulated.run(config, simulated.SimMission(world="sewer", seed=1, pair=1,
@@ -114,7 +115,8 @@ def test_blocked_after_a_corners_turn_and_a_parallax_glide_it_backs_off_and_flie
     assert_safe_landing(summary)
     assert summary["backoffs"] >= 1
     assert summary["failsafes"] == ["mission timeout"], summary["failsafes"]
-    # measured: 59.4 m from the goal when the time ran out, past the corner's 69.3 m
+    # measured: 54.6 m from the goal when the time ran out (59.4 m unanchored), past the
+    # corner's 69.3 m
     assert summary["closest_to_goal_m"] < 65.0, summary["closest_to_goal_m"]
 
 
