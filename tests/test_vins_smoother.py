@@ -16,7 +16,7 @@ from gtsam.symbol_shorthand import V, X
 from autonomy.geometry import GRAVITY, PinholeCamera, make_pose, rot_z, so3_exp
 from autonomy.trajectory import pose_error_body
 from autonomy.vins import ImuNoise, VinsOptions
-from autonomy.vins.preintegration import gyro_axes_density
+from autonomy.vins.preintegration import about_vertical, gyro_axes_density
 from autonomy.vins.backend import (
     GaugeAnchor, KeyframeState, PriorSigmas, SlidingWindowSmoother, imu_params,
     released_covariance,
@@ -264,24 +264,34 @@ def test_the_white_noise_and_the_bias_walk_are_scaled_apart():
     assert np.allclose(default.params.getGyroscopeCovariance(), (2.0 * 4.8869e-05) ** 2 * eye)
 
 
+def started_smoother(options: VinsOptions) -> SlidingWindowSmoother:
+    """A smoother started level at the origin, at rest, with ``options``."""
+    smoother = SlidingWindowSmoother(PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0),
+                                     np.eye(4), NOISE, options)
+    smoother.start(KeyframeState(0, 0.0, np.eye(4), np.zeros(3), np.zeros(3), np.zeros(3)),
+                   PriorSigmas.with_bias_priors(options, (0.017, 0.017, 0.005), 0.01, 0.02))
+    return smoother
+
+
+def turn_covariance(smoother: SlidingWindowSmoother, rate) -> np.ndarray:
+    """The preintegrated covariance (rotation, position, velocity) of 0.1 s turning at
+    ``rate`` (rad/s, body axes) with the accelerometer reading gravity's reaction."""
+    gyro, dt = np.tile(rate, (20, 1)), np.full(20, IMU_DT)
+    pim = smoother.preintegration(gyro, dt)
+    for sample, step in zip(gyro, dt):
+        pim.integrateMeasurement(np.array([0.0, 0.0, GRAVITY]), sample, step)
+    return pim.preintMeasCov()[:9, :9]
+
+
 def test_gyro_axes_noise_weighs_only_the_turning_intervals_gyro_less():
     """With ``gyro_axes_noise`` the preintegration of an interval that turns carries the
     axes' errors over that turn in its rotation's covariance, on top of the white noise; one
     that does not turn, and every interval without the option, is weighed as before."""
-    camera = PinholeCamera(640, 480, 400.0, 400.0, 320.0, 240.0)
-    on = SlidingWindowSmoother(camera, np.eye(4), NOISE, VinsOptions(gyro_axes_noise=True))
-    off = SlidingWindowSmoother(camera, np.eye(4), NOISE, VinsOptions())
-    for smoother in (on, off):
-        smoother.start(KeyframeState(0, 0.0, np.eye(4), np.zeros(3), np.zeros(3), np.zeros(3)),
-                       PriorSigmas.with_bias_priors(smoother.options, (0.017, 0.017, 0.005),
-                                                    0.01, 0.02))
+    on = started_smoother(VinsOptions(gyro_axes_noise=True))
+    off = started_smoother(VinsOptions())
 
     def rotation_variance(smoother, rate):
-        gyro, dt = np.tile(rate, (20, 1)), np.full(20, IMU_DT)  # 0.1 s
-        pim = smoother.preintegration(gyro, dt)
-        for sample, step in zip(gyro, dt):
-            pim.integrateMeasurement(np.array([0.0, 0.0, GRAVITY]), sample, step)
-        return np.diag(pim.preintMeasCov())[:3]
+        return np.diag(turn_covariance(smoother, rate))[:3]
 
     white = rotation_variance(off, np.zeros(3))
     turn = np.array([0.0, 1.0, 2.0])  # rad/s: a pitch and a yaw over 0.1 s
@@ -290,6 +300,37 @@ def test_gyro_axes_noise_weighs_only_the_turning_intervals_gyro_less():
     np.testing.assert_allclose(rotation_variance(on, turn), white + added, rtol=0.02)
     np.testing.assert_allclose(rotation_variance(on, np.zeros(3)), white, rtol=1e-9)
     np.testing.assert_allclose(rotation_variance(off, turn), white, rtol=0.02)
+
+
+def test_gyro_axes_noise_about_the_vertical_weighs_the_heading_and_leaves_the_velocity():
+    """About the vertical (``gyro_axes_noise_axes = "vertical"``), a level yaw's interval
+    carries the axes' errors in its heading's variance alone, and its velocity and position
+    are weighed as without the option: gravity's reaction along the vertical crosses a
+    heading error to nothing. About the body's three axes the cross-axis errors tilt gravity
+    into the velocity, whose variance grows many times: the scale's weight lost
+    (docs/vins.md, "The gyro's axes about the vertical")."""
+    yaw = np.array([0.0, 0.0, 2.0])
+    white = turn_covariance(started_smoother(VinsOptions()), yaw)
+    vertical = turn_covariance(started_smoother(VinsOptions(
+        gyro_axes_noise=True, gyro_axes_noise_axes="vertical")), yaw)
+    body = turn_covariance(started_smoother(VinsOptions(gyro_axes_noise=True)), yaw)
+    heading = (0.005 * 0.2) ** 2  # the gyro's scale error over the 0.2 rad turned
+    assert vertical[2, 2] == pytest.approx(white[2, 2] + heading, rel=0.02)
+    np.testing.assert_allclose(vertical[:2, :2], white[:2, :2], rtol=1e-6)
+    np.testing.assert_allclose(vertical[3:, 3:], white[3:, 3:], rtol=1e-6)
+    horizontal_velocity = np.diag(white)[6:8]
+    assert (np.diag(body)[6:8] > 10.0 * horizontal_velocity).all()
+
+
+def test_gyro_axes_noise_about_the_vertical_follows_the_tilt():
+    """The vertical in body axes is the latest keyframe's: tilted, the density lies along
+    its world z, and its variance there is each axis' weighed by the vertical's share."""
+    density = np.array([1.0, 4.0, 9.0])
+    up = np.array([0.0, math.sin(0.3), math.cos(0.3)])
+    matrix = about_vertical(density, up)
+    assert up @ matrix @ up == pytest.approx(4.0 * math.sin(0.3) ** 2 + 9.0 * math.cos(0.3) ** 2)
+    np.testing.assert_allclose(matrix @ np.cross(up, [1.0, 0.0, 0.0]), 0.0, atol=1e-12)
+    np.testing.assert_allclose(about_vertical(density, [0.0, 0.0, 1.0]), np.diag([0, 0, 9.0]))
 
 
 def swaying_smoother(times: np.ndarray, options: VinsOptions) -> SlidingWindowSmoother:

@@ -74,7 +74,7 @@ from autonomy.vins.landmarks import (
     Gate, depth_sigma, gate_candidates, observation_limit_px, spread_choice, widest_ray_angle,
 )
 from autonomy.vins.options import VinsOptions
-from autonomy.vins.preintegration import ImuNoise, gyro_axes_density
+from autonomy.vins.preintegration import ImuNoise, about_vertical, gyro_axes_density
 
 #: Floors under the IMU densities, so a noiseless recording still gives a well-posed problem.
 #: The bias walks' are 1.9 and 30 times under EuRoC's (1.9e-5, 3e-3), the presets' figures; a
@@ -251,15 +251,15 @@ class _Keyframe:
 
 def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float,
                gyro_scale: float = 1.0,
-               gyro_extra=(0.0, 0.0, 0.0)) -> gtsam.PreintegrationCombinedParams:
+               gyro_extra=np.zeros((3, 3))) -> gtsam.PreintegrationCombinedParams:
     """GTSAM preintegration parameters for a z-up world from continuous noise densities: the
     white noise's times ``white_scale`` (the gyro's times ``gyro_scale`` too, plus the squared
-    densities ``gyro_extra`` per axis: :func:`gyro_axes_density`), the bias random walk's times
+    density matrix ``gyro_extra``: :func:`gyro_axes_density`), the bias random walk's times
     ``walk_scale``."""
     params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
     eye = np.eye(3)
     params.setGyroscopeCovariance((white_scale * gyro_scale * max(
-        noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye + np.diag(gyro_extra))
+        noise.gyro_noise_density, _DENSITY_FLOOR["gyro"])) ** 2 * eye + gyro_extra)
     params.setAccelerometerCovariance(
         (white_scale * max(noise.accel_noise_density, _DENSITY_FLOOR["accel"])) ** 2 * eye)
     params.setIntegrationCovariance(1e-8 * eye)
@@ -390,7 +390,7 @@ class SlidingWindowSmoother:
         estimate."""
         return self._T_B_C
 
-    def _imu_params(self, gyro_extra=(0.0, 0.0, 0.0)) -> gtsam.PreintegrationCombinedParams:
+    def _imu_params(self, gyro_extra=np.zeros((3, 3))) -> gtsam.PreintegrationCombinedParams:
         """The options' preintegration parameters, the gyro's covariance plus ``gyro_extra``."""
         o = self.options
         return imu_params(self._noise, o.imu_noise_scale, o.imu_bias_walk_scale,
@@ -400,15 +400,20 @@ class SlidingWindowSmoother:
         """An empty preintegration at the latest keyframe's biases. With ``gyro_axes_noise``,
         for the interval whose gyro samples ``gyro`` (N, 3, rad/s) are held over ``dt`` (N,
         seconds), its gyro weighed less by the axes' errors over the interval's turn, the
-        samples less the bias integrated (:func:`gyro_axes_density`)."""
+        samples less the bias integrated (:func:`gyro_axes_density`), about the body's three
+        axes or, with ``gyro_axes_noise_axes = "vertical"``, about the vertical at the latest
+        keyframe (:func:`about_vertical`)."""
         s = self.latest
         params = self.params
-        if self.options.gyro_axes_noise and gyro is not None:
+        o = self.options
+        if o.gyro_axes_noise and gyro is not None:
             dt = np.asarray(dt, dtype=float)
             rotation = (np.asarray(gyro, dtype=float) - s.bias_g).T @ dt
-            params = self._imu_params(gyro_axes_density(
-                rotation, float(dt.sum()), self.options.gyro_scale_sigma,
-                self.options.gyro_cross_axis_sigma))
+            density = gyro_axes_density(rotation, float(dt.sum()), o.gyro_scale_sigma,
+                                        o.gyro_cross_axis_sigma)
+            params = self._imu_params(
+                about_vertical(density, np.asarray(s.T_W_B, float)[2, :3])
+                if o.gyro_axes_noise_axes == "vertical" else np.diag(density))
         return gtsam.PreintegratedCombinedMeasurements(params, _bias(s.bias_g, s.bias_a))
 
     def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None,

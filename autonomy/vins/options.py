@@ -202,6 +202,12 @@ class VinsOptions:
                                    "what the two sigmas above make of its turn, as noise "
                                    "(autonomy/vins/preintegration.py gyro_axes_density; "
                                    "docs/vins.md, \"The gyro's axes as noise\")")
+    gyro_axes_noise_axes: str = option("body", choices=("body", "vertical"), doc="the axes "
+                                       "gyro_axes_noise weighs the gyro less about: the body's "
+                                       "three, or the vertical alone (the heading: the tilt "
+                                       "is held by gravity, and a gyro weighed less about it "
+                                       "weighs the velocity less; docs/vins.md, \"The gyro's "
+                                       "axes about the vertical\")")
     gyro_alignment: tuple[float, ...] = option(
         (0.0, 0.0, 0.0), doc="the gyro's response to the yaw rate (x, y and z axes, fractions) "
         "calibrated on an earlier flight of this vehicle (eval vio's gyro_alignment column): "

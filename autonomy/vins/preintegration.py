@@ -145,9 +145,10 @@ def gyro_axes_density(rotation, duration: float, scale_sigma: float,
 
     and white noise of density ``q`` integrates to ``q T`` over it, so ``q_i = var_i / T``.
     Errors of a few tenths of a percent are nothing at hover and, at a cruise's roll and pitch
-    rates, about as large as the white noise or larger: docs/vins.md, "The gyro's axes as noise". ``M`` is one
-    matrix for the whole flight, which the intervals' independent noise does not say; the
-    smoother only learns to trust the camera's rotation over the gyro's where they turn.
+    rates, about as large as the white noise or larger: docs/vins.md, "The gyro's axes as
+    noise". ``M`` is one matrix for the whole flight, which the intervals' independent noise
+    does not say; the smoother only learns to trust the camera's rotation over the gyro's
+    where they turn.
     """
     theta = np.asarray(rotation, dtype=float).reshape(3)
     if not (duration > 0.0 and np.isfinite(theta).all()):
@@ -156,6 +157,23 @@ def gyro_axes_density(rotation, duration: float, scale_sigma: float,
     squares = theta**2
     return (scale_sigma**2 * squares
             + cross_axis_sigma**2 * (squares.sum() - squares)) / duration
+
+
+def about_vertical(density, up) -> np.ndarray:
+    """The part about the vertical of a gyro noise ``density`` (per body axis, independent:
+    :func:`gyro_axes_density`), as the 3x3 density ``(u^T diag(q) u) u u^T``, ``u`` = ``up``,
+    the world's z in body axes (unit).
+
+    The preintegrated rotation's error ``dtheta`` enters the velocity's as ``-R [f]x dtheta
+    dt`` (Forster eq. 62), ``f`` the specific force, near ``g u`` in flight short of a hard
+    acceleration. About the vertical, ``u x u = 0``: the heading's error leaves the velocity
+    as it is. About a horizontal axis it tilts gravity into the velocity, so a gyro weighed
+    less there weighs the interval's velocity and position less, and the scale goes free
+    (docs/vins.md, "The gyro's axes about the vertical"); the tilt is held by gravity anyway,
+    the heading by the gyro and the camera alone.
+    """
+    u = np.asarray(up, dtype=float).reshape(3)
+    return float(u**2 @ np.asarray(density, dtype=float)) * np.outer(u, u)
 
 
 def preintegrate(gyro, accel, dt, bias_g, bias_a, noise: ImuNoise | None = None, *,
