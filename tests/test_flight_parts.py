@@ -387,11 +387,20 @@ def test_the_summary_ends_with_the_estimated_gyro_alignment_and_how_to_start_fro
     estimated = GyroAlignmentEstimate((0.0197, 0.0193, -0.0018), (0.0026, 0.0030, 0.0012), 670)
     assert gyro_alignment_summary(estimated) == {"column": [0.0197, 0.0193, -0.0018],
                                                  "sigma": [0.0026, 0.0030, 0.0012],
-                                                 "pairs": 670}
+                                                 "pairs": 670, "matrix": None,
+                                                 "matrix_sigma": None}
     assert alignment_lines(estimated) == [
         "  gyro yaw response [0.0197, 0.0193, -0.0018] (sigma at most 0.0030, 670 frame "
         "pairs); to start the next flight from it: "
         "--set 'vins.gyro_alignment=[0.0197, 0.0193, -0.0018]'"]
+    whole = GyroAlignmentEstimate(
+        (0.0197, 0.0193, -0.0018), (0.0026, 0.0030, 0.0012), 1300,
+        ((0.002, -0.021, 0.0197), (0.01, 0.003, 0.0193), (-0.027, 0.016, -0.0018)),
+        ((0.003, 0.004, 0.0026), (0.004, 0.003, 0.0030), (0.005, 0.0061, 0.0012)))
+    numbers = "0.0020, -0.0210, 0.0197, 0.0100, 0.0030, 0.0193, -0.0270, 0.0160, -0.0018"
+    assert alignment_lines(whole) == [
+        f"  gyro misalignment (rows) [{numbers}] (sigma at most 0.0061, 1300 frame pairs); "
+        f"to start the next flight from it: --set 'vins.gyro_alignment=[{numbers}]'"]
     # nothing to tell: no alignment, a calibration given and not estimated, no pair yet
     assert gyro_alignment_summary(None) is None and alignment_lines(None) == []
     assert alignment_lines(GyroAlignmentEstimate((0.02, 0.0, 0.0))) == []

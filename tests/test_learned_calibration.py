@@ -142,6 +142,33 @@ def test_a_column_the_flight_did_not_show_is_not_kept(tmp_path):
     assert not (tmp_path / "gyro.json").exists()
 
 
+#: A whole misalignment by rows, its yaw column COLUMN's.
+MATRIX = ((0.003, -0.021, COLUMN[0]), (0.010, 0.002, COLUMN[1]), (-0.027, 0.016, COLUMN[2]))
+
+
+def _matrix_summary(largest_sigma: float) -> dict:
+    sigma = ((0.003, 0.004, 0.0024), (0.004, 0.003, 0.0026), (0.005, largest_sigma, 0.0023))
+    return {"vins_gyro_alignment": gyro_alignment_summary(GyroAlignmentEstimate(
+        COLUMN, (0.0024, 0.0026, 0.0023), 1300, MATRIX, sigma))}
+
+
+def test_a_whole_misalignment_the_flight_showed_is_kept_and_corrects_the_next_flight(tmp_path):
+    calibration = _alignment_config(tmp_path, "vins.estimate_gyro_alignment=true",
+                                    'vins.gyro_alignment_rates="all"')
+    [path] = keep_learned(calibration, _matrix_summary(0.006), NOW)
+    rows = [v for row in MATRIX for v in row]
+    assert json.loads(path.read_text())["gyro_alignment"] == rows
+    started = start_from_learned(_alignment_config(tmp_path))
+    assert started.vins.gyro_alignment == tuple(rows)
+
+
+def test_of_a_whole_misalignment_not_all_shown_the_yaw_column_is_kept(tmp_path):
+    calibration = _alignment_config(tmp_path, "vins.estimate_gyro_alignment=true",
+                                    'vins.gyro_alignment_rates="all"')
+    keep_learned(calibration, _matrix_summary(0.009), NOW)  # over half the prior's 0.014
+    assert start_from_learned(_alignment_config(tmp_path)).vins.gyro_alignment == COLUMN
+
+
 def test_a_flight_keeps_both_calibrations_and_the_next_starts_from_both(tmp_path):
     config = _alignment_config(tmp_path, "vins.estimate_gyro_alignment=true")
     kept = keep_learned(config, {**_summary(), **_alignment_summary()}, NOW)
@@ -160,10 +187,11 @@ def test_a_gyro_alignment_given_not_estimated_is_not_written_back(tmp_path):
 
 
 @pytest.mark.parametrize("column, complaint", [
-    ('"0.01"', "gyro_alignment is '0.01', not three finite numbers"),
-    ("[0.01, 0.02]", "gyro_alignment is [0.01, 0.02], not three finite numbers"),
-    ("[0.01, NaN, 0.0]", "not three finite numbers"),
-    ("[0.01, true, 0.0]", "not three finite numbers"),
+    ('"0.01"', "gyro_alignment is '0.01', not three or nine finite numbers"),
+    ("[0.01, 0.02]", "gyro_alignment is [0.01, 0.02], not three or nine finite numbers"),
+    ("[0.01, NaN, 0.0]", "not three or nine finite numbers"),
+    ("[0.01, true, 0.0]", "not three or nine finite numbers"),
+    ("[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]", "not three or nine finite numbers"),
     ("[0.9, 0.0, 0.0]", "gyro_alignment"),  # beyond what the options take
 ])
 def test_a_bad_gyro_alignment_file_is_named_and_ignored(tmp_path, caplog, column, complaint):

@@ -97,6 +97,57 @@ def test_large_turns_one_way_round_give_the_column_without_a_twist():
     assert np.abs(alignment.column - COLUMN).max() < 2e-4
 
 
+#: A whole misalignment of the realistic profile's size (by rows): the roll axis responds to
+#: the pitch rate by -2 %, the yaw axis to the roll rate by -2.7 % (mine seed 15's, with its
+#: camera mounting's).
+MATRIX = np.array([[0.002, -0.023, -0.010], [0.012, 0.003, -0.009], [-0.030, 0.015, 0.0]])
+
+
+def _pairs_turning_every_way(matrix, count=400, seed=5):
+    """Frame pairs of a vehicle that pitches and rolls as it speeds up, slows down and turns
+    (each axis up to 0.1 rad a pair), the camera exact, the gyro ``I + matrix``."""
+    rng = np.random.default_rng(seed)
+    information = np.eye(3) / 3e-4 ** 2
+    for _ in range(count):
+        theta = rng.uniform(-0.1, 0.1, 3)
+        yield PairRotations(so3_exp((np.eye(3) + matrix) @ theta), so3_exp(theta), information,
+                            1.0)
+
+
+def test_the_whole_misalignment_is_found_when_the_vehicle_pitches_and_rolls_too():
+    whole, yaw_only = GyroAlignment(0.014, 0.005, rates="all"), GyroAlignment(0.014, 0.005)
+    for pair in _pairs_turning_every_way(MATRIX):
+        whole.add_pair(pair)
+        yaw_only.add_pair(pair)
+    assert np.abs(whole.matrix - MATRIX).max() < 5e-4, whole.matrix
+    np.testing.assert_allclose(whole.column, MATRIX[:, 2], atol=5e-4)
+    estimate = whole.estimate
+    assert np.all(np.abs(whole.matrix - MATRIX) < 3 * np.asarray(estimate.matrix_sigma) + 1e-4)
+    np.testing.assert_allclose(estimate.matrix, whole.matrix)
+    # the yaw column alone leaves the roll and pitch rates' responses uncorrected, and the
+    # pairs' unexplained roll and pitch pull its column off
+    assert yaw_only.estimate.matrix is None and np.all(yaw_only.matrix[:, :2] == 0.0)
+
+
+def test_a_carried_whole_misalignment_corrects_every_rate_and_the_yaw_column_is_refined():
+    """Nine numbers by rows carried over, the yaw column estimated: the roll and pitch rates'
+    responses stay as carried, and the summary shows the whole matrix in use."""
+    alignment = GyroAlignment(0.014, 0.005, tuple(MATRIX.reshape(-1)))
+    rate = np.array([0.3, -0.2, 0.5])
+    np.testing.assert_allclose(alignment.correct((np.eye(3) + MATRIX) @ rate), rate, atol=1e-15)
+    np.testing.assert_allclose(alignment.uncorrect(rate), (np.eye(3) + MATRIX) @ rate, atol=1e-15)
+    for pair in _pairs_turning_every_way(MATRIX + np.array([[0, 0, 0.004]] * 3)):
+        alignment.add_pair(pair)
+    np.testing.assert_array_equal(alignment.matrix[:, :2], MATRIX[:, :2])
+    np.testing.assert_allclose(alignment.column, MATRIX[:, 2] + 0.004, atol=5e-4)
+    assert np.all(np.asarray(alignment.estimate.matrix_sigma)[:, :2] == 0.0)
+
+
+def test_a_whole_misalignment_needs_a_known_rate_choice():
+    with pytest.raises(ValueError, match="rates must be one of"):
+        GyroAlignment(0.014, 0.005, rates="roll")
+
+
 def test_the_right_jacobian_is_the_first_order_of_exp():
     rng = np.random.default_rng(4)
     for phi in (rng.normal(size=3) * 0.7, np.array([0.0, 0.0, 1e-8])):
@@ -167,6 +218,8 @@ def test_a_prior_without_a_positive_sigma_is_refused(sigmas):
     ({"gyro_alignment": (0.01, 0.02)}, "gyro_alignment"),
     ({"gyro_alignment": (0.01, math.nan, 0.0)}, "gyro_alignment"),
     ({"gyro_alignment": (0.5, 0.0, 0.0)}, "gyro_alignment"),
+    ({"gyro_alignment": (0.0,) * 8}, "gyro_alignment"),  # nine by rows, or three
+    ({"gyro_alignment_rates": "roll"}, "gyro_alignment_rates"),
 ])
 def test_bad_alignment_options_are_refused_with_their_name(changes, key):
     with pytest.raises(OptionError) as error:
@@ -177,6 +230,8 @@ def test_bad_alignment_options_are_refused_with_their_name(changes, key):
 def test_the_alignment_is_off_by_default():
     assert VinsOptions().estimate_gyro_alignment is False
     assert VinsOptions().gyro_alignment == (0.0, 0.0, 0.0)
+    assert VinsOptions().gyro_alignment_rates == "yaw"
+    assert len(VinsOptions(gyro_alignment=(0.01,) * 9).gyro_alignment) == 9
 
 
 def test_with_the_alignment_on_a_bad_imu_sample_is_refused_and_the_estimator_goes_on():
@@ -251,7 +306,8 @@ def test_a_carried_calibration_corrects_the_corner_without_estimating(corner_run
     from companion.tools.eval.vio import format_vio_report
 
     off, carried = corner_runs[False], corner_runs["carried"]
-    assert carried["gyro_alignment"] == {"column": list(COLUMN), "sigma": None, "pairs": 0}
+    assert carried["gyro_alignment"] == {"column": list(COLUMN), "sigma": None, "pairs": 0,
+                                         "matrix": None, "matrix_sigma": None}
     assert "+0.0200 -0.0150 +0.0040 as given" in format_vio_report(carried)
     assert "yaw rate (x, y, z): not corrected" in format_vio_report(off)
     assert carried["resets"] == 0

@@ -40,8 +40,8 @@ stops sliding when the vehicle first moves and keeps its keyframes until the off
 (:meth:`Vins._keep_window_open`). The caller keeps using its stamps:
 :class:`FrameUpdate` and its sparse map carry ``t``, with the offset that was subtracted.
 
-Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate is
-estimated on the time offset's frame pairs and every sample is corrected by it before use
+Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate (or, with
+``gyro_alignment_rates = "all"``, to every rate) is estimated on the time offset's frame pairs and every sample is corrected by it before use
 (:mod:`autonomy.vins.gyro_alignment`), starting from ``gyro_alignment``, a calibration carried
 over from an earlier flight (which alone is a fixed correction); the time-offset estimator
 keeps the raw samples.
@@ -155,7 +155,7 @@ class Vins:
                                   if self.options.estimate_time_offset else None)
         o = self.options
         self._alignment = (GyroAlignment(o.gyro_cross_axis_sigma, o.gyro_scale_sigma,
-                                         o.gyro_alignment)
+                                         o.gyro_alignment, o.gyro_alignment_rates)
                            if o.estimate_gyro_alignment or any(o.gyro_alignment) else None)
         self._offset_backlog: list[tuple[float, np.ndarray, np.ndarray]] = []
         #: the time offset each keyframe of the window was filed at, by keyframe index

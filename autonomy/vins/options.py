@@ -191,6 +191,13 @@ class VinsOptions:
                                            "yaw rate against the camera's rotation online and "
                                            "correct the gyro by it (needs "
                                            "estimate_time_offset: its frame pairs)")
+    gyro_alignment_rates: str = option("yaw", choices=("yaw", "all"), doc="the rates whose "
+                                       "responses estimate_gyro_alignment estimates: the yaw "
+                                       "rate's alone (three numbers), or all three's (the "
+                                       "whole matrix: the roll and pitch rates' responses "
+                                       "tilt the gyro's attitude whenever the vehicle "
+                                       "pitches; docs/vins.md, \"The gyro's whole "
+                                       "misalignment in navigation\")")
     gyro_cross_axis_sigma: float = option(0.014, gt=0.0, le=0.2, doc="sigma of each axis' "
                                           "response to the others' rates (cross-axis "
                                           "sensitivity with the mounting's error), fraction: "
@@ -209,10 +216,10 @@ class VinsOptions:
                                        "weighs the velocity less; docs/vins.md, \"The gyro's "
                                        "axes about the vertical\")")
     gyro_alignment: tuple[float, ...] = option(
-        (0.0, 0.0, 0.0), doc="the gyro's response to the yaw rate (x, y and z axes, fractions) "
-        "calibrated on an earlier flight of this vehicle (eval vio's gyro_alignment column): "
-        "the gyro is corrected by it from the first sample, and with estimate_gyro_alignment "
-        "it is the estimate's prior mean")
+        (0.0, 0.0, 0.0), doc="the gyro's response to the yaw rate (x, y and z axes, fractions), "
+        "or its whole misalignment (nine numbers, by rows), calibrated on an earlier flight of "
+        "this vehicle (eval vio's gyro_alignment column): the gyro is corrected by it from the "
+        "first sample, and with estimate_gyro_alignment it is the estimate's prior mean")
     # --- the camera's mounting (autonomy/vins/backend.py, docs/vins.md)
     estimate_camera_mounting: bool = option(False, doc="estimate the rotation of the camera's "
                                             "mounting on the body in the smoother, from the "
@@ -272,10 +279,11 @@ class VinsOptions:
         if self.estimate_gyro_alignment and not self.estimate_time_offset:
             raise OptionError("estimate_gyro_alignment", "needs estimate_time_offset = true "
                               "(the gyro is aligned on the time-offset estimator's frame pairs)")
-        if len(self.gyro_alignment) != 3 or not all(
+        if len(self.gyro_alignment) not in (3, 9) or not all(
                 math.isfinite(c) and abs(c) <= MAX_GYRO_ALIGNMENT for c in self.gyro_alignment):
             raise OptionError("gyro_alignment", "takes the x, y and z axes' responses to the "
-                              f"yaw rate, each within +-{MAX_GYRO_ALIGNMENT}, "
+                              "yaw rate, or the whole misalignment by rows (nine numbers), "
+                              f"each within +-{MAX_GYRO_ALIGNMENT}, "
                               f"got {list(self.gyro_alignment)}")
         if self.min_tracked_lost > self.min_tracked_ok:
             raise OptionError("min_tracked_lost", "must not exceed min_tracked_ok "

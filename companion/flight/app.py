@@ -254,10 +254,11 @@ def time_offset_summary(offset) -> dict:
 
 
 def gyro_alignment_summary(estimate) -> dict | None:
-    """The gyro's response to the yaw rate the VINS ended on (a
+    """The gyro's misalignment the VINS ended on (a
     :class:`~autonomy.vins.gyro_alignment.GyroAlignmentEstimate`, None when it corrects none):
-    ``column`` (x, y, z), ``sigma`` (None without frame pairs: a calibration given, not
-    estimated), ``pairs``."""
+    ``column`` (the response to the yaw rate: x, y, z), ``sigma`` (None without frame pairs: a
+    calibration given, not estimated), ``pairs``, and ``matrix``, ``matrix_sigma`` (the whole
+    matrix by rows; None when only the yaw column is corrected)."""
     return None if estimate is None else estimate.as_dict()
 
 
@@ -320,16 +321,22 @@ def _signing_lines(signing: dict | None) -> list[str]:
 
 
 def _gyro_alignment_lines(alignment: dict | None) -> list[str]:
-    """The gyro's response to the yaw rate the VINS estimated, and how to start the next flight
-    of this vehicle from it: the estimate learns it in the first corner, too late for that
-    corner (docs/vins.md, "The gyro's response to yaw")."""
+    """The gyro's misalignment the VINS estimated (its response to the yaw rate, or the whole
+    matrix by rows), and how to start the next flight of this vehicle from it: the estimate
+    learns it in flight, too late for the first corner (docs/vins.md, "The gyro's response to
+    yaw")."""
     if alignment is None or not alignment["pairs"]:
         return []
-    column = ", ".join(f"{c:.4f}" for c in alignment["column"])
-    sigma = max(alignment["sigma"])
-    return [f"  gyro yaw response [{column}] (sigma at most {sigma:.4f}, "
+    if alignment.get("matrix") is None:
+        values, sigma, what = alignment["column"], max(alignment["sigma"]), "yaw response"
+    else:
+        values = [v for row in alignment["matrix"] for v in row]
+        sigma = max(v for row in alignment["matrix_sigma"] for v in row)
+        what = "misalignment (rows)"
+    numbers = ", ".join(f"{c:.4f}" for c in values)
+    return [f"  gyro {what} [{numbers}] (sigma at most {sigma:.4f}, "
             f"{alignment['pairs']} frame pairs); to start the next flight from it: "
-            f"--set 'vins.gyro_alignment=[{column}]'"]
+            f"--set 'vins.gyro_alignment=[{numbers}]'"]
 
 
 def _time_offset_lines(offset: dict | None) -> list[str]:

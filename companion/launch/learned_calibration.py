@@ -9,7 +9,9 @@ next one than learned again in it (docs/vins.md):
   one. With ``[camera] learned_time_offset_file`` set, ``companion fly`` writes there the
   offset a flight ended with, when the estimate moved (its sigma is known), and the next flight
   starts from it (``time_offset_s``).
-- **the gyro's response to the yaw rate** (its cross-axis error with the camera's mounting).
+- **the gyro's response to the yaw rate** (its cross-axis error with the camera's mounting), or
+  with ``[vins] gyro_alignment_rates = "all"`` its whole misalignment (nine numbers, kept when
+  the flight has shown every one of them, else its yaw column).
   The estimate (``[vins] estimate_gyro_alignment``) learns it in the first corner, after that
   corner's false tilt is in the smoother; carried from an earlier flight, the correction holds
   from the first sample. With ``[camera] learned_gyro_alignment_file`` set, a flight with no
@@ -96,8 +98,9 @@ def start_from_learned(config):
     alignment = _learned(config, path, "gyro alignment", "gyro_alignment", _column_from)
     if alignment is not None:
         config = dataclasses.replace(config, vins=alignment)
-        log.info("correcting the gyro by the yaw response learned before: %s (%s)",
-                 _column_text(alignment.gyro_alignment), path)
+        log.info("correcting the gyro by the %s learned before: %s (%s)",
+                 "yaw response" if len(alignment.gyro_alignment) == 3 else
+                 "misalignment (rows)", _column_text(alignment.gyro_alignment), path)
     elif path is not None and config.vins.estimate_time_offset:
         # None kept for this camera (no file, or one ignored above): a calibration flight, so
         # that a broken file or another camera's is replaced, as the time offset's is
@@ -132,16 +135,25 @@ def _keep_offset(config, offset: dict | None, saved: str) -> Path | None:
 
 
 def _keep_alignment(config, alignment: dict | None, saved: str) -> Path | None:
+    """The whole matrix (by rows) when the flight estimated it and has shown every element,
+    else the yaw column when it has shown that (:data:`KEEP_ALIGNMENT_SHARE`)."""
     path = learned_alignment_path(config)
-    if path is None or alignment is None or not alignment["pairs"] or max(
-            alignment["sigma"]) > KEEP_ALIGNMENT_SHARE * config.vins.gyro_cross_axis_sigma:
+    if path is None or alignment is None or not alignment["pairs"]:
         return None
-    if not _write(path, config, {"gyro_alignment": list(alignment["column"]),
-                                 "sigma": list(alignment["sigma"]), "pairs": alignment["pairs"]},
-                  saved):
+    limit = KEEP_ALIGNMENT_SHARE * config.vins.gyro_cross_axis_sigma
+    values, sigma = alignment["column"], alignment["sigma"]
+    if alignment.get("matrix_sigma") is not None and max(
+            v for row in alignment["matrix_sigma"] for v in row) <= limit:
+        values = [v for row in alignment["matrix"] for v in row]
+        sigma = [v for row in alignment["matrix_sigma"] for v in row]
+    if max(sigma) > limit:
         return None
-    log.info("kept the gyro's yaw response %s for the next flight (%s)",
-             _column_text(alignment["column"]), path)
+    if not _write(path, config, {"gyro_alignment": list(values), "sigma": list(sigma),
+                                 "pairs": alignment["pairs"]}, saved):
+        return None
+    log.info("kept the gyro's %s %s for the next flight (%s)",
+             "yaw response" if len(values) == 3 else "misalignment (rows)",
+             _column_text(values), path)
     return path
 
 
@@ -204,8 +216,9 @@ def _offset_from(record: dict) -> float:
     return float(offset_s)
 
 
-def _column_from(record: dict) -> tuple[float, float, float]:
+def _column_from(record: dict) -> tuple[float, ...]:
+    """The yaw column (three numbers) or the whole matrix by rows (nine)."""
     column = record.get("gyro_alignment")
-    if not (isinstance(column, list) and len(column) == 3 and all(map(_finite, column))):
-        raise ValueError(f"gyro_alignment is {column!r}, not three finite numbers")
+    if not (isinstance(column, list) and len(column) in (3, 9) and all(map(_finite, column))):
+        raise ValueError(f"gyro_alignment is {column!r}, not three or nine finite numbers")
     return tuple(float(c) for c in column)

@@ -400,8 +400,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``drag_fit``: the rotor drag coefficient fitted on the estimate
     (:mod:`companion.tools.eval.drag_fit`; None when the flight is too short or too even).
     ``gyro_alignment``: the gyro's response to the yaw rate it was corrected by at the end
-    (``column``, ``sigma``, ``pairs``; None when neither ``estimate_gyro_alignment`` nor a
-    ``gyro_alignment`` calibration is given). ``camera_mounting``: the mounting the smoother
+    (``column``, ``sigma``, ``pairs``, and the whole ``matrix`` and ``matrix_sigma`` by rows
+    when more than the yaw column is corrected; None when neither
+    ``estimate_gyro_alignment`` nor a ``gyro_alignment`` calibration is given). ``camera_mounting``: the mounting the smoother
     estimated, as its offset from the configured one in the configured camera's frame
     (``rotation_deg``, a rotation vector, and ``translation_mm``; None unless
     ``estimate_camera_mounting``).
@@ -781,6 +782,9 @@ def _alignment_text(alignment: dict | None) -> str:
     if alignment is None:
         return "not corrected"
     column = " ".join(f"{c:+.4f}" for c in alignment["column"])
+    if alignment.get("matrix") is not None:
+        column += " (the whole matrix by rows: " + "; ".join(
+            " ".join(f"{c:+.4f}" for c in row) for row in alignment["matrix"]) + ")"
     if not alignment["pairs"]:
         return f"{column} as given ([vins] gyro_alignment), not estimated"
     return f"{column} over {alignment['pairs']} frame pairs"
