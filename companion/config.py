@@ -163,6 +163,7 @@ SIMULATOR_DEFAULTS = (
     "depth.scale_field_nodes=4",
     "vins.estimate_time_offset=true",
     "vins.estimate_gyro_alignment=true",
+    "vins.gyro_alignment_rates=all",
     "vins.gyro_noise_scale=10",
     "vins_frontend.anchor_age=2",
     "vins_frontend.anchor_warp=homography",
