@@ -107,9 +107,13 @@ def test_blocked_after_a_corners_turn_and_a_parallax_glide_it_backs_off_and_flie
     come after the glide, so that the clock does not run through a glide
     (``NoPathClock.restart``) is the unit test's
     (tests/test_navigation.py, ``test_a_stop_by_choice_restarts_the_no_path_clock...``).
-    Seed 1 still shows it with the preset's anchored tracks (2026-12-06)."""
+    Seed 1 still shows it with the preset's anchored tracks (2026-12-06). With the gyro's whole
+    misalignment estimated (the preset's since 2026-12-06) none of seeds 0-4 is blocked there:
+    they fly past the corner and are 20-38 m from the goal when the 35 s are up. So this flight
+    estimates the yaw column alone, as the preset did when it was measured."""
     preset = CONFIG_DIR / "sim-realistic.toml"
-    config = load_config(preset, ["flight.mission_timeout_s=35", "px4.smooth_takeoff=false"])
+    config = load_config(preset, ["flight.mission_timeout_s=35", "px4.smooth_takeoff=false",
+                                  "vins.gyro_alignment_rates=yaw"])
     summary = simulated.run(config, simulated.SimMission(world="sewer", seed=1, pair=1,
                                                          depth="estimated"))
     assert_safe_landing(summary)
