@@ -41,10 +41,10 @@ stops sliding when the vehicle first moves and keeps its keyframes until the off
 :class:`FrameUpdate` and its sparse map carry ``t``, with the offset that was subtracted.
 
 Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw rate (or, with
-``gyro_alignment_rates = "all"``, to every rate) is estimated on the time offset's frame pairs and every sample is corrected by it before use
-(:mod:`autonomy.vins.gyro_alignment`), starting from ``gyro_alignment``, a calibration carried
-over from an earlier flight (which alone is a fixed correction); the time-offset estimator
-keeps the raw samples.
+``gyro_alignment_rates = "all"``, to every rate) is estimated on the time offset's frame pairs
+and every sample is corrected by it before use (:mod:`autonomy.vins.gyro_alignment`), starting
+from ``gyro_alignment``, a calibration carried over from an earlier flight (which alone is a
+fixed correction); the time-offset estimator keeps the raw samples.
 """
 
 from __future__ import annotations

@@ -331,7 +331,7 @@ def _gyro_alignment_lines(alignment: dict | None) -> list[str]:
         values, sigma, what = alignment["column"], max(alignment["sigma"]), "yaw response"
     else:
         values = [v for row in alignment["matrix"] for v in row]
-        sigma = max(v for row in alignment["matrix_sigma"] for v in row)
+        sigma = max(max(row) for row in alignment["matrix_sigma"])
         what = "misalignment (rows)"
     numbers = ", ".join(f"{c:.4f}" for c in values)
     return [f"  gyro {what} [{numbers}] (sigma at most {sigma:.4f}, "

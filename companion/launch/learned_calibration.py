@@ -98,9 +98,8 @@ def start_from_learned(config):
     alignment = _learned(config, path, "gyro alignment", "gyro_alignment", _column_from)
     if alignment is not None:
         config = dataclasses.replace(config, vins=alignment)
-        log.info("correcting the gyro by the %s learned before: %s (%s)",
-                 "yaw response" if len(alignment.gyro_alignment) == 3 else
-                 "misalignment (rows)", _column_text(alignment.gyro_alignment), path)
+        log.info("correcting the gyro by the %s learned before (%s)",
+                 _alignment_text(alignment.gyro_alignment), path)
     elif path is not None and config.vins.estimate_time_offset:
         # None kept for this camera (no file, or one ignored above): a calibration flight, so
         # that a broken file or another camera's is replaced, as the time offset's is
@@ -142,23 +141,25 @@ def _keep_alignment(config, alignment: dict | None, saved: str) -> Path | None:
         return None
     limit = KEEP_ALIGNMENT_SHARE * config.vins.gyro_cross_axis_sigma
     values, sigma = alignment["column"], alignment["sigma"]
-    if alignment.get("matrix_sigma") is not None and max(
-            v for row in alignment["matrix_sigma"] for v in row) <= limit:
-        values = [v for row in alignment["matrix"] for v in row]
-        sigma = [v for row in alignment["matrix_sigma"] for v in row]
+    if alignment.get("matrix_sigma") is not None and max(_flat(alignment["matrix_sigma"])) <= limit:
+        values, sigma = _flat(alignment["matrix"]), _flat(alignment["matrix_sigma"])
     if max(sigma) > limit:
         return None
     if not _write(path, config, {"gyro_alignment": list(values), "sigma": list(sigma),
                                  "pairs": alignment["pairs"]}, saved):
         return None
-    log.info("kept the gyro's %s %s for the next flight (%s)",
-             "yaw response" if len(values) == 3 else "misalignment (rows)",
-             _column_text(values), path)
+    log.info("kept the gyro's %s for the next flight (%s)", _alignment_text(values), path)
     return path
 
 
-def _column_text(column) -> str:
-    return "[" + ", ".join(f"{c:.4f}" for c in column) + "]"
+def _flat(rows) -> list[float]:
+    return [v for row in rows for v in row]
+
+
+def _alignment_text(values) -> str:
+    """Three numbers, the yaw response, or nine, the whole misalignment by rows."""
+    what = "yaw response" if len(values) == 3 else "misalignment (rows)"
+    return f"{what} [" + ", ".join(f"{c:.4f}" for c in values) + "]"
 
 
 def _learned(config, path: Path | None, what: str, field: str, value_from):

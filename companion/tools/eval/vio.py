@@ -402,10 +402,10 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``gyro_alignment``: the gyro's response to the yaw rate it was corrected by at the end
     (``column``, ``sigma``, ``pairs``, and the whole ``matrix`` and ``matrix_sigma`` by rows
     when more than the yaw column is corrected; None when neither
-    ``estimate_gyro_alignment`` nor a ``gyro_alignment`` calibration is given). ``camera_mounting``: the mounting the smoother
-    estimated, as its offset from the configured one in the configured camera's frame
-    (``rotation_deg``, a rotation vector, and ``translation_mm``; None unless
-    ``estimate_camera_mounting``).
+    ``estimate_gyro_alignment`` nor a ``gyro_alignment`` calibration is given).
+    ``camera_mounting``: the mounting the smoother estimated, as its offset from the configured
+    one in the configured camera's frame (``rotation_deg``, a rotation vector, and
+    ``translation_mm``; None unless ``estimate_camera_mounting``).
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
