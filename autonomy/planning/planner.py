@@ -45,7 +45,12 @@ was used.
 **The speed wave.** With ``speed_swing`` the chosen arc and its checked stop are flown along
 the same path up to ``speed_swing`` m/s slower, and back, every ``speed_swing_period_s``
 (speed_wave.py): never faster than the tier checked, so the check holds; the accelerations
-let the VINS see its scale, which a steady cruise lets walk.
+let the VINS see its scale, which a steady cruise lets walk. With ``height_swing`` they are
+flown swinging ``height_swing`` metres up and down about it every ``height_swing_period_s``
+(height_wave.py), fading out over the braking, at no cost of speed: each arc is then checked
+about the line the wave swings about with a sphere ``height_swing`` larger than the robot's, so
+every sphere of the flown path lies within one checked (the glides, flown level, keep the
+robot's).
 
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
@@ -67,6 +72,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera, make_pose, rot_z, yaw_of
 from autonomy.messages import MetricDepth
 from autonomy.options import OptionError, option
+from autonomy.planning.height_wave import HeightWave
 from autonomy.planning.history import DepthHistory, as_pose, check_camera
 from autonomy.planning.landing import candidate_sites, column_points
 from autonomy.planning.primitives import (
@@ -138,6 +144,11 @@ class PlannerOptions(PrimitiveOptions):
                                 "along the same path; 0: at its speed throughout")
     speed_swing_period_s: float = option(3.3, gt=0.0, le=60.0, doc="the speed wave's "
                                          "period, seconds")
+    height_swing: float = option(0.0, ge=0.0, le=0.5, doc="the height wave (height_wave.py): "
+                                 "each arc is flown this much up and down about its path, "
+                                 "metres, and checked with a sphere this much larger; 0: level")
+    height_swing_period_s: float = option(2.0, ge=0.5, le=60.0, doc="the height wave's "
+                                          "period, seconds")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -215,8 +226,9 @@ class Candidates:
     were ``safe`` and which ``blocked`` by an observed surface (:class:`TierCheck`), and the
     index of the one ``chosen``, -1 when none was safe (the slowest tier's, on a stop), and
     the ``radius`` of the sphere they were checked with (less than the robot's when hemmed
-    in: module docstring); ``faster``: why each faster tier checked had nothing safe, fastest
-    first (the flight record says why the vehicle flew slower)."""
+    in, the height wave's amplitude more when it is flown: module docstring); ``faster``: why
+    each faster tier checked had nothing safe, fastest first (the flight record says why the
+    vehicle flew slower)."""
 
     speed: float
     primitives: Sequence[Primitive]
@@ -255,6 +267,7 @@ class Plan:
     candidates: "Candidates | None" = None
     request: PlanRequest | None = None
     wave: SpeedWave | None = None
+    height_wave: HeightWave | None = None
 
     def setpoint(self, t: float) -> "Setpoint":
         """What to command at time ``t``: the primitive's motion ``tau = t - self.t`` after its
@@ -266,7 +279,9 @@ class Plan:
 
         With a speed ``wave`` the same motion is flown slower by the wave's ``m(t)``: at
         ``tau = W(t) - W(self.t)`` (speed_wave.py), velocity and yaw rate times ``m``, the
-        acceleration ``m² a + m' v``."""
+        acceleration ``m² a + m' v``. With a ``height_wave`` the path is offset vertically by
+        the wave's ``h(t)`` (height_wave.py), its share of motion falling over the braking at
+        the rate the braking is flown."""
         if not math.isfinite(t):
             raise ValueError(f"setpoint time must be finite, got {t!r}")
         if self.wave is None:
@@ -280,8 +295,26 @@ class Plan:
             m, rate = 1.0, 0.0
         a_S = m * m * a_S + rate * v_S
         R = self.T_W_S[:3, :3]
-        return Setpoint(R @ (m * v_S), float(m * yaw_rate), R @ a_S,
-                        R @ p_S + self.T_W_S[:3, 3])
+        setpoint = Setpoint(R @ (m * v_S), float(m * yaw_rate), R @ a_S,
+                            R @ p_S + self.T_W_S[:3, 3])
+        if self.height_wave is None:
+            return setpoint
+        up = np.array([0.0, 0.0, 1.0])
+        offset = self.height_wave.offset(t, *self._motion_share(tau, m, rate))
+        return Setpoint(setpoint.velocity_W + offset.velocity * up, setpoint.yaw_rate,
+                        setpoint.acceleration_W + offset.acceleration * up,
+                        setpoint.position_W + offset.height * up)
+
+    def _motion_share(self, tau: float, m: float, rate: float) -> tuple[float, float, float]:
+        """The height wave's ``(f, f', f'')`` at ``tau`` into the primitive flown at ``m``
+        times its pace (rate ``m'``): 1 along the arc, ``1 - s / T`` over the braking."""
+        braking = tau - self.primitive.duration
+        if braking < 0.0:
+            return 1.0, 0.0, 0.0
+        if braking >= self.stop_duration_s:
+            return 0.0, 0.0, 0.0
+        T = self.stop_duration_s
+        return 1.0 - braking / T, -m / T, -rate / T
 
     @property
     def end_time(self) -> float:
@@ -300,12 +333,15 @@ class Planner:
         o = options or PlannerOptions()
         self.camera = camera
         self.options = o
-        self.history = DepthHistory(robot_radius=o.robot_radius, min_confidence=o.min_confidence,
+        # the height wave's arcs are checked with spheres its amplitude larger (module docstring)
+        self.history = DepthHistory(robot_radius=o.robot_radius + o.height_swing,
+                                    min_confidence=o.min_confidence,
                                     max_range=o.max_range, max_frames=o.history_frames,
                                     max_age_s=o.history_s, near_tail_share=o.near_tail_share,
                                     far_tail_share=o.far_tail_share)
         self.tiers = [PrimitiveTier(speed, o) for speed in tier_speeds(o.primitives)]
         self.wave = SpeedWave.of(o.speed_swing, o.speed_swing_period_s)
+        self.height_wave = HeightWave.of(o.height_swing, o.height_swing_period_s)
         self._previous: Plan | None = None
         self._checked_stop: Plan | None = None
 
@@ -344,23 +380,26 @@ class Planner:
         goal = _vector(goal_W, "goal_W")
         if not any(ft >= t - self.options.history_s for ft in self.history.times):
             return self._stop(t, T_W_S, velocity, "no depth")
-        R, start = T_W_S[:3, :3], T_W_S[:3, 3]
+        T_W_L = self._wave_line(t, T_W_S)
+        R, start = T_W_L[:3, :3], T_W_L[:3, 3]
         tiers = self.tiers
         if stop_at_goal:
             room = float(np.hypot(*(goal - start)[:2]))
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
-        radius, faster = self.options.robot_radius, []
+        # the sphere checked, as the record gives it: the height wave's amplitude larger
+        radius, faster = self.options.robot_radius + self.options.height_swing, []
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
-            check = self.check(t, T_W_S, tier)
+            check = self.check(t, T_W_L, tier)
             safe, clearance, blocked = check
             if safe.any():
                 break
             faster.append(FasterTier.of(tier.speed, check))
         else:
             faster.pop()  # the slowest tier's own candidates say why
-            escape = self._escape(t, T_W_S, tier) if self._hemmed_in(t, T_W_S, tier) else None
+            escape = self._escape(t, T_W_L, tier) if self._hemmed_in(t, T_W_L, tier) else None
             if escape is not None:
                 radius, (safe, clearance, blocked) = escape
+                radius += self.options.height_swing
             if not safe.any():  # why each primitive failed goes into the flight record
                 return replace(self._stop(t, T_W_S, velocity, "no safe primitive"),
                                candidates=Candidates(tier.speed, tier.library, safe, -1,
@@ -369,27 +408,41 @@ class Planner:
         cost = np.where(safe, self._cost(tier, start, R, goal, clearance), np.inf)
         i = int(np.argmin(cost))
         chosen = float(clearance[i])
-        plan = Plan(t, T_W_S, tier.library[i], "arc", "", count, chosen,
+        plan = Plan(t, T_W_L, tier.library[i], "arc", "", count, chosen,
                     self.options.stop_duration_s,
                     Candidates(tier.speed, tier.library, safe, i, blocked, radius,
-                               tuple(faster)), wave=self.wave)
+                               tuple(faster)), wave=self.wave, height_wave=self.height_wave)
         self._previous = plan
         # on the same wave: a stop taking over from the arc goes on at the arc's speed
-        self._checked_stop = Plan(t, T_W_S, tier.branches[i], "stop", "", count, chosen,
-                                  self.options.stop_duration_s, wave=self.wave)
+        self._checked_stop = Plan(t, T_W_L, tier.branches[i], "stop", "", count, chosen,
+                                  self.options.stop_duration_s, wave=self.wave,
+                                  height_wave=self.height_wave)
         return plan
+
+    def _wave_line(self, t: float, T_W_S: np.ndarray) -> np.ndarray:
+        """The start frame of the line the height wave swings about at ``t``: ``T_W_S`` less
+        the wave's height there (``T_W_S`` without a wave). An arc planned from it starts at
+        the body, wherever on the wave the body is."""
+        if self.height_wave is None:
+            return T_W_S
+        T_W_L = T_W_S.copy()
+        T_W_L[2, 3] -= self.height_wave.offset(t, 1.0).height
+        return T_W_L
 
     def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None,
               radius: float | None = None) -> TierCheck:
         """Every primitive of ``tier`` (default the fastest) and its branch, placed at the
         start frame ``T_W_S``, against the frames no older than ``t - history_s``, with the
-        robot's sphere (or one of ``radius``, no larger): ``safe``
+        robot's sphere (or one of ``radius``, no larger), each the height wave's amplitude
+        larger when one is flown (module docstring): ``safe``
         (P,) bool; ``clearance`` (P,) the least clearance along a safe one (metres between the
         sphere's far side and the surface behind it; inf where only rays judged it);
         ``blocked`` (P,) bool. An unsafe primitive's points are not all judged (the check
         stops at the first occupied one), so its clearance means nothing."""
         tier = self.tiers[0] if tier is None else tier
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
+        if radius is not None:
+            radius += self.options.height_swing
         result = self.history.check(tier.points_S @ R.T + start, start_W=start, now=t,
                                     groups=tier.primitive_of_point, radius=radius)
         return TierCheck(np.logical_and.reduceat(result.free, tier.starts),
@@ -429,7 +482,8 @@ class Planner:
         if plan is None:
             return None
         start, points = _glide_points(plan)
-        result = self.history.check(points, start_W=start, now=plan.t)
+        result = self.history.check(points, start_W=start, now=plan.t,
+                                    radius=self.options.robot_radius)
         if not result.free.all():
             return None
         plan = replace(plan, safe_count=1, clearance=float(np.min(result.clearance)))
@@ -480,10 +534,11 @@ class Planner:
         if body.occupied.any():
             return False
         away = points[~own]
-        near = self.history.check(away, start_W=start, now=glide.t)
+        radius = self.options.robot_radius  # a glide flies level: the robot's own sphere
+        near = self.history.check(away, start_W=start, now=glide.t, radius=radius)
         retry = ~near.free & ~near.occupied
         return not near.occupied.any() and bool(
-            self.history.check(away[retry], now=glide.t).free.all())
+            self.history.check(away[retry], now=glide.t, radius=radius).free.all())
 
     def glide(self, t: float, T_W_B, goal_W, reason: str,
               stop_at_goal: bool = True) -> Plan | None:

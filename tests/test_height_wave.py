@@ -1,0 +1,122 @@
+"""The height wave: arcs flown swinging up and down about their path, fading out over the
+braking, checked with a sphere the wave's amplitude larger (autonomy/planning/height_wave.py)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from autonomy.options import OptionError
+from autonomy.planning.height_wave import HeightWave
+from autonomy.planning.planner import Plan, Planner, PlannerOptions
+from autonomy.planning.primitives import PrimitiveOptions, forward_arc
+from autonomy.planning.speed_wave import SpeedWave
+
+from tests.test_planning import AHEAD, CAMERA, FORWARD, ROOM, WALL_LEFT, body, planner_seeing
+
+WAVE = HeightWave(0.08, 2.0)
+
+
+def _arc_plan(t0=0.37, height_wave=WAVE, speed_wave=None, yaw_rate=0.3, climb=0.2):
+    arc = forward_arc(2.0, yaw_rate, climb, PrimitiveOptions())
+    return Plan(t0, body(x=1.0, y=-2.0, yaw=0.4), arc, "arc", "", 1, 3.0, 1.0,
+                wave=speed_wave, height_wave=height_wave)
+
+
+@pytest.mark.parametrize("amplitude, period", [(0.0, 2.0), (-0.1, 2.0), (0.08, 0.0),
+                                               (math.nan, 2.0), (0.08, math.inf)])
+def test_a_wave_without_a_positive_amplitude_and_period_is_refused(amplitude, period):
+    with pytest.raises(ValueError, match="height wave"):
+        HeightWave(amplitude, period)
+
+
+def test_no_amplitude_means_no_wave():
+    assert HeightWave.of(0.0, 2.0) is None
+    assert Planner(CAMERA, PlannerOptions()).height_wave is None
+
+
+@pytest.mark.parametrize("key, value", [("height_swing", -0.1), ("height_swing", 0.6),
+                                        ("height_swing_period_s", 0.2)])
+def test_bad_height_wave_options_are_refused(key, value):
+    with pytest.raises(OptionError, match=key):
+        PlannerOptions(**{key: value})
+
+
+def test_a_waved_arc_flies_the_level_path_offset_only_vertically_and_comes_to_rest_on_it():
+    waved, level = _arc_plan(), _arc_plan(height_wave=None)
+    heights = []
+    for t in np.linspace(waved.t, waved.end_time, 200):
+        flown, planned = waved.setpoint(t), level.setpoint(t)
+        np.testing.assert_allclose(flown.position_W[:2], planned.position_W[:2], atol=1e-12)
+        np.testing.assert_allclose(flown.velocity_W[:2], planned.velocity_W[:2], atol=1e-12)
+        heights.append(flown.position_W[2] - planned.position_W[2])
+    # it swings by the whole amplitude on the arc, never more, and at rest holds the path
+    assert max(heights) == pytest.approx(0.08, abs=1e-3)
+    assert min(heights) == pytest.approx(-0.08, abs=1e-3)
+    rest = waved.end_time + 0.5
+    np.testing.assert_allclose(waved.setpoint(rest).position_W, level.setpoint(rest).position_W,
+                               atol=1e-12)
+    np.testing.assert_allclose(waved.setpoint(rest).velocity_W, 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("speed_wave", [None, SpeedWave(0.6, 3.3)])
+def test_a_waved_plans_velocity_and_acceleration_are_its_positions_derivatives(speed_wave):
+    plan, h = _arc_plan(speed_wave=speed_wave), 1e-5
+    braking = plan.t + plan.primitive.duration
+    # along the arc, then twice within the braking, where the wave fades out
+    for t in (0.5, 1.3, braking + 0.2, braking + 0.7):
+        before, now, after = (plan.setpoint(t + d) for d in (-h, 0.0, h))
+        np.testing.assert_allclose(now.velocity_W,
+                                   (after.position_W - before.position_W) / (2 * h), atol=1e-6)
+        np.testing.assert_allclose(now.acceleration_W,
+                                   (after.velocity_W - before.velocity_W) / (2 * h), atol=1e-5)
+
+
+def test_the_planner_starts_each_arc_at_the_body_wherever_it_is_on_the_wave():
+    options = PlannerOptions(height_swing=0.08)
+    for t in (0.05, 0.55, 1.3):  # the wave's phase at a quarter, a crest and beyond
+        planner = planner_seeing(ROOM, t=t, options=options)
+        plan = planner.plan(t, body(), FORWARD, AHEAD)
+        assert plan.kind == "arc" and plan.height_wave == HeightWave(0.08, 2.0)
+        assert plan.candidates.radius == pytest.approx(1.08)  # the sphere checked, recorded
+        np.testing.assert_allclose(plan.setpoint(t).position_W, body()[:3, 3], atol=1e-12)
+        # planned from the line it swings about
+        line = body()[2, 3] - 0.08 * math.sin(math.pi * t)
+        assert plan.T_W_S[2, 3] == pytest.approx(line)
+
+
+def test_consecutive_waved_plans_join_without_a_jump_in_vertical_velocity():
+    """The phase runs on the clock: a new round's arc goes on at the vertical speed the last
+    one commanded."""
+    first, second = _arc_plan(t0=0.0, climb=0.0), _arc_plan(t0=1.1, climb=0.0)
+    assert first.setpoint(1.1).velocity_W[2] == pytest.approx(second.setpoint(1.1).velocity_W[2])
+    assert abs(first.setpoint(1.1).velocity_W[2]) > 0.1
+
+
+def test_the_checked_stop_goes_on_along_the_wave():
+    planner = planner_seeing(ROOM, options=PlannerOptions(height_swing=0.08))
+    plan = planner.plan(0.05, body(), FORWARD, AHEAD)
+    stop = planner.stop_plan(0.1, body(x=0.1), FORWARD, "vins lost")
+    assert stop.height_wave == plan.height_wave
+    np.testing.assert_allclose(stop.setpoint(0.1).velocity_W, plan.setpoint(0.1).velocity_W)
+    np.testing.assert_allclose(stop.setpoint(0.1).position_W, plan.setpoint(0.1).position_W)
+
+
+def test_the_arcs_are_checked_with_a_sphere_the_waves_amplitude_larger():
+    waved = planner_seeing(ROOM + [WALL_LEFT], options=PlannerOptions(height_swing=0.3))
+    larger = planner_seeing(ROOM + [WALL_LEFT], options=PlannerOptions(robot_radius=1.3))
+    level = planner_seeing(ROOM + [WALL_LEFT])
+    checks = [p.check(0.0, body()) for p in (waved, larger, level)]
+    np.testing.assert_array_equal(checks[0].safe, checks[1].safe)
+    np.testing.assert_array_equal(checks[0].blocked, checks[1].blocked)
+    # the wall rules out more arcs for the larger sphere than for the robot's own
+    assert checks[0].safe.sum() < checks[2].safe.sum()
+
+
+def test_an_approach_glide_flown_level_is_checked_with_the_robots_own_sphere():
+    goal = np.array([3.0, 0.0, 5.0])
+    waved = planner_seeing(ROOM + [WALL_LEFT], options=PlannerOptions(height_swing=0.3))
+    level = planner_seeing(ROOM + [WALL_LEFT])
+    glides = [p.approach(0.0, body(), goal) for p in (waved, level)]
+    assert glides[0] is not None and glides[0].height_wave is None
+    assert glides[0].clearance == pytest.approx(glides[1].clearance)
