@@ -6,9 +6,10 @@ the accelerometer reads gravity and nothing else, and the scale walks with the t
 until the next acceleration (docs/vins.md, "The hallway's drift is the cruise's"). The speed
 wave (speed_wave.py) gives the acceleration along the path, at a sixth of the speed; this wave
 gives it across the path, vertically, without slowing the path down: any direction of
-acceleration fixes the one scale of a monocular map. Its cost is the larger sphere the arcs are
-checked with (below), which leaves fewer fast arcs in a narrow passage (docs/vins.md, "The
-height wave": 3 % of the speed on true depth, 9 % on estimated, at 8 cm).
+acceleration fixes the one scale of a monocular map. It costs speed all the same, most in a
+narrow passage, where the larger sphere the arcs are checked with (below) leaves fewer fast
+arcs (docs/vins.md, "The height wave": 3 % of the speed on true depth, 9 % on estimated, at
+8 cm).
 
 A plan's path is offset vertically by
 
