@@ -78,7 +78,8 @@ def test_the_planner_starts_each_arc_at_the_body_wherever_it_is_on_the_wave():
         planner = planner_seeing(ROOM, t=t, options=options)
         plan = planner.plan(t, body(), FORWARD, AHEAD)
         assert plan.kind == "arc" and plan.height_wave == HeightWave(0.08, 2.0)
-        assert plan.candidates.radius == pytest.approx(1.08)  # the sphere checked, recorded
+        # the sphere checked, recorded
+        assert plan.candidates.radius == pytest.approx(math.hypot(1.0, 0.08))
         np.testing.assert_allclose(plan.setpoint(t).position_W, body()[:3, 3], atol=1e-12)
         # planned from the line it swings about
         line = body()[2, 3] - 0.08 * math.sin(math.pi * t)
@@ -102,15 +103,20 @@ def test_the_checked_stop_goes_on_along_the_wave():
     np.testing.assert_allclose(stop.setpoint(0.1).position_W, plan.setpoint(0.1).position_W)
 
 
-def test_the_arcs_are_checked_with_a_sphere_the_waves_amplitude_larger():
-    waved = planner_seeing(ROOM + [WALL_LEFT], options=PlannerOptions(height_swing=0.3))
-    larger = planner_seeing(ROOM + [WALL_LEFT], options=PlannerOptions(robot_radius=1.3))
-    level = planner_seeing(ROOM + [WALL_LEFT])
-    checks = [p.check(0.0, body()) for p in (waved, larger, level)]
-    np.testing.assert_array_equal(checks[0].safe, checks[1].safe)
-    np.testing.assert_array_equal(checks[0].blocked, checks[1].blocked)
-    # the wall rules out more arcs for the larger sphere than for the robot's own
-    assert checks[0].safe.sum() < checks[2].safe.sum()
+FLOOR_BELOW = ((3.0, -50.0, -50.0), (50.0, 50.0, 3.93))  # 1.07 m below the vehicle, ahead
+
+
+@pytest.mark.parametrize("obstacle", [WALL_LEFT, FLOOR_BELOW])
+def test_the_arcs_are_checked_at_the_waves_crest_and_trough_with_swept_spheres(obstacle):
+    swing, swept = 0.1, math.hypot(1.0, 0.1)
+    waved = planner_seeing(ROOM + [obstacle], options=PlannerOptions(height_swing=swing))
+    level = planner_seeing(ROOM + [obstacle], options=PlannerOptions(robot_radius=swept))
+    check = waved.check(0.0, body())
+    crest, trough = (level.check(0.0, body(z=5.0 + dz)) for dz in (swing, -swing))
+    np.testing.assert_array_equal(check.safe, crest.safe & trough.safe)
+    np.testing.assert_array_equal(check.blocked, crest.blocked | trough.blocked)
+    if obstacle is FLOOR_BELOW:  # the trough, nearer the floor, rules out arcs the crest keeps
+        assert trough.safe.sum() < crest.safe.sum()
 
 
 def test_an_approach_glide_flown_level_is_checked_with_the_robots_own_sphere():

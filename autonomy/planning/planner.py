@@ -47,10 +47,12 @@ the same path up to ``speed_swing`` m/s slower, and back, every ``speed_swing_pe
 (speed_wave.py): never faster than the tier checked, so the check holds; the accelerations
 let the VINS see its scale, which a steady cruise lets walk. With ``height_swing`` they are
 flown swinging ``height_swing`` metres up and down about it every ``height_swing_period_s``
-(height_wave.py), fading out over the braking, at no cost of speed: each arc is then checked
-about the line the wave swings about with a sphere ``height_swing`` larger than the robot's, so
-every sphere of the flown path lies within one checked (the glides, flown level, keep the
-robot's).
+(height_wave.py), fading out over the braking, without slowing down the path. Each arc is
+then checked about the line the wave swings about, at the wave's crest and trough: every point
+``height_swing`` = ``A`` above and below it, with spheres of ``sqrt(r² + A²)`` for the robot's
+``r``. Any point within ``r`` of the vertical segment between them lies within that of one of
+its ends, so every sphere of the flown path lies inside the two checked, for twice the points
+(the glides, flown level, keep the robot's sphere).
 
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
@@ -226,9 +228,9 @@ class Candidates:
     were ``safe`` and which ``blocked`` by an observed surface (:class:`TierCheck`), and the
     index of the one ``chosen``, -1 when none was safe (the slowest tier's, on a stop), and
     the ``radius`` of the sphere they were checked with (less than the robot's when hemmed
-    in, the height wave's amplitude more when it is flown: module docstring); ``faster``: why
-    each faster tier checked had nothing safe, fastest first (the flight record says why the
-    vehicle flew slower)."""
+    in, swept over the height wave's crest and trough when it is flown: module docstring);
+    ``faster``: why each faster tier checked had nothing safe, fastest first (the flight
+    record says why the vehicle flew slower)."""
 
     speed: float
     primitives: Sequence[Primitive]
@@ -334,7 +336,7 @@ class Planner:
         self.camera = camera
         self.options = o
         # the height wave's arcs are checked with spheres its amplitude larger (module docstring)
-        self.history = DepthHistory(robot_radius=o.robot_radius + o.height_swing,
+        self.history = DepthHistory(robot_radius=self._swept(o.robot_radius),
                                     min_confidence=o.min_confidence,
                                     max_range=o.max_range, max_frames=o.history_frames,
                                     max_age_s=o.history_s, near_tail_share=o.near_tail_share,
@@ -387,7 +389,7 @@ class Planner:
             room = float(np.hypot(*(goal - start)[:2]))
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
         # the sphere checked, as the record gives it: the height wave's amplitude larger
-        radius, faster = self.options.robot_radius + self.options.height_swing, []
+        radius, faster = self._swept(self.options.robot_radius), []
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
             check = self.check(t, T_W_L, tier)
             safe, clearance, blocked = check
@@ -399,7 +401,7 @@ class Planner:
             escape = self._escape(t, T_W_L, tier) if self._hemmed_in(t, T_W_L, tier) else None
             if escape is not None:
                 radius, (safe, clearance, blocked) = escape
-                radius += self.options.height_swing
+                radius = self._swept(radius)
             if not safe.any():  # why each primitive failed goes into the flight record
                 return replace(self._stop(t, T_W_S, velocity, "no safe primitive"),
                                candidates=Candidates(tier.speed, tier.library, safe, -1,
@@ -433,21 +435,35 @@ class Planner:
               radius: float | None = None) -> TierCheck:
         """Every primitive of ``tier`` (default the fastest) and its branch, placed at the
         start frame ``T_W_S``, against the frames no older than ``t - history_s``, with the
-        robot's sphere (or one of ``radius``, no larger), each the height wave's amplitude
-        larger when one is flown (module docstring): ``safe``
+        robot's sphere (or one of ``radius``, no larger); with a height wave at its crest and
+        trough, the spheres swept (module docstring): ``safe``
         (P,) bool; ``clearance`` (P,) the least clearance along a safe one (metres between the
         sphere's far side and the surface behind it; inf where only rays judged it);
         ``blocked`` (P,) bool. An unsafe primitive's points are not all judged (the check
         stops at the first occupied one), so its clearance means nothing."""
         tier = self.tiers[0] if tier is None else tier
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
-        if radius is not None:
-            radius += self.options.height_swing
-        result = self.history.check(tier.points_S @ R.T + start, start_W=start, now=t,
-                                    groups=tier.primitive_of_point, radius=radius)
-        return TierCheck(np.logical_and.reduceat(result.free, tier.starts),
-                         np.fmin.reduceat(result.clearance, tier.starts),
-                         np.logical_or.reduceat(result.occupied, tier.starts))
+        points, groups = tier.points_S @ R.T + start, tier.primitive_of_point
+        swing = self.options.height_swing
+        if swing > 0.0:
+            radius = self._swept(self.options.robot_radius if radius is None else radius)
+            points = np.vstack([points - [0.0, 0.0, swing], points + [0.0, 0.0, swing]])
+            groups = np.concatenate([groups, groups])
+        result = self.history.check(points, start_W=start, now=t, groups=groups, radius=radius)
+        free, clearance, occupied = result.free, result.clearance, result.occupied
+        if swing > 0.0:  # a point is free where both its crest and its trough are
+            n = len(tier.points_S)
+            free, occupied = free[:n] & free[n:], occupied[:n] | occupied[n:]
+            clearance = np.fmin(clearance[:n], clearance[n:])
+        return TierCheck(np.logical_and.reduceat(free, tier.starts),
+                         np.fmin.reduceat(clearance, tier.starts),
+                         np.logical_or.reduceat(occupied, tier.starts))
+
+    def _swept(self, radius: float) -> float:
+        """The radius of the spheres at the height wave's crest and trough that hold every
+        sphere of ``radius`` between them: ``sqrt(radius² + A²)`` (``radius`` without a
+        wave)."""
+        return math.hypot(radius, self.options.height_swing)
 
     def _hemmed_in(self, t: float, T_W_S: np.ndarray, tier: "PrimitiveTier") -> bool:
         """Is a surface inside the robot's sphere about ``tier``'s probe (its straight arc's
