@@ -104,9 +104,10 @@ def test_the_checked_stop_goes_on_along_the_wave():
 
 
 FLOOR_BELOW = ((3.0, -50.0, -50.0), (50.0, 50.0, 3.93))  # 1.07 m below the vehicle, ahead
+CEILING_ABOVE = ((3.0, -50.0, 6.07), (50.0, 50.0, 50.0))  # 1.07 m above it
 
 
-@pytest.mark.parametrize("obstacle", [WALL_LEFT, FLOOR_BELOW])
+@pytest.mark.parametrize("obstacle", [WALL_LEFT, FLOOR_BELOW, CEILING_ABOVE])
 def test_the_arcs_are_checked_at_the_waves_crest_and_trough_with_swept_spheres(obstacle):
     swing, swept = 0.1, math.hypot(1.0, 0.1)
     waved = planner_seeing(ROOM + [obstacle], options=PlannerOptions(height_swing=swing))
@@ -117,6 +118,8 @@ def test_the_arcs_are_checked_at_the_waves_crest_and_trough_with_swept_spheres(o
     np.testing.assert_array_equal(check.blocked, crest.blocked | trough.blocked)
     if obstacle is FLOOR_BELOW:  # the trough, nearer the floor, rules out arcs the crest keeps
         assert trough.safe.sum() < crest.safe.sum()
+    if obstacle is CEILING_ABOVE:  # and the crest, nearer the ceiling, those the trough keeps
+        assert crest.safe.sum() < trough.safe.sum()
 
 
 def test_an_approach_glide_flown_level_is_checked_with_the_robots_own_sphere():
