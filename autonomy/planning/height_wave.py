@@ -6,10 +6,10 @@ the accelerometer reads gravity and nothing else, and the scale walks with the t
 until the next acceleration (docs/vins.md, "The hallway's drift is the cruise's"). The speed
 wave (speed_wave.py) gives the acceleration along the path, at a sixth of the speed; this wave
 gives it across the path, vertically, without slowing the path down: any direction of
-acceleration fixes the one scale of a monocular map. It costs speed all the same, most in a
-narrow passage, where the larger sphere the arcs are checked with (below) leaves fewer fast
-arcs (docs/vins.md, "The height wave": 3 % of the speed on true depth, 9 % on estimated, at
-8 cm).
+acceleration fixes the one scale of a monocular map. Checked with a sphere ``A`` larger it
+cost 3 % of the speed on true depth and 9 % on estimated at 8 cm, most in narrow passages
+(docs/vins.md, "The height wave"); the planner now checks its crest and trough instead
+(below).
 
 A plan's path is offset vertically by
 
@@ -24,8 +24,8 @@ velocity and acceleration are the derivatives,
 
 peaking at ``A w`` and ``A w²`` on the arc (0.25 m/s and 0.79 m/s² for 8 cm every 2 s, where
 the speed wave's 0.6 m/s every 3.3 s peaks at 0.57 m/s²). The planner checks each arc about
-the line the wave swings about with a sphere ``A`` larger than the robot's (planner.py), so
-every sphere along the flown path lies inside one it checked.
+the line the wave swings about at its crest and trough, with spheres of ``sqrt(r² + A²)``
+(planner.py), so every sphere along the flown path lies inside one it checked.
 """
 
 from __future__ import annotations

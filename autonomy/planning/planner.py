@@ -148,7 +148,7 @@ class PlannerOptions(PrimitiveOptions):
                                          "period, seconds")
     height_swing: float = option(0.0, ge=0.0, le=0.5, doc="the height wave (height_wave.py): "
                                  "each arc is flown this much up and down about its path, "
-                                 "metres, and checked with a sphere this much larger; 0: level")
+                                 "metres, and checked at its crest and trough; 0: level")
     height_swing_period_s: float = option(2.0, ge=0.5, le=60.0, doc="the height wave's "
                                           "period, seconds")
 
@@ -335,7 +335,7 @@ class Planner:
         o = options or PlannerOptions()
         self.camera = camera
         self.options = o
-        # the height wave's arcs are checked with spheres its amplitude larger (module docstring)
+        # the height wave's arcs are checked with swept spheres (module docstring)
         self.history = DepthHistory(robot_radius=self._swept(o.robot_radius),
                                     min_confidence=o.min_confidence,
                                     max_range=o.max_range, max_frames=o.history_frames,
@@ -388,7 +388,7 @@ class Planner:
         if stop_at_goal:
             room = float(np.hypot(*(goal - start)[:2]))
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
-        # the sphere checked, as the record gives it: the height wave's amplitude larger
+        # the sphere checked, as the record gives it: swept over the height wave
         radius, faster = self._swept(self.options.robot_radius), []
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
             check = self.check(t, T_W_L, tier)
