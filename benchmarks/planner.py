@@ -2,23 +2,23 @@
 
     python benchmarks/planner.py [--repeats 200] [--naive-repeats 5]
 
-Renders a 640x480 (90 degree) depth image of a floor, a field of pillars and a far backdrop
-from 8 poses 12 Hz apart along a 2 m/s flight at 1.5 m, with a 60x40 patch of each image at
+Renders a 640x480 (90 degree) depth image of a floor, a field of pillars and a far backdrop from
+8 poses 12 Hz apart along a 2 m/s flight at 1.5 m, with a 60x40 patch of each image at
 confidence 0, feeds them to Planner.add_depth, and times Planner.plan (every speed tier tried
-when none of a faster one is safe), and the same round with the fastest tier alone (the
-paper's 75 arcs, speed_tiers=1), wall and CPU time (on a shared machine the CPU time leaves
-out the time other processes took the core). The rounds are timed in turn, so that the load
-falls on all alike. Baselines in the same run: the same round against the newest frame alone
+when none of a faster one is safe), and the same round with the fastest tier alone (the paper's
+75 arcs, speed_tiers=1), wall and CPU time (on a shared machine the CPU time leaves out the time
+other processes took the core). The rounds are timed in turn, so that the load falls on all
+alike. Baselines in the same run: the same round against the newest frame alone
 (history_frames=1); the same round with the height wave (``height_swing`` 0.08 m: twice the
-points, at its crest and trough); the fastest tier's check with every point judged (no primitive left off
-at its first occupied point), which must agree on which primitives are safe; and a naive check
-of the same points and rules taking each ring window's minimum by slicing the range image (no
-table), which also confirms the table's verdicts. Last, every point's sphere against the newest
-frame by the ring rule and by the exact per-ray rule (every pixel ray through the sphere sees
-its surface beyond the ray's exit point): the ring rule must never call free what the exact
-rule does not. Then the round where planning costs most: on the axis of a 3 m corridor, where
-most spheres near the vehicle need the block rule and slower tiers may be tried. Prints one
-JSON object.
+points, at its crest and trough); the fastest tier's check with every point judged (no primitive
+left off at its first occupied point), which must agree on which primitives are safe; and a
+naive check of the same points and rules taking each ring window's minimum by slicing the range
+image (no table), which also confirms the table's verdicts. Last, every point's sphere against
+the newest frame by the ring rule and by the exact per-ray rule (every pixel ray through the
+sphere sees its surface beyond the ray's exit point): the ring rule must never call free what
+the exact rule does not. Then the round where planning costs most: on the axis of a 3 m
+corridor, where most spheres near the vehicle need the block rule and slower tiers may be tried.
+Prints one JSON object.
 """
 
 import argparse

@@ -1,5 +1,6 @@
 """The height wave: arcs flown swinging up and down about their path, fading out over the
-braking, checked with a sphere the wave's amplitude larger (autonomy/planning/height_wave.py)."""
+braking, checked at the wave's crest and trough with swept spheres
+(autonomy/planning/height_wave.py)."""
 
 import math
 
@@ -74,7 +75,7 @@ def test_a_waved_plans_velocity_and_acceleration_are_its_positions_derivatives(s
 
 def test_the_planner_starts_each_arc_at_the_body_wherever_it_is_on_the_wave():
     options = PlannerOptions(height_swing=0.08)
-    for t in (0.05, 0.55, 1.3):  # the wave's phase at a quarter, a crest and beyond
+    for t in (0.05, 0.55, 1.3):  # the body near the line, near the crest, below the line
         planner = planner_seeing(ROOM, t=t, options=options)
         plan = planner.plan(t, body(), FORWARD, AHEAD)
         assert plan.kind == "arc" and plan.height_wave == HeightWave(0.08, 2.0)
