@@ -12,6 +12,7 @@ from autonomy.planning.height_wave import HeightWave
 from autonomy.planning.planner import Plan, Planner, PlannerOptions
 from autonomy.planning.primitives import PrimitiveOptions, forward_arc
 from autonomy.planning.speed_wave import SpeedWave
+from drivers.sim.record import PathFollower
 
 from tests.test_planning import AHEAD, CAMERA, FORWARD, ROOM, WALL_LEFT, body, planner_seeing
 
@@ -130,3 +131,22 @@ def test_an_approach_glide_flown_level_is_checked_with_the_robots_own_sphere():
     glides = [p.approach(0.0, body(), goal) for p in (waved, level)]
     assert glides[0] is not None and glides[0].height_wave is None
     assert glides[0].clearance == pytest.approx(glides[1].clearance)
+
+
+def test_the_recorders_height_wave_swings_its_target_about_the_cruise_height():
+    """`sim record` flies the wave as the planner does, its motion share 1 throughout: the
+    target's height, vertical velocity and acceleration are ``h``, ``h'``, ``h''``."""
+    path = np.array([[0.0, 0.0], [500.0, 0.0]])
+    waved, level = PathFollower(path, 1.5, 1.0, height_wave=WAVE), PathFollower(path, 1.5, 1.0)
+    times = np.linspace(0.0, 4.0, 4001)
+    targets = [waved.target(t) for t in times]
+    heights = np.array([target.position[2] for target in targets]) - 1.5
+    np.testing.assert_allclose(heights, 0.08 * np.sin(math.pi * times), atol=1e-12)
+    step = times[1] - times[0]
+    rising = np.array([target.velocity[2] for target in targets])
+    lifting = np.array([target.acceleration[2] for target in targets])
+    np.testing.assert_allclose(np.gradient(heights, step)[1:-1], rising[1:-1], atol=1e-5)
+    np.testing.assert_allclose(np.gradient(rising, step)[1:-1], lifting[1:-1], atol=1e-5)
+    for t, target in zip(times[::250], targets[::250]):
+        np.testing.assert_allclose(target.position[:2], level.target(t).position[:2])
+        np.testing.assert_allclose(target.velocity[:2], level.target(t).velocity[:2])

@@ -18,6 +18,7 @@ from drivers.sim.record import (ACCELERATION_WINDOW_S, PATH_CLEARANCE, STATIC_SE
                                 FlownMotion, RecordError,
                                 TimedFollower, record_dataset, route_along, route_path,
                                 smooth_path)
+from autonomy.planning.height_wave import HeightWave
 from autonomy.planning.speed_wave import SpeedWave
 from drivers.sim.render import RenderError, Renderer
 from drivers.sim.quadrotor import VehicleOptions
@@ -192,6 +193,22 @@ def test_record_command_cruises_at_the_speed_asked(tmp_path):
         cruise[speed] = np.median(np.hypot(velocity[:, 0], velocity[:, 1]))
     assert cruise[None] == pytest.approx(1.0, abs=0.05)
     assert cruise["1.8"] == pytest.approx(1.8, abs=0.1)
+
+
+def test_record_command_swings_the_cruise_height_as_the_planners_height_wave(tmp_path):
+    """``[planner] height_swing`` flies the recording as it flies the application: the cruise
+    8 cm up and down every 2 s, its horizontal path the level recording's."""
+    small = ["--set", "camera.width=160", "--set", "camera.height=120"]
+    heights = {}
+    for swing in ("0", "0.08"):
+        out = tmp_path / f"swing-{swing}"
+        assert main(["sim", "record", "--world", "dome", "--seed", "1", "--duration", "12",
+                     "--out", str(out), "--set", f"planner.height_swing={swing}", *small]) == 0
+        heights[swing] = read_groundtruth(out).position[-800:]  # the last 4 s, two periods
+    level, waved = heights["0"], heights["0.08"]
+    assert np.ptp(level[:, 2]) < 0.02
+    assert np.ptp(waved[:, 2]) == pytest.approx(0.16, abs=0.03)
+    np.testing.assert_allclose(waved[:, :2], level[:, :2], atol=0.05)
 
 
 def test_record_command_writes_a_dataset_and_reports_it(tmp_path, capsys):
@@ -380,14 +397,16 @@ def test_a_recording_along_a_flight_draws_the_flights_imu(tmp_path):
     assert np.abs(read - recorders).max() > 1e-3
 
 
-def test_recording_refuses_a_timed_flight_without_a_flight_or_with_a_speed_wave(tmp_path):
+@pytest.mark.parametrize("wave", [{"wave": SpeedWave(0.6, 3.3)},
+                                  {"height_wave": HeightWave(0.08, 2.0)}])
+def test_recording_refuses_a_timed_flight_without_a_flight_or_with_a_wave(tmp_path, wave):
     with pytest.raises(RecordError, match="needs the flight"):
         record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
                        ImuOptions(), duration=None, timed=True)
-    with pytest.raises(RecordError, match="no speed wave"):
+    with pytest.raises(RecordError, match="no speed or height wave"):
         record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
                        ImuOptions(), duration=None, timed=True,
-                       along=_flight_with_a_stop_and_a_turn(), wave=SpeedWave(0.6, 3.3))
+                       along=_flight_with_a_stop_and_a_turn(), **wave)
     with pytest.raises(RecordError, match="positive"):
         record_dataset(tmp_path / "new", SimOptions(), CameraOptions(), VehicleOptions(),
                        ImuOptions(), duration=None)

@@ -4,7 +4,9 @@ The flight is the one a careful pilot would give a visual-inertial estimator: a 
 standing still on the ground (for a static initialisation), a vertical take-off to cruise
 height, then the route's collision-free path, facing along it, back and forth until the
 duration is spent, at a constant speed or, with a speed wave (the application's ``[planner]
-speed_swing``), swinging about it as the application's flights do (``PathFollower``). The
+speed_swing``), swinging about it as the application's flights do, and with a height wave
+(``[planner] height_swing``) swung up and down about the cruise height as they are
+(``PathFollower``). The
 vehicle is the simulated quadrotor with its PX4-like controller, so the motion is smooth and
 dynamically feasible; the IMU is sampled from the same dynamics, so a noiseless recording
 integrates back onto its own ground truth. ``along`` replaces the route with the true path of
@@ -24,6 +26,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from autonomy.planning.height_wave import HeightWave, Offset
 from autonomy.planning.speed_wave import SpeedWave
 from drivers.camera.options import CameraOptions
 from drivers.dataset.euroc import EurocWriter
@@ -137,14 +140,17 @@ class PathFollower:
     tangent times the speed as velocity feed-forward and the tangent's heading as yaw. With a
     speed ``wave`` the speed swings about ``speed`` by half the wave's swing either way,
     ``speed (m(t) + share / 2)`` (speed_wave.py), so that the path flown in a given time, and
-    a recording's length, are those of the constant speed.
+    a recording's length, are those of the constant speed. With a ``height_wave`` the target
+    swings about the cruise height by ``h(t) = A sin(w t)`` (height_wave.py, its motion share
+    1 throughout: the recorder's cruise never brakes), ``h'`` and ``h''`` its vertical
+    velocity and acceleration feed-forward.
     """
 
     takes_off = False
     standing_s = STATIC_SECONDS
 
     def __init__(self, path_xy: np.ndarray, height: float, speed: float,
-                 wave: SpeedWave | None = None):
+                 wave: SpeedWave | None = None, height_wave: HeightWave | None = None):
         self.points = np.asarray(path_xy, dtype=float)
         steps = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
         self.arc = np.concatenate([[0.0], np.cumsum(steps)])
@@ -152,6 +158,7 @@ class PathFollower:
         self.height = height
         self.speed = speed
         self.wave = wave
+        self.height_wave = height_wave
         if self.length <= 0.0:
             raise RecordError("the route's path has no length")
         if wave is not None and wave.swing >= 2.0 * speed:
@@ -183,9 +190,12 @@ class PathFollower:
         tangent /= np.linalg.norm(tangent)
         if backwards:
             tangent = -tangent
+        swing = (self.height_wave.offset(max(t, 0.0), 1.0) if self.height_wave is not None
+                 else Offset(0.0, 0.0, 0.0))
         return ControlTarget(
-            position=np.array([x, y, self.height]),
-            velocity=np.array([tangent[0], tangent[1], 0.0]) * speed,
+            position=np.array([x, y, self.height + swing.height]),
+            velocity=np.array([tangent[0] * speed, tangent[1] * speed, swing.velocity]),
+            acceleration=np.array([0.0, 0.0, swing.acceleration]),
             yaw=math.atan2(tangent[1], tangent[0]),
         )
 
@@ -353,12 +363,14 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         camera: CameraOptions, vehicle: VehicleOptions, imu: ImuOptions,
         sensor: SensorOptions | None = None, renderer: Renderer | None = None,
         vehicle_seed: int | None = None, wave: SpeedWave | None = None,
-        speed: float = SPEED, path: np.ndarray | None = None,
+        height_wave: HeightWave | None = None, speed: float = SPEED,
+        path: np.ndarray | None = None,
         follower: Follower | None = None, as_flight: bool = False) -> RecordSummary:
     """Fly ``route`` for ``duration`` simulated seconds at ``speed`` m/s, sending every sample
     to ``sink``. ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the
     errors the vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave``
-    swings the cruise's speed (:class:`PathFollower`); ``path`` (M, 2), the path to follow
+    swings the cruise's speed, ``height_wave`` its height (:class:`PathFollower`); ``path``
+    (M, 2), the path to follow
     instead of the route's own (:func:`route_along`); ``follower``, what to fly after the climb
     instead of the path at ``speed`` (a :class:`TimedFollower`); ``as_flight``: the IMU
     drawn as a simulated flight of these seeds draws it (``imu.flight_generators``: its
@@ -372,7 +384,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
     dt = 1.0 / imu.rate_hz
     if follower is None:
         path = route_path(world, route) if path is None else path
-        follower = PathFollower(path, route.cruise_height, speed, wave)
+        follower = PathFollower(path, route.cruise_height, speed, wave, height_wave)
     quad = Quadrotor(vehicle, world.obstacle_clearance,
                      position=np.array([route.start[0], route.start[1], 0.0]),
                      yaw=follower.start_yaw)
@@ -439,8 +451,9 @@ def _heading(path: np.ndarray) -> float:
 def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: VehicleOptions,
                    imu: ImuOptions, *, duration: float | None,
                    sim_camera: SensorOptions | None = None,
-                   wave: SpeedWave | None = None, speed: float = SPEED,
-                   along: FlownMotion | None = None, timed: bool = False) -> RecordSummary:
+                   wave: SpeedWave | None = None, height_wave: HeightWave | None = None,
+                   speed: float = SPEED, along: FlownMotion | None = None,
+                   timed: bool = False) -> RecordSummary:
     """Record ``duration`` seconds of ``sim.world`` (built from ``sim.seed``) into ``out``,
     in ``sim.profile``: realistic, through the camera sensor ``sim_camera`` (default
     ``[sim_camera]``'s defaults; its lens is written into ``sensor.yaml``, and the mounting
@@ -450,17 +463,17 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     The seed also picks the route and seeds the sensors' noise, so one seed gives one dataset;
     ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting),
     ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``speed`` is
-    the cruise's, m/s (at most the vehicle's ``xy_vel_max``); ``wave`` swings it
-    (:class:`PathFollower`). ``along``: another flight, in whose world and seed (its world as
+    the cruise's, m/s (at most the vehicle's ``xy_vel_max``); ``wave`` swings it and
+    ``height_wave`` its height (:class:`PathFollower`). ``along``: another flight, in whose world and seed (its world as
     it flew it, the sensors of ``sim.profile``, its IMU drawn as the flight drew it) its path
     is followed at ``speed`` instead of the seed's route (:func:`route_along`), or,
     ``timed``, its motion flown again in time, take-off included, after standing as long as
-    it stood (:class:`TimedFollower`; no ``wave``); there a ``duration`` of None records all
+    it stood (:class:`TimedFollower`; no wave of either kind); there a ``duration`` of None records all
     of it and a second of hover.
     """
-    if timed and (along is None or wave is not None):
+    if timed and (along is None or wave is not None or height_wave is not None):
         raise RecordError("a timed recording flies a flight's own motion again: it needs the "
-                          "flight and takes no speed wave")
+                          "flight and takes no speed or height wave")
     follower = TimedFollower(along) if timed else None
     if duration is None and follower is not None:
         duration = follower.standing_s + follower.span + 1.0
@@ -488,8 +501,9 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
                      _euroc_noise(imu), distortion=distortion) as writer:
         return fly(world, route, writer, duration=duration, seed=sim.noise_for(sim.seed),
                    camera=camera, vehicle=vehicle, imu=imu, sensor=sensor,
-                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave, speed=speed, path=path,
-                   follower=follower, as_flight=along is not None)
+                   vehicle_seed=sim.vehicle_for(sim.seed), wave=wave,
+                   height_wave=height_wave, speed=speed, path=path, follower=follower,
+                   as_flight=along is not None)
 
 
 def _euroc_noise(imu: ImuOptions) -> dict[str, float]:
