@@ -1,5 +1,5 @@
-"""``companion eval``: the accuracy of the algorithms against ground truth (``vio``, ``depth``,
-``rescale``, ``nav``)."""
+"""``companion eval``: the accuracy of the algorithms against ground truth (``vio``,
+``vio-table``, ``depth``, ``rescale``, ``nav``)."""
 
 from __future__ import annotations
 
@@ -64,8 +64,53 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     "AbsRel, delta1, RMSE and the over-estimate rate, and time the stage.")
     depth.set_defaults(command=_eval_depth)
     simulated = common.configured_parser(simulator=True)
+    _add_eval_vio_table(actions, simulated)
     _add_eval_rescale(actions, simulated)
     _add_eval_nav(actions, simulated)
+
+
+def _add_eval_vio_table(actions: argparse._SubParsersAction,
+                        configured: argparse.ArgumentParser) -> None:
+    from drivers.sim.options import WORLD_NAMES
+
+    # defaults are companion.tools.eval.vio_table's, resolved by _eval_vio_table: the parser
+    # does not import the estimator
+    command = actions.add_parser(
+        "vio-table", parents=[configured],
+        help="score the VINS on simulated flights of each world at several seeds (issue 24's "
+             "table)",
+        description="Record a flight of every world from every seed, as 'companion sim record "
+                    "--world W --seed S --duration D' records it (or reuse it from the cache), "
+                    "run the VINS over each as 'companion eval vio' does, the recordings side "
+                    "by side, and tabulate issue 24's goals on every recording (ATE <= 0.5 % "
+                    "of distance, map points' median depth error <= 2 %, no reset) with the "
+                    "path's scale, the pose and velocity NEES and the bearing at the end: per "
+                    "world, over all, and per recording. The result on stdout as Markdown, or "
+                    'JSON {"recordings": [...], "summary": {WORLD|"all": {...}}, "goal_met"}. '
+                    "The flights are each seed's own, level and at a steady speed: for the "
+                    "planner's waves or another vehicle or noise draw, record with sim record "
+                    "and score with eval vio.")
+    common.add_json_flag(command, instead_of="the Markdown report")
+    command.add_argument("--worlds", nargs="+", choices=WORLD_NAMES, metavar="WORLD",
+                         default=list(WORLD_NAMES),
+                         help=f"worlds to fly, of {', '.join(WORLD_NAMES)} (default: all)")
+    command.add_argument("--seeds", nargs="+", type=common.non_negative_int, metavar="S",
+                         help="seeds to fly in every world: each its world, route and noise, "
+                              "as sim record --seed (default: 0 to 9)")
+    command.add_argument("--duration", type=common.positive_float, metavar="SECONDS",
+                         help="simulated seconds of each flight (default: 40)")
+    command.add_argument("--cache", type=Path, metavar="DIR",
+                         help="where the recordings are kept and reused (default: "
+                              "$XDG_CACHE_HOME/companion/eval, as eval rescale's)")
+    command.add_argument("--workers", type=common.positive_int, metavar="N",
+                         help="recordings scored at once, each in its own process (default: "
+                              "the number of CPUs)")
+    command.add_argument("--cluster", metavar="ADDRESS",
+                         help="score them as tasks on a running Ray cluster instead, as eval "
+                              "nav --cluster")
+    command.add_argument("--markdown", type=Path, metavar="FILE",
+                         help="also write the Markdown report to FILE")
+    command.set_defaults(command=_eval_vio_table)
 
 
 def _add_eval_rescale(actions: argparse._SubParsersAction,
@@ -200,6 +245,34 @@ def _eval_vio(args: argparse.Namespace, config: Config) -> int:
         return common.EXIT_FAILED
     print(json.dumps(result) if args.json else evaluation.format_vio_report(result))
     return common.EXIT_OK
+
+
+def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
+    from companion.tools.eval import rescale, vio_table
+    from companion.tools.eval.vio import EvaluationError
+
+    unfollowed = vio_table.settings_not_flown(config)
+    if unfollowed:
+        print(f"eval vio-table: the table's flights are each seed's own, level and steady; "
+              f"drop {', '.join(unfollowed)}, or record with 'companion sim record' and score "
+              f"with 'companion eval vio'", file=sys.stderr)
+        return common.EXIT_USAGE
+    duration = vio_table.DEFAULT_DURATION_S if args.duration is None else args.duration
+    try:
+        job = vio_table.TableJob(
+            args.cache or rescale.default_cache_dir(),
+            vio_table.frames_for(duration, config.camera.rate_hz),
+            rescale.Recording(config.camera, config.vehicle, config.imu,
+                              config.sim_camera.for_profile(config.sim.profile)),
+            config.vins, config.vins_frontend, config.vins_init)
+        result = vio_table.evaluate_table(
+            args.worlds, vio_table.DEFAULT_SEEDS if args.seeds is None else args.seeds,
+            job=job, workers=args.workers, cluster=args.cluster)
+    except EvaluationError as error:
+        print(f"eval vio-table: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    return common.report("eval vio-table", args, result,
+                         vio_table.format_markdown(result, duration_s=duration))
 
 
 def _eval_depth(args: argparse.Namespace, config: Config) -> int:

@@ -1,0 +1,178 @@
+"""The VINS over simulated flights of every world at several seeds: issue 24's table, one command.
+
+``companion eval vio-table`` records a ``duration``-second flight of each world from each seed,
+as ``companion sim record --world W --seed S --duration D`` records it (or reuses it from the
+cache, :func:`~companion.tools.eval.rescale.cached_dataset`), runs the VINS over each with the
+config's ``[vins]``, ``[vins_frontend]`` and ``[vins_init]`` (:func:`~companion.tools.eval.vio.
+evaluate_vio`), the recordings side by side as tasks of an executor, and tabulates what issue 24
+holds the estimator to on every recording: the trajectory error after SE(3) alignment over the
+distance flown (ATE / distance ≤ :data:`GOAL_ATE_SHARE`), the map points' median relative depth
+error (≤ :data:`GOAL_DEPTH_ERROR`) and no reset; beside them the path's scale (its spread over
+the recordings is what an option worth adopting narrows, docs/vins.md), the median pose and
+velocity NEES (honest: 6 and 3) and the bearing at the end.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+
+from autonomy.vins.frontend import FrontendOptions
+from autonomy.vins.options import VinsOptions
+from autonomy.vins.static_init import StaticInitOptions
+from companion.tools.eval import executor
+from companion.tools.eval.rescale import Recording, cached_dataset
+from companion.tools.eval.vio import EvaluationError, evaluate_vio
+
+#: Issue 24's goals for every recording: ATE over distance, map points' median depth error.
+GOAL_ATE_SHARE = 0.005
+GOAL_DEPTH_ERROR = 0.02
+#: The table's seeds and flight length (issue 24: seeds 0-9, 40 s).
+DEFAULT_SEEDS = tuple(range(10))
+DEFAULT_DURATION_S = 40.0
+
+
+@dataclass(frozen=True)
+class TableJob:
+    """What every recording's task shares: the cache, the flights' frame count and how they
+    are recorded, and the VINS's options (picklable: the task may run in another process)."""
+
+    cache: Path
+    frames: int
+    recording: Recording
+    vins: VinsOptions
+    frontend: FrontendOptions
+    static: StaticInitOptions
+
+
+def frames_for(duration_s: float, rate_hz: float) -> int:
+    """Frames of a ``duration_s`` flight from t = 0 at ``rate_hz``: the recorder flies
+    ``(frames - 1) / rate_hz`` seconds (:func:`~companion.tools.eval.rescale.cached_dataset`)."""
+    if not (math.isfinite(duration_s) and duration_s > 0.0):
+        raise EvaluationError(f"the flights' duration must be a positive number of seconds, "
+                              f"got {duration_s}")
+    return int(round(duration_s * rate_hz)) + 1
+
+
+def settings_not_flown(config) -> list[str]:
+    """The ``SECTION.KEY`` settings of ``config`` that ``sim record`` would fly and the table's
+    recordings do not (:func:`~companion.tools.eval.rescale.cached_dataset` flies each seed's
+    own vehicle and noise, level, at a steady speed): the table refuses them rather than
+    score a flight other than the one asked for."""
+    set_ = {"planner.speed_swing": config.planner.speed_swing != 0.0,
+            "planner.height_swing": config.planner.height_swing != 0.0,
+            "sim.vehicle_seed": config.sim.vehicle_seed >= 0,
+            "sim.noise_seed": config.sim.noise_seed >= 0}
+    return [name for name, given in set_.items() if given]
+
+
+def evaluate_table(worlds, seeds, *, job: TableJob, workers: int | None = None,
+                   cluster: str | None = None) -> dict:
+    """Score the VINS on every world's flight from every seed (:func:`score_recording`) and
+    summarise them (:func:`summarise`): ``{"recordings": [row...], "summary": {group:
+    {...}}, "goal_met": bool}``, the rows in the order of ``worlds`` then ``seeds``."""
+    items = [(world, seed) for world in dict.fromkeys(worlds) for seed in dict.fromkeys(seeds)]
+    if not items:
+        raise EvaluationError("no recording to score: give at least one world and one seed")
+    rows: list[dict | None] = [None] * len(items)
+    runner = executor.open_executor(cluster, workers, len(items))
+    for k, row in runner.run(score_recording, job, items):
+        rows[k] = row
+    return summarise([row for row in rows if row is not None])
+
+
+def score_recording(job: TableJob, item: tuple[str, int]) -> dict:
+    """One recording's task: its flight from the cache of the machine it runs on (recorded
+    there first if missing), scored by the VINS; the table's row."""
+    world, seed = item
+    root = cached_dataset(job.cache, world, seed, job.frames, job.recording)
+    result = evaluate_vio(root, job.vins, frontend=job.frontend, static=job.static)
+    split = result.get("end_split") or {}
+    return {"world": world, "seed": seed, "dataset": str(root),
+            "distance_m": result["distance_m"], "ate_rmse_m": result["ate_rmse_m"],
+            "ate_over_distance": result["ate_over_distance"], "scale": result["scale"],
+            "depth_rel_err_median": result["depth_rel_err_median"],
+            "resets": result["resets"], "nees_pose_median": result["nees_pose_median"],
+            "nees_velocity_median": result["nees_velocity_median"],
+            "bearing_deg": split.get("bearing_deg"),
+            "backend_ms_p95": result["backend_ms_p95"]}
+
+
+def meets_goal(row: dict) -> dict[str, bool]:
+    """Which of issue 24's goals one recording meets (a map with no scored point does not)."""
+    depth = row["depth_rel_err_median"]
+    return {"ate": row["ate_over_distance"] <= GOAL_ATE_SHARE,
+            "depth": depth is not None and depth <= GOAL_DEPTH_ERROR,
+            "no_reset": row["resets"] == 0}
+
+
+def summarise(rows: list[dict]) -> dict:
+    """The rows with their goals, each world's summary and all of them together."""
+    for row in rows:
+        row["goal"] = meets_goal(row)
+    groups = {world: [r for r in rows if r["world"] == world]
+              for world in dict.fromkeys(r["world"] for r in rows)}
+    groups["all"] = rows
+    summary = {name: _group_summary(members) for name, members in groups.items()}
+    return {"recordings": rows, "summary": summary,
+            "goal_met": all(all(r["goal"].values()) for r in rows)}
+
+
+def _group_summary(rows: list[dict]) -> dict:
+    ate = [r["ate_over_distance"] for r in rows]
+    scales = [r["scale"] for r in rows]
+    return {
+        "recordings": len(rows),
+        "ate_within_goal": sum(r["goal"]["ate"] for r in rows),
+        "ate_over_distance_median": statistics.median(ate),
+        "ate_over_distance_mean": statistics.fmean(ate),
+        "ate_over_distance_worst": max(ate),
+        "scale_sd": statistics.pstdev(scales),
+        "depth_within_goal": sum(r["goal"]["depth"] for r in rows),
+        "resets": sum(r["resets"] for r in rows),
+        "nees_pose_median": _median(r["nees_pose_median"] for r in rows),
+        "nees_velocity_median": _median(r["nees_velocity_median"] for r in rows),
+        "bearing_abs_median_deg": _median(abs(r["bearing_deg"]) for r in rows
+                                          if r["bearing_deg"] is not None),
+    }
+
+
+def _median(values) -> float | None:
+    values = [v for v in values if v is not None]
+    return statistics.median(values) if values else None
+
+
+def format_markdown(result: dict, *, duration_s: float) -> str:
+    """The summary per world and over all, then every recording, as Markdown tables."""
+    lines = [f"`eval vio` over {duration_s:g} s simulated flights; issue 24's goals on every "
+             f"recording: ATE ≤ {GOAL_ATE_SHARE:.1%} of distance, map depth error ≤ "
+             f"{GOAL_DEPTH_ERROR:.0%}, no reset: **{'met' if result['goal_met'] else 'not met'}"
+             f"**.", "",
+             "| recordings | n | ATE ≤ 0.5 % | median | mean | worst | SD of scale "
+             "| map depth ≤ 2 % | resets | pose NEES | velocity NEES | \\|bearing\\| |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, s in result["summary"].items():
+        lines.append(
+            f"| {name} | {s['recordings']} | {s['ate_within_goal']} "
+            f"| {s['ate_over_distance_median']:.2%} | {s['ate_over_distance_mean']:.2%} "
+            f"| {s['ate_over_distance_worst']:.2%} | {s['scale_sd']:.4f} "
+            f"| {s['depth_within_goal']} | {s['resets']} | {_number(s['nees_pose_median'], 0)} "
+            f"| {_number(s['nees_velocity_median'], 1)} "
+            f"| {_number(s['bearing_abs_median_deg'], 2, '°')} |")
+    lines += ["", "| world | seed | distance | ATE | ATE / distance | scale | map depth error "
+                  "| resets | pose NEES | bearing |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in result["recordings"]:
+        depth = r["depth_rel_err_median"]
+        lines.append(
+            f"| {r['world']} | {r['seed']} | {r['distance_m']:.1f} m | {r['ate_rmse_m']:.3f} m "
+            f"| {r['ate_over_distance']:.2%} | {r['scale']:.3f} "
+            f"| {'—' if depth is None else f'{depth:.1%}'} | {r['resets']} "
+            f"| {_number(r['nees_pose_median'], 0)} | {_number(r['bearing_deg'], 2, '°')} |")
+    return "\n".join(lines)
+
+
+def _number(value: float | None, digits: int, unit: str = "") -> str:
+    return "—" if value is None else f"{value:.{digits}f}{unit}"
