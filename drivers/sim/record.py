@@ -464,12 +464,12 @@ def record_dataset(out: Path, sim: SimOptions, camera: CameraOptions, vehicle: V
     ``sim.vehicle_seed`` flies another seed's vehicle (its IMU matrices and camera mounting),
     ``sim.noise_seed`` the same flight with another draw of the sensors' noise. ``speed`` is
     the cruise's, m/s (at most the vehicle's ``xy_vel_max``); ``wave`` swings it and
-    ``height_wave`` its height (:class:`PathFollower`). ``along``: another flight, in whose world and seed (its world as
-    it flew it, the sensors of ``sim.profile``, its IMU drawn as the flight drew it) its path
-    is followed at ``speed`` instead of the seed's route (:func:`route_along`), or,
-    ``timed``, its motion flown again in time, take-off included, after standing as long as
-    it stood (:class:`TimedFollower`; no wave of either kind); there a ``duration`` of None records all
-    of it and a second of hover.
+    ``height_wave`` its height (:class:`PathFollower`). ``along``: another flight, in whose
+    world and seed (its world as it flew it, the sensors of ``sim.profile``, its IMU drawn as
+    the flight drew it) its path is followed at ``speed`` instead of the seed's route
+    (:func:`route_along`), or, ``timed``, its motion flown again in time, take-off included,
+    after standing as long as it stood (:class:`TimedFollower`; no wave of either kind);
+    there a ``duration`` of None records all of it and a second of hover.
     """
     if timed and (along is None or wave is not None or height_wave is not None):
         raise RecordError("a timed recording flies a flight's own motion again: it needs the "
