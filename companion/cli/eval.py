@@ -99,15 +99,7 @@ def _add_eval_vio_table(actions: argparse._SubParsersAction,
                               "as sim record --seed (default: 0 to 9)")
     command.add_argument("--duration", type=common.positive_float, metavar="SECONDS",
                          help="simulated seconds of each flight (default: 40)")
-    command.add_argument("--cache", type=Path, metavar="DIR",
-                         help="where the recordings are kept and reused (default: "
-                              "$XDG_CACHE_HOME/companion/eval, as eval rescale's)")
-    command.add_argument("--workers", type=common.positive_int, metavar="N",
-                         help="recordings scored at once, each in its own process (default: "
-                              "the number of CPUs)")
-    command.add_argument("--cluster", metavar="ADDRESS",
-                         help="score them as tasks on a running Ray cluster instead, as eval "
-                              "nav --cluster")
+    _add_recording_tasks(command, "recordings scored")
     command.add_argument("--markdown", type=Path, metavar="FILE",
                          help="also write the Markdown report to FILE")
     command.set_defaults(command=_eval_vio_table)
@@ -136,20 +128,27 @@ def _add_eval_rescale(actions: argparse._SubParsersAction,
     rescale.add_argument("--worlds", nargs="+", choices=WORLD_NAMES, default=list(WORLD_NAMES),
                          metavar="WORLD", help="worlds to evaluate, of "
                                                f"{', '.join(WORLD_NAMES)} (default: all)")
-    rescale.add_argument("--cache", type=Path, metavar="DIR",
-                         help="where recorded datasets are kept and reused (default: "
-                              "$XDG_CACHE_HOME/companion/eval, else ~/.cache/companion/eval)")
-    rescale.add_argument("--workers", type=common.positive_int, metavar="N",
-                         help="worlds evaluated at once, each in its own process (default: "
-                              "the number of CPUs)")
-    rescale.add_argument("--cluster", metavar="ADDRESS",
-                         help="evaluate the worlds as tasks on a running Ray cluster instead "
-                              "(as eval nav --cluster); each node records into its own cache")
+    _add_recording_tasks(rescale, "worlds evaluated")
     rescale.add_argument("--plot", type=common.png_path, metavar="PNG",
                          help="draw the weighted AbsRel per method, GT against VINS, here")
     rescale.add_argument("--markdown", type=Path, metavar="FILE",
                          help="also write the Markdown report to FILE")
     rescale.set_defaults(command=_eval_rescale)
+
+
+def _add_recording_tasks(command: argparse.ArgumentParser, tasks: str) -> None:
+    """The options of an evaluation whose tasks record simulated datasets into a cache:
+    ``--cache``, and where the ``tasks`` run (``--workers`` here, or ``--cluster``)."""
+    command.add_argument("--cache", type=Path, metavar="DIR",
+                         help="where recorded datasets are kept and reused (default: "
+                              "$XDG_CACHE_HOME/companion/eval, else ~/.cache/companion/eval)")
+    command.add_argument("--workers", type=common.positive_int, metavar="N",
+                         help=f"{tasks} at once, each in its own process (default: the number "
+                              f"of CPUs)")
+    command.add_argument("--cluster", metavar="ADDRESS",
+                         help=f"run the {tasks.split()[0]} as tasks on a running Ray cluster "
+                              f"instead (as eval nav --cluster); each node records into its "
+                              f"own cache")
 
 
 def _add_eval_nav(actions: argparse._SubParsersAction,
