@@ -87,9 +87,9 @@ def _add_eval_vio_table(actions: argparse._SubParsersAction,
                     "path's scale, the pose and velocity NEES and the bearing at the end: per "
                     "world, over all, and per recording. The result on stdout as Markdown, or "
                     'JSON {"recordings": [...], "summary": {WORLD|"all": {...}}, "goal_met"}. '
-                    "The flights are each seed's own, level and at a steady speed: for the "
-                    "planner's waves or another vehicle or noise draw, record with sim record "
-                    "and score with eval vio.")
+                    "The flights are each seed's own, with the planner's waves as sim record "
+                    "flies them: for another vehicle or noise draw, record with sim record and "
+                    "score with eval vio.")
     common.add_json_flag(command, instead_of="the Markdown report")
     command.add_argument("--worlds", nargs="+", choices=WORLD_NAMES, metavar="WORLD",
                          default=list(WORLD_NAMES),
@@ -247,22 +247,27 @@ def _eval_vio(args: argparse.Namespace, config: Config) -> int:
 
 
 def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
+    from autonomy.planning.height_wave import HeightWave
+    from autonomy.planning.speed_wave import SpeedWave
     from companion.tools.eval import rescale, vio_table
     from companion.tools.eval.vio import EvaluationError
 
     unfollowed = vio_table.settings_not_flown(config)
     if unfollowed:
-        print(f"eval vio-table: the table's flights are each seed's own, level and steady; "
+        print(f"eval vio-table: the table's flights are each seed's own vehicle and noise; "
               f"drop {', '.join(unfollowed)}, or record with 'companion sim record' and score "
               f"with 'companion eval vio'", file=sys.stderr)
         return common.EXIT_USAGE
     duration = vio_table.DEFAULT_DURATION_S if args.duration is None else args.duration
+    planner = config.planner
     try:
         job = vio_table.TableJob(
             args.cache or rescale.default_cache_dir(),
             vio_table.frames_for(duration, config.camera.rate_hz),
             rescale.Recording(config.camera, config.vehicle, config.imu,
-                              config.sim_camera.for_profile(config.sim.profile)),
+                              config.sim_camera.for_profile(config.sim.profile),
+                              SpeedWave.of(planner.speed_swing, planner.speed_swing_period_s),
+                              HeightWave.of(planner.height_swing, planner.height_swing_period_s)),
             config.vins, config.vins_frontend, config.vins_init)
         result = vio_table.evaluate_table(
             args.worlds, vio_table.DEFAULT_SEEDS if args.seeds is None else args.seeds,

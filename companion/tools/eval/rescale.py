@@ -41,6 +41,8 @@ from autonomy.depth.anchors import sample_nearest_surface
 from autonomy.depth.rescale import METHODS, RescaleOptions, fit
 from autonomy.depth.stage import MetricDepthStage, check_relative_disparity
 from autonomy.messages import SparseMap
+from autonomy.planning.height_wave import HeightWave
+from autonomy.planning.speed_wave import SpeedWave
 from companion.tools.eval import executor
 from companion.tools.eval.depth import DepthEvalOptions, RelativeDepthSource, tracked_frames
 from companion.report import mean_or_none, show
@@ -79,13 +81,16 @@ NetworkFactory = Callable[[], RelativeDepthSource]
 
 @dataclass(frozen=True)
 class Recording:
-    """How the simulator datasets are made: the config's ``[camera]``, ``[vehicle]``, ``[imu]``
-    and, in the realistic profile, the camera sensor ``[sim_camera]`` (None: ideal)."""
+    """How the simulator datasets are made: the config's ``[camera]``, ``[vehicle]``, ``[imu]``,
+    in the realistic profile the camera sensor ``[sim_camera]`` (None: ideal), and the waves
+    the planner's flights fly, as ``sim record`` flies them (None: level, at a steady speed)."""
 
     camera: CameraOptions
     vehicle: VehicleOptions
     imu: ImuOptions
     sensor: SensorOptions | None = None
+    speed_wave: SpeedWave | None = None
+    height_wave: HeightWave | None = None
 
 
 def frames_per_world(worlds, *, quick: bool) -> dict[str, int]:
@@ -110,7 +115,11 @@ def default_cache_dir() -> Path:
 def dataset_key(world: str, seed: int, frames: int, recording: Recording) -> str:
     """The cache name of a recording: world, seed, frames, and a digest of the recording's
     options (another camera rate or IMU noise is another dataset)."""
-    options = json.dumps(dataclasses.asdict(recording), sort_keys=True, default=str)
+    made = dataclasses.asdict(recording)
+    for wave in ("speed_wave", "height_wave"):  # a level flight keeps its name from before
+        if made[wave] is None:
+            del made[wave]
+    options = json.dumps(made, sort_keys=True, default=str)
     digest = hashlib.sha256(options.encode()).hexdigest()[:12]
     return f"{world}-seed{seed}-{frames}f-{digest}"
 
@@ -196,7 +205,8 @@ def _record(out: Path, world: str, seed: int, frames: int, recording: Recording)
         profile = "ideal" if recording.sensor is None else "realistic"
         return record_dataset(out, SimOptions(world=world, seed=seed, profile=profile),
                               recording.camera, recording.vehicle, recording.imu,
-                              duration=duration, sim_camera=recording.sensor)
+                              duration=duration, sim_camera=recording.sensor,
+                              wave=recording.speed_wave, height_wave=recording.height_wave)
     except (RecordError, RenderError) as error:
         raise EvaluationError(f"recording {world} (seed {seed}): {error}") from None
 

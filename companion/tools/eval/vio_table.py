@@ -1,7 +1,8 @@
 """The VINS over simulated flights of every world at several seeds: issue 24's table, one command.
 
 ``companion eval vio-table`` records a ``duration``-second flight of each world from each seed,
-as ``companion sim record --world W --seed S --duration D`` records it (or reuses it from the
+as ``companion sim record --world W --seed S --duration D`` records it, the planner's speed and
+height waves included (or reuses it from the
 cache, :func:`~companion.tools.eval.rescale.cached_dataset`), runs the VINS over each with the
 config's ``[vins]``, ``[vins_frontend]`` and ``[vins_init]`` (:func:`~companion.tools.eval.vio.
 evaluate_vio`), the recordings side by side as tasks of an executor, and tabulates what issue 24
@@ -59,11 +60,9 @@ def frames_for(duration_s: float, rate_hz: float) -> int:
 def settings_not_flown(config) -> list[str]:
     """The ``SECTION.KEY`` settings of ``config`` that ``sim record`` would fly and the table's
     recordings do not (:func:`~companion.tools.eval.rescale.cached_dataset` flies each seed's
-    own vehicle and noise, level, at a steady speed): the table refuses them rather than
-    score a flight other than the one asked for."""
-    set_ = {"planner.speed_swing": config.planner.speed_swing != 0.0,
-            "planner.height_swing": config.planner.height_swing != 0.0,
-            "sim.vehicle_seed": config.sim.vehicle_seed >= 0,
+    own vehicle and noise): the table refuses them rather than score a flight other than the
+    one asked for. The planner's waves it flies, as ``sim record`` does."""
+    set_ = {"sim.vehicle_seed": config.sim.vehicle_seed >= 0,
             "sim.noise_seed": config.sim.noise_seed >= 0}
     return [name for name, given in set_.items() if given]
 
