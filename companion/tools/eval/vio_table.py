@@ -87,7 +87,12 @@ def score_recording(job: TableJob, item: tuple[str, int]) -> dict:
     there first if missing), scored by the VINS; the table's row."""
     world, seed = item
     root = cached_dataset(job.cache, world, seed, job.frames, job.recording)
-    result = evaluate_vio(root, job.vins, frontend=job.frontend, static=job.static)
+    return table_row(world, seed, root,
+                     evaluate_vio(root, job.vins, frontend=job.frontend, static=job.static))
+
+
+def table_row(world: str, seed: int, root: Path, result: dict) -> dict:
+    """The table's row of one recording from its ``eval vio`` ``result``."""
     split = result.get("end_split") or {}
     return {"world": world, "seed": seed, "dataset": str(root),
             "distance_m": result["distance_m"], "ate_rmse_m": result["ate_rmse_m"],
