@@ -168,6 +168,13 @@ class PlannerOptions(PrimitiveOptions):
                               f"got {self.max_range:g}")
 
     @property
+    def waves(self) -> tuple[SpeedWave | None, HeightWave | None]:
+        """The speed and height waves the arcs are flown on (None: off), as the planner and the
+        simulator's recordings fly them."""
+        return (SpeedWave.of(self.speed_swing, self.speed_swing_period_s),
+                HeightWave.of(self.height_swing, self.height_swing_period_s))
+
+    @property
     def primitives(self) -> PrimitiveOptions:
         """The library's shape alone, as :class:`PrimitiveOptions`."""
         return PrimitiveOptions(**{f.name: getattr(self, f.name)
@@ -342,8 +349,7 @@ class Planner:
                                     max_age_s=o.history_s, near_tail_share=o.near_tail_share,
                                     far_tail_share=o.far_tail_share)
         self.tiers = [PrimitiveTier(speed, o) for speed in tier_speeds(o.primitives)]
-        self.wave = SpeedWave.of(o.speed_swing, o.speed_swing_period_s)
-        self.height_wave = HeightWave.of(o.height_swing, o.height_swing_period_s)
+        self.wave, self.height_wave = o.waves
         self._previous: Plan | None = None
         self._checked_stop: Plan | None = None
 

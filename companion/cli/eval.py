@@ -247,8 +247,6 @@ def _eval_vio(args: argparse.Namespace, config: Config) -> int:
 
 
 def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
-    from autonomy.planning.height_wave import HeightWave
-    from autonomy.planning.speed_wave import SpeedWave
     from companion.tools.eval import rescale, vio_table
     from companion.tools.eval.vio import EvaluationError
 
@@ -259,15 +257,13 @@ def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
               f"with 'companion eval vio'", file=sys.stderr)
         return common.EXIT_USAGE
     duration = vio_table.DEFAULT_DURATION_S if args.duration is None else args.duration
-    planner = config.planner
     try:
         job = vio_table.TableJob(
             args.cache or rescale.default_cache_dir(),
             vio_table.frames_for(duration, config.camera.rate_hz),
             rescale.Recording(config.camera, config.vehicle, config.imu,
                               config.sim_camera.for_profile(config.sim.profile),
-                              SpeedWave.of(planner.speed_swing, planner.speed_swing_period_s),
-                              HeightWave.of(planner.height_swing, planner.height_swing_period_s)),
+                              *config.planner.waves),
             config.vins, config.vins_frontend, config.vins_init)
         result = vio_table.evaluate_table(
             args.worlds, vio_table.DEFAULT_SEEDS if args.seeds is None else args.seeds,

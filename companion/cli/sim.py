@@ -213,8 +213,6 @@ def _sim_serve(args: argparse.Namespace, config: Config) -> int:
 
 
 def _sim_record(args: argparse.Namespace, config: Config) -> int:
-    from autonomy.planning.height_wave import HeightWave
-    from autonomy.planning.speed_wave import SpeedWave
     from companion.recording.replay import ReplayError
     from drivers.sim import record
     from drivers.sim.render import RenderError
@@ -223,16 +221,13 @@ def _sim_record(args: argparse.Namespace, config: Config) -> int:
         sim, along = _recorded_along(args, config)
         # the flight's speed and height swing as the application's flights do; a timed one
         # flies its own
-        planner = config.planner
-        wave = None if args.timed else SpeedWave.of(planner.speed_swing,
-                                                    planner.speed_swing_period_s)
-        height_wave = None if args.timed else HeightWave.of(planner.height_swing,
-                                                            planner.height_swing_period_s)
+        wave, height_wave = (None, None) if args.timed else config.planner.waves
         duration = 40.0 if args.duration is None and not args.timed else args.duration
         summary = record.record_dataset(args.out, sim, config.camera, config.vehicle,
                                         config.imu, duration=duration,
                                         sim_camera=config.sim_camera, wave=wave,
-                                        height_wave=height_wave, speed=record.SPEED if args.speed is None
+                                        height_wave=height_wave,
+                                        speed=record.SPEED if args.speed is None
                                         else args.speed, along=along, timed=args.timed)
     except (record.RecordError, RenderError, OSError, ReplayError) as error:
         print(f"sim record: {error}", file=sys.stderr)

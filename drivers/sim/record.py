@@ -1,20 +1,18 @@
 """Fly a smooth path through a world and record it as a EuRoC/ASL dataset.
 
-The flight is the one a careful pilot would give a visual-inertial estimator: a few seconds
-standing still on the ground (for a static initialisation), a vertical take-off to cruise
-height, then the route's collision-free path, facing along it, back and forth until the
-duration is spent, at a constant speed or, with a speed wave (the application's ``[planner]
-speed_swing``), swinging about it as the application's flights do, and with a height wave
-(``[planner] height_swing``) swung up and down about the cruise height as they are
-(``PathFollower``). The
-vehicle is the simulated quadrotor with its PX4-like controller, so the motion is smooth and
-dynamically feasible; the IMU is sampled from the same dynamics, so a noiseless recording
-integrates back onto its own ground truth. ``along`` replaces the route with the true path of
-another flight (a navigation flight's recording: ``companion sim record --along``), so that the
-estimator can be scored open loop on the very places and the speed a flight met; ``timed``
-flies that flight's own motion again in time instead (``TimedFollower``: its changes of speed,
-stops and turns, as the planner flew them), so that a steady cruise and the planner's way of
-flying can be told apart on one path.
+The flight is the one a careful pilot would give a visual-inertial estimator: a few seconds standing
+still on the ground (for a static initialisation), a vertical take-off to cruise height, then the
+route's collision-free path, facing along it, back and forth until the duration is spent, at a
+constant speed or, with a speed wave (the application's ``[planner] speed_swing``), swinging about
+it as the application's flights do, and with a height wave (``[planner] height_swing``) swung up and
+down about the cruise height as they are (``PathFollower``). The vehicle is the simulated quadrotor
+with its PX4-like controller, so the motion is smooth and dynamically feasible; the IMU is sampled
+from the same dynamics, so a noiseless recording integrates back onto its own ground truth.
+``along`` replaces the route with the true path of another flight (a navigation flight's recording:
+``companion sim record --along``), so that the estimator can be scored open loop on the very places
+and the speed a flight met; ``timed`` flies that flight's own motion again in time instead
+(``TimedFollower``: its changes of speed, stops and turns, as the planner flew them), so that a
+steady cruise and the planner's way of flying can be told apart on one path.
 """
 
 from __future__ import annotations
@@ -366,15 +364,14 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
         height_wave: HeightWave | None = None, speed: float = SPEED,
         path: np.ndarray | None = None,
         follower: Follower | None = None, as_flight: bool = False) -> RecordSummary:
-    """Fly ``route`` for ``duration`` simulated seconds at ``speed`` m/s, sending every sample
-    to ``sink``. ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the
-    errors the vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave``
-    swings the cruise's speed, ``height_wave`` its height (:class:`PathFollower`); ``path``
-    (M, 2), the path to follow
-    instead of the route's own (:func:`route_along`); ``follower``, what to fly after the climb
-    instead of the path at ``speed`` (a :class:`TimedFollower`); ``as_flight``: the IMU
-    drawn as a simulated flight of these seeds draws it (``imu.flight_generators``: its
-    vehicle's matrices, its turn-on biases), not as the recorder's own routes do.
+    """Fly ``route`` for ``duration`` simulated seconds at ``speed`` m/s, sending every sample to
+    ``sink``. ``seed`` draws the sensors' noise, ``vehicle_seed`` (default ``seed``) the errors the
+    vehicle keeps from flight to flight (:attr:`SimOptions.vehicle_seed`); ``wave`` swings the
+    cruise's speed, ``height_wave`` its height (:class:`PathFollower`); ``path`` (M, 2), the path to
+    follow instead of the route's own (:func:`route_along`); ``follower``, what to fly after the
+    climb instead of the path at ``speed`` (a :class:`TimedFollower`); ``as_flight``: the IMU drawn
+    as a simulated flight of these seeds draws it (``imu.flight_generators``: its vehicle's
+    matrices, its turn-on biases), not as the recorder's own routes do.
 
     Physics and IMU tick at ``imu.rate_hz``; a frame is exposed around the first tick at or
     after each multiple of the camera period: with an ideal camera (``sensor`` None) stamped
