@@ -2,6 +2,7 @@
 braking, checked at the wave's crest and trough with swept spheres
 (autonomy/planning/height_wave.py)."""
 
+import json
 import math
 
 import numpy as np
@@ -12,6 +13,7 @@ from autonomy.planning.height_wave import HeightWave
 from autonomy.planning.planner import Plan, Planner, PlannerOptions
 from autonomy.planning.primitives import PrimitiveOptions, forward_arc
 from autonomy.planning.speed_wave import SpeedWave
+from companion.recording.topics import encode_plan
 from drivers.sim.record import PathFollower
 
 from tests.test_planning import AHEAD, CAMERA, FORWARD, ROOM, WALL_LEFT, body, planner_seeing
@@ -150,3 +152,42 @@ def test_the_recorders_height_wave_swings_its_target_about_the_cruise_height():
     for t, target in zip(times[::250], targets[::250]):
         np.testing.assert_allclose(target.position[:2], level.target(t).position[:2])
         np.testing.assert_allclose(target.velocity[:2], level.target(t).velocity[:2])
+
+
+def _slot(gap):
+    """A floor and a ceiling ahead, each ``gap`` metres from the vehicle's height."""
+    return [((3.0, -50.0, -50.0), (50.0, 50.0, 5.0 - gap)),
+            ((3.0, -50.0, 5.0 + gap), (50.0, 50.0, 50.0))]
+
+
+def test_a_passage_too_low_to_swing_through_is_flown_level_at_the_speed_it_allows():
+    """The wave never costs speed: where no arc of a tier clears the crest and the trough but
+    one clears the level path, that tier's arc is flown level, checked with the robot's own
+    sphere, as a vehicle without the wave would fly it."""
+    boxes = ROOM + _slot(1.2)
+    waved = planner_seeing(boxes, options=PlannerOptions(height_swing=0.1))
+    level = planner_seeing(boxes)
+    assert not waved.check(0.0, body()).safe.any()  # nothing swings through the slot
+    plan, expected = (p.plan(0.0, body(), FORWARD, AHEAD) for p in (waved, level))
+    assert plan.kind == "arc" and plan.height_wave is None
+    assert plan.candidates.speed == expected.candidates.speed == 2.0
+    assert plan.candidates.radius == 1.0
+    assert plan.candidates.chosen == expected.candidates.chosen
+    np.testing.assert_array_equal(plan.candidates.safe, expected.candidates.safe)
+    np.testing.assert_array_equal(plan.T_W_S, expected.T_W_S)
+    for t in np.linspace(plan.t, plan.end_time, 50):  # no swing at any time
+        np.testing.assert_allclose(plan.setpoint(t).position_W, expected.setpoint(t).position_W)
+    stop = waved.stop_plan(0.1, body(x=0.1), FORWARD, "vins lost")
+    assert stop.height_wave is None
+    assert json.loads(encode_plan(plan))["height_swing"] == 0.0  # the record says it was level
+
+
+def test_where_the_wave_fits_it_is_flown():
+    planner = planner_seeing(ROOM + _slot(1.3), options=PlannerOptions(height_swing=0.1))
+    plan = planner.plan(0.0, body(), FORWARD, AHEAD)
+    assert plan.kind == "arc" and plan.candidates.speed == 2.0
+    assert plan.height_wave == HeightWave(0.1, 2.0)
+    assert json.loads(encode_plan(plan))["height_swing"] == 0.1
+    assert plan.candidates.radius == pytest.approx(math.hypot(1.0, 0.1))
+    # only the arcs that clear the crest and the trough are chosen from
+    assert plan.candidates.safe.sum() < planner.check(0.0, body(), level=True).safe.sum()

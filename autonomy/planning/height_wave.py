@@ -9,7 +9,7 @@ gives it across the path, vertically, without slowing the path down: any directi
 acceleration fixes the one scale of a monocular map. Checked with a sphere ``A`` larger it
 cost 3 % of the speed on true depth and 9 % on estimated at 8 cm, most in narrow passages
 (docs/vins.md, "The height wave"); the planner now checks its crest and trough instead
-(below).
+(below), and flies an arc level where only the level path is clear at its speed.
 
 A plan's path is offset vertically by
 

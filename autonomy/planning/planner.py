@@ -52,7 +52,9 @@ then checked about the line the wave swings about, at the wave's crest and troug
 ``height_swing`` = ``A`` above and below it, with spheres of ``sqrt(r² + A²)`` for the robot's
 ``r``. Any point within ``r`` of the vertical segment between them lies within that of one of
 its ends, so every sphere of the flown path lies inside the two checked, for twice the points
-(the glides, flown level, keep the robot's sphere).
+(the glides, flown level, keep the robot's sphere). The wave never costs speed: where no arc of
+a tier clears the crest and the trough but one clears the level path (a low pipe), that tier's
+arc and its stop are flown level, checked with the robot's own sphere.
 
 When nothing is safe, or there is no depth, it returns the stop checked in the previous round
 (the previous arc's one-period-then-brake branch, continued in time from that round), or, with
@@ -396,8 +398,14 @@ class Planner:
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
         # the sphere checked, as the record gives it: swept over the height wave
         radius, faster = self._swept(self.options.robot_radius), []
+        height_wave = self.height_wave
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
             check = self.check(t, T_W_L, tier)
+            if not check.safe.any() and height_wave is not None:
+                level = self.check(t, T_W_S, tier, level=True)
+                if level.safe.any():  # too tight to swing at this speed: fly it level
+                    check, T_W_L, height_wave = level, T_W_S, None
+                    R, start, radius = T_W_L[:3, :3], T_W_L[:3, 3], self.options.robot_radius
             safe, clearance, blocked = check
             if safe.any():
                 break
@@ -419,12 +427,12 @@ class Planner:
         plan = Plan(t, T_W_L, tier.library[i], "arc", "", count, chosen,
                     self.options.stop_duration_s,
                     Candidates(tier.speed, tier.library, safe, i, blocked, radius,
-                               tuple(faster)), wave=self.wave, height_wave=self.height_wave)
+                               tuple(faster)), wave=self.wave, height_wave=height_wave)
         self._previous = plan
         # on the same wave: a stop taking over from the arc goes on at the arc's speed
         self._checked_stop = Plan(t, T_W_L, tier.branches[i], "stop", "", count, chosen,
                                   self.options.stop_duration_s, wave=self.wave,
-                                  height_wave=self.height_wave)
+                                  height_wave=height_wave)
         return plan
 
     def _wave_line(self, t: float, T_W_S: np.ndarray) -> np.ndarray:
@@ -438,11 +446,11 @@ class Planner:
         return T_W_L
 
     def check(self, t: float, T_W_S, tier: "PrimitiveTier | None" = None,
-              radius: float | None = None) -> TierCheck:
+              radius: float | None = None, level: bool = False) -> TierCheck:
         """Every primitive of ``tier`` (default the fastest) and its branch, placed at the
         start frame ``T_W_S``, against the frames no older than ``t - history_s``, with the
-        robot's sphere (or one of ``radius``, no larger); with a height wave at its crest and
-        trough, the spheres swept (module docstring): ``safe``
+        robot's sphere (or one of ``radius``, no larger); with a height wave, unless ``level``,
+        at its crest and trough, the spheres swept (module docstring): ``safe``
         (P,) bool; ``clearance`` (P,) the least clearance along a safe one (metres between the
         sphere's far side and the surface behind it; inf where only rays judged it);
         ``blocked`` (P,) bool. An unsafe primitive's points are not all judged (the check
@@ -450,9 +458,10 @@ class Planner:
         tier = self.tiers[0] if tier is None else tier
         R, start = T_W_S[:3, :3], T_W_S[:3, 3]
         points, groups = tier.points_S @ R.T + start, tier.primitive_of_point
-        swing = self.options.height_swing
+        swing = 0.0 if level else self.options.height_swing
+        radius = self.options.robot_radius if radius is None else radius
         if swing > 0.0:
-            radius = self._swept(self.options.robot_radius if radius is None else radius)
+            radius = self._swept(radius)
             points = np.vstack([points - [0.0, 0.0, swing], points + [0.0, 0.0, swing]])
             groups = np.concatenate([groups, groups])
         result = self.history.check(points, start_W=start, now=t, groups=groups, radius=radius)

@@ -290,7 +290,8 @@ def encode_depth_fit(depth: MetricDepth) -> bytes:
 
 
 def encode_plan(plan: Plan) -> bytes:
-    """The planner's decision: the primitive flown; for an arc, the tier it was chosen from
+    """The planner's decision: the primitive flown, and the height wave's amplitude it is
+    flown with (``height_swing``, 0 when level); for an arc, the tier it was chosen from
     (which were safe, which blocked by an observed surface, which one was chosen, the sphere's
     radius they were checked with; for "no safe primitive" the slowest tier, chosen -1; why
     each faster tier had nothing safe, ``faster``: its primitives blocked and unseen); for a
@@ -301,6 +302,8 @@ def encode_plan(plan: Plan) -> bytes:
                      "safe_count": plan.safe_count, "clearance": float(plan.clearance),
                      "speed": float(p.speed), "yaw_rate": float(p.yaw_rate),
                      "vertical_speed": float(p.vertical_speed),
+                     "height_swing": 0.0 if plan.height_wave is None
+                     else plan.height_wave.amplitude,
                      "start": plan.T_W_S[:3, 3],
                      "start_yaw": math.atan2(plan.T_W_S[1, 0], plan.T_W_S[0, 0])})
     if candidates is not None:
