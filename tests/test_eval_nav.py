@@ -10,6 +10,7 @@ the same run again on a real two-node Ray cluster started on this machine (issue
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -31,6 +32,7 @@ from companion.cli import main
 from companion.config import SIMULATOR_DEFAULTS, Config, load_config
 from companion.tools import plot
 from companion.tools.eval import executor, nav, nav_compare, provenance
+from companion.tools.eval import records as eval_records
 from companion.tools.eval.vio import EvaluationError
 from drivers.sim.world import build_world
 from ports import free_tcp_port
@@ -476,7 +478,7 @@ def _flown_records(seed: int, trials: int, *, pairs=(0, 1), timeout_s=120.0) -> 
 
 
 def _write(path, records):
-    return nav.write_runs(records, path)
+    return eval_records.write_records(records, path)
 
 
 def test_parts_flown_one_seed_each_merge_into_the_records_of_one_run(tmp_path):
@@ -668,16 +670,17 @@ def test_an_interrupted_runs_file_keeps_its_records_and_drops_only_a_torn_last_l
     records = _stamped(_flown_records(0, 1))
     path = tmp_path / "runs.jsonl"
     for record in records[:3]:
-        nav.append_run(record, path)
-    assert nav.read_resumable(path) == (records[:3], None)
+        eval_records.append_record(record, path)
+    read = functools.partial(eval_records.read_resumable, parse=nav.parse_record)
+    assert read(path) == (records[:3], None)
     with open(path, "a") as stream:
         stream.write(json.dumps(records[3])[:40])  # the interruption, mid-line
-    assert nav.read_resumable(path) == (records[:3], f"{path}:4: a torn last record "
-                                                     "(the interruption) left out")
+    assert read(path) == (records[:3], f"{path}:4: a torn last record (the interruption) "
+                                       "left out")
     path.write_text("{torn\n" + "".join(json.dumps(r) + "\n" for r in records[:2]))
     with pytest.raises(EvaluationError, match="runs.jsonl:1: not JSON"):
-        nav.read_resumable(path)
-    assert nav.read_resumable(tmp_path / "absent.jsonl") == ([], None)
+        read(path)
+    assert read(tmp_path / "absent.jsonl") == ([], None)
 
 
 def _resume_without_flying(monkeypatch, done, **options):

@@ -3,6 +3,7 @@
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -66,25 +67,93 @@ def test_settings_the_tables_flights_would_not_follow_are_refused(setting, tmp_p
     assert not any(tmp_path.iterdir())
 
 
-def test_the_table_records_each_seed_once_scores_it_and_reuses_it(tmp_path, capsys):
-    """Two short realistic dome flights: every row scored, the recordings kept in the cache
-    and reused by the next run, which gives the same numbers (but the back-end's time)."""
-    command = ["eval", "vio-table", "--worlds", "dome", "--seeds", "0", "1", "--duration", "6",
-               "--cache", str(tmp_path), "--workers", "1", "--json"]
-    assert main(command) == 0
-    first = json.loads(capsys.readouterr().out)
+def test_the_table_records_each_seed_once_scores_it_resumes_and_reuses_it(tmp_path, capsys):
+    """Two short realistic dome flights. A run stopped after seed 0 (its row kept in the
+    --resume file, then a line torn by the interruption) goes on with seed 1 alone, and not
+    with another config; a new run reuses the recordings kept in the cache and gives the same
+    numbers (but the back-end's time)."""
+    cache, rows = tmp_path / "cache", tmp_path / "rows.jsonl"
+    command = ["eval", "vio-table", "--worlds", "dome", "--duration", "6", "--cache",
+               str(cache), "--workers", "1", "--json"]
+    assert main([*command, "--seeds", "0", "--resume", str(rows)]) == 0
+    stopped = json.loads(capsys.readouterr().out)["recordings"]
+    assert main([*command, "--seeds", "0", "1", "--resume", str(rows), "--set",
+                 "vins.extra_iterations=1"]) == 1
+    assert "another config hash" in capsys.readouterr().err
+    with open(rows, "a") as stream:
+        stream.write('{"world": "dome", "se')  # the interruption, mid-line
+    assert main([*command, "--seeds", "0", "1", "--resume", str(rows)]) == 0
+    out = capsys.readouterr()
+    assert "a torn last record" in out.err
+    first = json.loads(out.out)
     assert [(r["world"], r["seed"]) for r in first["recordings"]] == [("dome", 0), ("dome", 1)]
+    assert first["recordings"][0] == stopped[0]  # read back, not scored again
+    kept = [json.loads(line) for line in rows.read_text().splitlines()]
+    assert kept == [{k: v for k, v in row.items() if k != "goal"}
+                    for row in first["recordings"]]
     for row in first["recordings"]:
         assert 0.0 < row["ate_over_distance"] < 0.05 and row["resets"] == 0
         assert row["depth_rel_err_median"] is not None
-    recorded = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
+        assert row["frames"] == 121 and len(row["config_hash"]) == 16
+    recorded = {p.name: p.stat().st_mtime_ns for p in cache.iterdir()}
     assert len(recorded) == 2
-    assert main(command) == 0
+    assert main([*command, "--seeds", "0", "1"]) == 0
     again = json.loads(capsys.readouterr().out)
-    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == recorded
+    assert {p.name: p.stat().st_mtime_ns for p in cache.iterdir()} == recorded
     untimed = [[{k: v for k, v in row.items() if k != "backend_ms_p95"}
                 for row in run["recordings"]] for run in (first, again)]
     assert untimed[0] == untimed[1]
+
+
+def _job(frames=121):
+    config = Config()
+    return vio_table.TableJob(Path("/nonexistent"), frames, Recording(
+        config.camera, config.vehicle, config.imu), config.vins, config.vins_frontend,
+        config.vins_init)
+
+
+STAMP = {"revision": "abc", "config_hash": "0123456789abcdef", "libraries": "python 3.11"}
+
+
+@pytest.mark.parametrize("row, words", [
+    ({**_row("mine", 0), **STAMP, "frames": 121}, "mine seed 0 is not in this table"),
+    ({**_row("dome", 0), **STAMP, "frames": 801}, "scored on 801 frames"),
+    ({**_row("dome", 0), **STAMP, "frames": 121, "revision": "def"}, "another revision"),
+    ({**_row("dome", 0), **STAMP, "frames": 121, "libraries": "x"}, "another libraries"),
+])
+def test_a_resumed_row_this_run_would_not_score_is_refused_before_scoring(row, words):
+    with pytest.raises(EvaluationError, match=words):
+        vio_table.evaluate_table(["dome"], [0, 1], job=_job(), stamp=STAMP, done=[row])
+
+
+def test_a_row_twice_in_the_file_is_refused():
+    row = {**_row("dome", 0), **STAMP, "frames": 121}
+    with pytest.raises(EvaluationError, match="dome seed 0 is in the file twice"):
+        vio_table.evaluate_table(["dome"], [0, 1], job=_job(), stamp=STAMP, done=[row, row])
+
+
+def test_a_table_resumed_with_every_row_scores_nothing_and_reports_them_all():
+    done = [{**_row("dome", seed), **STAMP, "frames": 121} for seed in (0, 1)]
+    result = vio_table.evaluate_table(["dome"], [0, 1], job=_job(), stamp=STAMP, done=done)
+    assert [r["seed"] for r in result["recordings"]] == [0, 1] and result["goal_met"]
+
+
+@pytest.mark.parametrize("line, words", [
+    ("[1]", "rows.jsonl:3: not a table row"),
+    ('{"world": "moon", "seed": 0}', "world 'moon'"),
+    ('{"world": "dome", "seed": -1}', "seed must be a non-negative integer"),
+    (json.dumps({k: v for k, v in _row("dome", 0).items() if k != "scale"} | {"frames": 1}),
+     "scale must be a number, got None"),
+    (json.dumps(_row("dome", 0) | {"frames": "121"}), "frames must be a number"),
+])
+def test_a_bad_row_is_named_by_its_file_and_line(line, words):
+    with pytest.raises(EvaluationError, match=words):
+        vio_table.parse_row(line, "rows.jsonl:3")
+
+
+def test_a_row_may_lack_what_its_recording_did_not_give():
+    row = _row("dome", 0, depth=None, bearing=None) | {"frames": 121}
+    assert vio_table.parse_row(json.dumps(row), "rows.jsonl:1") == row
 
 
 def test_the_tables_flights_fly_the_planners_height_wave_under_their_own_name(tmp_path):

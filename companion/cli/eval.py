@@ -102,6 +102,11 @@ def _add_eval_vio_table(actions: argparse._SubParsersAction,
     _add_recording_tasks(command, "recordings scored")
     command.add_argument("--markdown", type=Path, metavar="FILE",
                          help="also write the Markdown report to FILE")
+    command.add_argument("--resume", type=Path, metavar="FILE",
+                         help="add every recording's row to FILE (JSON lines) as it is scored; "
+                              "a FILE from a run stopped part way is gone on with: only the "
+                              "recordings it lacks are scored, with the options, code and "
+                              "config it was started with, and the report has them all")
     command.set_defaults(command=_eval_vio_table)
 
 
@@ -247,7 +252,7 @@ def _eval_vio(args: argparse.Namespace, config: Config) -> int:
 
 
 def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
-    from companion.tools.eval import rescale, vio_table
+    from companion.tools.eval import provenance, records as eval_records, rescale, vio_table
     from companion.tools.eval.vio import EvaluationError
 
     unfollowed = vio_table.settings_not_flown(config)
@@ -265,10 +270,18 @@ def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
                               config.sim_camera.for_profile(config.sim.profile),
                               *config.planner.waves),
             config.vins, config.vins_frontend, config.vins_init)
+        done, on_row = [], None
+        if args.resume:
+            done, note = eval_records.read_resumable(args.resume, vio_table.parse_row)
+            if note:
+                print(f"eval vio-table: {note}", file=sys.stderr)
+            eval_records.write_records(done, args.resume)  # without the torn line
+            on_row = functools.partial(eval_records.append_record, out=args.resume)
         result = vio_table.evaluate_table(
             args.worlds, vio_table.DEFAULT_SEEDS if args.seeds is None else args.seeds,
-            job=job, workers=args.workers, cluster=args.cluster)
-    except EvaluationError as error:
+            job=job, stamp=provenance.stamp(config), workers=args.workers,
+            cluster=args.cluster, done=done, on_row=on_row)
+    except (EvaluationError, OSError) as error:
         print(f"eval vio-table: {error}", file=sys.stderr)
         return common.EXIT_FAILED
     return common.report("eval vio-table", args, result,
@@ -336,7 +349,7 @@ def _warn_of_unestimated_errors(command: str, config: Config) -> None:
 
 
 def _eval_nav(args: argparse.Namespace, config: Config) -> int:
-    from companion.tools.eval import nav
+    from companion.tools.eval import nav, records as eval_records
     from companion.tools.eval.vio import EvaluationError
 
     for mode, refused in (("--compare", _NAV_FLIGHT_OPTIONS + ("resume", "runs", "merge",
@@ -365,7 +378,7 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
         return common.EXIT_FAILED
     result = nav.summarise(records)
     return common.report("eval nav", args, result, nav.format_markdown(result, records),
-                         (runs, lambda path: nav.write_runs(records, path)),
+                         (runs, lambda path: eval_records.write_records(records, path)),
                          (args.plot, lambda path: nav.plot_navigation(result, records, path)))
 
 
@@ -393,15 +406,15 @@ _NAV_FLIGHT_OPTIONS = ("trials", "seed", "worlds", "pairs", "timeout", "tracks",
 def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> list[dict]:
     """Fly the trials ``args`` plan, those of the ``--resume`` file excepted, adding each
     record to ``runs`` (if given) as it completes."""
-    from companion.tools.eval import nav
+    from companion.tools.eval import nav, records as eval_records
     from drivers.sim.options import WORLD_NAMES
 
     done = []
     if args.resume:
-        done, note = nav.read_resumable(args.resume)
+        done, note = eval_records.read_resumable(args.resume, nav.parse_record)
         if note:
             print(f"eval nav: {note}", file=sys.stderr)
-        nav.write_runs(done, args.resume)  # without the torn line, before adding to it
+        eval_records.write_records(done, args.resume)  # without the torn line, before adding
 
     _warn_of_unestimated_errors("eval nav", config)
     seed = config.sim.seed if args.seed is None else args.seed
@@ -413,5 +426,6 @@ def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> lis
         config, worlds=worlds, pairs=pairs, trials=trials, seed=seed, timeout_s=timeout,
         tracks=args.tracks or "tracker", workers=args.workers, cluster=args.cluster,
         progress=sys.stderr, done=done,
-        on_record=None if runs is None else lambda record: nav.append_run(record, runs))
+        on_record=None if runs is None else functools.partial(eval_records.append_record,
+                                                                out=runs))
     return records

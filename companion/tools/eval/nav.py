@@ -64,9 +64,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import json
 import math
-import os
 import sys
 import time
 import traceback
@@ -82,6 +80,7 @@ from autonomy.navigation.mission import FlightState
 from companion.launch import simulated
 from companion.report import mean_or_none, show
 from companion.tools.eval import executor, provenance
+from companion.tools.eval.records import numbered_lines, parse_object
 from companion.tools.eval.vio import EvaluationError
 from companion.tools import plot
 from drivers.sim.options import WORLD_NAMES
@@ -418,45 +417,6 @@ def finite(value) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
 
 
-def write_runs(records: list[dict], out: Path) -> Path:
-    """Every trial's record as JSON lines at ``out`` (parent folders created), replacing it
-    at once: written beside it, then renamed over it."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(out.name + ".partial")
-    partial.write_text("".join(json.dumps(r) + "\n" for r in records))
-    os.replace(partial, out)
-    return out
-
-
-def append_run(record: dict, out: Path) -> None:
-    """Add one trial's record to ``out`` as it completes: one line in one write, flushed to
-    the disk, so an interruption loses at most the line being written (:func:`read_resumable`
-    drops such a torn last line)."""
-    with open(out, "a") as stream:
-        stream.write(json.dumps(record) + "\n")
-        stream.flush()
-        os.fsync(stream.fileno())
-
-
-def read_resumable(path: Path) -> tuple[list[dict], str | None]:
-    """The records of an interrupted run's ``--runs`` file (none if it does not exist or is
-    empty), and a note when its last line was torn by the interruption and left out. Any
-    other unreadable line is an EvaluationError, as in :func:`read_runs`."""
-    path = Path(path)
-    if not path.exists():
-        return [], None
-    numbered = _numbered_lines(path)
-    note = None
-    if numbered:
-        try:
-            json.loads(numbered[-1][1])
-        except json.JSONDecodeError:
-            note = f"{path}:{numbered[-1][0]}: a torn last record (the interruption) left out"
-            numbered.pop()
-    return [_parse_record(line, f"{path}:{n}") for n, line in numbered], note
-
-
 # --------------------------------------------------------------------------------------------
 # Runs flown in parts, merged
 
@@ -479,28 +439,16 @@ def read_runs(paths: Iterable[Path]) -> list[dict]:
 def read_records(path: Path) -> list[dict]:
     """The trial records of one ``--runs`` file, each checked as :func:`read_runs` says;
     EvaluationError for a file without any."""
-    records = [_parse_record(line, f"{path}:{n}") for n, line in _numbered_lines(path)]
-    if not records:
+    trials = [parse_record(line, f"{path}:{n}") for n, line in numbered_lines(path)]
+    if not trials:
         raise EvaluationError(f"{path}: no trial records (is it an 'eval nav --runs' file?)")
-    return records
+    return trials
 
 
-def _numbered_lines(path: Path) -> list[tuple[int, str]]:
-    """The non-blank lines of a ``--runs`` file with their line numbers (from 1)."""
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as error:
-        raise EvaluationError(f"{path}: cannot read: {error}") from None
-    return [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
-
-
-def _parse_record(line: str, where: str) -> dict:
-    try:
-        record = json.loads(line)
-    except json.JSONDecodeError as error:
-        raise EvaluationError(f"{where}: not JSON: {error.msg}") from None
-    if not isinstance(record, dict):
-        raise EvaluationError(f"{where}: not a trial record (a JSON object)")
+def parse_record(line: str, where: str) -> dict:
+    """One trial's record from a line of a ``--runs`` file, checked as :func:`read_runs`
+    says (``where``: its file and line, for the error)."""
+    record = parse_object(line, where, "trial record")
     missing = [key for key in RECORD_KEYS if key not in record]
     if missing:
         raise EvaluationError(f"{where}: trial record without {', '.join(missing)}")

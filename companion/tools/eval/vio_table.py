@@ -11,6 +11,11 @@ distance flown (ATE / distance ≤ :data:`GOAL_ATE_SHARE`), the map points' medi
 error (≤ :data:`GOAL_DEPTH_ERROR`) and no reset; beside them the path's scale (its spread over
 the recordings is what an option worth adopting narrows, docs/vins.md), the median pose and
 velocity NEES (honest: 6 and 3) and the bearing at the end.
+
+Each row carries what scored it (the code's revision, the config's hash, the library versions:
+:mod:`~companion.tools.eval.provenance`) and the flights' frame count; with ``--resume FILE``
+every row is added to FILE as its recording is scored, and a run stopped part way goes on with
+the recordings the file lacks, scored by the same code and config (:func:`resumed_rows`).
 """
 
 from __future__ import annotations
@@ -19,13 +24,16 @@ import math
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from autonomy.vins.frontend import FrontendOptions
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInitOptions
 from companion.tools.eval import executor
+from companion.tools.eval.records import parse_object
 from companion.tools.eval.rescale import Recording, cached_dataset
 from companion.tools.eval.vio import EvaluationError, evaluate_vio
+from drivers.sim.options import WORLD_NAMES
 
 #: Issue 24's goals for every recording: ATE over distance, map points' median depth error.
 GOAL_ATE_SHARE = 0.005
@@ -33,6 +41,12 @@ GOAL_DEPTH_ERROR = 0.02
 #: The table's seeds and flight length (issue 24: seeds 0-9, 40 s).
 DEFAULT_SEEDS = tuple(range(10))
 DEFAULT_DURATION_S = 40.0
+#: A row's numbers: always given, and given where the recording has them (else null).
+ROW_NUMBERS = ("frames", "distance_m", "ate_rmse_m", "ate_over_distance", "scale", "resets")
+ROW_OPTIONAL_NUMBERS = ("depth_rel_err_median", "nees_pose_median", "nees_velocity_median",
+                        "bearing_deg", "backend_ms_p95")
+#: What scored a row (:func:`companion.tools.eval.provenance.stamp`).
+STAMP_KEYS = ("revision", "config_hash", "libraries")
 
 
 @dataclass(frozen=True)
@@ -67,19 +81,71 @@ def settings_not_flown(config) -> list[str]:
     return [name for name, given in set_.items() if given]
 
 
-def evaluate_table(worlds, seeds, *, job: TableJob, workers: int | None = None,
-                   cluster: str | None = None) -> dict:
+def evaluate_table(worlds, seeds, *, job: TableJob, stamp: dict[str, str],
+                   workers: int | None = None, cluster: str | None = None,
+                   done: list[dict] = (), on_row: Callable[[dict], None] | None = None) -> dict:
     """Score the VINS on every world's flight from every seed (:func:`score_recording`) and
     summarise them (:func:`summarise`): ``{"recordings": [row...], "summary": {group:
-    {...}}, "goal_met": bool}``, the rows in the order of ``worlds`` then ``seeds``."""
+    {...}}, "goal_met": bool}``, the rows in the order of ``worlds`` then ``seeds``, each with
+    ``stamp`` (what scores it) and the flights' frame count. ``done``: rows of this table
+    scored before (a run resumed), not scored again (:func:`resumed_rows`); ``on_row`` is
+    given each new row as its recording is scored."""
     items = [(world, seed) for world in dict.fromkeys(worlds) for seed in dict.fromkeys(seeds)]
     if not items:
         raise EvaluationError("no recording to score: give at least one world and one seed")
-    rows: list[dict | None] = [None] * len(items)
-    runner = executor.open_executor(cluster, workers, len(items))
-    for k, row in runner.run(score_recording, job, items):
-        rows[k] = row
-    return summarise([row for row in rows if row is not None])
+    rows = resumed_rows(done, items, stamp, job.frames)
+    pending = [item for item in items if item not in rows]
+    if pending:
+        runner = executor.open_executor(cluster, workers, len(pending))
+        for k, row in runner.run(score_recording, job, pending):
+            rows[pending[k]] = row = {**row, **stamp, "frames": job.frames}
+            if on_row is not None:
+                on_row(row)
+    return summarise([rows[item] for item in items if item in rows])
+
+
+def resumed_rows(done: list[dict], items: list[tuple[str, int]], stamp: dict[str, str],
+                 frames: int) -> dict[tuple[str, int], dict]:
+    """The rows of a run resumed, by ``(world, seed)``; EvaluationError for one this run
+    would not score (another world or seed, another flight length, another code revision,
+    config or library versions: ``stamp``) or one given twice, naming it."""
+    rows: dict[tuple[str, int], dict] = {}
+    for row in done:
+        key = (row["world"], row["seed"])
+        name = f"the row of {row['world']} seed {row['seed']}"
+        if key in rows:
+            raise EvaluationError(f"{name} is in the file twice")
+        if key not in items:
+            raise EvaluationError(f"{name} is not in this table; resume with the worlds and "
+                                  "seeds the run was started with")
+        if row["frames"] != frames:
+            raise EvaluationError(f"{name} was scored on {row['frames']} frames, this run's "
+                                  f"flights have {frames}: resume with its --duration")
+        for key_name in STAMP_KEYS:
+            if row.get(key_name) != stamp[key_name]:
+                raise EvaluationError(
+                    f"{name} was scored with another {key_name.replace('_', ' ')} "
+                    f"({row.get(key_name)}, this run's {stamp[key_name]}): resume with the "
+                    "code, config and libraries the run was started with, or start a new file")
+        rows[key] = row
+    return rows
+
+
+def parse_row(line: str, where: str) -> dict:
+    """One row of a ``--resume`` file (``where``: its file and line, for the error)."""
+    row = parse_object(line, where, "table row")
+    if row.get("world") not in WORLD_NAMES:
+        raise EvaluationError(f"{where}: world {row.get('world')!r} is not one of "
+                              f"{', '.join(WORLD_NAMES)}")
+    if type(row.get("seed")) is not int or row["seed"] < 0:
+        raise EvaluationError(f"{where}: seed must be a non-negative integer, "
+                              f"got {row.get('seed')!r}")
+    for key in ROW_NUMBERS + ROW_OPTIONAL_NUMBERS:
+        value = row.get(key)
+        if not (type(value) in (int, float) or (value is None and key in ROW_OPTIONAL_NUMBERS
+                                                and key in row)):
+            raise EvaluationError(f"{where}: {key} must be a number, got {value!r}")
+    return row
 
 
 def score_recording(job: TableJob, item: tuple[str, int]) -> dict:
