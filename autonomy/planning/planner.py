@@ -390,22 +390,13 @@ class Planner:
         goal = _vector(goal_W, "goal_W")
         if not any(ft >= t - self.options.history_s for ft in self.history.times):
             return self._stop(t, T_W_S, velocity, "no depth")
-        T_W_L = self._wave_line(t, T_W_S)
-        R, start = T_W_L[:3, :3], T_W_L[:3, 3]
         tiers = self.tiers
         if stop_at_goal:
-            room = float(np.hypot(*(goal - start)[:2]))
+            room = float(np.hypot(*(goal - T_W_S[:3, 3])[:2]))
             tiers = [tier for tier in tiers[:-1] if tier.reach <= room] + tiers[-1:]
-        # the sphere checked, as the record gives it: swept over the height wave
-        radius, faster = self._swept(self.options.robot_radius), []
-        height_wave = self.height_wave
+        faster = []
         for tier in tiers:  # fastest first; a slower one only when nothing is safe
-            check = self.check(t, T_W_L, tier)
-            if not check.safe.any() and height_wave is not None:
-                level = self.check(t, T_W_S, tier, level=True)
-                if level.safe.any():  # too tight to swing at this speed: fly it level
-                    check, T_W_L, height_wave = level, T_W_S, None
-                    R, start, radius = T_W_L[:3, :3], T_W_L[:3, 3], self.options.robot_radius
+            check, T_W_L, height_wave, radius = self._check_tier(t, T_W_S, tier)
             safe, clearance, blocked = check
             if safe.any():
                 break
@@ -421,7 +412,8 @@ class Planner:
                                candidates=Candidates(tier.speed, tier.library, safe, -1,
                                                      blocked, radius, tuple(faster)))
         count = int(safe.sum())
-        cost = np.where(safe, self._cost(tier, start, R, goal, clearance), np.inf)
+        cost = np.where(safe, self._cost(tier, T_W_L[:3, 3], T_W_L[:3, :3], goal, clearance),
+                        np.inf)
         i = int(np.argmin(cost))
         chosen = float(clearance[i])
         plan = Plan(t, T_W_L, tier.library[i], "arc", "", count, chosen,
@@ -434,6 +426,21 @@ class Planner:
                                   self.options.stop_duration_s, wave=self.wave,
                                   height_wave=height_wave)
         return plan
+
+    def _check_tier(self, t: float, T_W_S: np.ndarray, tier: "PrimitiveTier"
+                    ) -> tuple[TierCheck, np.ndarray, HeightWave | None, float]:
+        """``tier`` checked for the round at ``t`` from the body's start frame ``T_W_S``, and
+        how its arcs are to be flown: ``(check, start frame, height wave, sphere's radius)``.
+        On the height wave, about the line it swings about, with the swept spheres; where no
+        arc clears the wave's crest and trough but one clears the level path, level from the
+        body with the robot's own sphere (module docstring)."""
+        T_W_L = self._wave_line(t, T_W_S)
+        check = self.check(t, T_W_L, tier)
+        if self.height_wave is not None and not check.safe.any():
+            level = self.check(t, T_W_S, tier, level=True)
+            if level.safe.any():  # too tight to swing at this speed: fly it level
+                return level, T_W_S, None, self.options.robot_radius
+        return check, T_W_L, self.height_wave, self._swept(self.options.robot_radius)
 
     def _wave_line(self, t: float, T_W_S: np.ndarray) -> np.ndarray:
         """The start frame of the line the height wave swings about at ``t``: ``T_W_S`` less
