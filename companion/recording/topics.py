@@ -90,7 +90,7 @@ PLAN_LINES = Topic("/planner/primitives", fm.SceneUpdate.get_schema())
 PLAN = Topic("/planner/plan", _json_schema("companion.Plan", {
     "t": _NUMBER, "kind": _STRING, "reason": _STRING, "safe_count": _NUMBER,
     "clearance": _NUMBER, "speed": _NUMBER, "yaw_rate": _NUMBER, "vertical_speed": _NUMBER,
-    "chosen": _NUMBER, "safe": {"type": "array", "items": _BOOL},
+    "height_swing": _NUMBER, "chosen": _NUMBER, "safe": {"type": "array", "items": _BOOL},
     "blocked": {"type": "array", "items": _BOOL}, "radius": _NUMBER,
     "faster": {"type": "array", "items": {"type": "object", "properties": {
         "speed": _NUMBER, "blocked": _NUMBER, "unseen": _NUMBER}}},
