@@ -24,7 +24,7 @@ import math
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 from autonomy.vins.frontend import FrontendOptions
 from autonomy.vins.options import VinsOptions
@@ -83,7 +83,7 @@ def settings_not_flown(config) -> list[str]:
 
 def evaluate_table(worlds, seeds, *, job: TableJob, stamp: dict[str, str],
                    workers: int | None = None, cluster: str | None = None,
-                   done: list[dict] = (), on_row: Callable[[dict], None] | None = None) -> dict:
+                   done: Sequence[dict] = (), on_row: Callable[[dict], None] | None = None) -> dict:
     """Score the VINS on every world's flight from every seed (:func:`score_recording`) and
     summarise them (:func:`summarise`): ``{"recordings": [row...], "summary": {group:
     {...}}, "goal_met": bool}``, the rows in the order of ``worlds`` then ``seeds``, each with
@@ -104,7 +104,7 @@ def evaluate_table(worlds, seeds, *, job: TableJob, stamp: dict[str, str],
     return summarise([rows[item] for item in items if item in rows])
 
 
-def resumed_rows(done: list[dict], items: list[tuple[str, int]], stamp: dict[str, str],
+def resumed_rows(done: Sequence[dict], items: list[tuple[str, int]], stamp: dict[str, str],
                  frames: int) -> dict[tuple[str, int], dict]:
     """The rows of a run resumed, by ``(world, seed)``; EvaluationError for one this run
     would not score (another world or seed, another flight length, another code revision,
