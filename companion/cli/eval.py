@@ -272,10 +272,9 @@ def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
             config.vins, config.vins_frontend, config.vins_init)
         done, on_row = [], None
         if args.resume:
-            done, note = eval_records.read_resumable(args.resume, vio_table.parse_row)
+            done, note = eval_records.reopen(args.resume, vio_table.parse_row)
             if note:
                 print(f"eval vio-table: {note}", file=sys.stderr)
-            eval_records.write_records(done, args.resume)  # without the torn line
             on_row = functools.partial(eval_records.append_record, out=args.resume)
         result = vio_table.evaluate_table(
             args.worlds, vio_table.DEFAULT_SEEDS if args.seeds is None else args.seeds,
@@ -411,10 +410,9 @@ def _fly_nav(args: argparse.Namespace, config: Config, runs: Path | None) -> lis
 
     done = []
     if args.resume:
-        done, note = eval_records.read_resumable(args.resume, nav.parse_record)
+        done, note = eval_records.reopen(args.resume, nav.parse_record)
         if note:
             print(f"eval nav: {note}", file=sys.stderr)
-        eval_records.write_records(done, args.resume)  # without the torn line, before adding
 
     _warn_of_unestimated_errors("eval nav", config)
     seed = config.sim.seed if args.seed is None else args.seed

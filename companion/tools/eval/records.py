@@ -56,6 +56,14 @@ def read_resumable(path: Path, parse: Callable[[str, str], dict]
     return [parse(line, f"{path}:{n}") for n, line in numbered], note
 
 
+def reopen(path: Path, parse: Callable[[str, str], dict]) -> tuple[list[dict], str | None]:
+    """:func:`read_resumable`'s records and note, the file rewritten without a torn last line,
+    so that the records added next follow the last whole one."""
+    done, note = read_resumable(path, parse)
+    write_records(done, path)
+    return done, note
+
+
 def numbered_lines(path: Path) -> list[tuple[int, str]]:
     """The non-blank lines of a records file with their line numbers (from 1)."""
     try:

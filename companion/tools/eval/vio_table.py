@@ -142,8 +142,8 @@ def parse_row(line: str, where: str) -> dict:
                               f"got {row.get('seed')!r}")
     for key in ROW_NUMBERS + ROW_OPTIONAL_NUMBERS:
         value = row.get(key)
-        if not (type(value) in (int, float) or (value is None and key in ROW_OPTIONAL_NUMBERS
-                                                and key in row)):
+        given_as_null = key in ROW_OPTIONAL_NUMBERS and key in row and value is None
+        if type(value) not in (int, float) and not given_as_null:
             raise EvaluationError(f"{where}: {key} must be a number, got {value!r}")
     return row
 
