@@ -146,6 +146,10 @@ def test_the_caption_of_a_flight_says_what_flew():
     assert plot.flight_caption(mission) == ("world dome, seed 0, pair 0's start to goal 1, 2.5, "
                                             "1.5, truth depth, realtime clock, fault "
                                             "camera_freeze")
+    through = SimMission(world="sewer", pair=5, goal=(39.0, 12.0, 1.5), via=((34.0, 7.0, 1.5),))
+    assert plot.flight_caption(through) == ("world sewer, seed 0, pair 5's start via 34, 7, 1.5 "
+                                            "to goal 39, 12, 1.5, estimated depth, lockstep "
+                                            "clock")
 
 
 @pytest.mark.parametrize("path, message", [

@@ -13,6 +13,7 @@ The same recording's true poses give ``companion log vins``.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import math
@@ -27,6 +28,8 @@ from companion import cli
 from companion.config import load_config
 from autonomy.geometry import quat_to_rot, yaw_of
 from companion.launch import simulated
+from drivers.sim.faults import Fault
+from drivers.sim.host import SimMission
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -335,6 +338,10 @@ def test_replay_reports_a_bad_override_as_a_config_error(recording, capsys):
     ({"world": "dome", "faults": [{"when": 1}]}, "not a simulated mission"),
     ({"world": "dome", "planet": "mars"}, "not a simulated mission"),
     ({"world": "dome", "faults": 3}, "not a simulated mission"),
+    ({"world": "dome", "goal": [1, 2, 1.5], "via": [[1, 2]]},
+     "via waypoint 1 must be three finite numbers x,y,z, got \\(1, 2\\)"),
+    ({"world": "dome", "goal": [1, 2, 1.5], "via": 5}, "not a simulated mission"),
+    ({"world": "dome", "via": [[1, 2, 1.5]]}, "need a goal"),
 ])
 def test_a_top_view_of_a_damaged_mission_record_says_what_is_wrong(recording, mission, words,
                                                                    tmp_path):
@@ -347,6 +354,17 @@ def test_a_top_view_of_a_damaged_mission_record_says_what_is_wrong(recording, mi
         plot(recording["recording"]["path"], mission, load_config(None),
              tmp_path / "top.png")
     assert not (tmp_path / "top.png").exists()
+
+
+def test_a_mission_record_reads_back_as_the_mission_flown():
+    """What the recorder writes (the mission as JSON) reads back equal, its waypoints, goal and
+    faults tuples again (a mission is a key of the flights flown)."""
+    from companion.recording.replay import simulated_mission
+
+    mission = SimMission(world="sewer", pair=5, goal=(39.0, 12.0, 1.5),
+                         via=((34.0, 7.0, 1.5), (35.0, 8.0, 1.5)),
+                         faults=(Fault("imu_gap", 2.0, 0.5),))
+    assert simulated_mission(json.loads(json.dumps(dataclasses.asdict(mission)))) == mission
 
 
 def empty_recording(path):

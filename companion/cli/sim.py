@@ -41,6 +41,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     mission.add_argument("--goal", type=common.point, metavar="X,Y,Z",
                          help="fly to this point (metres, world frame, z up) instead of the "
                               "pair's goal, from the pair's start")
+    mission.add_argument("--via", type=common.point, metavar="X,Y,Z", action="append",
+                         default=[], help="with --goal: fly through this waypoint first "
+                                          "(repeat for several, flown in order)")
     mission.add_argument("--depth", choices=("estimated", "truth"), default="estimated",
                          help="the planner's depth: estimated (network and rescaler on the VINS "
                               "map) or the renderer's truth (default: %(default)s)")
@@ -269,7 +272,8 @@ def _sim_fly(args: argparse.Namespace, config: Config) -> int:
     plot = plot_destination(args)
     try:
         mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
-                                       goal=args.goal, start_yaw_deg=args.start_yaw,
+                                       goal=args.goal, via=tuple(args.via),
+                                       start_yaw_deg=args.start_yaw,
                                        clock=args.clock, depth=args.depth, link=args.link,
                                        tracks=args.tracks,
                                        faults=tuple(Fault.parse(f) for f in args.faults),
@@ -313,7 +317,8 @@ def _sim_soak(args: argparse.Namespace, config: Config) -> int:
 
     sim = _sim_options(args, config)
     mission = simulated.SimMission(world=sim.world, seed=sim.seed, pair=args.pair,
-                                   goal=args.goal, clock=args.clock, depth=args.depth)
+                                   goal=args.goal, via=tuple(args.via), clock=args.clock,
+                                   depth=args.depth)
 
     def report(record: dict) -> None:
         print(f"mission {record['mission']}: {record['final_state']}, "

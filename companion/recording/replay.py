@@ -666,7 +666,10 @@ def simulated_mission(mission: dict):
 
     try:
         faults = tuple(Fault(**fault) for fault in mission.get("faults", ()))
-        return SimMission(**{**mission, "faults": faults})
+        goal = mission.get("goal")  # JSON's lists back to the tuples they were
+        via = tuple(tuple(point) for point in mission.get("via", ()))
+        return SimMission(**{**mission, "faults": faults, "via": via,
+                             "goal": None if goal is None else tuple(goal)})
     except (TypeError, ValueError, AttributeError) as error:
         raise ReplayError(f"the recording's mission record is not a simulated mission: "
                           f"{error}") from None

@@ -153,8 +153,9 @@ class TopView:
 def flight_caption(mission) -> str:
     """"world dome, seed 0, pair 1, estimated depth, lockstep clock": what a simulated
     ``mission`` (:class:`drivers.sim.host.SimMission`) flew, for a top view's caption."""
+    via = "".join(f" via {', '.join(f'{v:g}' for v in point)}" for point in mission.via)
     goal = f"pair {mission.pair}" if mission.goal is None else \
-        f"pair {mission.pair}'s start to goal {', '.join(f'{v:g}' for v in mission.goal)}"
+        f"pair {mission.pair}'s start{via} to goal {', '.join(f'{v:g}' for v in mission.goal)}"
     faults = "".join(f", fault {fault.kind}" for fault in mission.faults)
     return (f"world {mission.world}, seed {mission.seed}, {goal}, {mission.depth} depth, "
             f"{mission.clock} clock{faults}")

@@ -66,8 +66,8 @@ DEPTH_SOURCES = ("estimated", "truth")
 
 @dataclass(frozen=True)
 class SimMission:
-    """What to fly: ``world`` from ``seed``; route ``pair`` or a single ``goal`` (x, y, z);
-    ``depth`` one of :data:`DEPTH_SOURCES`; ``tracks`` one of
+    """What to fly: ``world`` from ``seed``; route ``pair`` or a ``goal`` (x, y, z) from the
+    pair's start, through the waypoints ``via`` first (each x, y, z; in order); ``depth`` one of :data:`DEPTH_SOURCES`; ``tracks`` one of
     :data:`drivers.sim.truth_tracks.TRACK_SOURCES`; ``start_yaw_deg`` the heading the vehicle
     stands at on the ground (degrees counter-clockwise from east; default: facing the first leg);
     ``link`` one of :data:`drivers.sim.serve.LINKS`; ``go_after_s``: the operator's go comes
@@ -78,6 +78,7 @@ class SimMission:
     seed: int = 0
     pair: int = 0
     goal: tuple[float, float, float] | None = None
+    via: tuple[tuple[float, float, float], ...] = ()
     faults: tuple[Fault, ...] = ()
     clock: str = "lockstep"
     depth: str = "estimated"
@@ -90,18 +91,19 @@ class SimMission:
 def mission_waypoints(world: World, mission: SimMission, height: float
                       ) -> tuple[np.ndarray, np.ndarray, float]:
     """``(start, waypoints (N, 3), start_yaw)`` of the mission: the route's start, the corners
-    of its collision-free path at ``height`` ending at its goal (or just ``mission.goal``), and
-    the heading it stands at (the first leg's unless the mission gives one)."""
+    of its collision-free path at ``height`` ending at its goal (or the mission's ``via``
+    waypoints and its ``goal``), and the heading it stands at (the first leg's unless the mission gives one)."""
     if not 0 <= mission.pair < len(world.routes):
         raise SimError(f"{world.name} has start/goal pairs 0..{len(world.routes) - 1}, "
                        f"not {mission.pair}")
     route = world.routes[mission.pair]
     start = np.asarray(route.start, dtype=float)
+    if mission.via and mission.goal is None:
+        raise SimError("waypoints to fly through (via) need a goal to fly to after them")
     if mission.goal is not None:
-        goal = np.asarray(mission.goal, dtype=float)
-        if goal.shape != (3,) or not np.isfinite(goal).all():
-            raise SimError(f"goal must be three finite numbers x,y,z, got {mission.goal}")
-        waypoints = goal[None, :]
+        waypoints = np.array([_point(f"via waypoint {k + 1}", point)
+                              for k, point in enumerate(mission.via)]
+                             + [_point("goal", mission.goal)])
     else:
         corners = world.find_path(start[:2], route.goal[:2], ROBOT_RADIUS)
         if corners is None:
@@ -116,6 +118,17 @@ def mission_waypoints(world: World, mission: SimMission, height: float
         raise SimError(f"start yaw must be a finite number of degrees, "
                        f"got {mission.start_yaw_deg}")
     return start, waypoints, math.radians(mission.start_yaw_deg)
+
+
+def _point(name: str, point) -> np.ndarray:
+    """``point`` as a (3,) array; SimError unless it is three finite numbers."""
+    try:
+        array = np.asarray(point, dtype=float)
+    except (TypeError, ValueError):
+        array = np.zeros(0)
+    if array.shape != (3,) or not np.isfinite(array).all():
+        raise SimError(f"{name} must be three finite numbers x,y,z, got {point}")
+    return array
 
 
 def goal_distance(position, goal) -> float:
