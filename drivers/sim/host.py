@@ -67,12 +67,13 @@ DEPTH_SOURCES = ("estimated", "truth")
 @dataclass(frozen=True)
 class SimMission:
     """What to fly: ``world`` from ``seed``; route ``pair`` or a ``goal`` (x, y, z) from the
-    pair's start, through the waypoints ``via`` first (each x, y, z; in order); ``depth`` one of :data:`DEPTH_SOURCES`; ``tracks`` one of
-    :data:`drivers.sim.truth_tracks.TRACK_SOURCES`; ``start_yaw_deg`` the heading the vehicle
-    stands at on the ground (degrees counter-clockwise from east; default: facing the first leg);
-    ``link`` one of :data:`drivers.sim.serve.LINKS`; ``go_after_s``: the operator's go comes
-    that many simulated seconds after the mission starts waiting for it (None: the command
-    line gave it)."""
+    pair's start, through the waypoints ``via`` first (each x, y, z; in order); ``depth`` one
+    of :data:`DEPTH_SOURCES`; ``tracks`` one of :data:`drivers.sim.truth_tracks.TRACK_SOURCES`;
+    ``start_yaw_deg`` the heading the vehicle stands at on the ground (degrees
+    counter-clockwise from east; default: facing the first leg); ``link`` one of
+    :data:`drivers.sim.serve.LINKS`; ``go_after_s``: the operator's go comes that many
+    simulated seconds after the mission starts waiting for it (None: the command line gave
+    it)."""
 
     world: str = "dome"
     seed: int = 0
@@ -92,7 +93,8 @@ def mission_waypoints(world: World, mission: SimMission, height: float
                       ) -> tuple[np.ndarray, np.ndarray, float]:
     """``(start, waypoints (N, 3), start_yaw)`` of the mission: the route's start, the corners
     of its collision-free path at ``height`` ending at its goal (or the mission's ``via``
-    waypoints and its ``goal``), and the heading it stands at (the first leg's unless the mission gives one)."""
+    waypoints and its ``goal``), and the heading it stands at (the first leg's unless the
+    mission gives one)."""
     if not 0 <= mission.pair < len(world.routes):
         raise SimError(f"{world.name} has start/goal pairs 0..{len(world.routes) - 1}, "
                        f"not {mission.pair}")
