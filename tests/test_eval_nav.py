@@ -885,7 +885,39 @@ def test_eval_nav_compare_reports_the_comparison_of_two_runs_files(tmp_path, cap
     assert markdown.read_text() == text
 
 
+def test_pairs_of_runs_of_two_revisions_pool_into_the_comparison_of_one_pair(tmp_path, capsys):
+    """An arm weighed over seeds flown in two sessions (each pair of runs by one revision, on
+    one host): each pair is matched on its own trials, and the pool is the comparison the
+    whole runs would give, the sign test over all of them."""
+    def seed(records, number):
+        return [r for r in records if r["seed"] == number]
+
+    before, after = _flown_records(0, 2), _changed_run()
+    pooled = nav_compare.compare_runs(seed(before, 0), seed(after, 0),
+                                      also=[(seed(before, 1), seed(after, 1))])
+    assert pooled == nav_compare.compare_runs(before, after)
+    files = [_record_file(tmp_path, _stamped(seed(run, number), revision=revision),
+                          f"{name}{number}.jsonl")
+             for number, revision in ((0, "abc"), (1, "def"))
+             for run, name in ((before, "before"), (after, "after"))]
+    assert main(["eval", "nav", "--compare", *files, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == pooled
+    assert main(["eval", "nav", "--compare", *files]) == 0
+    assert capsys.readouterr().out.startswith(
+        f"## Navigation runs compared: {files[0]} → {files[1]}; {files[2]} → {files[3]}")
+
+
+def test_a_trial_in_two_pooled_pairs_is_refused():
+    run = _flown_records(0, 1)
+    with pytest.raises(EvaluationError, match="dome pair 0 gt seed 0 is in two of the pairs"):
+        nav_compare.compare_runs(run, run, also=[(run, run)])
+
+
 @pytest.mark.parametrize("make_args, code, words", [
+    (lambda d, run: ["--compare", run, run, run], 2,
+     "eval nav: --compare takes runs in pairs, BEFORE AFTER [BEFORE AFTER ...]; got 3"),
+    (lambda d, run: ["--compare", run, run, run, _record_file(d, _flown_records(1, 1))], 1,
+     "eval nav: no trial is in both runs (other worlds, pairs or seeds?)"),
     (lambda d, run: ["--compare", run, run, "--trials", "5", "--runs", str(d / "x.jsonl")],
      2, "eval nav: --compare flies nothing; drop --trials, --runs"),
     (lambda d, run: ["--compare", run, run, "--merge", run],

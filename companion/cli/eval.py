@@ -223,9 +223,11 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                          help="fly nothing: report the records of these --runs files (an "
                               "evaluation flown in parts, e.g. one --seed each) as one run; "
                               "takes none of the flight options")
-    command.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
+    command.add_argument("--compare", nargs="+", type=Path, metavar="BEFORE AFTER",
                          help="fly nothing: compare two --runs files (one may be interrupted) "
-                              "on the trials both flew: each run's successes, collisions, "
+                              "on the trials both flew (several pairs BEFORE AFTER ...: each "
+                              "matched on its own trials, all pooled): each run's successes, "
+                              "collisions, "
                               "speed, least clearance and VINS error, the changed outcomes, "
                               "the identical flights, the after/before ratio of the times to "
                               "the goal, and the VINS at the end as issue 24 judges it (worst, "
@@ -385,15 +387,20 @@ def _compare_nav(args: argparse.Namespace) -> int:
     from companion.tools.eval import nav_compare
     from companion.tools.eval.vio import EvaluationError
 
-    before, after = args.compare
+    if len(args.compare) % 2:
+        print(f"eval nav: --compare takes runs in pairs, BEFORE AFTER [BEFORE AFTER ...]; "
+              f"got {len(args.compare)}", file=sys.stderr)
+        return common.EXIT_USAGE
+    names = list(zip(args.compare[::2], args.compare[1::2]))
     try:
-        comparison = nav_compare.compare_runs(nav_compare.read_run(before),
-                                              nav_compare.read_run(after))
+        (before, after), *also = [(nav_compare.read_run(b), nav_compare.read_run(a))
+                                  for b, a in names]
+        comparison = nav_compare.compare_runs(before, after, also)
     except EvaluationError as error:
         print(f"eval nav: {error}", file=sys.stderr)
         return common.EXIT_FAILED
-    return common.report("eval nav", args, comparison,
-                         nav_compare.format_markdown(comparison, str(before), str(after)))
+    return common.report("eval nav", args, comparison, nav_compare.format_markdown(
+        comparison, [(str(b), str(a)) for b, a in names]))
 
 
 #: The options of ``eval nav`` that choose what to fly, which ``--merge`` and ``--compare``

@@ -30,11 +30,17 @@ window kept open").
 Either run may be partial (an interrupted ``--runs`` file): only common trials are compared,
 and the trials one run flew alone are counted, not compared. Runs with no trial in common, or
 flown to different time limits (an outcome depends on the limit), are not compared.
+
+An arm weighed over more seeds than one session flies is several pairs of runs, each pair
+flown by one code revision on one host (a host redraws flights; docs/vins.md, "The height wave
+flown level where it cannot swing"): each pair is matched on its own trials and the trials of
+all pairs are pooled (``also`` of :func:`compare_runs`), a trial in two pairs refused.
 """
 
 from __future__ import annotations
 
 import collections
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -67,23 +73,35 @@ def read_run(path: Path) -> list[dict]:
     return records
 
 
-def compare_runs(before: list[dict], after: list[dict]) -> dict:
+def compare_runs(before: list[dict], after: list[dict],
+                 also: Sequence[tuple[list[dict], list[dict]]] = ()) -> dict:
     """``{"timeout_s", "trials_only_before", "trials_only_after", "sources": {source:
     {...}}}``, the comparison of the module docstring; ``sources`` in the order of
     :data:`~companion.tools.eval.nav.DEPTH_SOURCES`, those with no common trial left out.
-    EvaluationError when no trial is in both runs or they flew different time limits."""
-    earlier = {nav.trial_key(r): r for r in before}
-    later = {nav.trial_key(r): r for r in after}
-    common = [key for key in earlier if key in later]
-    if not common:
-        raise EvaluationError("no trial is in both runs (other worlds, pairs or seeds?)")
-    timeout_s = nav.refuse_mixed_time_limits(before + after, "compare")
+    ``also``: further (before, after) pairs of runs, each matched on its own trials, all
+    pooled. EvaluationError when a pair has no trial in both runs, a trial is in two pairs,
+    or the runs flew different time limits."""
+    runs = [(before, after), *also]
+    trials, only_before, only_after = {}, 0, 0
+    for pair in runs:
+        earlier, later = ({nav.trial_key(r): r for r in run} for run in pair)
+        common = [key for key in earlier if key in later]
+        if not common:
+            raise EvaluationError("no trial is in both runs (other worlds, pairs or seeds?)")
+        twice = next((key for key in common if key in trials), None)
+        if twice is not None:
+            raise EvaluationError(f"{nav.describe_trial(twice)} is in two of the pairs "
+                                  "compared; pool pairs of other trials")
+        trials.update((key, (earlier[key], later[key])) for key in common)
+        only_before += len(earlier) - len(common)
+        only_after += len(later) - len(common)
+    timeout_s = nav.refuse_mixed_time_limits(
+        [record for pair in runs for run in pair for record in run], "compare")
     by_source = collections.defaultdict(list)
-    for key in common:
-        by_source[key[2]].append((earlier[key], later[key]))
-    return {"timeout_s": timeout_s,
-            "trials_only_before": len(earlier) - len(common),
-            "trials_only_after": len(later) - len(common),
+    for key, pair in trials.items():
+        by_source[key[2]].append(pair)
+    return {"timeout_s": timeout_s, "trials_only_before": only_before,
+            "trials_only_after": only_after,
             "sources": {source: _compare_source(by_source[source])
                         for source in nav.DEPTH_SOURCES if by_source[source]}}
 
@@ -160,10 +178,11 @@ def _same_flight(before: dict, after: dict) -> bool:
                                                 for key in SAME_FLIGHT_KEYS)
 
 
-def format_markdown(comparison: dict, before: str, after: str) -> str:
-    """A heading naming the two runs, one row per depth source, and the changed outcomes."""
+def format_markdown(comparison: dict, runs: Sequence[tuple[str, str]]) -> str:
+    """A heading naming the pairs of runs (before, after), one row per depth source, and the
+    changed outcomes."""
     lines = [
-        f"## Navigation runs compared: {before} → {after}",
+        f"## Navigation runs compared: {'; '.join(f'{b} → {a}' for b, a in runs)}",
         "",
         f"On the trials both runs flew (world, pair, depth source, seed; "
         f"{comparison['timeout_s']:g} s to reach the goal); "
