@@ -227,12 +227,11 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                          help="fly nothing: compare two --runs files (one may be interrupted) "
                               "on the trials both flew (several pairs BEFORE AFTER ...: each "
                               "matched on its own trials, all pooled): each run's successes, "
-                              "collisions, "
-                              "speed, least clearance and VINS error, the changed outcomes, "
-                              "the identical flights, the after/before ratio of the times to "
-                              "the goal, and the VINS at the end as issue 24 judges it (worst, "
-                              "over 1 m, nearer and farther with the sign test's p and the "
-                              "median change, seeds nearer and farther, paths made long, "
+                              "collisions, speed, least clearance and VINS error, the changed "
+                              "outcomes, the identical flights, the after/before ratio of the "
+                              "times to the goal, and the VINS at the end as issue 24 judges it "
+                              "(worst, over 1 m, nearer and farther with the sign test's p and "
+                              "the median change, seeds nearer and farther, paths made long, "
                               "|scale - 1|)")
     command.set_defaults(command=_eval_nav)
 
