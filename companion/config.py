@@ -170,6 +170,7 @@ SIMULATOR_DEFAULTS = (
     "sim_latency.vins_s=0.024",
     "planner.near_tail_share=0.9",
     "planner.far_tail_share=0.9",
+    "planner.height_swing=0.08",
 )
 
 
