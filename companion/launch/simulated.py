@@ -35,6 +35,7 @@ from typing import Callable
 
 import numpy as np
 
+from autonomy.navigation.mission import FlightState
 from companion.flight.app import FlightApp, format_flight
 from companion.flight.perception import NetworkDepth
 from companion.recording.session import open_recording, recorded, recording_metadata
@@ -197,7 +198,7 @@ async def fly(config, mission: SimMission, *, plot: Path | None = None,
     # never came was never injected
     summary["fault_moments"] = {moment: round(t, 3) for moment, t in faults.moment_since.items()}
     if plot is not None:
-        _plot(world, mission, side.track, (start, waypoints), sim, plot, summary)
+        _plot(world, mission, side.track, (start, waypoints), plot, summary)
         summary["plot"] = str(plot)
     return summary
 
@@ -249,14 +250,14 @@ def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthT
     goal = waypoints[-1]
     truth = track.score(world, goal, summary.get("navigation_end"))
     collision = sim.vehicle.collision
+    floor = _floor_contact(track, summary["transitions"])
     return {
         "world": world.name, "seed": mission.seed, "pair": mission.pair, "depth": mission.depth,
         "goal": [round(float(v), 3) for v in goal],
         "faults": [dataclasses.asdict(f) for f in mission.faults],
-        "collisions": 0 if collision is None else 1,
-        "collision": None if collision is None else {
-            "t": round(collision.time, 3),
-            "position": [round(float(v), 3) for v in collision.position]},
+        "collisions": (collision is not None) + (floor is not None),
+        "collision": None if collision is None else _event(collision.time, collision.position),
+        "floor_contact": floor,
         **truth,
         "failsafe_stop_m": _path_length_in(track, summary["transitions"], "failsafe_stop"),
         "landing_glide_m": _path_length_in(track, summary["transitions"], "to_landing_site"),
@@ -265,6 +266,29 @@ def _truth_summary(config, world: World, mission: SimMission, sim, track: TruthT
                              and truth["closest_to_goal_m"]
                              <= config.flight.goal_tolerance + GOAL_DRIFT_ALLOWANCE),
     }
+
+
+def _event(t: float, position) -> dict:
+    return {"t": round(t, 3), "position": [round(float(v), 3) for v in position]}
+
+
+def _floor_contact(track: TruthTrack, transitions: list[dict]) -> dict | None:
+    """Where and when the vehicle first came down on the floor between the switch to Offboard
+    and the landing (an arc or a stop flown into it: no obstacle's collision radius counts the
+    floor, and the least clearance leaves out the path below 0.3 m, the take-off's and the
+    landing's), None if it did not. A collision as much as a wall is."""
+    start = next((t["t"] for t in transitions
+                  if t["from"] == FlightState.ENTERING_OFFBOARD.value), None)
+    if start is None:
+        return None
+    end = next((t["t"] for t in transitions if t["t"] >= start and t["to"] in _DOWN), math.inf)
+    contact = track.first_floor_contact(start, end)
+    return None if contact is None else _event(*contact)
+
+
+#: The states in which the vehicle is meant to come down, or is down.
+_DOWN = frozenset(state.value for state in (FlightState.LANDING, FlightState.LANDED,
+                                              FlightState.ABORTED))
 
 
 def _path_length_in(track: TruthTrack, transitions: list[dict], state: str) -> float | None:
@@ -278,18 +302,20 @@ def _path_length_in(track: TruthTrack, transitions: list[dict], state: str) -> f
     return None
 
 
-def _plot(world, mission: SimMission, track: TruthTrack, route, sim, out: Path,
+def _plot(world, mission: SimMission, track: TruthTrack, route, out: Path,
           summary: dict) -> None:
     """The top view of the flight (:func:`companion.tools.plot.top_view`): the true path
-    coloured by time over the world, the ``route``'s start and waypoints, the collision."""
+    coloured by time over the world, the ``route``'s start and waypoints, where it met a
+    surface or came down on the floor (the summary's ``collision`` and ``floor_contact``)."""
     from companion.tools.eval.provenance import code_revision
     from companion.tools.plot import flight_caption, top_view
 
     start, waypoints = route
-    collision = sim.vehicle.collision
     top_view(world, np.array(track.positions), times=track.t, start=start, goal=waypoints[-1],
              waypoints=waypoints[:-1],
-             collisions=() if collision is None else (collision.position,), out=out,
+             collisions=tuple(event["position"] for event in (summary.get("collision"),
+                                                              summary.get("floor_contact"))
+                              if event is not None), out=out,
              title=f"{world.name} pair {mission.pair}: "
                    f"{'reached' if summary['reached_goal'] else 'not reached'}",
              caption=f"Flown: {flight_caption(mission)}; code revision {code_revision()}.")
@@ -304,13 +330,18 @@ def _format_load(load: dict) -> str:
     return f"{load['where']}: {carried}; bad data {bad['received']} in, {bad['sent']} out"
 
 
+def _floor_line(summary: dict) -> str:
+    floor = summary.get("floor_contact")
+    return "" if floor is None else f" (on the floor at t={floor['t']:.1f} s)"
+
+
 def format_summary(summary: dict) -> str:
     """A simulated flight's summary as a few lines for a person."""
     lines = [f"{summary['world']} pair {summary['pair']} (seed {summary['seed']}) -> goal "
              f"{summary['goal']}",
              f"  reached goal      {'yes' if summary['reached_goal'] else 'no'}"
              f" (closest {show(summary.get('closest_to_goal_m'), '.2f', ' m')})",
-             f"  collisions        {summary['collisions']}",
+             f"  collisions        {summary['collisions']}{_floor_line(summary)}",
              f"  path length       {show(summary.get('path_length_m'), '.1f', ' m')}",
              f"  min clearance     {show(summary.get('min_clearance_m'), '.2f', ' m')}",
              f"  VINS error        {show(summary.get('position_error_m'), '.2f', ' m')}"

@@ -49,6 +49,8 @@ log = logging.getLogger(__name__)
 TRACK_RATE_HZ = 20.0
 #: Simulated seconds between progress lines.
 PROGRESS_PERIOD_S = 2.0
+#: The true height at or below which the vehicle is on the floor (it rests at z = 0), metres.
+FLOOR_CONTACT_M = 0.05
 #: Longest event-loop stall a ``loop_stall`` fault injects, seconds.
 MAX_STALL_S = 5.0
 #: Longest wait for the simulator thread to come up, seconds.
@@ -216,6 +218,16 @@ class TruthTrack:
         t = np.asarray(self.t)
         path = np.array(self.positions).reshape(-1, 3)[(t >= t0) & (t <= t1)]
         return float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+
+    def first_floor_contact(self, t0: float, t1: float) -> tuple[float, np.ndarray] | None:
+        """The first sample from ``t0`` up to ``t1`` (application clock) with the vehicle on
+        the floor (:data:`FLOOR_CONTACT_M`): its time and true position; None if none."""
+        t = np.asarray(self.t)
+        height = np.array(self.positions).reshape(-1, 3)[:, 2]
+        on_floor = np.flatnonzero((t >= t0) & (t < t1) & (height <= FLOOR_CONTACT_M))
+        if len(on_floor) == 0:
+            return None
+        return self.t[on_floor[0]], self.positions[on_floor[0]]
 
     def _progress_line(self, sim, goal: np.ndarray) -> str:
         position = self.positions[-1]

@@ -217,7 +217,8 @@ def error_record(trial: Trial, trace: str, *, timeout_s: float,
 
 
 #: The flight summary's numbers a trial's record keeps.
-_SUMMARY_KEYS = ("start", "reached_goal", "collisions", "failsafes", "final_state",
+_SUMMARY_KEYS = ("start", "reached_goal", "collisions", "floor_contact", "failsafes",
+                 "final_state",
                  "flight_time_s", "navigation_time_s", "path_length_m", "min_clearance_m",
                  "closest_to_goal_m", "vins_resets", "position_error_m",
                  "position_error_split", "backoffs",
