@@ -35,7 +35,7 @@ def assert_safe_landing(summary: dict) -> None:
     """Whatever happened: no collision, landed and disarmed, no crash of the application; and
     once PX4 flew the vehicle on its own, the application never commanded it again (its
     depth rests from then on: ``DEPTH_UNUSED_STATES``)."""
-    assert summary["collisions"] == 0, summary["collision"]
+    assert summary["collisions"] == 0, (summary["collision"], summary["floor_contact"])
     assert summary["final_state"] == "landed", summary["transitions"]
     resting = {state.value for state in DEPTH_UNUSED_STATES}
     states = [t["to"] for t in summary["transitions"]]

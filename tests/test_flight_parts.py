@@ -164,14 +164,15 @@ def _transition(t, source, target):
 def test_a_vehicle_come_down_on_the_floor_while_navigating_is_a_collision():
     """The floor is no obstacle of the world's (the collision radius never meets it) and the
     least clearance leaves out the path below 0.3 m, so an arc flown into the floor showed
-    nowhere: between the switch to Offboard and the landing, its first contact is a
-    collision. The take-off before and the landing after are not."""
+    nowhere: between the switch to Offboard and the landing, its first contact armed is a
+    collision. The take-off before, the landing after and a fall once disarmed are not."""
     from companion.launch.simulated import _floor_contact
 
     track = TruthTrack()
     track.t = [0.0, 3.0, 8.0, 9.0, 12.0, 15.0]
     track.positions = [np.array(p) for p in ((0, 0, 0.0), (0, 0, 1.5), (5, 0, 0.6),
                                              (6, 0, 0.0), (6, 0, 0.0), (6, 0, 0.0))]
+    track.armed = [False, True, True, True, True, False]
     flown = [_transition(2.0, "taking_off", "entering_offboard"),
              _transition(4.0, "entering_offboard", "navigating"),
              _transition(13.0, "holding", "landing"), _transition(14.0, "landing", "landed")]
@@ -181,6 +182,8 @@ def test_a_vehicle_come_down_on_the_floor_while_navigating_is_a_collision():
     landed = [*flown[:2], _transition(8.5, "navigating", "landing")]
     assert _floor_contact(track, landed) is None  # came down in the landing, as meant
     assert _floor_contact(track, flown[:1]) is None  # never reached Offboard
+    track.armed = [False, True, True, False, False, False]  # disarmed in the air: it fell
+    assert _floor_contact(track, flown) is None
 
 
 def test_truth_depth_is_fully_confident_and_its_empty_sky_is_far():

@@ -273,10 +273,10 @@ def _event(t: float, position) -> dict:
 
 
 def _floor_contact(track: TruthTrack, transitions: list[dict]) -> dict | None:
-    """Where and when the vehicle first came down on the floor between the switch to Offboard
-    and the landing (an arc or a stop flown into it: no obstacle's collision radius counts the
-    floor, and the least clearance leaves out the path below 0.3 m, the take-off's and the
-    landing's), None if it did not. A collision as much as a wall is."""
+    """Where and when the vehicle first came down on the floor, armed, between the switch to
+    Offboard and the landing (an arc or a stop flown into it: no obstacle's collision radius
+    counts the floor, and the least clearance leaves out the path below 0.3 m, the take-off's
+    and the landing's), None if it did not. A collision as much as a wall is."""
     start = next((t["t"] for t in transitions
                   if t["from"] == FlightState.ENTERING_OFFBOARD.value), None)
     if start is None:

@@ -196,6 +196,7 @@ class TruthTrack:
     def __init__(self):
         self.t: list[float] = []  # the application's clock at each sample
         self.positions: list[np.ndarray] = []
+        self.armed: list[bool] = []
 
     async def run(self, sim, clock, goal: np.ndarray, progress=None) -> None:
         """Sample until cancelled; every :data:`PROGRESS_PERIOD_S` a line to ``progress``."""
@@ -203,6 +204,7 @@ class TruthTrack:
         while True:
             self.t.append(clock.now())
             self.positions.append(np.array(sim.vehicle.state.position))
+            self.armed.append(sim.vehicle.armed)
             if progress is not None and sim.time >= next_line:
                 progress(self._progress_line(sim, goal))
                 next_line = sim.time + PROGRESS_PERIOD_S
@@ -221,10 +223,12 @@ class TruthTrack:
 
     def first_floor_contact(self, t0: float, t1: float) -> tuple[float, np.ndarray] | None:
         """The first sample from ``t0`` up to ``t1`` (application clock) with the vehicle on
-        the floor (:data:`FLOOR_CONTACT_M`): its time and true position; None if none."""
+        the floor (:data:`FLOOR_CONTACT_M`) and armed, flown there: its time and true
+        position; None if none. (Disarmed in the air, by a fault or PX4, it falls: not flown.)"""
         t = np.asarray(self.t)
         height = np.array(self.positions).reshape(-1, 3)[:, 2]
-        on_floor = np.flatnonzero((t >= t0) & (t < t1) & (height <= FLOOR_CONTACT_M))
+        on_floor = np.flatnonzero((t >= t0) & (t < t1) & (height <= FLOOR_CONTACT_M)
+                                  & np.asarray(self.armed, dtype=bool))
         if len(on_floor) == 0:
             return None
         return self.t[on_floor[0]], self.positions[on_floor[0]]
