@@ -319,6 +319,34 @@ def test_offboard_loss_failsafe_after_com_of_loss_t(action, mode):
         bench.close()
 
 
+def test_a_vehicle_flown_down_onto_the_floor_in_offboard_is_disarmed_as_in_land():
+    """Commander's auto-disarm (Commander.cpp, handleAutoDisarm) holds in every mode once the
+    vehicle has taken off since arming: Offboard setpoints flown into the floor end with the
+    motors off COM_DISARM_LAND seconds after the touch-down, the mode kept. Armed on the
+    ground and not yet taken off, it stays armed."""
+    bench = Bench(Px4Options(disarm_after_land=0.5))
+    try:
+        bench.arm()
+        bench.stream_velocity((0.0, 0.0, 0.5), 1.2)  # on the ground, pushed down
+        bench.set_mode(px4_protocol.OFFBOARD)
+        bench.stream_velocity((0.0, 0.0, 0.5), 1.0)
+        assert bench.vehicle.landed and bench.vehicle.armed  # never took off
+        bench.stream_velocity((0.0, 0.0, -1.0), 1.5)  # up 1.5 m
+        assert not bench.vehicle.landed and bench.vehicle.armed
+        for _ in range(60):  # down into the floor, to the touch-down
+            bench.stream_velocity((0.0, 0.0, 1.0), 0.1)
+            if bench.vehicle.landed:
+                break
+        assert bench.vehicle.landed and bench.vehicle.armed  # not yet the delay
+        bench.stream_velocity((0.0, 0.0, 1.0), 0.3)
+        assert bench.vehicle.armed
+        bench.stream_velocity((0.0, 0.0, 1.0), 0.3)
+        assert not bench.vehicle.armed and bench.px4.mode == px4_protocol.OFFBOARD
+        assert "Disarmed by landing" in bench.texts()
+    finally:
+        bench.close()
+
+
 def test_unsupported_frames_are_rejected_and_do_not_move_the_vehicle(bench):
     bench.arm()
     start = bench.vehicle.state.position

@@ -360,6 +360,7 @@ class MockPx4:
         self._takeoff_height = self.parameters["MIS_TAKEOFF_ALT"]
         self._takeoff: tuple[VelocitySmoothing, float] | None = None  # the climb, its last tick
         self._landed_since: float | None = None
+        self._taken_off = False  # since arming (Commander's _have_taken_off_since_arming)
         self._ev_offset = np.zeros(3)
         self._ev_time: float | None = None
         self._timesync_sent_ns: int | None = None
@@ -579,6 +580,7 @@ class MockPx4:
         self.vehicle.arm()
         self._home = np.array(self.estimate.position)
         self._landed_since = None
+        self._taken_off = False
         self._takeoff = None  # a take-off armed into starts from rest
         if self.mode == px4_protocol.AUTO_LOITER:
             self._enter_hold()
@@ -986,18 +988,23 @@ class MockPx4:
                                               yaw=self._hold_yaw))
 
     def _auto_disarm(self) -> None:
-        """Disarm COM_DISARM_LAND seconds after touching down in Land; a value not above 0
-        turns it off (Commander.cpp, handleAutoDisarm: ``_param_com_disarm_land.get() > 0``)."""
+        """Disarm COM_DISARM_LAND seconds after touching down, once taken off since arming, in
+        any mode (a mission not yet finished aside, which the mock does not fly); a value not
+        above 0 turns it off (Commander.cpp, handleAutoDisarm: ``_param_com_disarm_land.get()
+        > 0 && _have_taken_off_since_arming``). Offboard setpoints flown into the floor end
+        so, as in Land."""
+        self._taken_off |= self.vehicle.armed and not self.vehicle.landed
         delay = self.parameters["COM_DISARM_LAND"]
         if (not self.vehicle.armed or not self.vehicle.landed or delay <= 0.0
-                or self.mode != px4_protocol.AUTO_LAND):
+                or not self._taken_off):
             self._landed_since = None
             return
         if self._landed_since is None:
             self._landed_since = self.time
         if self.time - self._landed_since >= delay:
             self._disarm(forced=True, reason="landing")
-            self._set_mode(px4_protocol.AUTO_LOITER)
+            if self.mode == px4_protocol.AUTO_LAND:
+                self._set_mode(px4_protocol.AUTO_LOITER)
 
     # ---------------------------------------------------------------- outgoing
 
