@@ -165,7 +165,8 @@ def test_a_vehicle_come_down_on_the_floor_while_navigating_is_a_collision():
     """The floor is no obstacle of the world's (the collision radius never meets it) and the
     least clearance leaves out the path below 0.3 m, so an arc flown into the floor showed
     nowhere: between the switch to Offboard and the landing, its first contact armed is a
-    collision. The take-off before, the landing after and a fall once disarmed are not."""
+    collision. The take-off before, the landing after, PX4's own landing and a fall once
+    disarmed are not."""
     from companion.launch.simulated import _floor_contact
 
     track = TruthTrack()
@@ -173,6 +174,7 @@ def test_a_vehicle_come_down_on_the_floor_while_navigating_is_a_collision():
     track.positions = [np.array(p) for p in ((0, 0, 0.0), (0, 0, 1.5), (5, 0, 0.6),
                                              (6, 0, 0.0), (6, 0, 0.0), (6, 0, 0.0))]
     track.armed = [False, True, True, True, True, False]
+    track.px4_landing = [False] * 6
     flown = [_transition(2.0, "taking_off", "entering_offboard"),
              _transition(4.0, "entering_offboard", "navigating"),
              _transition(13.0, "holding", "landing"), _transition(14.0, "landing", "landed")]
@@ -182,6 +184,11 @@ def test_a_vehicle_come_down_on_the_floor_while_navigating_is_a_collision():
     landed = [*flown[:2], _transition(8.5, "navigating", "landing")]
     assert _floor_contact(track, landed) is None  # came down in the landing, as meant
     assert _floor_contact(track, flown[:1]) is None  # never reached Offboard
+    aborted = [*flown[:2], _transition(8.8, "navigating", "aborted")]
+    assert _floor_contact(track, aborted) is None  # PX4 disarmed it: the app gave up
+    track.px4_landing = [False, False, False, True, True, True]  # PX4 landed it (link lost)
+    assert _floor_contact(track, flown) is None
+    track.px4_landing = [False] * 6
     track.armed = [False, True, True, False, False, False]  # disarmed in the air: it fell
     assert _floor_contact(track, flown) is None
 

@@ -343,6 +343,9 @@ def test_a_vehicle_flown_down_onto_the_floor_in_offboard_is_disarmed_as_in_land(
         bench.stream_velocity((0.0, 0.0, 1.0), 0.3)
         assert not bench.vehicle.armed and bench.px4.mode == px4_protocol.OFFBOARD
         assert "Disarmed by landing" in bench.texts()
+        bench.arm()  # armed again on the ground: not taken off since this arming
+        bench.run(1.0)
+        assert bench.vehicle.landed and bench.vehicle.armed
     finally:
         bench.close()
 

@@ -37,6 +37,7 @@ from autonomy.messages import DepthDiagnostics, Frame, MetricDepth
 from autonomy.trajectory import split_displacement
 from drivers.camera.calibration import CameraCalibration
 from drivers.clock import MonotonicClock, SimClock
+from drivers.mavlink import px4_protocol
 from drivers.sim.camera import CameraHead, SimCamera
 from drivers.sim.faults import Fault, FaultSchedule
 from drivers.sim.render import Renderer
@@ -197,6 +198,7 @@ class TruthTrack:
         self.t: list[float] = []  # the application's clock at each sample
         self.positions: list[np.ndarray] = []
         self.armed: list[bool] = []
+        self.px4_landing: list[bool] = []  # PX4 in Land: a touch-down is meant
 
     async def run(self, sim, clock, goal: np.ndarray, progress=None) -> None:
         """Sample until cancelled; every :data:`PROGRESS_PERIOD_S` a line to ``progress``."""
@@ -205,6 +207,7 @@ class TruthTrack:
             self.t.append(clock.now())
             self.positions.append(np.array(sim.vehicle.state.position))
             self.armed.append(sim.vehicle.armed)
+            self.px4_landing.append(sim.px4.mode == px4_protocol.AUTO_LAND)
             if progress is not None and sim.time >= next_line:
                 progress(self._progress_line(sim, goal))
                 next_line = sim.time + PROGRESS_PERIOD_S
@@ -223,12 +226,14 @@ class TruthTrack:
 
     def first_floor_contact(self, t0: float, t1: float) -> tuple[float, np.ndarray] | None:
         """The first sample from ``t0`` up to ``t1`` (application clock) with the vehicle on
-        the floor (:data:`FLOOR_CONTACT_M`) and armed, flown there: its time and true
-        position; None if none. (Disarmed in the air, by a fault or PX4, it falls: not flown.)"""
+        the floor (:data:`FLOOR_CONTACT_M`), armed and PX4 not landing it: flown there. Its
+        time and true position; None if none. (Disarmed in the air, by a fault or PX4, it
+        falls; PX4 lands it on a failsafe of its own, such as a lost offboard link.) Sampled
+        at :data:`TRACK_RATE_HZ`: a touch shorter than a sample's 50 ms may be missed."""
         t = np.asarray(self.t)
         height = np.array(self.positions).reshape(-1, 3)[:, 2]
-        on_floor = np.flatnonzero((t >= t0) & (t < t1) & (height <= FLOOR_CONTACT_M)
-                                  & np.asarray(self.armed, dtype=bool))
+        flown = np.asarray(self.armed, dtype=bool) & ~np.asarray(self.px4_landing, dtype=bool)
+        on_floor = np.flatnonzero((t >= t0) & (t < t1) & (height <= FLOOR_CONTACT_M) & flown)
         if len(on_floor) == 0:
             return None
         return self.t[on_floor[0]], self.positions[on_floor[0]]

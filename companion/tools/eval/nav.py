@@ -24,7 +24,8 @@ timeout" failsafe: stop, hold, land).
 
 Outcomes (:func:`outcome`), one per trial:
 
-- ``collision``: the simulator recorded a collision, whatever else happened;
+- ``collision``: the simulator recorded a collision (with a wall, or the vehicle flown down
+  onto the floor: ``floor_contact``), whatever else happened;
 - ``success``: the goal was reached (the application said so and the true closest approach
   confirms it, :func:`companion.launch.simulated.run`) without a collision, within the time limit;
 - ``timeout``: everything else: out of time, and also a flight that ended early without the
