@@ -277,13 +277,19 @@ def _floor_contact(track: TruthTrack, transitions: list[dict]) -> dict | None:
     Offboard and the landing (an arc or a stop flown into it: no obstacle's collision radius
     counts the floor, and the least clearance leaves out the path below 0.3 m, the take-off's
     and the landing's), None if it did not. A collision as much as a wall is."""
-    start = next((t["t"] for t in transitions
-                  if t["from"] == FlightState.ENTERING_OFFBOARD.value), None)
+    start = offboard_switch_time(transitions)
     if start is None:
         return None
     end = next((t["t"] for t in transitions if t["t"] >= start and t["to"] in _DOWN), math.inf)
     contact = track.first_floor_contact(start, end)
     return None if contact is None else _event(*contact)
+
+
+def offboard_switch_time(transitions: list[dict]) -> float | None:
+    """When the flight switched to Offboard (the transition out of ENTERING_OFFBOARD, to the
+    offset swing or to navigating), from a summary's ``transitions``; None if it never did."""
+    return next((t["t"] for t in transitions
+                 if t["from"] == FlightState.ENTERING_OFFBOARD.value), None)
 
 
 #: The states in which the vehicle is meant to come down, or is down.

@@ -77,7 +77,6 @@ import numpy as np
 from tqdm import tqdm
 
 from autonomy.navigation.behaviours import GOAL_STOP_REASON
-from autonomy.navigation.mission import FlightState
 from companion.launch import simulated
 from companion.report import mean_or_none, show
 from companion.tools.eval import executor, provenance
@@ -219,9 +218,8 @@ def error_record(trial: Trial, trace: str, *, timeout_s: float,
 
 #: The flight summary's numbers a trial's record keeps.
 _SUMMARY_KEYS = ("start", "reached_goal", "collisions", "floor_contact", "failsafes",
-                 "final_state",
-                 "flight_time_s", "navigation_time_s", "path_length_m", "min_clearance_m",
-                 "closest_to_goal_m", "vins_resets", "position_error_m",
+                 "final_state", "flight_time_s", "navigation_time_s", "path_length_m",
+                 "min_clearance_m", "closest_to_goal_m", "vins_resets", "position_error_m",
                  "position_error_split", "backoffs",
                  "vins_correction_m", "landing_glide_m", "depth_fallbacks",
                  "camera_frames_dropped", "camera_frames_lost", "frame_age_ms")
@@ -247,8 +245,7 @@ def time_to_goal(summary: dict) -> float | None:
     to the offset swing or to navigating: the swing is the flight's time too) to "goal
     reached", None if not reached."""
     transitions = summary.get("transitions", [])
-    offboard = next((t["t"] for t in transitions
-                     if t["from"] == FlightState.ENTERING_OFFBOARD.value), None)
+    offboard = simulated.offboard_switch_time(transitions)
     reached = next((t["t"] for t in transitions if t["reason"] == GOAL_STOP_REASON), None)
     if offboard is None or reached is None:
         return None
