@@ -1,11 +1,15 @@
 """Speed of the VINS back-end on one core: milliseconds per keyframe on simulated flights.
 
-    python benchmarks/vins_backend.py [--duration 20] [--worlds mine sewer dome] [--dataset DIR]
-        [--base KEY=VALUE ...] [--set KEY=VALUE ...]
+    python benchmarks/vins_backend.py [--config FILE] [--duration 20] [--seed 0]
+        [--worlds mine sewer dome] [--dataset DIR] [--base KEY=VALUE ...] [--set KEY=VALUE ...]
 
-Records a simulated flight per world (seed 0; or uses the EuRoC/ASL dataset given), pins the
-process to one CPU (and OpenCV to one thread), and runs the whole VINS over it with the
-default options, exactly as ``companion eval vio`` does. The back-end time is
+Records a simulated flight per world (or uses the recording or EuRoC/ASL dataset given), pins
+the process to one CPU (and OpenCV to one thread), and runs the whole VINS over it exactly as
+``companion eval vio`` does. Without ``--config`` the flights are the ideal profile's and the
+VINS has every option at its default; with ``--config`` (``config/sim-realistic.toml``: what the
+presets fly) the flights are recorded as ``companion eval vio-table`` records them in the
+config's profile, the planner's waves included, and the VINS, its front-end and its start are
+the config's. The back-end time is
 ``Vins.add_frame`` on keyframe frames (the smoother update, landmark gate, map); the front-end
 time on the same frames is the baseline of the same run. Keyframes come at 10 Hz on these
 flights (``keyframe_interval_s``), with 150 tracks. The covariance time is that of one
@@ -30,15 +34,12 @@ from pathlib import Path
 
 import cv2
 
-from autonomy.vins import VinsOptions
 from autonomy.vins.backend import SlidingWindowSmoother
-from companion.config import ConfigError, load_config
-from companion.tools.eval.vio import read_vio_dataset, run_vins, score_vio
-from drivers.camera.options import CameraOptions
-from drivers.sim.imu import ImuOptions
-from drivers.sim.options import WORLD_NAMES, SimOptions
-from drivers.sim.record import record_dataset
-from drivers.sim.quadrotor import VehicleOptions
+from companion.config import Config, ConfigError, load_config
+from companion.tools.eval.rescale import cached_dataset
+from companion.tools.eval.vio import EvaluationError, read_vio_dataset, run_vins, score_vio
+from companion.tools.eval.vio_table import TableJob
+from drivers.sim.options import WORLD_NAMES
 
 
 TIMINGS = ("backend_ms_median", "backend_ms_p95", "frontend_ms_median", "covariance_ms_median")
@@ -62,11 +63,11 @@ def timed_covariances(milliseconds: list[float]):
         SlidingWindowSmoother._released_marginal = original
 
 
-def measure(root: Path, options: VinsOptions) -> dict:
+def measure(root: Path, job: TableJob) -> dict:
     data = read_vio_dataset(root)
     covariance_ms: list[float] = []
     with timed_covariances(covariance_ms):
-        trace = run_vins(data, options)
+        trace = run_vins(data, job.vins, frontend=job.frontend, static=job.static)
     score = score_vio(trace, data)
     score["covariance_ms_median"] = statistics.median(covariance_ms)
     timing = {key: round(score[key], 2) for key in TIMINGS}
@@ -75,8 +76,8 @@ def measure(root: Path, options: VinsOptions) -> dict:
             **timing, "resets": score["resets"]}
 
 
-def measure_pair(root: Path, default: VinsOptions, variant: VinsOptions | None) -> dict:
-    """The ``default`` options' run; with a ``variant``, both twice in turn (A B A B), each
+def measure_pair(root: Path, default: TableJob, variant: TableJob | None) -> dict:
+    """The ``default`` job's run; with a ``variant``, both twice in turn (A B A B), each
     timing the mean of its two runs."""
     if variant is None:
         return measure(root, default)
@@ -91,12 +92,12 @@ def measure_pair(root: Path, default: VinsOptions, variant: VinsOptions | None) 
     return result
 
 
-def parse_options(settings: list[str], flags: str) -> VinsOptions:
-    """The defaults with the ``KEY=VALUE`` settings given by ``flags``, each read as the
-    config's ``--set vins.KEY=VALUE`` (:func:`companion.config.load_config`); ValueError
-    naming the setting that is not one."""
+def parse_config(path: Path | None, settings: list[str], flags: str) -> Config:
+    """The config at ``path`` (None: every option at its default) with the ``KEY=VALUE``
+    settings given by ``flags``, each read as the config's ``--set vins.KEY=VALUE``
+    (:func:`companion.config.load_config`); ValueError naming what is wrong."""
     try:
-        return load_config(None, [f"vins.{setting}" for setting in settings]).vins
+        return load_config(path, [f"vins.{setting}" for setting in settings])
     except ConfigError as error:
         setting = error.source.removeprefix("--set vins.")
         raise ValueError(f"{flags} {setting}: {error.message}") from None
@@ -104,7 +105,11 @@ def parse_options(settings: list[str], flags: str) -> VinsOptions:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=Path, help="the config whose VINS is timed on "
+                        "flights of its profile (default: every option at its default, the "
+                        "ideal profile)")
     parser.add_argument("--duration", type=float, default=20.0)
+    parser.add_argument("--seed", type=int, default=0, help="the flights' seed")
     parser.add_argument("--worlds", nargs="+", default=list(WORLD_NAMES), choices=WORLD_NAMES)
     parser.add_argument("--dataset", type=Path, help="a recorded dataset instead of new flights")
     parser.add_argument("--base", action="append", default=[], metavar="KEY=VALUE",
@@ -112,27 +117,28 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a [vins] option of a variant timed beside the defaults")
     args = parser.parse_args()
-    try:
-        default = parse_options(args.base, "--base")
-        variant = parse_options(args.base + args.set, "--base/--set") if args.set else None
-    except ValueError as error:
-        parser.error(str(error))
-    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
-    cv2.setNumThreads(1)
-    if args.dataset is not None:
-        print(json.dumps({"cpus": 1, "base": args.base, "variant": args.set,
-                          "runs": [measure_pair(args.dataset, default, variant)]}))
-        return
-    runs = []
     with tempfile.TemporaryDirectory() as scratch:
+        try:
+            default = TableJob.of(parse_config(args.config, args.base, "--base"),
+                                  Path(scratch), args.duration)
+            variant = TableJob.of(parse_config(args.config, args.base + args.set,
+                                               "--base/--set"),
+                                  Path(scratch), args.duration) if args.set else None
+        except (ValueError, EvaluationError) as error:
+            parser.error(str(error))
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+        cv2.setNumThreads(1)
+        heading = {"cpus": 1, "config": None if args.config is None else str(args.config),
+                   "base": args.base, "variant": args.set}
+        if args.dataset is not None:
+            print(json.dumps({**heading, "runs": [measure_pair(args.dataset, default, variant)]}))
+            return
+        runs = []
         for world in args.worlds:
-            root = Path(scratch) / world
-            record_dataset(root, SimOptions(world=world, seed=0), CameraOptions(),
-                           VehicleOptions(), ImuOptions(), duration=args.duration)
+            root = cached_dataset(default.cache, world, args.seed, default.frames,
+                                  default.recording)
             runs.append({"world": world, **measure_pair(root, default, variant)})
-    print(json.dumps({"cpus": 1, "duration_s": args.duration, "base": args.base,
-                      "variant": args.set,
-                      "runs": runs}))
+    print(json.dumps({**heading, "duration_s": args.duration, "seed": args.seed, "runs": runs}))
 
 
 if __name__ == "__main__":

@@ -264,13 +264,8 @@ def _eval_vio_table(args: argparse.Namespace, config: Config) -> int:
         return common.EXIT_USAGE
     duration = vio_table.DEFAULT_DURATION_S if args.duration is None else args.duration
     try:
-        job = vio_table.TableJob(
-            args.cache or rescale.default_cache_dir(),
-            vio_table.frames_for(duration, config.camera.rate_hz),
-            rescale.Recording(config.camera, config.vehicle, config.imu,
-                              config.sim_camera.for_profile(config.sim.profile),
-                              *config.planner.waves),
-            config.vins, config.vins_frontend, config.vins_init)
+        job = vio_table.TableJob.of(config, args.cache or rescale.default_cache_dir(),
+                                    duration)
         done, on_row = [], None
         if args.resume:
             done, note = eval_records.reopen(args.resume, vio_table.parse_row)

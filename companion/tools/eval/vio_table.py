@@ -29,6 +29,7 @@ from typing import Callable, Sequence
 from autonomy.vins.frontend import FrontendOptions
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.static_init import StaticInitOptions
+from companion.config import Config
 from companion.tools.eval import executor
 from companion.tools.eval.records import parse_object
 from companion.tools.eval.rescale import Recording, cached_dataset
@@ -60,6 +61,18 @@ class TableJob:
     vins: VinsOptions
     frontend: FrontendOptions
     static: StaticInitOptions
+
+    @classmethod
+    def of(cls, config: Config, cache: Path, duration_s: float) -> "TableJob":
+        """The job of ``config``: its flights recorded as ``companion sim record`` records them
+        in its profile (its camera, vehicle, IMU, camera sensor and the planner's waves), each
+        ``duration_s`` long, in ``cache``, and scored with its VINS; EvaluationError for a
+        duration that is not a positive number."""
+        return cls(cache, frames_for(duration_s, config.camera.rate_hz),
+                   Recording(config.camera, config.vehicle, config.imu,
+                             config.sim_camera.for_profile(config.sim.profile),
+                             *config.planner.waves),
+                   config.vins, config.vins_frontend, config.vins_init)
 
 
 def frames_for(duration_s: float, rate_hz: float) -> int:
