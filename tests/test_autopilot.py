@@ -325,6 +325,49 @@ def test_arm_take_off_offboard_velocity_in_enu_hold_land():
     fly(body)
 
 
+async def _take_off_to_offboard(flight, height: float) -> None:
+    """Arm, take off to ``height`` and switch to Offboard, streaming zero velocity."""
+    autopilot, clock = flight.autopilot, flight.clock
+    assert await flight.connected()
+    assert await autopilot.arm()
+    assert await autopilot.takeoff(height)
+    assert await until(clock, lambda: autopilot.mode == px4_protocol.AUTO_LOITER
+                       and autopilot.state.position_L[2] > height - 0.2, 10.0)
+    await stream_velocity(flight, (0.0, 0.0, 0.0), 1.2)  # PX4 wants a stream first
+    streaming = asyncio.create_task(stream_velocity(flight, (0.0, 0.0, 0.0), 1.0))
+    assert await autopilot.set_mode(px4_protocol.OFFBOARD)
+    await streaming
+
+
+def test_a_disarm_after_a_touch_down_is_told_from_one_in_the_air():
+    """PX4 says landed the moment it disarms, in the air too (its land detector), so only
+    what it said while armed tells them apart: its auto-disarm after Offboard velocity flew
+    the vehicle down onto the ground reads as on the ground; a forced disarm at 2 m, whose
+    landed state turns to the ground with the disarm, reads as in the air (6 m up: a fall of
+    1.1 s, longer than the HEARTBEAT period)."""
+    async def down_onto_the_ground(flight):
+        autopilot = flight.autopilot
+        await _take_off_to_offboard(flight, 2.0)
+        assert not autopilot.disarmed_on_the_ground
+        streaming = asyncio.create_task(stream_velocity(flight, (0.0, 0.0, -1.0), 8.0))
+        assert await until(flight.clock, lambda: not autopilot.armed, 8.0)
+        assert autopilot.mode == px4_protocol.OFFBOARD and flight.sim.vehicle.landed
+        assert autopilot.disarmed_on_the_ground
+        streaming.cancel()
+
+    async def killed_in_the_air(flight):
+        autopilot = flight.autopilot
+        await _take_off_to_offboard(flight, 6.0)
+        assert await autopilot.disarm(force=True)
+        # PX4 says landed at once: heard within a heartbeat period, the vehicle still falling
+        assert await until(flight.clock, lambda: not autopilot.armed and autopilot.landed, 1.0)
+        assert flight.sim.vehicle.state.position[2] > 0.5
+        assert not autopilot.disarmed_on_the_ground
+
+    fly(down_onto_the_ground)
+    fly(killed_in_the_air)
+
+
 def test_acceleration_feed_forward_lets_the_vehicle_brake_as_commanded():
     """A braking ramp 1.5 m/s -> 0 over 1.5 s: the velocity loop alone lags it (at the ramp's
     end the vehicle is still moving, further on); the ramp's deceleration sent as feed-forward

@@ -639,6 +639,25 @@ def test_motors_stopped_after_the_arm_end_the_climb():
     assert watch.over(reported(False, px4_protocol.AUTO_TAKEOFF, True, 0.4))
 
 
+@pytest.mark.parametrize("on_the_ground, reason, cause", [
+    (False, "PX4 disarmed the vehicle in the air", "a kill switch"),
+    (True, "PX4 disarmed the vehicle on the ground", "COM_DISARM_LAND after a touch-down"),
+])
+def test_motors_stopped_name_where_px4_disarmed_the_vehicle(on_the_ground, reason, cause):
+    """The summary names a disarm in the air apart from PX4's auto-disarm once the vehicle
+    came down (flown into the floor: it used to read as a disarm in the air); either way
+    the mission ends."""
+    from autonomy.navigation.mission import FlightOptions, FlightState
+    from companion.flight.context import FlightContext
+
+    context = FlightContext(FlightOptions(), SimpleNamespace(now=lambda: 5.0),
+                            SimpleNamespace(disarmed_on_the_ground=on_the_ground), {})
+    context.motors_stopped()
+    assert context.mission.failsafes == [reason]
+    assert context.state == FlightState.ABORTED
+    assert cause in context.mission.transitions[-1].reason
+
+
 # ---------------------------------------------------------------- the glide to a landing site
 
 @pytest.mark.parametrize("failure, reason", [

@@ -41,8 +41,10 @@ class Channels:
         self.transitions: Latest[Transition] = Latest("transitions")  # the mission's
 
 
-#: The reason given when PX4 reports the motors off while the companion commands the flight.
+#: The reasons given when PX4 reports the motors off while the companion commands the flight:
+#: in the air, or once its land detector had the vehicle on the ground (a touch-down).
 DISARMED_IN_THE_AIR = "PX4 disarmed the vehicle in the air"
+DISARMED_ON_THE_GROUND = "PX4 disarmed the vehicle on the ground"
 
 
 @dataclass
@@ -116,10 +118,18 @@ class FlightContext:
 
     def motors_stopped(self) -> None:
         """PX4 stopped the motors while the companion flew the vehicle. Nothing the companion
-        sends can fly it, and it must never re-arm one on its own: the mission ends here."""
-        self.mission.failsafe(self.clock.now(), DISARMED_IN_THE_AIR)
-        self.abort(f"{DISARMED_IN_THE_AIR} (a crash, a kill switch, a ground station's forced "
-                   "disarm or a reboot); nothing more is commanded")
+        sends can fly it, and it must never re-arm one on its own: the mission ends here. The
+        reason tells a disarm in the air from PX4's own after the vehicle came down
+        (:attr:`drivers.mavlink.autopilot.Autopilot.disarmed_on_the_ground`)."""
+        if self.autopilot.disarmed_on_the_ground:
+            reason, causes = DISARMED_ON_THE_GROUND, (
+                "its land detector had it down, then its auto-disarm: COM_DISARM_LAND after "
+                "a touch-down, COM_DISARM_PRFLT before a take-off")
+        else:
+            reason, causes = DISARMED_IN_THE_AIR, (
+                "a crash, a kill switch, a ground station's forced disarm or a reboot")
+        self.mission.failsafe(self.clock.now(), reason)
+        self.abort(f"{reason} ({causes}); nothing more is commanded")
 
     async def wait(self, condition, timeout_s: float, poll_s: float) -> bool:
         """Until ``condition()`` (True), ``timeout_s`` or the mission's end (False)."""

@@ -8,7 +8,8 @@ our conventions: frame ``L`` is PX4's local frame expressed ENU (x east, y north
 body frame is FLU, and times are on the companion clock.
 
 - State: :attr:`~Autopilot.connected`, :attr:`~Autopilot.armed`, :attr:`~Autopilot.mode`,
-  :attr:`~Autopilot.landed`, :attr:`~Autopilot.in_air`, :attr:`~Autopilot.state`,
+  :attr:`~Autopilot.landed`, :attr:`~Autopilot.in_air`,
+  :attr:`~Autopilot.disarmed_on_the_ground`, :attr:`~Autopilot.state`,
   :attr:`~Autopilot.imu_rate_hz` (measured), :attr:`~Autopilot.last_imu_t`,
   :attr:`~Autopilot.link_losses`, :attr:`~Autopilot.statustexts`, and while not connected
   :attr:`~Autopilot.link_problem`: why, for a person (a PX4 without our signing key, or with
@@ -85,6 +86,13 @@ REOPEN_INTERVAL_S = 1.0
 REFUSAL_QUIET_S = 10.0
 #: RC_CHANNELS' value for "this channel is unused" (UINT16_MAX, common.xml): no pulse width.
 RC_UNUSED = 65535
+#: Seconds PX4's land detector must have said on the ground, armed, before a disarm for the
+#: disarm to be one on the ground (:attr:`Autopilot.disarmed_on_the_ground`). PX4 says on the
+#: ground at once when disarmed, in the air too (MulticopterLandDetector.cpp,
+#: ``_get_landed_state``: ``!_armed || ...``), so a disarm in the air can read so for up to a
+#: HEARTBEAT period (1 s) before the HEARTBEAT that shows it; its auto-disarm waits
+#: COM_DISARM_LAND (2 s by default) on the ground, less an EXTENDED_SYS_STATE period (5 Hz).
+DISARMED_ON_THE_GROUND_S = 1.25
 #: A quaternion further than this from unit norm is no attitude (PX4 sends float32 unit
 #: quaternions, off by about 1e-7): the estimate carrying it is refused.
 QUATERNION_NORM_TOLERANCE = 1e-3
@@ -258,6 +266,9 @@ class Autopilot:
         self._imu_requested_at = -math.inf
         self._rate_window = (-math.inf, 0)  # (start, messages since)
         self._landed_state = mavlink.MAV_LANDED_STATE_UNDEFINED
+        # since when PX4 has said on the ground, armed (None: not now), and the last disarm's time
+        self._armed_on_the_ground_since: float | None = None
+        self._disarmed_at: float | None = None
         self._attitude: tuple[np.ndarray, np.ndarray] | None = None
         self._last_odometry = -math.inf
         self._last_heartbeat = -math.inf
@@ -305,6 +316,16 @@ class Autopilot:
     def landed(self) -> bool:
         """PX4's land detector says on the ground (EXTENDED_SYS_STATE)."""
         return self._landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+
+    @property
+    def disarmed_on_the_ground(self) -> bool:
+        """PX4's last disarm came after its land detector had said on the ground, armed, for
+        :data:`DISARMED_ON_THE_GROUND_S`: the vehicle had come down (PX4's auto-disarm
+        after a touch-down, COM_DISARM_LAND, or on the ground before take-off), not a kill
+        switch, a crash or a reboot in the air. False before any disarm."""
+        since, disarmed = self._armed_on_the_ground_since, self._disarmed_at
+        return (since is not None and disarmed is not None
+                and disarmed - since >= DISARMED_ON_THE_GROUND_S)
 
     @property
     def in_air(self) -> bool:
@@ -595,7 +616,12 @@ class Autopilot:
 
     def _on_heartbeat(self, message, now: float) -> None:
         self._last_heartbeat, self._deaf_s = now, 0.0
-        self.armed = bool(message.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        armed = bool(message.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        if self.armed and not armed:
+            self._disarmed_at = now
+        elif armed and not self.armed:
+            self._armed_on_the_ground_since = self._disarmed_at = None
+        self.armed = armed
         try:
             self.mode = px4_protocol.Px4Mode.from_custom_mode(message.custom_mode)
         except ValueError:
@@ -641,6 +667,10 @@ class Autopilot:
 
     def _on_extended_sys_state(self, message, now: float) -> None:
         self._landed_state = message.landed_state
+        if message.landed_state != mavlink.MAV_LANDED_STATE_ON_GROUND:
+            self._armed_on_the_ground_since = None
+        elif self.armed and self._armed_on_the_ground_since is None:
+            self._armed_on_the_ground_since = now
 
     def _on_home_position(self, message, now: float) -> None:
         self.home_altitude_amsl = message.altitude * 1e-3

@@ -1128,7 +1128,10 @@ class MockPx4:
                                                0, bad_data, 0, 0, 0, 0, *extended)
 
     def _landed_state(self) -> int:
-        if self.vehicle.landed:
+        """PX4's land detector: landed whenever disarmed, in the air too
+        (MulticopterLandDetector.cpp, ``_get_landed_state``: ``return !_armed ||
+        _maybe_landed_hysteresis.get_state()``)."""
+        if self.vehicle.landed or not self.vehicle.armed:
             return mavlink.MAV_LANDED_STATE_ON_GROUND
         if self.mode == px4_protocol.AUTO_TAKEOFF:
             return mavlink.MAV_LANDED_STATE_TAKEOFF
