@@ -1,7 +1,8 @@
 """Speed of the VINS back-end on one core: milliseconds per keyframe on simulated flights.
 
     python benchmarks/vins_backend.py [--config FILE] [--duration 20] [--seed 0]
-        [--worlds mine sewer dome] [--dataset DIR] [--base KEY=VALUE ...] [--set KEY=VALUE ...]
+        [--worlds mine sewer dome] [--dataset DIR] [--cache DIR] [--base KEY=VALUE ...]
+        [--set KEY=VALUE ...]
 
 Records a simulated flight per world (or uses the recording or EuRoC/ASL dataset given), pins
 the process to one CPU (and OpenCV to one thread), and runs the whole VINS over it exactly as
@@ -112,18 +113,21 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="the flights' seed")
     parser.add_argument("--worlds", nargs="+", default=list(WORLD_NAMES), choices=WORLD_NAMES)
     parser.add_argument("--dataset", type=Path, help="a recorded dataset instead of new flights")
+    parser.add_argument("--cache", type=Path, help="keep the flights in this folder and reuse "
+                        "them from it, as companion eval's --cache (default: recorded afresh)")
     parser.add_argument("--base", action="append", default=[], metavar="KEY=VALUE",
                         help="a [vins] option of both the default and the variant")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a [vins] option of a variant timed beside the defaults")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as scratch:
+        cache = args.cache or Path(scratch)
         try:
-            default = TableJob.of(parse_config(args.config, args.base, "--base"),
-                                  Path(scratch), args.duration)
+            default = TableJob.of(parse_config(args.config, args.base, "--base"), cache,
+                                  args.duration)
             variant = TableJob.of(parse_config(args.config, args.base + args.set,
                                                "--base/--set"),
-                                  Path(scratch), args.duration) if args.set else None
+                                  cache, args.duration) if args.set else None
         except (ValueError, EvaluationError) as error:
             parser.error(str(error))
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
