@@ -233,6 +233,13 @@ def _add_eval_nav(actions: argparse._SubParsersAction,
                               "(worst, over 1 m, nearer and farther with the sign test's p and "
                               "the median change, seeds nearer and farther, paths made long, "
                               "|scale - 1|)")
+    command.add_argument("--calibration", nargs="+", type=Path, metavar="RUNS",
+                         help="fly nothing: fit the bearing and the scale of the VINS's error "
+                              "at the end of navigation in these --runs files to each "
+                              "vehicle's camera yaw on the body and accelerometer z scale "
+                              "error, as the simulator drew them from the record's seed under "
+                              "this command's --config and --set (give the runs' own): how "
+                              "much of the error the calibration explains")
     command.set_defaults(command=_eval_nav)
 
 
@@ -347,7 +354,9 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
     from companion.tools.eval import nav, records as eval_records
     from companion.tools.eval.vio import EvaluationError
 
-    for mode, refused in (("--compare", _NAV_FLIGHT_OPTIONS + ("resume", "runs", "merge",
+    for mode, refused in (("--calibration", _NAV_FLIGHT_OPTIONS + ("resume", "runs", "merge",
+                                                                   "compare", "plot")),
+                          ("--compare", _NAV_FLIGHT_OPTIONS + ("resume", "runs", "merge",
                                                                "plot")),
                           ("--merge", _NAV_FLIGHT_OPTIONS + ("resume",))):
         if getattr(args, mode[2:]):
@@ -356,6 +365,8 @@ def _eval_nav(args: argparse.Namespace, config: Config) -> int:
                 print(f"eval nav: {mode} flies nothing; drop {', '.join(given)}",
                       file=sys.stderr)
                 return common.EXIT_USAGE
+    if args.calibration:
+        return _calibration_nav(args, config)
     if args.compare:
         return _compare_nav(args)
     runs = args.resume or args.runs
@@ -395,6 +406,22 @@ def _compare_nav(args: argparse.Namespace) -> int:
         return common.EXIT_FAILED
     return common.report("eval nav", args, comparison, nav_compare.format_markdown(
         comparison, [(str(b), str(a)) for b, a in names]))
+
+
+def _calibration_nav(args: argparse.Namespace, config: Config) -> int:
+    from companion.tools.eval import nav_calibration, nav_compare
+    from companion.tools.eval.vio import EvaluationError
+    from drivers.sim.host import vehicle_errors
+
+    try:
+        records = [record for path in args.calibration for record in nav_compare.read_run(path)]
+        fit = nav_calibration.calibration_fit(records,
+                                              functools.partial(vehicle_errors, config))
+    except EvaluationError as error:
+        print(f"eval nav: {error}", file=sys.stderr)
+        return common.EXIT_FAILED
+    return common.report("eval nav", args, fit, nav_calibration.format_markdown(
+        fit, [str(path) for path in args.calibration]))
 
 
 #: The options of ``eval nav`` that choose what to fly, which ``--merge`` and ``--compare``

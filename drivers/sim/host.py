@@ -34,12 +34,15 @@ import numpy as np
 from autonomy.depth.network import DepthNetwork
 from autonomy.depth.synthetic import SyntheticNetwork
 from autonomy.messages import DepthDiagnostics, Frame, MetricDepth
+from autonomy.geometry import so3_log
 from autonomy.trajectory import split_displacement
 from drivers.camera.calibration import CameraCalibration
 from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink import px4_protocol
 from drivers.sim.camera import CameraHead, SimCamera
 from drivers.sim.faults import Fault, FaultSchedule
+from drivers.sim.imu import ImuModel, flight_generators
+from drivers.sim.options import WORLD_NAMES
 from drivers.sim.render import Renderer
 from drivers.sim.serve import SERIAL_BAUD, serve
 from drivers.sim.world import ROBOT_RADIUS, World
@@ -289,6 +292,32 @@ def camera_head(config, world: str, seed: int) -> CameraHead:
                       np.random.default_rng([config.sim.noise_for(seed), 3]),
                       np.random.default_rng([config.sim.vehicle_for(seed), 3]),
                       numbered=config.sim.camera_counter)
+
+
+@dataclass(frozen=True)
+class VehicleErrors:
+    """What a simulated vehicle's calibration leaves wrong, as the simulator draws it:
+    ``mount_rotation_deg``, the camera's true rotation off its configured mounting as a
+    rotation vector in the body's axes (FLU; its z, the camera's yaw on the body, turns the
+    path the VINS reckons: docs/vins.md, "The path's bearing is the camera mounting's yaw"),
+    degrees; ``accel_scale_error``, each accelerometer axis's sensitivity error as PX4's
+    calibration leaves it (FLU, fractions; its z sets the map's scale: docs/vins.md, "The
+    accelerometer as PX4 calibrates it"). Zero in the ideal profile."""
+
+    mount_rotation_deg: tuple[float, float, float]
+    accel_scale_error: tuple[float, float, float]
+
+
+def vehicle_errors(config, seed: int) -> VehicleErrors:
+    """The calibration errors of the vehicle a simulated flight of ``seed`` flies in
+    ``config`` (drawn from ``[sim] vehicle_seed``'s stream as the flight draws them)."""
+    head = camera_head(config, WORLD_NAMES[0], seed)  # the world sets only the light
+    R_configured, R_true = head.T_B_C_configured[:3, :3], head.T_B_C[:3, :3]
+    mounting = np.degrees(so3_log(R_true @ R_configured.T))
+    imu = ImuModel(config.imu.for_profile(config.sim.profile),
+                   *flight_generators(config.sim.noise_for(seed), config.sim.vehicle_for(seed)))
+    scale = np.diag(imu.accel_matrix) - 1.0
+    return VehicleErrors(tuple(float(v) for v in mounting), tuple(float(v) for v in scale))
 
 
 async def stall_when_due(faults: FaultSchedule, sim) -> None:
