@@ -96,12 +96,15 @@ def measure_pair(root: Path, default: TableJob, variant: TableJob | None) -> dic
 def parse_config(path: Path | None, settings: list[str], flags: str) -> Config:
     """The config at ``path`` (None: every option at its default) with the ``KEY=VALUE``
     settings given by ``flags``, each read as the config's ``--set vins.KEY=VALUE``
-    (:func:`companion.config.load_config`); ValueError naming what is wrong."""
+    (:func:`companion.config.load_config`); ValueError naming what is wrong: the setting, or
+    the config file."""
     try:
         return load_config(path, [f"vins.{setting}" for setting in settings])
     except ConfigError as error:
-        setting = error.source.removeprefix("--set vins.")
-        raise ValueError(f"{flags} {setting}: {error.message}") from None
+        if not error.source.startswith("--set vins."):
+            raise ValueError(f"--config {error.source}: {error.message}") from None
+        raise ValueError(f"{flags} {error.source.removeprefix('--set vins.')}: "
+                         f"{error.message}") from None
 
 
 def main() -> None:
@@ -139,8 +142,11 @@ def main() -> None:
             return
         runs = []
         for world in args.worlds:
-            root = cached_dataset(default.cache, world, args.seed, default.frames,
-                                  default.recording)
+            try:
+                root = cached_dataset(default.cache, world, args.seed, default.frames,
+                                      default.recording)
+            except EvaluationError as error:
+                raise SystemExit(f"vins_backend: {error}") from None
             runs.append({"world": world, **measure_pair(root, default, variant)})
     print(json.dumps({**heading, "duration_s": args.duration, "seed": args.seed, "runs": runs}))
 

@@ -332,19 +332,19 @@ async def _take_off_to_offboard(flight, height: float) -> None:
     assert await autopilot.arm()
     assert await autopilot.takeoff(height)
     assert await until(clock, lambda: autopilot.mode == px4_protocol.AUTO_LOITER
-                       and autopilot.state.position_L[2] > height - 0.2, 10.0)
+                       and autopilot.state.position_L[2] > height - 0.2, 15.0)
     await stream_velocity(flight, (0.0, 0.0, 0.0), 1.2)  # PX4 wants a stream first
-    streaming = asyncio.create_task(stream_velocity(flight, (0.0, 0.0, 0.0), 1.0))
+    streaming = asyncio.create_task(stream_velocity(flight, (0.0, 0.0, 0.0), 0.5))
     assert await autopilot.set_mode(px4_protocol.OFFBOARD)
     await streaming
 
 
 def test_a_disarm_after_a_touch_down_is_told_from_one_in_the_air():
-    """PX4 says landed the moment it disarms, in the air too (its land detector), so only
-    what it said while armed tells them apart: its auto-disarm after Offboard velocity flew
-    the vehicle down onto the ground reads as on the ground; a forced disarm at 2 m, whose
-    landed state turns to the ground with the disarm, reads as in the air (6 m up: a fall of
-    1.1 s, longer than the HEARTBEAT period)."""
+    """PX4 says landed once it disarms, in the air too (its land detector), so only what it
+    said while armed tells them apart: its auto-disarm after Offboard velocity flew the
+    vehicle down onto the ground reads as on the ground; a forced disarm 6 m up, whose landed
+    state turns to the ground with the disarm while the vehicle still falls (1.1 s, longer than
+    the HEARTBEAT period), reads as in the air."""
     async def down_onto_the_ground(flight):
         autopilot = flight.autopilot
         await _take_off_to_offboard(flight, 2.0)
@@ -388,15 +388,7 @@ def test_acceleration_feed_forward_lets_the_vehicle_brake_as_commanded():
         return state.position[0] - start - speed * ramp_s / 2.0, state.velocity[0]
 
     async def body(flight):
-        autopilot, clock = flight.autopilot, flight.clock
-        assert await flight.connected()
-        assert await autopilot.arm() and await autopilot.takeoff(3.0)
-        assert await until(clock, lambda: autopilot.mode == px4_protocol.AUTO_LOITER
-                           and autopilot.state.position_L[2] > 2.8, 15.0)
-        await stream_velocity(flight, (0.0, 0.0, 0.0), 1.2)  # PX4 wants a stream first
-        streaming = asyncio.create_task(stream_velocity(flight, (0.0, 0.0, 0.0), 0.5))
-        assert await autopilot.set_mode(px4_protocol.OFFBOARD)
-        await streaming
+        await _take_off_to_offboard(flight, 3.0)
         beyond, still_moving = await brake(flight, feed_forward=False)
         assert beyond > 0.4 and still_moving > 0.4  # the loop's lag
         beyond_ff, still_moving_ff = await brake(flight, feed_forward=True)
@@ -501,6 +493,74 @@ def at_wrong_baud(data: bytes, sent_baud: int, read_baud: int) -> bytes:
         received.append(sum(level(t + 1.5 + i) << i for i in range(8)))
         t += 9.5
     return bytes(received)
+
+
+ARMED, DISARMED = "armed", "disarmed"
+ON_GROUND, IN_AIR = mavlink.MAV_LANDED_STATE_ON_GROUND, mavlink.MAV_LANDED_STATE_IN_AIR
+
+
+def disarm_read(script) -> bool:
+    """What the driver makes of PX4's last disarm (``disarmed_on_the_ground``) after PX4's end
+    of a serial line wrote ``script`` to it: HEARTBEATs (``ARMED``, ``DISARMED``), landed
+    states (``ON_GROUND``, ``IN_AIR``) and pauses (seconds, a float), in that order."""
+    clock = MonotonicClock()
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    px4 = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def message(step):
+        if step in (ARMED, DISARMED):
+            base_mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
+                mavlink.MAV_MODE_FLAG_SAFETY_ARMED if step == ARMED else 0)
+            return px4.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4,
+                                        base_mode, 0, mavlink.MAV_STATE_ACTIVE)
+        return px4.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, step)
+
+    async def main():
+        options = MavlinkOptions(url=f"serial://{os.ttyname(slave)}:921600")
+        autopilot = Autopilot.open(options, clock)
+        runner = asyncio.create_task(autopilot.run())
+        try:
+            for step in script:
+                if isinstance(step, float):
+                    await clock.sleep(step)
+                    continue
+                read = autopilot.link.messages_received
+                os.write(master, message(step).pack(px4))
+                # each read in a poll of its own, as PX4's messages come
+                assert await until(clock, lambda: autopilot.link.messages_received > read, 2.0)
+            return autopilot.disarmed_on_the_ground
+        finally:
+            runner.cancel()
+            await asyncio.gather(runner, return_exceptions=True)
+            autopilot.close()
+
+    try:
+        return asyncio.run(asyncio.wait_for(main(), WALL_TIMEOUT))
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.parametrize("script, on_the_ground", [
+    # PX4's auto-disarm: on the ground while armed, a heartbeat still armed, then disarmed
+    ([ARMED, IN_AIR, ON_GROUND, ARMED, ON_GROUND, DISARMED], True),
+    # a disarm in the air: PX4 says landed only after it, so after its last armed heartbeat
+    ([ARMED, IN_AIR, ON_GROUND, DISARMED], False),
+    # ... however many of its heartbeats are lost (within the link's timeout)
+    ([ARMED, IN_AIR, ON_GROUND, 0.6, ON_GROUND, 0.6, DISARMED], False),
+    # armed on the ground and disarmed there before a take-off
+    ([DISARMED, ON_GROUND, ARMED, ON_GROUND, ARMED, DISARMED], True),
+    # landed once, then bounced back into the air before the disarm
+    ([ARMED, ON_GROUND, ARMED, IN_AIR, ON_GROUND, DISARMED], False),
+    # a touch-down's disarm forgotten once PX4 is armed again, and flown in the air
+    ([ARMED, ON_GROUND, ARMED, DISARMED, ARMED, IN_AIR, ON_GROUND, DISARMED], False),
+    # armed on the ground, then the link lost (3.5 s): what PX4 said before says nothing of
+    # a disarm heard after (it may have taken off and been killed meanwhile)
+    ([ARMED, ON_GROUND, ARMED, 3.5, ON_GROUND, DISARMED], False),
+])
+def test_the_driver_tells_a_disarm_on_the_ground_from_one_in_the_air(script, on_the_ground):
+    assert disarm_read(script) is on_the_ground
 
 
 def test_a_silent_serial_link_says_whether_bytes_came_and_what_to_check(caplog):

@@ -13,7 +13,10 @@ from companion.cli import main
 from companion.config import load_config
 from companion.tools.eval.nav_calibration import calibration_fit
 from companion.tools.eval.vio import EvaluationError
+from drivers.mavlink.link import open_link
 from drivers.sim.host import VehicleErrors, vehicle_errors
+from drivers.sim.serve import SimulatedVehicle
+from ports import free_tcp_port
 
 #: Four made-up vehicles: the camera's yaw on the body (degrees), the accelerometer's z scale
 #: error (fraction).
@@ -71,21 +74,30 @@ def test_the_fit_finds_what_the_calibration_explains_and_what_it_leaves():
     assert fit["vehicles_drawn"]["4"] == {"mount_yaw_deg": 0.5, "accel_z_scale_error_pct": 0.3}
 
 
-def test_the_ideal_profile_has_nothing_to_fit():
-    fit = calibration_fit(_records(), lambda seed: VehicleErrors((0.0,) * 3, (0.0,) * 3))
-    assert fit["bearing_deg_on_mount_yaw_deg"]["slope"] is None
-    left = fit["end_error_m"]["gt"]
-    assert left["calibration_taken_out"] == left["flown"]
+def test_two_vehicles_give_no_correlation_of_their_means():
+    two = [r for r in _records() if r["seed"] in (1, 2)]
+    fit = calibration_fit(two, _errors_of)
+    assert fit["vehicles"] == 2
+    assert fit["bearing_deg_on_mount_yaw_deg"]["slope"] == pytest.approx(BEARING_SLOPE, abs=1e-3)
+    assert fit["bearing_deg_on_mount_yaw_deg"]["r_vehicles"] is None  # two means: a line
 
 
-@pytest.mark.parametrize("records, words", [
-    (_records()[:2], "a fit needs 3 flights with a VINS error at the end and two vehicles; "
-                     "got 2 flights of 1"),
-    ([{**r, "position_error_split": None} for r in _records()], "got 0 flights of 0"),
+NO_ERRORS = VehicleErrors((0.0,) * 3, (0.0,) * 3)
+
+
+@pytest.mark.parametrize("records, errors_of, words", [
+    (_records()[:2], _errors_of, "got 2 flights of 1 "),
+    ([{**r, "position_error_split": None} for r in _records()], _errors_of,
+     "got 0 flights of 0 "),
+    # the ideal profile draws no errors, a vehicle seed one vehicle for every seed
+    (_records(), lambda seed: NO_ERRORS, "got 8 flights of 1 .*give the runs' own --config"),
+    (_records(), lambda seed: _errors_of(4), "got 8 flights of 1 "),
+    ([{**r, "position_error_split": {"scale": 1.0}} for r in _records()], _errors_of,
+     "dome pair 0 gt seed 1: its VINS error at the end lacks distance_m, bearing_deg"),
 ])
-def test_too_few_flights_are_refused(records, words):
+def test_what_cannot_be_fitted_is_refused(records, errors_of, words):
     with pytest.raises(EvaluationError, match=words):
-        calibration_fit(records, _errors_of)
+        calibration_fit(records, errors_of)
 
 
 def test_a_vehicles_errors_are_drawn_from_its_vehicle_seed():
@@ -103,6 +115,21 @@ def test_a_vehicles_errors_are_drawn_from_its_vehicle_seed():
     assert vehicle_errors(load_config(None), 12) == VehicleErrors((0.0,) * 3, (0.0,) * 3)
 
 
+def test_a_vehicles_accelerometer_is_the_one_its_flight_serves():
+    """The errors are drawn as the simulated vehicle behind the mock PX4 draws its IMU."""
+    config = load_config("config/sim-realistic.toml", ["sim.vehicle_seed=12"])
+    link = open_link(f"udpout://127.0.0.1:{free_tcp_port()}", source_system=1,
+                     source_component=1)  # the mock's link: nobody at the other end
+    try:
+        served = SimulatedVehicle(link, None, seed=config.sim.noise_for(3),
+                                  vehicle_seed=config.sim.vehicle_for(3),
+                                  imu_options=config.imu.for_profile(config.sim.profile))
+    finally:
+        link.close()
+    np.testing.assert_allclose(np.diag(served.imu.accel_matrix) - 1.0,
+                               vehicle_errors(config, 3).accel_scale_error, rtol=0, atol=1e-15)
+
+
 def test_eval_nav_calibration_reads_runs_files(tmp_path, capsys):
     run = tmp_path / "run.jsonl"
     run.write_text("".join(json.dumps(r) + "\n" for r in _records()))
@@ -115,3 +142,12 @@ def test_eval_nav_calibration_reads_runs_files(tmp_path, capsys):
     assert "| gt | " in capsys.readouterr().out
     assert main(args + ["--trials", "2"]) == 2
     assert "--calibration flies nothing; drop --trials" in capsys.readouterr().err
+    other = tmp_path / "other.jsonl"
+    other.write_text("".join(json.dumps({**r, "seed": r["seed"] + 10, "config_hash": "abc"})
+                             + "\n" for r in _records()))
+    assert main(args + [str(other)]) == 1
+    assert "the runs were flown with different configs (None, abc)" in capsys.readouterr().err
+    assert main(args + [str(run)]) == 1
+    assert "dome pair 0 gt seed 1 is in more than one record" in capsys.readouterr().err
+    assert main(["eval", "nav", "--config", "config/sim.toml", "--calibration", str(run)]) == 1
+    assert "give the runs' own --config and --set" in capsys.readouterr().err

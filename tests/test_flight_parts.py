@@ -640,8 +640,8 @@ def test_motors_stopped_after_the_arm_end_the_climb():
 
 
 @pytest.mark.parametrize("on_the_ground, reason, cause", [
-    (False, "PX4 disarmed the vehicle in the air", "a kill switch"),
-    (True, "PX4 disarmed the vehicle on the ground", "COM_DISARM_LAND after a touch-down"),
+    (False, "PX4 disarmed the vehicle in the air", "a ground station's forced disarm"),
+    (True, "PX4 disarmed the vehicle on the ground", "COM_DISARM_LAND's auto-disarm"),
 ])
 def test_motors_stopped_name_where_px4_disarmed_the_vehicle(on_the_ground, reason, cause):
     """The summary names a disarm in the air apart from PX4's auto-disarm once the vehicle

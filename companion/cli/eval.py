@@ -409,12 +409,18 @@ def _compare_nav(args: argparse.Namespace) -> int:
 
 
 def _calibration_nav(args: argparse.Namespace, config: Config) -> int:
-    from companion.tools.eval import nav_calibration, nav_compare
+    from companion.tools.eval import nav, nav_calibration, nav_compare
     from companion.tools.eval.vio import EvaluationError
     from drivers.sim.host import vehicle_errors
 
     try:
         records = [record for path in args.calibration for record in nav_compare.read_run(path)]
+        nav.refuse_repeated_trials(records)
+        configs = sorted({str(r.get("config_hash")) for r in records})
+        if len(configs) > 1:
+            raise EvaluationError(f"the runs were flown with different configs "
+                                  f"({', '.join(configs)}): their vehicles may differ; fit "
+                                  "each config's runs on their own")
         fit = nav_calibration.calibration_fit(records,
                                               functools.partial(vehicle_errors, config))
     except EvaluationError as error:

@@ -123,11 +123,13 @@ class FlightContext:
         (:attr:`drivers.mavlink.autopilot.Autopilot.disarmed_on_the_ground`)."""
         if self.autopilot.disarmed_on_the_ground:
             reason, causes = DISARMED_ON_THE_GROUND, (
-                "its land detector had it down, then its auto-disarm: COM_DISARM_LAND after "
-                "a touch-down, COM_DISARM_PRFLT before a take-off")
+                "its land detector had the vehicle down before the disarm: flown or crashed "
+                "onto the ground and left there (COM_DISARM_LAND's auto-disarm), a kill "
+                "switch held, or COM_DISARM_PRFLT before a take-off")
         else:
             reason, causes = DISARMED_IN_THE_AIR, (
-                "a crash, a kill switch, a ground station's forced disarm or a reboot")
+                "its land detector had the vehicle in the air: a ground station's forced "
+                "disarm, a crash or failure PX4 disarmed on at once, or a reboot")
         self.mission.failsafe(self.clock.now(), reason)
         self.abort(f"{reason} ({causes}); nothing more is commanded")
 

@@ -86,13 +86,6 @@ REOPEN_INTERVAL_S = 1.0
 REFUSAL_QUIET_S = 10.0
 #: RC_CHANNELS' value for "this channel is unused" (UINT16_MAX, common.xml): no pulse width.
 RC_UNUSED = 65535
-#: Seconds PX4's land detector must have said on the ground, armed, before a disarm for the
-#: disarm to be one on the ground (:attr:`Autopilot.disarmed_on_the_ground`). PX4 says on the
-#: ground at once when disarmed, in the air too (MulticopterLandDetector.cpp,
-#: ``_get_landed_state``: ``!_armed || ...``), so a disarm in the air can read so for up to a
-#: HEARTBEAT period (1 s) before the HEARTBEAT that shows it; its auto-disarm waits
-#: COM_DISARM_LAND (2 s by default) on the ground, less an EXTENDED_SYS_STATE period (5 Hz).
-DISARMED_ON_THE_GROUND_S = 1.25
 #: A quaternion further than this from unit norm is no attitude (PX4 sends float32 unit
 #: quaternions, off by about 1e-7): the estimate carrying it is refused.
 QUATERNION_NORM_TOLERANCE = 1e-3
@@ -266,9 +259,14 @@ class Autopilot:
         self._imu_requested_at = -math.inf
         self._rate_window = (-math.inf, 0)  # (start, messages since)
         self._landed_state = mavlink.MAV_LANDED_STATE_UNDEFINED
-        # since when PX4 has said on the ground, armed (None: not now), and the last disarm's time
+        # since when PX4 has said on the ground while armed (None: not now); the last HEARTBEAT
+        # that said armed
         self._armed_on_the_ground_since: float | None = None
-        self._disarmed_at: float | None = None
+        self._last_armed_heartbeat = -math.inf
+        #: PX4's last disarm came once its land detector had the vehicle down (on the ground
+        #: while armed before PX4's last armed HEARTBEAT: :meth:`_came_down_before`), not in
+        #: the air; False before any disarm and from the next arm on.
+        self.disarmed_on_the_ground = False
         self._attitude: tuple[np.ndarray, np.ndarray] | None = None
         self._last_odometry = -math.inf
         self._last_heartbeat = -math.inf
@@ -316,16 +314,6 @@ class Autopilot:
     def landed(self) -> bool:
         """PX4's land detector says on the ground (EXTENDED_SYS_STATE)."""
         return self._landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
-
-    @property
-    def disarmed_on_the_ground(self) -> bool:
-        """PX4's last disarm came after its land detector had said on the ground, armed, for
-        :data:`DISARMED_ON_THE_GROUND_S`: the vehicle had come down (PX4's auto-disarm
-        after a touch-down, COM_DISARM_LAND, or on the ground before take-off), not a kill
-        switch, a crash or a reboot in the air. False before any disarm."""
-        since, disarmed = self._armed_on_the_ground_since, self._disarmed_at
-        return (since is not None and disarmed is not None
-                and disarmed - since >= DISARMED_ON_THE_GROUND_S)
 
     @property
     def in_air(self) -> bool:
@@ -549,6 +537,8 @@ class Autopilot:
         self.timesync.reset()
         self._timesync_sent.clear()
         self.imu_rate_hz = 0.0
+        # what PX4 said before the loss says nothing of a disarm heard after it (a reboot)
+        self._armed_on_the_ground_since = None
         if self._imu_request is not None:
             self._imu_request.cancel()
 
@@ -617,10 +607,12 @@ class Autopilot:
     def _on_heartbeat(self, message, now: float) -> None:
         self._last_heartbeat, self._deaf_s = now, 0.0
         armed = bool(message.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-        if self.armed and not armed:
-            self._disarmed_at = now
-        elif armed and not self.armed:
-            self._armed_on_the_ground_since = self._disarmed_at = None
+        if armed and not self.armed:
+            self._armed_on_the_ground_since, self.disarmed_on_the_ground = None, False
+        elif self.armed and not armed:
+            self.disarmed_on_the_ground = self._came_down_before(self._last_armed_heartbeat)
+        if armed:
+            self._last_armed_heartbeat = now
         self.armed = armed
         try:
             self.mode = px4_protocol.Px4Mode.from_custom_mode(message.custom_mode)
@@ -664,6 +656,17 @@ class Autopilot:
             self.counts["unexpected_ack"] += 1
             return
         pending[1].set_result(message.result)
+
+    def _came_down_before(self, last_armed_heartbeat: float) -> bool:
+        """Did PX4 say on the ground, armed, before the last HEARTBEAT that said armed? Then
+        the disarm that followed was of a vehicle that had come down.
+        PX4's land detector says landed within its hysteresis of any disarm, in the air too
+        (MulticopterLandDetector.cpp, ``_get_landed_state``: ``!_armed || ...``, through
+        ``_landed_hysteresis``, ``LNDMC_TRIG_TIME / 3``), so after a disarm in the air the
+        word comes after PX4's last armed HEARTBEAT, however many are lost; its auto-disarm
+        waits ``COM_DISARM_LAND`` (2 s by default) on the ground, over a HEARTBEAT period."""
+        since = self._armed_on_the_ground_since
+        return since is not None and since < last_armed_heartbeat
 
     def _on_extended_sys_state(self, message, now: float) -> None:
         self._landed_state = message.landed_state

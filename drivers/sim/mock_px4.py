@@ -1130,7 +1130,9 @@ class MockPx4:
     def _landed_state(self) -> int:
         """PX4's land detector: landed whenever disarmed, in the air too
         (MulticopterLandDetector.cpp, ``_get_landed_state``: ``return !_armed ||
-        _maybe_landed_hysteresis.get_state()``)."""
+        _maybe_landed_hysteresis.get_state()``). PX4 passes it through its landed hysteresis
+        (LandDetector.cpp, ``LNDMC_TRIG_TIME / 3``, 0.33 s); the mock says it at once, which
+        only brings the word sooner after a disarm in the air."""
         if self.vehicle.landed or not self.vehicle.armed:
             return mavlink.MAV_LANDED_STATE_ON_GROUND
         if self.mode == px4_protocol.AUTO_TAKEOFF:

@@ -33,27 +33,36 @@ from companion.tools.eval.vio import EvaluationError
 
 #: At least this many flights with a split error, and two vehicles, for a fit.
 MIN_FLIGHTS = 3
+#: The split's numbers a fit reads (``position_error_split``, :mod:`autonomy.trajectory`).
+SPLIT_KEYS = ("distance_m", "scale", "bearing_deg", "along_m", "across_m", "height_m")
 
 
 def calibration_fit(records: Iterable[dict], errors_of: Callable[[int], object]) -> dict:
     """The two fits (module docstring) over the ``records`` with a ``position_error_split``,
-    ``errors_of(seed)`` giving each seed's :class:`~drivers.sim.host.VehicleErrors`;
-    EvaluationError with fewer than :data:`MIN_FLIGHTS` such records or fewer than two
-    vehicles."""
+    ``errors_of(seed)`` giving each seed's :class:`~drivers.sim.host.VehicleErrors` (a vehicle
+    is one set of errors: seeds flying one ``vehicle_seed`` are one); EvaluationError for a
+    split without its numbers, fewer than :data:`MIN_FLIGHTS` such records or fewer than two
+    vehicles (the ideal profile draws none)."""
     scored = [r for r in records if r.get("position_error_split")]
-    seeds = sorted({r["seed"] for r in scored})
-    if len(scored) < MIN_FLIGHTS or len(seeds) < 2:
+    for record in scored:
+        _check_split(record)
+    errors = {seed: errors_of(seed) for seed in sorted({r["seed"] for r in scored})}
+    vehicle_of = {seed: sorted(set(errors.values()), key=repr).index(e)
+                  for seed, e in errors.items()}
+    vehicles = len(set(vehicle_of.values()))
+    if len(scored) < MIN_FLIGHTS or vehicles < 2:
         raise EvaluationError(f"a fit needs {MIN_FLIGHTS} flights with a VINS error at the end "
-                              f"and two vehicles; got {len(scored)} flights of {len(seeds)}")
-    vehicles = {seed: errors_of(seed) for seed in seeds}
+                              f"of two vehicles or more; got {len(scored)} flights of "
+                              f"{vehicles} (the config given draws each seed's vehicle: "
+                              "give the runs' own --config and --set)")
     splits = [r["position_error_split"] for r in scored]
-    yaw = [vehicles[r["seed"]].mount_rotation_deg[2] for r in scored]
-    accel_z = [100.0 * vehicles[r["seed"]].accel_scale_error[2] for r in scored]
-    by_seed = [r["seed"] for r in scored]
-    bearing = _line([s["bearing_deg"] for s in splits], yaw, by_seed)
-    scale = _line([100.0 * (s["scale"] - 1.0) for s in splits], accel_z, by_seed)
+    yaw = [errors[r["seed"]].mount_rotation_deg[2] for r in scored]
+    accel_z = [100.0 * errors[r["seed"]].accel_scale_error[2] for r in scored]
+    by_vehicle = [vehicle_of[r["seed"]] for r in scored]
+    bearing = _line([s["bearing_deg"] for s in splits], yaw, by_vehicle)
+    scale = _line([100.0 * (s["scale"] - 1.0) for s in splits], accel_z, by_vehicle)
     return {
-        "flights": len(scored), "vehicles": len(seeds),
+        "flights": len(scored), "vehicles": vehicles,
         "bearing_deg_on_mount_yaw_deg": bearing,
         "scale_error_pct_on_accel_z_error_pct": scale,
         "end_error_m": _end_errors(scored, yaw, accel_z, bearing["slope"] or 0.0,
@@ -61,14 +70,24 @@ def calibration_fit(records: Iterable[dict], errors_of: Callable[[int], object])
         "vehicles_drawn": {str(seed): {"mount_yaw_deg": round(v.mount_rotation_deg[2], 4),
                                        "accel_z_scale_error_pct":
                                            round(100.0 * v.accel_scale_error[2], 4)}
-                           for seed, v in vehicles.items()},
+                           for seed, v in errors.items()},
     }
+
+
+def _check_split(record: dict) -> None:
+    split = record["position_error_split"]
+    missing = [key for key in SPLIT_KEYS
+               if type(split.get(key) if isinstance(split, dict) else None) not in (int, float)]
+    if missing or type(record.get("position_error_m")) not in (int, float):
+        raise EvaluationError(f"{record.get('world')} pair {record.get('pair')} "
+                              f"{record.get('depth')} seed {record.get('seed')}: its VINS error "
+                              f"at the end lacks {', '.join(missing) or 'position_error_m'}")
 
 
 def _line(y: list[float], x: list[float], groups: list[int]) -> dict:
     """``y = intercept + slope x`` by least squares, with ``r`` over the points and over the
-    means of each of ``groups`` (a vehicle), and the residuals' SD; the slope None where ``x``
-    does not vary (the ideal profile draws no errors)."""
+    means of each of ``groups`` (a vehicle; None under three: two means lie on a line), and
+    the residuals' SD; the slope None where ``x`` does not vary (no vehicle drew this error)."""
     x_, y_ = np.asarray(x, float), np.asarray(y, float)
     if np.ptp(x_) == 0.0:
         return {"slope": None, "intercept": None, "r": None, "r_vehicles": None,
@@ -84,7 +103,7 @@ def _line(y: list[float], x: list[float], groups: list[int]) -> dict:
 
 
 def _correlation(x: np.ndarray, y: np.ndarray) -> float | None:
-    r = float(np.corrcoef(x, y)[0, 1]) if len(x) > 1 else math.nan
+    r = float(np.corrcoef(x, y)[0, 1]) if len(x) > 2 and np.ptp(x) > 0.0 else math.nan
     return None if math.isnan(r) else round(r, 4)
 
 
