@@ -264,8 +264,9 @@ class Autopilot:
         self._armed_on_the_ground_since: float | None = None
         self._last_armed_heartbeat = -math.inf
         #: PX4's last disarm came once its land detector had the vehicle down (on the ground
-        #: while armed before PX4's last armed HEARTBEAT: :meth:`_came_down_before`), not in
-        #: the air; False before any disarm and from the next arm on.
+        #: while armed before PX4's last armed HEARTBEAT:
+        #: :meth:`_came_down_before_last_armed_heartbeat`), not in the air; False before any
+        #: disarm and from the next arm on.
         self.disarmed_on_the_ground = False
         self._attitude: tuple[np.ndarray, np.ndarray] | None = None
         self._last_odometry = -math.inf
@@ -610,7 +611,7 @@ class Autopilot:
         if armed and not self.armed:
             self._armed_on_the_ground_since, self.disarmed_on_the_ground = None, False
         elif self.armed and not armed:
-            self.disarmed_on_the_ground = self._came_down_before(self._last_armed_heartbeat)
+            self.disarmed_on_the_ground = self._came_down_before_last_armed_heartbeat()
         if armed:
             self._last_armed_heartbeat = now
         self.armed = armed
@@ -657,7 +658,7 @@ class Autopilot:
             return
         pending[1].set_result(message.result)
 
-    def _came_down_before(self, last_armed_heartbeat: float) -> bool:
+    def _came_down_before_last_armed_heartbeat(self) -> bool:
         """Did PX4 say on the ground, armed, before the last HEARTBEAT that said armed? Then
         the disarm that followed was of a vehicle that had come down.
         PX4's land detector says landed within its hysteresis of any disarm, in the air too
@@ -666,7 +667,7 @@ class Autopilot:
         word comes after PX4's last armed HEARTBEAT, however many are lost; its auto-disarm
         waits ``COM_DISARM_LAND`` (2 s by default) on the ground, over a HEARTBEAT period."""
         since = self._armed_on_the_ground_since
-        return since is not None and since < last_armed_heartbeat
+        return since is not None and since < self._last_armed_heartbeat
 
     def _on_extended_sys_state(self, message, now: float) -> None:
         self._landed_state = message.landed_state

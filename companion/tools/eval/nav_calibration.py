@@ -47,9 +47,8 @@ def calibration_fit(records: Iterable[dict], errors_of: Callable[[int], object])
     for record in scored:
         _check_split(record)
     errors = {seed: errors_of(seed) for seed in sorted({r["seed"] for r in scored})}
-    vehicle_of = {seed: sorted(set(errors.values()), key=repr).index(e)
-                  for seed, e in errors.items()}
-    vehicles = len(set(vehicle_of.values()))
+    vehicle_ids = {e: i for i, e in enumerate(dict.fromkeys(errors.values()))}
+    vehicles = len(vehicle_ids)
     if len(scored) < MIN_FLIGHTS or vehicles < 2:
         raise EvaluationError(f"a fit needs {MIN_FLIGHTS} flights with a VINS error at the end "
                               f"of two vehicles or more; got {len(scored)} flights of "
@@ -58,7 +57,7 @@ def calibration_fit(records: Iterable[dict], errors_of: Callable[[int], object])
     splits = [r["position_error_split"] for r in scored]
     yaw = [errors[r["seed"]].mount_rotation_deg[2] for r in scored]
     accel_z = [100.0 * errors[r["seed"]].accel_scale_error[2] for r in scored]
-    by_vehicle = [vehicle_of[r["seed"]] for r in scored]
+    by_vehicle = [vehicle_ids[errors[r["seed"]]] for r in scored]
     bearing = _line([s["bearing_deg"] for s in splits], yaw, by_vehicle)
     scale = _line([100.0 * (s["scale"] - 1.0) for s in splits], accel_z, by_vehicle)
     return {
@@ -94,9 +93,8 @@ def _line(y: list[float], x: list[float], groups: list[int]) -> dict:
                 "residual_sd": None, "sd": round(float(y_.std()), 4)}
     slope, intercept = np.polyfit(x_, y_, 1)
     residual = y_ - (intercept + slope * x_)
-    keys = sorted(set(groups))
-    means = np.array([[x_[[g == k for g in groups]].mean(), y_[[g == k for g in groups]].mean()]
-                      for k in keys])
+    group = np.asarray(groups)
+    means = np.array([[x_[group == k].mean(), y_[group == k].mean()] for k in np.unique(group)])
     return {"slope": round(float(slope), 4), "intercept": round(float(intercept), 4),
             "r": _correlation(x_, y_), "r_vehicles": _correlation(means[:, 0], means[:, 1]),
             "residual_sd": round(float(residual.std()), 4), "sd": round(float(y_.std()), 4)}
