@@ -275,6 +275,12 @@ def _symbol_keys(keys: np.ndarray, char: str) -> np.ndarray:
     return keys[keys >> np.uint64(_SYMBOL_INDEX_BITS) == ord(char)]
 
 
+def _is_landmark(key: int) -> bool:
+    """Whether a GTSAM key is a landmark's, ``L(track)``: the smoother eliminates those first
+    (:mod:`autonomy.vins.fixed_lag`)."""
+    return key >> _SYMBOL_INDEX_BITS == ord("l")
+
+
 def _symbol_indices(keys: np.ndarray, char: str) -> np.ndarray:
     """The sorted indices of the ``char`` symbols among GTSAM ``keys`` (uint64, sorted)."""
     index_mask = np.uint64((1 << _SYMBOL_INDEX_BITS) - 1)
@@ -641,7 +647,8 @@ class SlidingWindowSmoother:
         params.relinearizeSkip = 1
         params.findUnusedFactorSlots = True
         params.setFactorization(self.options.factorization.upper())
-        smoother = FixedLagSmoother(self.options.smoother_lag_s, params, self.update_listener)
+        smoother = FixedLagSmoother(self.options.smoother_lag_s, params, self.update_listener,
+                                    eliminated_early=_is_landmark)
         smoother.kept_from = self._kept_from
         return smoother
 

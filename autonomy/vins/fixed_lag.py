@@ -24,6 +24,15 @@ velocity or bias). Measured, not proven: no refusal on any of the 35 recordings 
 the bias alone last, the first version, still met two in mid-window. The solution is the same for
 any ordering.
 
+The caller may also name kinds of variable eliminated early (group 1, right after those
+marginalised): the landmarks, in a visual-inertial window. Eliminated among the keyframes, as
+GTSAM's constrained COLAMD chose, they ended in the Bayes tree's root, dense with every keyframe
+they tie together, and a marginal (which starts from the root's) cost about twice the update:
+9.5 ms against 4.9 ms per keyframe on a mine flight. Eliminated first, each is a leaf whose
+separator is the keyframes that saw it (the Schur complement of bundle adjustment); the root holds
+keyframes alone, and the same marginal costs 0.8 ms. The update costs the same (docs/vins.md,
+"Landmarks eliminated first").
+
 The window can be kept open (:attr:`FixedLagSmoother.kept_from`): every variable stamped at or
 after a time stays however old it grows, until the caller lets it go; the next update then
 marginalises all that the lag leaves behind. What it is for: a keyframe filed at a wrong camera
@@ -42,8 +51,9 @@ from collections.abc import Callable, Collection, Iterable, Mapping
 
 import gtsam
 
-#: The elimination ordering's constraint groups: eliminated first, the rest, eliminated last.
-_MARGINALISED, _WINDOW, _LAST = 0, 1, 2
+#: The elimination ordering's constraint groups: marginalised, eliminated early, the rest,
+#: eliminated last.
+_MARGINALISED, _EARLY, _WINDOW, _LAST = 0, 1, 2, 3
 
 #: Told of every update after it is solved, before the marginalisation: the factors added, the
 #: (re)stamps of their variables, the slots removed, the slots the new factors took, and the
@@ -57,7 +67,10 @@ class FixedLagSmoother:
     """iSAM2 over the variables of the last ``lag`` seconds (module docstring)."""
 
     def __init__(self, lag: float, params: gtsam.ISAM2Params,
-                 listener: UpdateListener | None = None):
+                 listener: UpdateListener | None = None,
+                 eliminated_early: Callable[[int], bool] = lambda key: False):
+        """``eliminated_early``: whether a variable (its key) is of the kind eliminated right
+        after those marginalised (module docstring); asked once, when it is first stamped."""
         if not lag > 0.0:
             raise ValueError(f"the smoother's lag must be positive, got {lag}")
         self.lag = float(lag)
@@ -65,6 +78,8 @@ class FixedLagSmoother:
         self._isam = gtsam.ISAM2(params)
         self._stamps: dict[int, float] = {}
         self._last: frozenset[int] = frozenset()
+        self._eliminated_early = eliminated_early
+        self._early: set[int] = set()
         #: variables stamped at or after this time are not marginalised (None: the lag alone)
         self.kept_from: float | None = None
 
@@ -97,6 +112,8 @@ class FixedLagSmoother:
         if not stamps and not self._stamps:
             raise ValueError("the smoother holds no variable yet: the first update must stamp "
                              "its new variables")
+        self._early.update(key for key in stamps
+                           if key not in self._stamps and self._eliminated_early(key))
         self._stamps.update(stamps)
         self._last = last
         cutoff = self.cutoff(max(self._stamps.values())) if slide else -math.inf
@@ -115,15 +132,17 @@ class FixedLagSmoother:
             self._isam.marginalizeLeaves(_key_list(old))
             for key in old:
                 del self._stamps[key]
+            self._early.difference_update(old)
             self._last = self._last.difference(old)
         return slots
 
     def _groups(self, old: list[int]) -> gtsam.KeyGroupMap:
-        """The ordering constraint: ``old`` first, then the window, then the last keys. Group
-        numbers are renumbered 0, 1, ... over the groups in use: GTSAM's constrained COLAMD
-        refused groups 1 and 2, or 0 and 2, on two variables ("variables that are not
-        involved in the factor graph")."""
+        """The ordering constraint: ``old`` first, then those eliminated early, then the window,
+        then the last keys. Group numbers are renumbered 0, 1, ... over the groups in use:
+        GTSAM's constrained COLAMD refused groups 1 and 2, or 0 and 2, on two variables
+        ("variables that are not involved in the factor graph")."""
         wanted = dict.fromkeys(self._stamps, _WINDOW)
+        wanted.update(dict.fromkeys(self._early, _EARLY))
         wanted.update(dict.fromkeys(self._last, _LAST))
         wanted.update(dict.fromkeys(old, _MARGINALISED))
         renumber = {group: rank for rank, group in enumerate(sorted(set(wanted.values())))}
