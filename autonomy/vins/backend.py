@@ -580,8 +580,9 @@ class SlidingWindowSmoother:
         its marginal in the smoother, plus what a rebuild's :class:`GaugeAnchor` carries; NaN
         where GTSAM cannot compute it (:meth:`_joint_marginal`). Computed once per keyframe,
         or, with ``max_age_s``, kept for later keyframes until it is that old in keyframe time
-        (never across a (re)start): iSAM2's marginal costs about twice its update (21 ms
-        against 11 ms per keyframe here, docs/benchmarks.md)."""
+        (never across a (re)start). The odometry asks every ``covariance_period_s``: the
+        marginal cost twice the update until the landmarks were eliminated first, and about a
+        ninth of it since (1.1 ms, :mod:`autonomy.vins.fixed_lag`; docs/benchmarks.md)."""
         state, cached = self.latest, self._pose_covariance
         if cached is None or (cached[0] != state.index and
                               state.t - cached[1] >= max_age_s - 1e-9):
@@ -599,8 +600,8 @@ class SlidingWindowSmoother:
     def _newest_covariances(self) -> tuple[np.ndarray, np.ndarray]:
         """The latest keyframe's pose and velocity covariances (:meth:`pose_covariance`,
         :meth:`velocity_covariance`), from one joint marginal, kept for that keyframe: iSAM2's
-        joint marginal of the pose, the velocity and the gauge hold's pose costs what the
-        pose's alone does (8.1 ms each, docs/benchmarks.md), so the velocity's comes free."""
+        joint marginal of the pose, the velocity and the gauge hold's pose costs about what
+        the pose's alone does (docs/benchmarks.md), so the velocity's comes nearly free."""
         state = self.latest
         if self._covariances is None or self._covariances[0] != state.index:
             joint = self._released_marginal([X(state.index), V(state.index)])
