@@ -5,7 +5,6 @@ tested on the recorded 40 s flights (tests/test_vins_depth_acceptance.py: the mi
 was rebuilt 36.9 s in with GTSAM's smoother)."""
 
 import math
-import re
 
 import gtsam
 import numpy as np
@@ -13,6 +12,7 @@ import pytest
 from gtsam.symbol_shorthand import B, L, X
 
 from autonomy.vins.fixed_lag import FixedLagSmoother
+from tests.bayes_tree import root_frontals
 
 LAG = 1.0
 STEP = 0.1
@@ -222,12 +222,6 @@ def map_a_corridor(smoother: FixedLagSmoother, steps: int = 30, per_step: int = 
             stamps[L(j)] = k * STEP
         smoother.update(graph, values, stamps, eliminate_last=[X(k)])
     return smoother
-
-
-def root_frontals(smoother: FixedLagSmoother) -> list[str]:
-    """The variables of the Bayes tree's root clique (GTSAM writes it first in ``dot``)."""
-    label = re.search(r'label="([^"]*)"', smoother._isam.dot()).group(1)
-    return [name.strip() for name in label.split(":")[0].split(",")]
 
 
 def test_points_eliminated_early_leave_the_root_to_the_chain_and_the_answer_unchanged():

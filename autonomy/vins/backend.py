@@ -581,8 +581,9 @@ class SlidingWindowSmoother:
         where GTSAM cannot compute it (:meth:`_joint_marginal`). Computed once per keyframe,
         or, with ``max_age_s``, kept for later keyframes until it is that old in keyframe time
         (never across a (re)start). The odometry asks every ``covariance_period_s``: the
-        marginal cost twice the update until the landmarks were eliminated first, and about a
-        ninth of it since (1.1 ms, :mod:`autonomy.vins.fixed_lag`; docs/benchmarks.md)."""
+        marginal took twice the smoother's update until the landmarks were eliminated first, and
+        1.1 ms since, a ninth of a keyframe's back-end time (:mod:`autonomy.vins.fixed_lag`;
+        docs/benchmarks.md)."""
         state, cached = self.latest, self._pose_covariance
         if cached is None or (cached[0] != state.index and
                               state.t - cached[1] >= max_age_s - 1e-9):

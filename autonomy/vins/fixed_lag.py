@@ -1,4 +1,5 @@
-"""A fixed-lag smoother on GTSAM's iSAM2 that eliminates chosen variables last.
+"""A fixed-lag smoother on GTSAM's iSAM2 that eliminates chosen variables last, and kinds of
+variable early.
 
 It does what GTSAM's ``IncrementalFixedLagSmoother`` does
 (``gtsam_unstable/nonlinear/IncrementalFixedLagSmoother.cpp``): each variable carries a
@@ -6,7 +7,7 @@ timestamp; at every update the variables older than ``lag`` before the newest ti
 eliminated first (ordering constraint group 0, so they are leaves of the Bayes tree) and then
 marginalised out, leaving a linear marginal factor on their neighbours.
 
-What it adds is the end of the elimination ordering (group 2, a group of its own): the caller
+What it adds is the end of the elimination ordering (the last group, of its own): the caller
 names the variables eliminated last, the newest keyframe's pose, velocity and IMU bias. The
 reason is GTSAM's Cholesky (``gtsam/base/cholesky.cpp``, ``choleskyPartial``): after factoring
 a clique's frontal block ``A = RᵀR`` it calls the system indeterminate when the last two
@@ -24,14 +25,14 @@ velocity or bias). Measured, not proven: no refusal on any of the 35 recordings 
 the bias alone last, the first version, still met two in mid-window. The solution is the same for
 any ordering.
 
-The caller may also name kinds of variable eliminated early (group 1, right after those
-marginalised): the landmarks, in a visual-inertial window. Left to GTSAM's constrained COLAMD
-among the keyframes, they ended in the Bayes tree's root (89 of its variables in the median on a
-mine flight), which every marginal starts from: the newest keyframe's marginal took 9.5 ms, more
-than the update. Eliminated first, each landmark is a leaf whose separator is the keyframes that
-saw it (bundle adjustment's Schur complement), the root holds keyframes alone (6 variables), and
-the same marginal takes 1.1 ms; the update takes 0-1.3 ms more (docs/vins.md, "Landmarks
-eliminated first").
+The caller may also name kinds of variable eliminated early (group 1: after those marginalised,
+before the rest of the window): the landmarks, in a visual-inertial window. Left to GTSAM's
+constrained COLAMD among the keyframes, they ended in the Bayes tree's root (89 of its variables
+in the median on a mine flight), which every marginal starts from: the newest keyframe's marginal
+took 9.5 ms, more than the update. Eliminated first, each landmark is a leaf whose separator is
+the keyframes that saw it (bundle adjustment's Schur complement), the root holds keyframes alone
+(6 variables), and the same marginal takes 1.1 ms; a keyframe takes 0.4-1.3 ms more
+(docs/vins.md, "Landmarks eliminated first").
 
 The window can be kept open (:attr:`FixedLagSmoother.kept_from`): every variable stamped at or
 after a time stays however old it grows, until the caller lets it go; the next update then
@@ -63,14 +64,19 @@ UpdateListener = Callable[[gtsam.NonlinearFactorGraph, Mapping[int, float], Coll
                            list[int], gtsam.Values], None]
 
 
+def _none(key: int) -> bool:
+    """No variable is eliminated early."""
+    return False
+
+
 class FixedLagSmoother:
     """iSAM2 over the variables of the last ``lag`` seconds (module docstring)."""
 
     def __init__(self, lag: float, params: gtsam.ISAM2Params,
                  listener: UpdateListener | None = None,
-                 eliminated_early: Callable[[int], bool] = lambda key: False):
-        """``eliminated_early``: whether a variable (its key) is of the kind eliminated right
-        after those marginalised (module docstring); asked once, when it is first stamped."""
+                 eliminated_early: Callable[[int], bool] = _none):
+        """``eliminated_early``: whether a variable (its key) is of a kind eliminated right
+        after those marginalised (module docstring); asked when it enters the window."""
         if not lag > 0.0:
             raise ValueError(f"the smoother's lag must be positive, got {lag}")
         self.lag = float(lag)
