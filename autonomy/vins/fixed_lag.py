@@ -29,7 +29,7 @@ The caller may also name kinds of variable eliminated early (group 1: after thos
 before the rest of the window): the landmarks, in a visual-inertial window. Left to GTSAM's
 constrained COLAMD among the keyframes, they ended in the Bayes tree's root (89 of its variables
 in the median on a mine flight), which every marginal starts from: the newest keyframe's marginal
-took 9.5 ms, more than the update. Eliminated first, each landmark is a leaf whose separator is
+took about 10 ms, more than the update. Eliminated first, each landmark is a leaf whose separator is
 the keyframes that saw it (bundle adjustment's Schur complement), the root holds keyframes alone
 (6 variables), and the same marginal takes 1.1 ms; a keyframe takes 0.4-1.3 ms more
 (docs/vins.md, "Landmarks eliminated first").
