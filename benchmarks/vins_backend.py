@@ -20,8 +20,8 @@ evaluation asks for at every keyframe and the odometry every ``covariance_period
 are on the VINS worker, one after the other: ``with_covariance_ms_p95`` is the p95 of a
 keyframe's time with its covariance's (the odometry's at ``covariance_period_s = 0``), and
 ``as_flown_ms_p95`` the p95 of a keyframe's time with the covariance added where the config's
-period refreshes it (at the first keyframe, then at each keyframe that period after the last
-refresh; a rebuild's refresh is not counted). With
+period refreshes it (at the first keyframe, then at the first keyframe at least that period
+after the last refresh; a rebuild's refresh is not counted). With
 ``--set`` (``[vins]`` keys, TOML
 values: ``--set drag_coefficient=0.3``) each flight is also run with those options, default and
 variant twice in turn (A B A B) so that the host's load falls on both alike, and both are

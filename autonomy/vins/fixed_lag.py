@@ -25,14 +25,14 @@ velocity or bias). Measured, not proven: no refusal on any of the 35 recordings 
 the bias alone last, the first version, still met two in mid-window. The solution is the same for
 any ordering.
 
-The caller may also name kinds of variable eliminated early (group 1: after those marginalised,
-before the rest of the window): the landmarks, in a visual-inertial window. Left to GTSAM's
-constrained COLAMD among the keyframes, they ended in the Bayes tree's root (89 of its variables
-in the median on a mine flight), which every marginal starts from: the newest keyframe's marginal
-took about 10 ms, more than the update. Eliminated first, each landmark is a leaf whose separator is
-the keyframes that saw it (bundle adjustment's Schur complement), the root holds keyframes alone
-(6 variables), and the same marginal takes 1.1 ms; a keyframe takes 0.4-1.3 ms more
-(docs/vins.md, "Landmarks eliminated first").
+The caller may also name kinds of variable eliminated early (a group of their own: after those
+marginalised, before the rest of the window): the landmarks, in a visual-inertial window. Left
+to GTSAM's constrained COLAMD among the keyframes, they ended in the Bayes tree's root (89 of its
+variables in the median on a mine flight), which every marginal starts from: the newest
+keyframe's marginal took about 10 ms, more than the update. Eliminated first, each landmark is a
+leaf whose separator is the keyframes that saw it (bundle adjustment's Schur complement), the
+root holds keyframes alone (6 variables), and the same marginal takes 1.1 ms; a keyframe takes
+up to about 1 ms more in the median (docs/vins.md, "Landmarks eliminated first").
 
 The window can be kept open (:attr:`FixedLagSmoother.kept_from`): every variable stamped at or
 after a time stays however old it grows, until the caller lets it go; the next update then
