@@ -41,7 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from autonomy.vins.backend import SlidingWindowSmoother
+from autonomy.vins.backend import SlidingWindowSmoother, covariance_due
 from companion.config import Config, ConfigError, load_config
 from companion.tools.eval.rescale import cached_dataset
 from companion.tools.eval.vio import EvaluationError, read_vio_dataset, run_vins, score_vio
@@ -98,7 +98,7 @@ def keyframes_with_covariances(trace, covariance_ms: dict[float, float],
     with_covariance, as_flown, refreshed_t = [], [], -np.inf
     for ms, t in zip(keyframe_ms, times, strict=True):
         with_covariance.append(ms + covariance_ms[t])
-        refresh = t - refreshed_t >= period_s - 1e-9
+        refresh = covariance_due(t - refreshed_t, period_s)
         refreshed_t = t if refresh else refreshed_t
         as_flown.append(with_covariance[-1] if refresh else ms)
     return {"with_covariance_ms_p95": float(np.percentile(with_covariance, 95)),

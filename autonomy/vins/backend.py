@@ -275,6 +275,13 @@ def _symbol_keys(keys: np.ndarray, char: str) -> np.ndarray:
     return keys[keys >> np.uint64(_SYMBOL_INDEX_BITS) == ord(char)]
 
 
+def covariance_due(age_s: float, max_age_s: float) -> bool:
+    """Whether a covariance ``age_s`` old in keyframe time is refreshed by an asker that keeps
+    one for ``max_age_s`` (:meth:`SlidingWindowSmoother.pose_covariance`; the odometry's
+    ``covariance_period_s``)."""
+    return age_s >= max_age_s - 1e-9
+
+
 def _is_landmark(key: int) -> bool:
     """Whether a GTSAM key is a landmark's, ``L(track)``: the smoother eliminates those first
     (:mod:`autonomy.vins.fixed_lag`)."""
@@ -586,7 +593,7 @@ class SlidingWindowSmoother:
         docs/benchmarks.md)."""
         state, cached = self.latest, self._pose_covariance
         if cached is None or (cached[0] != state.index and
-                              state.t - cached[1] >= max_age_s - 1e-9):
+                              covariance_due(state.t - cached[1], max_age_s)):
             covariance = self._newest_covariances()[0]
             self._pose_covariance = cached = (state.index, state.t, covariance)
             if np.isfinite(covariance).all():

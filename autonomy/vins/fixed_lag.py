@@ -76,7 +76,7 @@ class FixedLagSmoother:
                  listener: UpdateListener | None = None,
                  eliminated_early: Callable[[int], bool] = _none):
         """``eliminated_early``: whether a variable (its key) is of a kind eliminated right
-        after those marginalised (module docstring); asked when it enters the window."""
+        after those marginalised (module docstring); asked at every update."""
         if not lag > 0.0:
             raise ValueError(f"the smoother's lag must be positive, got {lag}")
         self.lag = float(lag)
@@ -85,7 +85,6 @@ class FixedLagSmoother:
         self._stamps: dict[int, float] = {}
         self._last: frozenset[int] = frozenset()
         self._eliminated_early = eliminated_early
-        self._early: set[int] = set()
         #: variables stamped at or after this time are not marginalised (None: the lag alone)
         self.kept_from: float | None = None
 
@@ -118,8 +117,6 @@ class FixedLagSmoother:
         if not stamps and not self._stamps:
             raise ValueError("the smoother holds no variable yet: the first update must stamp "
                              "its new variables")
-        self._early.update(key for key in stamps
-                           if key not in self._stamps and self._eliminated_early(key))
         self._stamps.update(stamps)
         self._last = last
         cutoff = self.cutoff(max(self._stamps.values())) if slide else -math.inf
@@ -138,7 +135,6 @@ class FixedLagSmoother:
             self._isam.marginalizeLeaves(_key_list(old))
             for key in old:
                 del self._stamps[key]
-            self._early.difference_update(old)
             self._last = self._last.difference(old)
         return slots
 
@@ -147,8 +143,8 @@ class FixedLagSmoother:
         then the last keys. Group numbers are renumbered 0, 1, ... over the groups in use:
         GTSAM's constrained COLAMD refused groups 1 and 2, or 0 and 2, on two variables
         ("variables that are not involved in the factor graph")."""
-        wanted = dict.fromkeys(self._stamps, _WINDOW)
-        wanted.update(dict.fromkeys(self._early, _EARLY))
+        early = self._eliminated_early
+        wanted = {key: _EARLY if early(key) else _WINDOW for key in self._stamps}
         wanted.update(dict.fromkeys(self._last, _LAST))
         wanted.update(dict.fromkeys(old, _MARGINALISED))
         renumber = {group: rank for rank, group in enumerate(sorted(set(wanted.values())))}
