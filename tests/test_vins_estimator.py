@@ -171,10 +171,15 @@ def test_the_flight_is_tracked_without_loss_or_reset(run):
 def test_the_window_eliminates_its_landmarks_before_its_keyframes(run):
     """The smoother's Bayes tree ends on keyframes alone, the landmarks below them: the
     odometry's covariance, a marginal from the root, then takes 1.1 ms where it took about 10 ms
-    with landmarks in the root (autonomy/vins/fixed_lag.py)."""
+    with landmarks in the root (autonomy/vins/fixed_lag.py). The root holds every key of that
+    covariance: the newest keyframe's pose and velocity, and the moved gauge hold's pose."""
     backend = run.vins.backend
     assert len(backend.landmarks.ids) > 0
-    assert all(name[0] in "xvb" for name in root_frontals(backend._smoother))
+    root = root_frontals(backend._smoother)
+    assert all(name[0] in "xvb" for name in root)
+    newest, hold = backend.latest.index, backend.gauge_keyframe
+    assert backend.gauge_hold_slot is not None, "the flight is too short for the hold to move"
+    assert {f"x{newest}", f"v{newest}", f"x{hold}"} <= set(root), root
 
 
 def test_the_position_follows_the_ground_truth(flight, run):

@@ -703,12 +703,17 @@ class SlidingWindowSmoother:
                                        self.options.huber_k))
         return factors
 
-    def _eliminated_last(self, k: int) -> tuple[int, ...]:
+    def _eliminated_last(self, k: int, hold: _GaugeHold | None = None) -> tuple[int, ...]:
         """The keys the smoother eliminates last (:mod:`autonomy.vins.fixed_lag`): keyframe
-        ``k``'s, and the mounting, which every landmark's factors share."""
+        ``k``'s, the mounting, which every landmark's factors share, and the pose of a moved
+        gauge ``hold``: with it the Bayes tree's root holds every key of the odometry's
+        covariance (:meth:`_released_marginal`), which is then read from the root alone."""
+        last = _variables(k)
         if self.options.estimate_camera_mounting:
-            return (*_variables(k), MOUNTING)
-        return _variables(k)
+            last = (*last, MOUNTING)
+        if hold is not None and hold.covariance is not None:
+            last = (*last, X(hold.index))
+        return last
 
     def _update_with_vision(self, keyframe: _Keyframe, pim, still: bool) -> None:
         graph, values, stamps, interval = self._imu_step(keyframe, pim, still)
@@ -724,7 +729,8 @@ class SlidingWindowSmoother:
                                 stamps)
         removed, hold = self._gauge_move(keyframe.t, graph)
         slots = self._smoother.update(graph, values, stamps,
-                                      eliminate_last=self._eliminated_last(keyframe.index),
+                                      eliminate_last=self._eliminated_last(keyframe.index,
+                                                                           hold),
                                       remove=removed)
         if hold is not self._hold:
             self._hold = None if hold is None else replace(hold, slot=slots[-1])
