@@ -8,8 +8,9 @@ eliminated first (ordering constraint group 0, so they are leaves of the Bayes t
 marginalised out, leaving a linear marginal factor on their neighbours.
 
 What it adds is the end of the elimination ordering (the last group, of its own): the caller
-names the variables eliminated last, the newest keyframe's pose, velocity and IMU bias. The
-reason is GTSAM's Cholesky (``gtsam/base/cholesky.cpp``, ``choleskyPartial``): after factoring
+names the variables eliminated last: the newest keyframe's pose, velocity and IMU bias, and, in
+the VINS, the other keys of the marginal it asks for (:mod:`autonomy.vins.backend`). The reason
+is GTSAM's Cholesky (``gtsam/base/cholesky.cpp``, ``choleskyPartial``): after factoring
 a clique's frontal block ``A = RᵀR`` it calls the system indeterminate when the last two
 diagonal entries of ``R`` differ by 12 binary exponents or more (about 4096x, information
 1.7e7x), a test meant to catch rank deficiency. In a visual-inertial window the absolute
@@ -31,8 +32,9 @@ to GTSAM's constrained COLAMD among the keyframes, they ended in the Bayes tree'
 variables in the median on a mine flight), which every marginal starts from: the newest
 keyframe's marginal took about 10 ms, more than the update. Eliminated first, each landmark is a
 leaf whose separator is the keyframes that saw it (bundle adjustment's Schur complement), the
-root holds keyframes alone (6 variables), and the same marginal takes 1.1 ms; a keyframe takes
-up to about 1 ms more in the median (docs/vins.md, "Landmarks eliminated first").
+root holds keyframes alone (6 variables), and the same marginal takes 1.1 ms (0.3 ms when
+every key it asks for is eliminated last); a keyframe takes up to about 1 ms more in the median
+(docs/vins.md, "Landmarks eliminated first").
 
 The window can be kept open (:attr:`FixedLagSmoother.kept_from`): every variable stamped at or
 after a time stays however old it grows, until the caller lets it go; the next update then
