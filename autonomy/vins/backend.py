@@ -589,8 +589,8 @@ class SlidingWindowSmoother:
         or, with ``max_age_s``, kept for later keyframes until it is that old in keyframe time
         (never across a (re)start). The odometry asks every ``covariance_period_s``: the
         marginal took twice the smoother's update until the landmarks were eliminated first, and
-        1.1 ms since, a ninth of a keyframe's back-end time (:mod:`autonomy.vins.fixed_lag`;
-        docs/benchmarks.md)."""
+        about 0.3 ms since its own keys are eliminated last too, about a thirtieth of a
+        keyframe's back-end median (:mod:`autonomy.vins.fixed_lag`; docs/benchmarks.md)."""
         state, cached = self.latest, self._pose_covariance
         if cached is None or (cached[0] != state.index and
                               covariance_due(state.t - cached[1], max_age_s)):
@@ -707,7 +707,10 @@ class SlidingWindowSmoother:
         """The keys the smoother eliminates last (:mod:`autonomy.vins.fixed_lag`): keyframe
         ``k``'s, the mounting, which every landmark's factors share, and the pose of a moved
         gauge ``hold``: with it the Bayes tree's root holds every key of the odometry's
-        covariance (:meth:`_released_marginal`), which is then read from the root alone."""
+        covariance (:meth:`_released_marginal`), which is then read from the root alone. The
+        start hold (no covariance) is never named: the covariance does not take its prior out,
+        and with ``hold_gauge`` false it outlives its keyframe, which the smoother would refuse
+        to eliminate last."""
         last = _variables(k)
         if self.options.estimate_camera_mounting:
             last = (*last, MOUNTING)

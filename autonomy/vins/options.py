@@ -37,8 +37,8 @@ class VinsOptions:
                               "fading as it is marginalised")
     covariance_period_s: float = option(0.5, ge=0.0, le=10.0, doc="the odometry's pose "
                                         "covariance is refreshed at most this often, seconds "
-                                        "of keyframe time (a marginal takes about a ninth of "
-                                        "a keyframe's back-end time; 0: at every keyframe)")
+                                        "of keyframe time (a marginal takes about a thirtieth "
+                                        "of a keyframe's back-end time; 0: at every keyframe)")
     # --- keyframes
     keyframe_interval_s: float = option(0.1, gt=0.0, le=5.0, doc="a frame this long after the "
                                         "last keyframe becomes one, seconds")
