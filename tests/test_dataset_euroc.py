@@ -5,11 +5,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose
+from autonomy.geometry import R_BODY_CAMERA, PinholeCamera, make_pose, so3_exp
 from autonomy.vins.preintegration import ImuNoise
 from drivers.dataset.euroc import (
-    DatasetError, EurocWriter, depth_to_millimetres, read_camera, read_depth_png,
-    read_groundtruth, read_imu, read_imu_noise,
+    DatasetError, EurocWriter, depth_to_millimetres, read_camera, read_camera_truth,
+    read_depth_png, read_groundtruth, read_imu, read_imu_noise,
 )
 
 EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_01"
@@ -20,6 +20,46 @@ NOISE = {"rate_hz": 200.0, "gyroscope_noise_density": 1e-4, "gyroscope_random_wa
 def test_depth_millimetres_mark_unknown_and_out_of_range_as_zero():
     depth = np.array([[np.nan, -1.0, 0.0, 0.0004], [0.0006, 1.2345, 65.535, 65.6]])
     assert depth_to_millimetres(depth).tolist() == [[0, 0, 0, 0], [1, 1234, 65535, 0]]
+
+
+def _frames_with_truth(root: Path, truth: bool = True) -> np.ndarray:
+    """Three frames stamped 15 ms after their exposure, with the camera's truth (a mounting
+    1 degree off the configured one) when ``truth``; the true mounting."""
+    camera = PinholeCamera.from_hfov(64, 48, 1.5)
+    true_T_B_C = make_pose(R_BODY_CAMERA @ so3_exp(np.radians([0.0, 1.0, 0.0])), [0.1, 0, 0])
+    with EurocWriter(root, camera, make_pose(R_BODY_CAMERA, [0.1, 0, 0]), 20.0, NOISE) as writer:
+        if truth:
+            writer.add_camera_truth(true_T_B_C)
+        for k in range(3):
+            writer.add_frame(50_000_000 * k + 15_000_000, np.zeros((48, 64, 3), np.uint8),
+                             np.ones((48, 64), np.float32), 50_000_000 * k if truth else None)
+    return true_T_B_C
+
+
+def test_a_simulators_camera_truth_reads_back_beside_the_calibration(tmp_path):
+    true_T_B_C = _frames_with_truth(tmp_path)
+    stream = read_camera(tmp_path)
+    truth = read_camera_truth(tmp_path, stream)
+    assert truth.exposed_ns.tolist() == [0, 50_000_000, 100_000_000]
+    np.testing.assert_allclose(truth.T_B_C, true_T_B_C, atol=1e-12)
+    np.testing.assert_allclose(stream.T_B_C, make_pose(R_BODY_CAMERA, [0.1, 0, 0]), atol=1e-12)
+
+
+def test_a_recording_without_the_cameras_truth_has_none(tmp_path):
+    _frames_with_truth(tmp_path, truth=False)
+    assert read_camera_truth(tmp_path, read_camera(tmp_path)) is None
+
+
+def test_half_a_camera_truth_or_one_of_other_frames_is_refused(tmp_path):
+    _frames_with_truth(tmp_path / "half")
+    (tmp_path / "half" / "mav0" / "cam0" / "truth.yaml").unlink()
+    with pytest.raises(DatasetError, match="truth.yaml: no such file"):
+        read_camera_truth(tmp_path / "half", read_camera(tmp_path / "half"))
+    _frames_with_truth(tmp_path / "other")
+    table = tmp_path / "other" / "mav0" / "cam0" / "truth.csv"
+    table.write_text(table.read_text().replace("115000000,", "116000000,"))
+    with pytest.raises(DatasetError, match="its stamps are not those of"):
+        read_camera_truth(tmp_path / "other", read_camera(tmp_path / "other"))
 
 
 def test_written_dataset_reads_back(tmp_path):

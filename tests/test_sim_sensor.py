@@ -13,7 +13,7 @@ import pytest
 
 from autonomy.geometry import PinholeCamera, distort_points, rot_to_quat, so3_log
 from autonomy.options import OptionError
-from drivers.dataset.euroc import read_camera, read_imu
+from drivers.dataset.euroc import read_camera, read_camera_truth, read_imu
 from drivers.sim.camera import CameraHead
 from drivers.sim.sensor import (REFERENCE_EXPOSURE_S, REFERENCE_LUX, CameraSensor,
                                 SensorOptions, camera_twist)
@@ -321,7 +321,10 @@ def test_an_ideal_head_delivers_the_render_unchanged():
     assert head.model.is_pinhole
 
 
-def test_a_realistic_recording_has_the_lens_late_stamps_and_aligned_depth(tmp_path):
+def test_a_realistic_recording_has_the_lens_late_stamps_aligned_depth_and_the_cameras_truth(
+        tmp_path):
+    """The estimator is given the configured mounting and the stamps; the evaluation is also
+    given the truth they hide (``cam0/truth.*``)."""
     from drivers.camera.options import CameraOptions
     from drivers.sim.imu import ImuOptions
     from drivers.sim.options import SimOptions
@@ -338,6 +341,11 @@ def test_a_realistic_recording_has_the_lens_late_stamps_and_aligned_depth(tmp_pa
     assert offsets == pytest.approx(0.015, abs=1e-6)
     depth = read_camera(tmp_path, "depth0")
     assert np.array_equal(depth.t_ns, stream.t_ns)
+    truth = read_camera_truth(tmp_path, stream)
+    assert truth.exposed_ns.tolist() == (np.arange(len(stream.t_ns)) * 50_000_000).tolist()
+    off = np.linalg.inv(camera.T_B_C()) @ truth.T_B_C
+    assert math.degrees(np.linalg.norm(so3_log(off[:3, :3]))) == pytest.approx(0.5)
+    assert np.linalg.norm(off[:3, 3]) == pytest.approx(0.005)
 
 
 def test_a_switched_off_sensor_leaves_the_realistic_world_and_imu_with_an_exact_camera(

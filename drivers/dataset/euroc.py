@@ -5,11 +5,15 @@
                                                   uint16 millimetres, 0 = invalid, cam0's times
     mav0/imu0/data.csv, imu0/sensor.yaml             gyro (rad/s) then accel (m/s^2), body frame
     mav0/state_groundtruth_estimate0/data.csv        p, q (w first), v, gyro bias, accel bias
+    mav0/cam0/truth.csv, cam0/truth.yaml             the simulator's only: each frame's true
+                                                  exposure time, the camera's true mounting
 
 Timestamps are integer nanoseconds. The body frame is the IMU's; each ``sensor.yaml`` holds
 ``T_BS``, the sensor's pose in the body frame, as in the original dataset (Burri et al., "The
 EuRoC micro aerial vehicle datasets", IJRR 2016). The same reader serves real recordings and
-the simulator's, so evaluation code cannot tell them apart.
+the simulator's, so evaluation code cannot tell them apart, but for the camera's truth: what
+a real camera hides (its stamps' offset and jitter, its mounting's calibration error) and only
+a simulator knows, kept apart from the calibration the estimator is given, for evaluation.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ IMU_HEADER = (
 )
 GROUNDTRUTH_HEADER = "#time(ns),px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz"
 FRAMES_HEADER = "#timestamp [ns],filename"
+CAMERA_TRUTH_HEADER = "#timestamp [ns],exposure middle [ns]"
 #: ``imu0/sensor.yaml`` keys and the :class:`ImuNoise` fields they fill.
 IMU_NOISE_KEYS = {
     "gyroscope_noise_density": "gyro_noise_density",
@@ -77,6 +82,15 @@ class CameraStream:
     distortion: tuple[float, ...]
     T_B_C: np.ndarray
     rate_hz: float
+
+
+@dataclass(frozen=True)
+class CameraTruth:
+    """A simulated camera's truth: ``exposed_ns``, each frame's true middle of exposure (int64
+    ns, in the order of the camera stream's stamps), and ``T_B_C``, its true mounting."""
+
+    exposed_ns: np.ndarray
+    T_B_C: np.ndarray
 
 
 # ---------------------------------------------------------------- depth PNG convention
@@ -143,6 +157,7 @@ class EurocWriter:
             "imu0": self._open("imu0/data.csv", IMU_HEADER),
             "gt": self._open("state_groundtruth_estimate0/data.csv", GROUNDTRUTH_HEADER),
         }
+        self._camera, self._camera_rate_hz, self._distortion = camera, camera_rate_hz, distortion
 
     def _open(self, relative: str, header: str):
         handle = open(self.mav0 / relative, "w", encoding="ascii", newline="\n")
@@ -155,8 +170,10 @@ class EurocWriter:
     def add_groundtruth(self, t_ns: int, position, q_W_B, velocity, gyro_bias, accel_bias) -> None:
         self._files["gt"].write(_row(t_ns, position, q_W_B, velocity, gyro_bias, accel_bias))
 
-    def add_frame(self, t_ns: int, rgb: np.ndarray, depth_m: np.ndarray) -> None:
-        """One camera frame (RGB uint8) and its ground-truth depth (float metres, NaN unknown)."""
+    def add_frame(self, t_ns: int, rgb: np.ndarray, depth_m: np.ndarray,
+                  exposed_ns: int | None = None) -> None:
+        """One camera frame (RGB uint8) and its ground-truth depth (float metres, NaN unknown);
+        ``exposed_ns``, a simulator's: the true middle of its exposure (``cam0/truth.csv``)."""
         name = f"{t_ns}.png"
         if not cv2.imwrite(str(self.mav0 / "cam0" / "data" / name),
                            cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), PNG_SETTINGS):
@@ -166,6 +183,17 @@ class EurocWriter:
             raise OSError(f"could not write {self.mav0 / 'depth0' / 'data' / name}")
         self._files["cam0"].write(f"{t_ns},{name}\n")
         self._files["depth0"].write(f"{t_ns},{name}\n")
+        if exposed_ns is not None:
+            if "truth" not in self._files:
+                self._files["truth"] = self._open("cam0/truth.csv", CAMERA_TRUTH_HEADER)
+            self._files["truth"].write(f"{t_ns},{int(exposed_ns)}\n")
+
+    def add_camera_truth(self, T_B_C: np.ndarray) -> None:
+        """A simulator's true camera mounting (``cam0/truth.yaml``), beside the configured one
+        of ``sensor.yaml`` that the estimator is given."""
+        _write_camera_yaml(self.mav0 / "cam0" / "truth.yaml", self._camera, T_B_C,
+                           self._camera_rate_hz, "true mounting of the simulated camera, for "
+                           "evaluation only", self._distortion)
 
     def close(self) -> None:
         for handle in self._files.values():
@@ -238,6 +266,25 @@ def read_camera(root: Path, name: str = "cam0") -> CameraStream:
     paths = tuple(folder / "data" / row[1].strip() for row in rows)
     camera, distortion, T_B_C, rate = _read_camera_yaml(folder / "sensor.yaml")
     return CameraStream(t_ns, paths, camera, distortion, T_B_C, rate)
+
+
+def read_camera_truth(root: Path, stream: CameraStream) -> CameraTruth | None:
+    """The simulator's truth of the camera ``stream`` of ``root`` (:class:`CameraTruth`), None
+    for a recording without it (a real one, or the simulator's before 2026-12-07); DatasetError
+    when half of it is there or it does not name the stream's frames."""
+    folder = Path(root) / "mav0" / "cam0"
+    table, mounting = folder / "truth.csv", folder / "truth.yaml"
+    if not table.exists() and not mounting.exists():
+        return None
+    rows = _read_rows(table, 2, "frame")
+    stamps = _timestamps(table, rows)
+    if not np.array_equal(stamps, stream.t_ns):
+        raise DatasetError(f"{table}: its stamps are not those of {folder / 'data.csv'}")
+    try:
+        exposed_ns = np.array([int(row[1]) for row in rows], dtype=np.int64)
+    except ValueError as error:
+        raise DatasetError(f"{table}: bad exposure time ({error})") from None
+    return CameraTruth(exposed_ns, _read_camera_yaml(mounting)[2])
 
 
 def _read_rows(path: Path, columns: int, row_name: str) -> list[list[str]]:

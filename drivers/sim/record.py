@@ -73,7 +73,9 @@ class Sink(Protocol):
 
     def add_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None: ...
     def add_groundtruth(self, t_ns: int, position, q_W_B, velocity, gyro_bias, accel_bias) -> None: ...
-    def add_frame(self, t_ns: int, rgb: np.ndarray, depth_m: np.ndarray) -> None: ...
+    def add_frame(self, t_ns: int, rgb: np.ndarray, depth_m: np.ndarray,
+                  exposed_ns: int) -> None: ...
+    def add_camera_truth(self, T_B_C: np.ndarray) -> None: ...
 
 
 #: Least clearance, metres, that a rounded corner of a recorded path keeps: the vehicle's
@@ -391,6 +393,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
                                  np.random.default_rng([unit, 1]))))
     head = CameraHead(camera.pinhole(), camera.rate_hz, camera.T_B_C(), sensor, world.name,
                       np.random.default_rng([seed, 3]), np.random.default_rng([unit, 3]))
+    sink.add_camera_truth(head.T_B_C)
     owned = renderer is None
     renderer = renderer or Renderer(world, head.render_camera)
     climb_seconds = 0.0 if follower.takes_off else \
@@ -406,7 +409,7 @@ def fly(world: World, route: Route, sink: Sink, *, duration: float, seed: int,
                 capture = head.shoot(renderer, t, state)
                 if capture.stamp is not None:
                     sink.add_frame(int(round(capture.stamp * 1e9)), capture.image,
-                                   capture.depth)
+                                   capture.depth, t_ns)
                     frames += 1
                 next_frame += 1.0 / camera.rate_hz
             _command(quad, follower, t, climb_seconds)

@@ -40,8 +40,8 @@ from companion.tools.eval.vio_bound import (
     BOUND_EVERY, FactorLog, batch_positions, bound_report,
 )
 from drivers.dataset.euroc import (
-    CameraStream, DatasetError, GroundTruthTable, ImuTable, read_camera, read_depth_png,
-    read_groundtruth, read_imu, read_imu_noise,
+    CameraStream, CameraTruth, DatasetError, GroundTruthTable, ImuTable, read_camera,
+    read_camera_truth, read_depth_png, read_groundtruth, read_imu, read_imu_noise,
 )
 from drivers.sim.truth_tracks import TruthTracks, replacement_for
 
@@ -62,8 +62,9 @@ class VioDataset:
     """The streams of a dataset the evaluation needs, checked for use.
 
     ``depth`` maps a camera timestamp (ns) to its ground-truth depth image; it is None when the
-    dataset has no ``depth0`` stream (the real EuRoC recordings). ``rectifier``, when set,
-    resamples every frame and depth image as they are read (:func:`rectified`).
+    dataset has no ``depth0`` stream (the real EuRoC recordings). ``camera_truth``: a simulated
+    recording's true exposure times and camera mounting, None elsewhere. ``rectifier``, when
+    set, resamples every frame and depth image as they are read (:func:`rectified`).
     """
 
     root: Path
@@ -72,6 +73,7 @@ class VioDataset:
     truth: GroundTruthTable
     noise: ImuNoise
     depth: dict[int, Path] | None
+    camera_truth: CameraTruth | None = None
     rectifier: Rectifier | None = None
 
 
@@ -152,7 +154,11 @@ class VioTrace:
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
     keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
     each rebuild of the smoother; ``track_errors``: the front-end's tracks against the truth
-    (:meth:`~companion.tools.eval.tracks.TrackErrors.summary`).
+    (:meth:`~companion.tools.eval.tracks.TrackErrors.summary`), and what the truth was seen
+    through, ``track_error_reference``: ``"camera truth"``, a simulated recording's true
+    exposure times and mounting, or ``"calibration"``, the stamps and the configured mounting,
+    whose hidden errors a realistic recording's track errors then include
+    (:mod:`companion.tools.eval.tracks`).
     """
 
     t: list[float] = field(default_factory=list)
@@ -183,6 +189,7 @@ def read_vio_dataset(root: Path) -> VioDataset:
         noise = read_imu_noise(root)
         has_depth = (root / "mav0" / "depth0").is_dir()
         depth = read_camera(root, "depth0") if has_depth else None
+        camera_truth = read_camera_truth(root, camera)
     except DatasetError as error:
         raise EvaluationError(str(error)) from None
     if len(camera.t_ns) == 0:
@@ -191,7 +198,7 @@ def read_vio_dataset(root: Path) -> VioDataset:
         raise EvaluationError(f"{root / 'mav0' / 'state_groundtruth_estimate0' / 'data.csv'}: "
                               "ground truth needs at least 2 samples")
     depth_paths = dict(zip(depth.t_ns.tolist(), depth.paths)) if depth is not None else None
-    return VioDataset(root, camera, imu, truth, noise, depth_paths)
+    return VioDataset(root, camera, imu, truth, noise, depth_paths, camera_truth)
 
 
 def rectified(data: VioDataset) -> VioDataset:
@@ -277,9 +284,14 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         vins.backend.update_listener = factor_log.record
     trace = VioTrace()
     imu = ImuFeed(data)
-    tracking = TrackErrors(stream.camera, stream.distortion, stream.T_B_C)
+    # the tracks are measured against the camera's truth where the recording holds it
+    camera_truth = data.camera_truth
+    tracking = TrackErrors(stream.camera, stream.distortion,
+                           stream.T_B_C if camera_truth is None else camera_truth.T_B_C)
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
-    for frame in vio_frames(data, max_frames):
+    exposed_t = (None if camera_truth is None
+                 else _seconds(camera_truth.exposed_ns, data.imu.t_ns[0]))
+    for k, frame in enumerate(vio_frames(data, max_frames)):
         imu.before_frame(vins, frame.t)
         start = time.perf_counter()
         tracks = vins.track(frame.image)
@@ -304,7 +316,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
                 and (born or update.sparse_map is not None)):
             depth = read_frame_depth(frame.depth_path, data)
         if truth_known:
-            tracking.observe(tracks, true_pose, depth)
+            tracking.observe(tracks, true_pose if exposed_t is None else
+                             _true_pose(exposed_t[k], truth_t, data.truth), depth)
         if update.sparse_map is not None and depth is not None:
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
@@ -312,7 +325,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     trace.gyro_alignment = vins.gyro_alignment
     if options.estimate_camera_mounting:
         trace.camera_mounting = vins.backend.camera_mounting
-    trace.track_errors = tracking.summary()
+    trace.track_errors = {**tracking.summary(), "track_error_reference":
+                          "calibration" if camera_truth is None else "camera truth"}
     if factor_log is not None and not vins.backend.resets:
         factor_log.drop_slot(vins.backend.gauge_hold_slot)
     return trace
