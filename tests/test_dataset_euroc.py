@@ -58,8 +58,21 @@ def test_half_a_camera_truth_or_one_of_other_frames_is_refused(tmp_path):
     _frames_with_truth(tmp_path / "other")
     table = tmp_path / "other" / "mav0" / "cam0" / "truth.csv"
     table.write_text(table.read_text().replace("115000000,", "116000000,"))
-    with pytest.raises(DatasetError, match="its stamps are not those of"):
+    with pytest.raises(DatasetError, match=r"its stamps are not those of .*frame 3 differs"):
         read_camera_truth(tmp_path / "other", read_camera(tmp_path / "other"))
+    _frames_with_truth(tmp_path / "table")
+    (tmp_path / "table" / "mav0" / "cam0" / "truth.csv").unlink()
+    with pytest.raises(DatasetError, match="truth.csv: no such file"):
+        read_camera_truth(tmp_path / "table", read_camera(tmp_path / "table"))
+
+
+@pytest.mark.parametrize("exposure", ["1.5e7", "99999999999999999999", "-"])
+def test_an_exposure_time_that_is_no_timestamp_is_refused(tmp_path, exposure):
+    _frames_with_truth(tmp_path)
+    table = tmp_path / "mav0" / "cam0" / "truth.csv"
+    table.write_text(table.read_text().replace(",50000000", f",{exposure}"))
+    with pytest.raises(DatasetError, match="truth.csv: (bad timestamp|a timestamp beyond)"):
+        read_camera_truth(tmp_path, read_camera(tmp_path))
 
 
 def test_written_dataset_reads_back(tmp_path):

@@ -278,12 +278,15 @@ def read_camera_truth(root: Path, stream: CameraStream) -> CameraTruth | None:
         return None
     rows = _read_rows(table, 2, "frame")
     stamps = _timestamps(table, rows)
-    if not np.array_equal(stamps, stream.t_ns):
-        raise DatasetError(f"{table}: its stamps are not those of {folder / 'data.csv'}")
-    try:
-        exposed_ns = np.array([int(row[1]) for row in rows], dtype=np.int64)
-    except ValueError as error:
-        raise DatasetError(f"{table}: bad exposure time ({error})") from None
+    if len(stamps) != len(stream.t_ns) or not np.array_equal(stamps, stream.t_ns):
+        differ = min(len(stamps), len(stream.t_ns))
+        if differ and not np.array_equal(stamps[:differ], stream.t_ns[:differ]):
+            differ = int(np.flatnonzero(stamps[:differ] != stream.t_ns[:differ])[0])
+        raise DatasetError(f"{table}: its stamps are not those of {folder / 'data.csv'} "
+                           f"({len(stamps)} and {len(stream.t_ns)} frames; frame {differ + 1} "
+                           "differs)")
+    # the exposures, read as timestamps: int64 nanoseconds, in order
+    exposed_ns = _timestamps(table, [row[1:] for row in rows])
     return CameraTruth(exposed_ns, _read_camera_yaml(mounting)[2])
 
 

@@ -25,18 +25,18 @@ surface's, metres off; a track is named only where the depth of the 3x3 pixels r
 birth pixel agrees within :data:`DEPTH_SPREAD`, so those tracks are not scored, nor those
 born where the depth is unknown (sky, a frame without a depth image).
 
-The true pose is the body's ground truth at the middle of the frame's exposure, through the
-camera's true mounting, where the recording holds them (the simulator's since 2026-12-07:
-``mav0/cam0/truth.csv`` and ``truth.yaml``, :func:`drivers.dataset.euroc.read_camera_truth`);
-elsewhere at the frame's stamp, through the configured mounting. A realistic recording's hidden
-errors do not cancel there, as was once assumed: the mounting's 0.5 deg turns each track's
-motion in the image, by about 0.9 px over 100 px of it, and the stamps' offset and jitter put
-the pose off by the motion between. On the realistic mine's seed-0 recording (40 s, one-off
-recordings of 2026-12-07) the tracks' median error by age (2-4, 5-9, 10-19, 20+ frames) is
-0.28, 0.40, 0.63 and 1.25 px measured so, their mean (-0.60, -0.42) px past 20 frames; with
-the mounting exact 0.28, 0.36, 0.52 and 0.83 px; with the stamps exact too 0.17, 0.19, 0.22
-and 0.30 px, and no mean. So on a recording without the camera's truth, a realistic camera's
-track errors are mostly its calibration's.
+The true pose is the body's ground truth at the middle of the frame's exposure (a rolling
+shutter's middle row's), through the camera's true mounting, where the recording holds them
+(the simulator's since 2026-12-07: ``mav0/cam0/truth.csv`` and ``truth.yaml``,
+:func:`drivers.dataset.euroc.read_camera_truth`); elsewhere at the frame's stamp, through the
+configured mounting. A realistic recording's hidden errors do not cancel there, as was once
+assumed: the mounting's 0.5 deg turns each track's motion in the image, by about 0.9 px over
+100 px of it, and the stamps' offset and jitter put the pose off by the motion between. On the
+realistic mine's seed-0 recording (40 s, one-off recordings of 2026-12-07) the tracks' median
+error by age (2-4, 5-9, 10-19, 20+ frames) is 0.28, 0.40, 0.63 and 1.25 px measured so, their
+mean (-0.60, -0.42) px past 20 frames; with the mounting exact 0.28, 0.36, 0.52 and 0.83 px;
+with the stamps exact too 0.17, 0.19, 0.22 and 0.30 px, and no mean. So on a recording without
+the camera's truth, a realistic camera's track errors are mostly its calibration's.
 """
 
 from __future__ import annotations

@@ -176,7 +176,8 @@ class VioTrace:
     corrections_m: list[float] = field(default_factory=list)
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
-    track_errors: dict = field(default_factory=lambda: track_error_summary([], [], []))
+    track_errors: dict = field(default_factory=lambda: {**track_error_summary([], [], []),
+                                                        "track_error_reference": None})
 
 
 def read_vio_dataset(root: Path) -> VioDataset:
@@ -864,7 +865,9 @@ def format_vio_report(result: dict) -> str:
         f"depth: median relative error {show(result['depth_rel_err_median'], '.1%')} over "
         f"{result['depth_points']} landmarks",
         f"tracks: {show(result['track_error_px_median'], '.2f', ' px')} median error against "
-        "the truth ("
+        + ("the truth through the camera's true mounting and exposures ("
+           if result.get("track_error_reference") == "camera truth" else
+           "the truth through the calibration and the stamps (")
         + ", ".join(f"{bin_['ages']} frames old {show(bin_['median_px'], '.2f', ' px')}, "
                     f"outward {show(bin_['outward_mean_px'], '+.2f', ' px')} mean"
                     for bin_ in result["track_error_by_age"]) + ")",
