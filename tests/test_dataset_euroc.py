@@ -24,7 +24,7 @@ def test_depth_millimetres_mark_unknown_and_out_of_range_as_zero():
 
 def _frames_with_truth(root: Path, truth: bool = True) -> np.ndarray:
     """Three frames stamped 15 ms after their exposure, with the camera's truth (a mounting
-    1 degree off the configured one) when ``truth``; the true mounting."""
+    1 degree off the configured one) when ``truth``. Returns the true mounting."""
     camera = PinholeCamera.from_hfov(64, 48, 1.5)
     true_T_B_C = make_pose(R_BODY_CAMERA @ so3_exp(np.radians([0.0, 1.0, 0.0])), [0.1, 0, 0])
     with EurocWriter(root, camera, make_pose(R_BODY_CAMERA, [0.1, 0, 0]), 20.0, NOISE) as writer:
@@ -50,7 +50,7 @@ def test_a_recording_without_the_cameras_truth_has_none(tmp_path):
     assert read_camera_truth(tmp_path, read_camera(tmp_path)) is None
 
 
-def test_half_a_camera_truth_or_one_of_other_frames_is_refused(tmp_path):
+def test_half_a_camera_truth_or_one_of_other_stamps_is_refused(tmp_path):
     _frames_with_truth(tmp_path / "half")
     (tmp_path / "half" / "mav0" / "cam0" / "truth.yaml").unlink()
     with pytest.raises(DatasetError, match="truth.yaml: no such file"):

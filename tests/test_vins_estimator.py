@@ -170,10 +170,9 @@ def test_the_flight_is_tracked_without_loss_or_reset(run):
 
 def test_the_window_eliminates_its_landmarks_before_its_keyframes(run):
     """The smoother's Bayes tree ends on keyframes alone, the landmarks below them: the
-    odometry's covariance, a marginal from the root, then takes 1.1 ms where it took about 10 ms
-    with landmarks in the root (autonomy/vins/fixed_lag.py). The root holds every key of that
-    covariance, the newest keyframe's pose and velocity and the moved gauge hold's pose: 0.3
-    ms."""
+    odometry's covariance, a marginal from the root, then took 1.1 ms where it took about 10 ms
+    with landmarks in the root (autonomy/vins/fixed_lag.py); with every key of it in the root,
+    the newest keyframe's pose and velocity and the moved gauge hold's pose, 0.3 ms."""
     backend = run.vins.backend
     assert len(backend.landmarks.ids) > 0
     root = root_frontals(backend._smoother)

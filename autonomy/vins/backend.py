@@ -230,6 +230,12 @@ class _GaugeHold:
     covariance: np.ndarray | None = None
     slot: int | None = None
 
+    @property
+    def moved(self) -> bool:
+        """Whether this is a moved hold's prior, which the covariance takes out (its slot
+        comes with the update that adds it), not the start prior."""
+        return self.covariance is not None
+
 
 class BackendError(RuntimeError):
     """The smoother could not take a keyframe even after a rebuild."""
@@ -625,7 +631,7 @@ class SlidingWindowSmoother:
         hold's prior taken out (:func:`released_covariance`; the hold is never on the newest
         keyframe); the start prior stays."""
         hold = self._hold
-        if hold is None or hold.slot is None:
+        if hold is None or not hold.moved:
             return self._joint_marginal(keys)
         hold_key = X(hold.index)
         return released_covariance(self._joint_marginal([*keys, hold_key]), hold.covariance)
@@ -708,13 +714,13 @@ class SlidingWindowSmoother:
         ``k``'s, the mounting, which every landmark's factors share, and the pose of a moved
         gauge ``hold``: with it the Bayes tree's root holds every key of the odometry's
         covariance (:meth:`_released_marginal`), which is then read from the root alone. The
-        start hold (no covariance) is never named: the covariance does not take its prior out,
-        and with ``hold_gauge`` false it outlives its keyframe, which the smoother would refuse
-        to eliminate last."""
+        start hold is never named: the covariance does not take its prior out, and with
+        ``hold_gauge`` false it outlives its keyframe, which the smoother would refuse to
+        eliminate last."""
         last = _variables(k)
         if self.options.estimate_camera_mounting:
             last = (*last, MOUNTING)
-        if hold is not None and hold.covariance is not None:
+        if hold is not None and hold.moved:
             last = (*last, X(hold.index))
         return last
 

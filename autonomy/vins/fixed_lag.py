@@ -9,8 +9,9 @@ marginalised out, leaving a linear marginal factor on their neighbours.
 
 What it adds is the end of the elimination ordering (the last group, of its own): the caller
 names the variables eliminated last: the newest keyframe's pose, velocity and IMU bias, and, in
-the VINS, the other keys of the marginal it asks for (:mod:`autonomy.vins.backend`). The reason
-is GTSAM's Cholesky (``gtsam/base/cholesky.cpp``, ``choleskyPartial``): after factoring
+the VINS, the camera mounting every landmark shares and the gauge hold's pose, the other key of
+the marginal it asks for (:mod:`autonomy.vins.backend`). The reason is GTSAM's Cholesky
+(``gtsam/base/cholesky.cpp``, ``choleskyPartial``): after factoring
 a clique's frontal block ``A = RᵀR`` it calls the system indeterminate when the last two
 diagonal entries of ``R`` differ by 12 binary exponents or more (about 4096x, information
 1.7e7x), a test meant to catch rank deficiency. In a visual-inertial window the absolute
@@ -34,7 +35,7 @@ variables in the median on a mine flight), which every marginal starts from: the
 keyframe's marginal took about 10 ms, more than the update. Eliminated first, each landmark is a
 leaf whose separator is the keyframes that saw it (bundle adjustment's Schur complement), the
 root holds keyframes alone (6 variables in the median, counted before the hold's pose was last
-too), and the same marginal takes 1.1 ms, and 0.3 ms now that every key it asks for is
+too), and the same marginal took 1.1 ms, and takes 0.3 ms now that every key it asks for is
 eliminated last; a keyframe takes up to about 1 ms more in the median (docs/vins.md,
 "Landmarks eliminated first").
 

@@ -11,9 +11,10 @@
 Timestamps are integer nanoseconds. The body frame is the IMU's; each ``sensor.yaml`` holds
 ``T_BS``, the sensor's pose in the body frame, as in the original dataset (Burri et al., "The
 EuRoC micro aerial vehicle datasets", IJRR 2016). The same reader serves real recordings and
-the simulator's, so evaluation code cannot tell them apart, but for the camera's truth: what
-a real camera hides (its stamps' offset and jitter, its mounting's calibration error) and only
-a simulator knows, kept apart from the calibration the estimator is given, for evaluation.
+the simulator's, so evaluation code cannot tell them apart, except by the camera's truth
+(``cam0/truth.*``): what a real camera hides (its stamps' offset and jitter, its mounting's
+calibration error), which only a simulator knows. It is kept apart from the calibration the
+estimator is given, and only the evaluation reads it.
 """
 
 from __future__ import annotations
@@ -87,7 +88,8 @@ class CameraStream:
 @dataclass(frozen=True)
 class CameraTruth:
     """A simulated camera's truth: ``exposed_ns``, each frame's true middle of exposure (int64
-    ns, in the order of the camera stream's stamps), and ``T_B_C``, its true mounting."""
+    ns, a rolling shutter's middle row's, in the order of the camera stream's stamps), and
+    ``T_B_C``, its true mounting."""
 
     exposed_ns: np.ndarray
     T_B_C: np.ndarray
@@ -269,21 +271,22 @@ def read_camera(root: Path, name: str = "cam0") -> CameraStream:
 
 
 def read_camera_truth(root: Path, stream: CameraStream) -> CameraTruth | None:
-    """The simulator's truth of the camera ``stream`` of ``root`` (:class:`CameraTruth`), None
-    for a recording without it (a real one, or the simulator's before 2026-12-07); DatasetError
-    when half of it is there or it does not name the stream's frames."""
+    """The simulator's truth of ``root``'s camera ``cam0`` (:class:`CameraTruth`), checked
+    against its ``stream``'s stamps; None for a recording without it (a real one, or the
+    simulator's before 2026-12-07); DatasetError when half of it is there or it does not name
+    the stream's frames."""
     folder = Path(root) / "mav0" / "cam0"
     table, mounting = folder / "truth.csv", folder / "truth.yaml"
     if not table.exists() and not mounting.exists():
         return None
     rows = _read_rows(table, 2, "frame")
     stamps = _timestamps(table, rows)
-    if len(stamps) != len(stream.t_ns) or not np.array_equal(stamps, stream.t_ns):
-        differ = min(len(stamps), len(stream.t_ns))
-        if differ and not np.array_equal(stamps[:differ], stream.t_ns[:differ]):
-            differ = int(np.flatnonzero(stamps[:differ] != stream.t_ns[:differ])[0])
+    if not np.array_equal(stamps, stream.t_ns):
+        first = min(len(stamps), len(stream.t_ns))  # the first frame that differs
+        if first and not np.array_equal(stamps[:first], stream.t_ns[:first]):
+            first = int(np.flatnonzero(stamps[:first] != stream.t_ns[:first])[0])
         raise DatasetError(f"{table}: its stamps are not those of {folder / 'data.csv'} "
-                           f"({len(stamps)} and {len(stream.t_ns)} frames; frame {differ + 1} "
+                           f"({len(stamps)} and {len(stream.t_ns)} frames; frame {first + 1} "
                            "differs)")
     # the exposures, read as timestamps: int64 nanoseconds, in order
     exposed_ns = _timestamps(table, [row[1:] for row in rows])

@@ -69,7 +69,10 @@ class RecordSummary:
 
 
 class Sink(Protocol):
-    """Where the flight's samples go: a :class:`EurocWriter`, or nowhere when benchmarking."""
+    """Where the flight's samples go: a :class:`EurocWriter`, or nowhere when benchmarking.
+    Each frame comes with its stamp and the middle of its exposure (the IMU tick it was
+    rendered at), and the camera's true mounting once: the truth the stamps and the
+    configured mounting hide (``drivers.dataset.euroc.CameraTruth``)."""
 
     def add_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None: ...
     def add_groundtruth(self, t_ns: int, position, q_W_B, velocity, gyro_bias, accel_bias) -> None: ...

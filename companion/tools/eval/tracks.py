@@ -36,7 +36,8 @@ realistic mine's seed-0 recording (40 s, one-off recordings of 2026-12-07) the t
 error by age (2-4, 5-9, 10-19, 20+ frames) is 0.28, 0.40, 0.63 and 1.25 px measured so, their
 mean (-0.60, -0.42) px past 20 frames; with the mounting exact 0.28, 0.36, 0.52 and 0.83 px;
 with the stamps exact too 0.17, 0.19, 0.22 and 0.30 px, and no mean. So on a recording without
-the camera's truth, a realistic camera's track errors are mostly its calibration's.
+the camera's truth, a realistic camera's track errors past ten frames are mostly its
+calibration's.
 """
 
 from __future__ import annotations

@@ -81,11 +81,13 @@ class VioDataset:
 class VioFrame:
     """One camera frame as the estimator takes it in flight, stamped ``t`` (seconds since the
     first IMU sample): ``image`` (uint8 grey or RGB); ``depth_path``, its ground-truth depth
-    image or None. :class:`ImuFeed` gives the VINS the IMU before it."""
+    image or None; ``exposure_t``, the true middle of its exposure where the recording holds
+    the camera's truth, else ``t``. :class:`ImuFeed` gives the VINS the IMU before it."""
 
     t: float
     image: np.ndarray
     depth_path: Path | None
+    exposure_t: float
 
 
 class ImuFeed:
@@ -285,14 +287,12 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         vins.backend.update_listener = factor_log.record
     trace = VioTrace()
     imu = ImuFeed(data)
-    # the tracks are measured against the camera's truth where the recording holds it
+    # the tracks are measured through the camera's truth where the recording holds it
     camera_truth = data.camera_truth
     tracking = TrackErrors(stream.camera, stream.distortion,
                            stream.T_B_C if camera_truth is None else camera_truth.T_B_C)
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
-    exposed_t = (None if camera_truth is None
-                 else _seconds(camera_truth.exposed_ns, data.imu.t_ns[0]))
-    for k, frame in enumerate(vio_frames(data, max_frames)):
+    for frame in vio_frames(data, max_frames):
         imu.before_frame(vins, frame.t)
         start = time.perf_counter()
         tracks = vins.track(frame.image)
@@ -316,9 +316,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         if (depth is None and frame.depth_path is not None
                 and (born or update.sparse_map is not None)):
             depth = read_frame_depth(frame.depth_path, data)
-        if truth_known:
-            tracking.observe(tracks, true_pose if exposed_t is None else
-                             _true_pose(exposed_t[k], truth_t, data.truth), depth)
+        if truth_known:  # the body's pose when the frame was exposed
+            tracking.observe(tracks, _true_pose(frame.exposure_t, truth_t, data.truth), depth)
         if update.sparse_map is not None and depth is not None:
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
@@ -376,13 +375,15 @@ def vio_frames(data: VioDataset, max_frames: int | None = None) -> Iterator[VioF
     size or format raises :class:`EvaluationError` naming its file."""
     stream = data.camera
     frame_t = _seconds(stream.t_ns, data.imu.t_ns[0])
+    exposure_t = (frame_t if data.camera_truth is None
+                  else _seconds(data.camera_truth.exposed_ns, data.imu.t_ns[0]))
     count = len(stream.paths) if max_frames is None else min(max_frames, len(stream.paths))
     for k in range(count):
         depth_path = data.depth.get(int(stream.t_ns[k])) if data.depth is not None else None
         image = _read_image(stream.paths[k], stream.camera)
         if data.rectifier is not None:
             image = data.rectifier(image)
-        yield VioFrame(float(frame_t[k]), image, depth_path)
+        yield VioFrame(float(frame_t[k]), image, depth_path, float(exposure_t[k]))
 
 
 def score_vio(trace: VioTrace, data: VioDataset) -> dict:
@@ -403,7 +404,9 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     keyframe's gauge, split over the path (:func:`_end_split`). ``depth_rel_err_median``:
     median of the traced depth errors (None when the dataset has no ``depth0``);
     ``track_error_*``: the front-end's tracks against the truth
-    (:mod:`companion.tools.eval.tracks`; None without ``depth0``). Back-end times
+    (:mod:`companion.tools.eval.tracks`; None without ``depth0``), but
+    ``track_error_reference``, what the truth was seen through (:class:`VioTrace`). Back-end
+    times
     are over the keyframes (where the smoother ran), as are ``correction_m_median`` and
     ``correction_m_max`` (how far the smoother moved a keyframe from the IMU's propagation,
     metres). ``nees_pose_*``/``nees_velocity_*``: mean and median NEES of the newest
