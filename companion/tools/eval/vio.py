@@ -298,10 +298,10 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
         tracks = vins.track(frame.image)
         frontend_ms = 1e3 * (time.perf_counter() - start)
         truth_known = truth_t[0] <= frame.t <= truth_t[-1]  # a late stamp can pass its end
-        true_pose = _true_pose(frame.t, truth_t, data.truth) if truth_known else None
         depth = None
         if exact is not None:  # not timed: no stage of the estimator's
             depth = _exact_frame_depth(frame, truth_known, data)
+            true_pose = _true_pose(frame.t, truth_t, data.truth) if truth_known else None
             tracks = exact(Frame(frame.t, frame.image, depth, true_pose), tracks)
         resets_before = vins.backend.resets
         middle = time.perf_counter()
