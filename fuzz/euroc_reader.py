@@ -7,12 +7,13 @@ Each input is one file of a small, otherwise valid dataset: its first byte picks
 (``imu0/data.csv``, ``state_groundtruth_estimate0/data.csv``, ``cam0/data.csv``,
 ``cam0/sensor.yaml``, ``imu0/sensor.yaml``), the rest is that file's bytes. The other files
 are the valid ones of :data:`VALID`. Every reader then reads the dataset: ``read_imu``,
-``read_groundtruth``, ``read_camera``, ``read_imu_noise``.
+``read_groundtruth``, ``read_camera``, ``read_imu_noise``. (The camera's truth, ``cam0/truth.*``,
+has a harness of its own, fuzz/camera_truth_reader.py, so that these inputs keep their files.)
 
 The invariant: each reader either raises :class:`~drivers.dataset.euroc.DatasetError` naming
 the file, or returns what its docstring promises: int64 nanosecond times strictly increasing,
 values finite, in arrays of the documented shapes,
-and a camera with a positive size and finite intrinsics, a finite 4x4 mounting and a
+and a camera with a positive size and finite intrinsics, a finite 4x4 rigid mounting and a
 positive rate. Anything else escaping (a UnicodeDecodeError, an OverflowError, a ValueError
 from the camera model...) is a finding; so is a NaN or a timestamp out of order let through.
 """
@@ -62,11 +63,16 @@ _ROOT = harness.scratch(TARGET)
 
 def write(data: bytes) -> None:
     """The dataset of one input under _ROOT (module docstring)."""
-    chosen = FILES[data[0] % len(FILES)] if data else None
-    for name, text in VALID.items():
-        path = _ROOT / name
+    write_dataset(_ROOT, VALID, FILES[data[0] % len(FILES)] if data else None, data[1:])
+
+
+def write_dataset(root: Path, valid: dict[str, str], chosen: str | None, data: bytes) -> None:
+    """The files of ``valid`` under ``root``, ``chosen`` holding ``data`` instead (shared with
+    fuzz/camera_truth_reader.py)."""
+    for name, text in valid.items():
+        path = root / name
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(data[1:] if name == chosen else text.encode())
+        path.write_bytes(data if name == chosen else text.encode())
 
 
 def run(data: bytes) -> list[str]:
@@ -79,8 +85,7 @@ def run(data: bytes) -> list[str]:
         try:
             result = read(_ROOT)
         except DatasetError as error:
-            assert str(error).startswith(str(_ROOT)), f"names no file: {error}"
-            said.append(str(error)[len(str(_ROOT)) + 1:])
+            said.append(named(error, _ROOT))
             continue
         check(result)
     return said
@@ -91,13 +96,20 @@ def test_one_input(data: bytes) -> None:
     run(data)
 
 
-def _check_times(t_ns: np.ndarray) -> None:
+def named(error: DatasetError, root: Path) -> str:
+    """What ``error`` says, its path relative to ``root``; the invariant: it names a file of
+    the dataset."""
+    assert str(error).startswith(str(root)), f"names no file: {error}"
+    return str(error)[len(str(root)) + 1:]
+
+
+def check_times(t_ns: np.ndarray) -> None:
     assert t_ns.dtype == np.int64 and t_ns.ndim == 1 and len(t_ns) > 0, t_ns
     assert (np.diff(t_ns) > 0).all(), f"timestamps not increasing: {t_ns}"
 
 
 def _check_rows(t_ns: np.ndarray, *arrays: np.ndarray) -> None:
-    _check_times(t_ns)
+    check_times(t_ns)
     for array, columns in arrays:
         assert array.shape == (len(t_ns), columns), array.shape
         assert np.isfinite(array).all(), f"non-finite values: {array}"
@@ -113,14 +125,22 @@ def _check_groundtruth(table) -> None:
 
 
 def _check_camera(stream) -> None:
-    _check_times(stream.t_ns)
+    check_times(stream.t_ns)
     assert len(stream.paths) == len(stream.t_ns)
     camera = stream.camera
     assert camera.width >= 1 and camera.height >= 1, camera
     assert all(math.isfinite(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy)), camera
     assert all(math.isfinite(c) for c in stream.distortion), stream.distortion
-    assert stream.T_B_C.shape == (4, 4) and np.isfinite(stream.T_B_C).all(), stream.T_B_C
+    check_mounting(stream.T_B_C)
     assert math.isfinite(stream.rate_hz) and stream.rate_hz > 0.0, stream.rate_hz
+
+
+def check_mounting(T: np.ndarray) -> None:
+    """A finite 4x4 rigid transform: a rotation (to 1e-6) and the last row 0 0 0 1."""
+    assert T.shape == (4, 4) and np.isfinite(T).all(), T
+    R = T[:3, :3]
+    assert np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0.0, T
+    assert T[3].tolist() == [0.0, 0.0, 0.0, 1.0], T
 
 
 def _check_noise(noise) -> None:

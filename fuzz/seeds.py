@@ -1,10 +1,11 @@
 """Write the seed corpora of ``fuzz/corpus/`` that are made rather than found by fuzzing.
 
-    python fuzz/seeds.py [config_set] [euroc_reader] [mcap_reader]
+    python fuzz/seeds.py [config_set] [euroc_reader] [camera_truth_reader] [mcap_reader]
 
 - ``config_set``: the presets of ``config/`` (``sim.toml`` lists every key) and a few
   ``--set`` lines;
 - ``euroc_reader``: each file of the harness's valid dataset, as an input picking it;
+- ``camera_truth_reader``: alike, and each again with the truth's other files left out;
 - ``mcap_reader``: a short lockstep flight of the simulator, recorded by the project's own
   recorder with a 64x48 PNG camera, of which the first frames are written again by the
   project's ``RecordingWriter`` (the whole flight is 2 MB): the complete file, the same cut
@@ -17,6 +18,7 @@ The MAVLink corpus is the fuzzer's own, merged from a run (fuzz/README.md).
 
 from __future__ import annotations
 
+import importlib
 import sys
 import tempfile
 from pathlib import Path
@@ -55,11 +57,23 @@ def config_seeds() -> dict[str, bytes]:
     return seeds
 
 
-def euroc_seeds() -> dict[str, bytes]:
-    from fuzz.euroc_reader import VALID
+def euroc_seeds(target: str = "euroc_reader") -> dict[str, bytes]:
+    """Each file that the dataset harness ``target`` picks, its valid text, as the input
+    picking it (named by its first byte and the file)."""
+    module = importlib.import_module(f"fuzz.{target}")
+    return {f"{index}-{Path(name).parent.name}-{Path(name).name}":
+            bytes([index]) + module.VALID[name].encode() for index, name in enumerate(module.FILES)}
 
-    return {f"{index}-{Path(name).parent.name}-{Path(name).name}": bytes([index]) + text.encode()
-            for index, (name, text) in enumerate(VALID.items())}
+
+def camera_truth_seeds() -> dict[str, bytes]:
+    """:func:`euroc_seeds` of the camera truth's harness, and each again with the truth's
+    other files left out: without these the mutations would seldom flip the one bit that
+    leaves them out."""
+    from fuzz.camera_truth_reader import LEAVE_OUT
+
+    seeds = euroc_seeds("camera_truth_reader")
+    return seeds | {f"{data[0] | LEAVE_OUT}-{name.split('-', 1)[1]}":
+                    bytes([data[0] | LEAVE_OUT]) + data[1:] for name, data in seeds.items()}
 
 
 def mcap_seeds() -> dict[str, bytes]:
@@ -130,7 +144,8 @@ def _copy_start(source: Path, out: Path, frames: int, left_out: tuple[str, ...],
     writer.close()
 
 
-SEEDS = {"config_set": config_seeds, "euroc_reader": euroc_seeds, "mcap_reader": mcap_seeds}
+SEEDS = {"config_set": config_seeds, "euroc_reader": euroc_seeds,
+         "camera_truth_reader": camera_truth_seeds, "mcap_reader": mcap_seeds}
 
 if __name__ == "__main__":
     for target in sys.argv[1:] or SEEDS:

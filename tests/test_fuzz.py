@@ -13,14 +13,24 @@ import pytest
 from fuzz import harness
 
 #: Seeded mutations each harness runs besides its seed corpus (a few seconds in all).
-MUTATIONS = {"mavlink_receive": 150, "config_set": 400, "euroc_reader": 400, "mcap_reader": 150}
+MUTATIONS = {"mavlink_receive": 150, "config_set": 400, "euroc_reader": 400,
+             "camera_truth_reader": 400, "mcap_reader": 150}
 SEED = 27
 
-#: What each finding now gets: a fragment of one of the messages ``run`` returns (the
-#: reader's error, or the driver's counter of what it refused); None: the reader now reads
-#: it, and the invariant is the check.
+#: What each finding (and each of the camera truth's refusals kept beside them) now gets: a
+#: fragment of one of the messages ``run`` returns (the reader's error, or the driver's
+#: counter of what it refused); None: the reader now reads it, and the invariant is the check.
 UNREADABLE = "is not a readable MCAP recording"
+EXPOSURES = "(the exposures, column 2)"
 FINDINGS = {
+    "camera_truth_reader/truth-exposure-beyond-int64": f"64-bit nanoseconds {EXPOSURES}",
+    "camera_truth_reader/truth-exposure-not-an-integer": f"with base 10: '9.85e5') {EXPOSURES}",
+    "camera_truth_reader/truth-exposures-out-of-order": f"not strictly increasing {EXPOSURES}",
+    "camera_truth_reader/truth-of-fewer-frames": "data.csv (1 and 2 frames; frame 2 differs)",
+    "camera_truth_reader/truth-of-other-frames": "data.csv (2 and 2 frames; frame 2 differs)",
+    "camera_truth_reader/truth-without-the-table": "cam0/truth.csv: no such file",
+    "camera_truth_reader/truth-without-the-yaml": "cam0/truth.yaml: no such file",
+    "camera_truth_reader/truth-yaml-T_BS-not-rigid": "truth.yaml: T_BS is not a rigid transform",
     "config_set/set-arrays-nested-too-deep": "rescale.kappa: must be a number, got '[[[",
     "config_set/set-not-utf8": r"--set recorder.directory=/var/lib/\xff: not UTF-8 text",
     "config_set/toml-arrays-nested-too-deep": "invalid TOML: arrays or tables nested too deeply",
@@ -29,6 +39,7 @@ FINDINGS = {
     "euroc_reader/camera-row-of-one-column": "cam0/data.csv: frame 1 has 1 columns, expected 2",
     "euroc_reader/camera-timestamps-repeated": "timestamps are not strictly increasing",
     "euroc_reader/camera-yaml-T_BS-not-a-matrix": "T_BS is not a list of numbers",
+    "euroc_reader/camera-yaml-T_BS-not-rigid": "sensor.yaml: T_BS is not a rigid transform",
     "euroc_reader/camera-yaml-a-list-not-a-map": "cam0/sensor.yaml: not a YAML map of keys",
     "euroc_reader/camera-yaml-intrinsics-empty": "intrinsics has 0 numbers, expected 4",
     "euroc_reader/camera-yaml-resolution-not-a-list": "resolution is not a list of numbers",
@@ -85,6 +96,15 @@ def test_the_mutations_are_the_same_on_every_run():
     seeds = [b"0123456789", b"abc"]
     assert list(harness.mutations(seeds, 50, SEED)) == list(harness.mutations(seeds, 50, SEED))
     assert len(set(harness.mutations(seeds, 50, SEED))) > 40
+
+
+def test_the_camera_truths_seeds_read_whole_half_and_none():
+    """The camera truth harness's seeds (fuzz/seeds.py), in file-name order: its valid files
+    read as a whole truth; with files left out, half a truth is named and none is None."""
+    said = [_module("camera_truth_reader").run(data)
+            for data in harness.corpus("camera_truth_reader")]
+    assert said == [[], [], ["mav0/cam0/truth.yaml: no such file"],
+                    ["mav0/cam0/truth.csv: no such file"], ["no truth"], []]
 
 
 @pytest.mark.parametrize("finding", sorted(

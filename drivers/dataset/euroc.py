@@ -288,8 +288,10 @@ def read_camera_truth(root: Path, stream: CameraStream) -> CameraTruth | None:
         raise DatasetError(f"{table}: its stamps are not those of {folder / 'data.csv'} "
                            f"({len(stamps)} and {len(stream.t_ns)} frames; frame {first + 1} "
                            "differs)")
-    # the exposures, read as timestamps: int64 nanoseconds, in order
-    exposed_ns = _timestamps(table, [row[1:] for row in rows])
+    try:  # the exposures, read as timestamps: int64 nanoseconds, in order
+        exposed_ns = _timestamps(table, [row[1:] for row in rows])
+    except DatasetError as error:  # which column: the stamps have passed the same check
+        raise DatasetError(f"{error} (the exposures, column 2)") from None
     return CameraTruth(exposed_ns, _read_camera_yaml(mounting)[2])
 
 
@@ -355,7 +357,9 @@ def read_imu_noise(root: Path) -> ImuNoise:
 
 def _read_camera_yaml(path: Path):
     """The camera model, distortion, mounting ``T_BS`` and rate of a camera's sensor.yaml;
-    DatasetError for anything missing or not a number where one is expected."""
+    DatasetError for anything missing or not a number where one is expected, and for a
+    ``T_BS`` that is no pose (the estimator and the evaluation take it for one: a scaled or
+    sheared "rotation" would distort every bearing through it, silently)."""
     with _yaml(path) as storage:
         fu, fv, cu, cv = _numbers(storage, path, "intrinsics", 4)
         width, height = _numbers(storage, path, "resolution", 2)
@@ -366,6 +370,12 @@ def _read_camera_yaml(path: Path):
         raise DatasetError(f"{path}: resolution must be whole pixels, got {width}x{height}")
     if not (math.isfinite(rate) and rate > 0.0):
         raise DatasetError(f"{path}: rate_hz must be a positive number, got {rate}")
+    R = T_B_C[:3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: no rotation either
+        rotation = np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0.0
+    if not (rotation and T_B_C[3].tolist() == [0.0, 0.0, 0.0, 1.0]):
+        raise DatasetError(f"{path}: T_BS is not a rigid transform (a rotation, and the last "
+                           "row 0 0 0 1)")
     try:
         camera = PinholeCamera(int(width), int(height), fu, fv, cu, cv)
     except ValueError as error:
