@@ -33,8 +33,8 @@ if __name__ == "__main__":
 with harness.instrumented(__name__ == "__main__"):
     import numpy as np
 
-    from drivers.dataset.euroc import (DatasetError, read_camera, read_groundtruth, read_imu,
-                                       read_imu_noise)
+    from drivers.dataset.euroc import (ROTATION_TOLERANCE, DatasetError, read_camera,
+                                       read_groundtruth, read_imu, read_imu_noise)
 
 TARGET = "euroc_reader"
 _T_BS = "T_BS:\n  cols: 4\n  rows: 4\n  data: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n"
@@ -136,10 +136,11 @@ def _check_camera(stream) -> None:
 
 
 def check_mounting(T: np.ndarray) -> None:
-    """A finite 4x4 rigid transform: a rotation (to 1e-6) and the last row 0 0 0 1."""
+    """A finite 4x4 rigid transform: a rotation (to the reader's ``ROTATION_TOLERANCE``) and
+    the last row 0 0 0 1."""
     assert T.shape == (4, 4) and np.isfinite(T).all(), T
     R = T[:3, :3]
-    assert np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0.0, T
+    assert np.allclose(R.T @ R, np.eye(3), atol=ROTATION_TOLERANCE) and np.linalg.det(R) > 0.0, T
     assert T[3].tolist() == [0.0, 0.0, 0.0, 1.0], T
 
 

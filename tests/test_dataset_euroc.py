@@ -175,6 +175,19 @@ def test_a_camera_yaml_that_says_too_little_is_named(tmp_path):
         read_camera(tmp_path)
 
 
+def test_a_mounting_written_to_four_decimals_is_read(tmp_path):
+    """A rotation copied by hand from a calibration report, to four decimals, is a mounting
+    (within ``ROTATION_TOLERANCE``), not refused as a sheared one."""
+    R = R_BODY_CAMERA @ so3_exp(np.radians([0.3, -0.5, 0.2]))
+    T = np.eye(4)
+    T[:3, :3] = np.round(R, 4)
+    assert not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-6)  # not exact
+    with EurocWriter(tmp_path, PinholeCamera.from_hfov(64, 48, 1.5), T, 20.0, NOISE):
+        pass
+    (tmp_path / "mav0" / "cam0" / "data.csv").write_text("5,a.png\n")
+    assert np.allclose(read_camera(tmp_path).T_B_C, T)
+
+
 def test_imu_noise_reads_back_and_names_a_missing_key(tmp_path):
     with EurocWriter(tmp_path, PinholeCamera.from_hfov(64, 48, 1.5), np.eye(4), 20.0, NOISE):
         pass

@@ -355,6 +355,12 @@ def read_imu_noise(root: Path) -> ImuNoise:
         raise DatasetError(f"{path}: {error}") from None
 
 
+#: How far ``R^T R`` of a sensor's ``T_BS`` may be from the identity, in any entry: a rotation
+#: written to four decimals (as calibration files by hand often are) is within 2e-4; a scaled
+#: or sheared matrix, which would distort every bearing through it, is refused.
+ROTATION_TOLERANCE = 1e-3
+
+
 def _read_camera_yaml(path: Path):
     """The camera model, distortion, mounting ``T_BS`` and rate of a camera's sensor.yaml;
     DatasetError for anything missing or not a number where one is expected, and for a
@@ -372,7 +378,8 @@ def _read_camera_yaml(path: Path):
         raise DatasetError(f"{path}: rate_hz must be a positive number, got {rate}")
     R = T_B_C[:3, :3]
     with np.errstate(over="ignore", invalid="ignore"):  # huge entries: no rotation either
-        rotation = np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0.0
+        rotation = (np.allclose(R.T @ R, np.eye(3), atol=ROTATION_TOLERANCE)
+                    and np.linalg.det(R) > 0.0)
     if not (rotation and T_B_C[3].tolist() == [0.0, 0.0, 0.0, 1.0]):
         raise DatasetError(f"{path}: T_BS is not a rigid transform (a rotation, and the last "
                            "row 0 0 0 1)")
