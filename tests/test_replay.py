@@ -26,7 +26,7 @@ import pytest
 
 from companion import cli
 from companion.config import load_config
-from autonomy.geometry import quat_to_rot, yaw_of
+from autonomy.geometry import quat_to_rot, so3_exp, yaw_of
 from companion.launch import simulated
 from drivers.sim.faults import Fault
 from drivers.sim.host import SimMission
@@ -407,6 +407,9 @@ def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(re
     turning, straight = (float(words.split("°")[0]) for words in accrued.split(") ")[1:])
     assert turning + straight == pytest.approx(
         samples[-1]["heading_deg"] - samples[0]["heading_deg"], abs=0.02)
+    # the tilt errors are in the table's row beside the heading's, and small in 12 s
+    assert all(abs(s["pitch_deg"]) < 2.0 and abs(s["roll_deg"]) < 2.0 for s in samples)
+    assert "   pitch     roll  state" in table.splitlines()[4]
     # the estimate beside the truth is the error's other end
     for sample in samples[::50]:
         assert np.linalg.norm(np.subtract(sample["estimate_position"], sample["truth_position"])) \
@@ -495,6 +498,25 @@ def test_the_error_is_not_split_over_a_flight_that_went_nowhere():
     assert displacement_split(_displaced_samples((0.6, 0.6, 2.0), (0.7, 0.6, 2.0))) is None
     assert displacement_split(_yaw_samples([0.0, 0.0], [0.0, 0.0])) is None
     assert displacement_split(_displaced_samples((5.0, 0.0, 0.0), (5.0, 0.0, 0.0))[:1]) is None
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 35.0, -120.0, 180.0])
+def test_a_tilt_error_is_split_about_the_true_heading(yaw_deg):
+    """An estimate pitched nose down by 0.8 deg and rolled right by 0.3 deg off the truth, at
+    any heading, reads so; the heading's own error is no tilt."""
+    from companion.recording.replay import tilt_error_deg
+
+    R_truth = so3_exp([0.0, 0.0, math.radians(yaw_deg)]) @ so3_exp([0.02, -0.05, 0.0])
+    yaw = math.radians(yaw_deg)
+    left, forward = np.array([-math.sin(yaw), math.cos(yaw), 0.0]), np.array(
+        [math.cos(yaw), math.sin(yaw), 0.0])
+    tilt = so3_exp(math.radians(0.8) * left + math.radians(0.3) * forward)
+    pitch, roll = tilt_error_deg(tilt @ R_truth, R_truth)
+    assert (pitch, roll) == (pytest.approx(0.8, abs=1e-3), pytest.approx(0.3, abs=1e-3))
+    # nose down: the estimate's body x points lower than the truth's
+    assert (tilt @ R_truth)[2, 0] < R_truth[2, 0]
+    assert tilt_error_deg(so3_exp([0.0, 0.0, 0.01]) @ R_truth, R_truth) == (
+        pytest.approx(0.0, abs=1e-9), pytest.approx(0.0, abs=1e-9))
 
 
 def _yaw_samples(truth_yaw_deg, heading_deg, dt=0.1):

@@ -28,7 +28,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         actions, "vins", _vins, "the table (every frame)",
         help="the VINS's error against the truth over a simulated flight",
         description="Over a simulated flight's recording, the VINS's position error (metres) "
-                    "and heading error (degrees) against where the simulator truly had the "
+                    "and heading and tilt errors (degrees: pitch, positive nose low, and "
+                    "roll, positive right side low) against where the simulator truly had the "
                     "vehicle, in PX4's local frame, at every --every seconds and wherever the "
                     "VINS's state changed (a reset, lost, degraded), with its landmarks: where "
                     "a drift began and what the VINS said of itself then; with --map, the "
@@ -192,7 +193,7 @@ def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
              f"{straight.error_change_deg:+.2f}°",
              _displacement_line(displacement_split(samples), DISPLACEMENT_MIN_M),
              _length_line(length_accrual(samples)),
-             "      t     error   heading  state        landmarks"
+             "      t     error   heading    pitch     roll  state        landmarks"
              + ("  map scale" if with_map else "")]
     next_row, state = samples[0].t, None
     for sample in samples:
@@ -201,6 +202,7 @@ def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
             scale = ("" if not with_map else "          -" if sample.map_scale is None
                      else f"      {sample.map_scale:.3f}")
             lines.append(f"{sample.t:7.2f}  {sample.error_m:6.2f} m  {sample.heading_deg:+6.2f}°  "
+                         f"{sample.pitch_deg:+6.2f}°  {sample.roll_deg:+6.2f}°  "
                          f"{sample.state:<12} {sample.landmarks:4d}{scale}")
         if due:
             next_row = sample.t + every

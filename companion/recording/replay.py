@@ -46,7 +46,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from autonomy.depth import metrics
 from autonomy.depth.stage import MetricDepthStage
 from autonomy.depth.synthetic import SyntheticNetwork
-from autonomy.geometry import (PinholeCamera, make_pose, quat_to_rot, yaw_alignment,
+from autonomy.geometry import (PinholeCamera, make_pose, quat_to_rot, so3_log, yaw_alignment,
                                yaw_of)
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import FLOWN_GROUND_REASONS
@@ -744,7 +744,8 @@ class VinsErrorSample:
     ``truth_yaw_deg`` its true heading (within +-180), all in PX4's local frame; the VINS's
     health at that frame; ``map_scale`` (asked for, and where the true depth was recorded) the
     median of its tracked landmarks' depth over the true depth; ``estimate_position`` where
-    the VINS had the body (metres)."""
+    the VINS had the body (metres); ``pitch_deg`` and ``roll_deg`` its tilt error
+    (:func:`tilt_error_deg`)."""
 
     t: float
     truth_position: tuple[float, float, float]
@@ -755,6 +756,23 @@ class VinsErrorSample:
     landmarks: int
     map_scale: float | None = None
     estimate_position: tuple[float, float, float] | None = None
+    pitch_deg: float | None = None
+    roll_deg: float | None = None
+
+
+def tilt_error_deg(R_estimate: np.ndarray, R_truth: np.ndarray) -> tuple[float, float]:
+    """The estimated body attitude's tilt error against the truth's (both body to PX4's local
+    frame, z up), degrees: the rotation error ``log(R_estimate R_truth^T)`` about the true
+    heading's left axis (``pitch``, positive: the estimate's nose lower) and its forward axis
+    (``roll``, positive: its right side lower). A VINS's tilt error turns the path it reckons
+    out of the horizontal: flying straight at ``v`` a pitch error ``e`` climbs ``-v sin e``
+    that the truth does not, which an accelerometer cannot show while the vehicle does not
+    turn (its bias takes the gravity the tilt puts along the body)."""
+    rotation = so3_log(np.asarray(R_estimate) @ np.asarray(R_truth).T)
+    yaw = yaw_of(R_truth)
+    forward = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+    return math.degrees(rotation @ left), math.degrees(rotation @ forward)
 
 
 #: The true yaw rate above which `log vins` counts the vehicle as turning, degrees per second
@@ -948,6 +966,7 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
     for t in sorted(set(estimates) & set(truths)):
         estimate, truth, vitals = estimates[t], truths[t], health.get(t, {})
         truth_yaw = math.degrees(yaw_of(truth[:3, :3]))
+        pitch, roll = tilt_error_deg(estimate[:3, :3], truth[:3, :3])
         samples.append(VinsErrorSample(
             t=t / 1e9, truth_position=tuple(float(v) for v in truth[:3, 3]),
             truth_yaw_deg=truth_yaw,
@@ -955,7 +974,8 @@ def vins_error(path: Path, *, with_map: bool = False) -> list[VinsErrorSample]:
             heading_deg=_wrapped_deg(math.degrees(yaw_of(estimate[:3, :3])) - truth_yaw),
             state=vitals.get("state", "?"),
             landmarks=int(vitals.get("landmarks", 0)), map_scale=scales.get(t),
-            estimate_position=tuple(float(v) for v in estimate[:3, 3])))
+            estimate_position=tuple(float(v) for v in estimate[:3, 3]),
+            pitch_deg=pitch, roll_deg=roll))
     return samples
 
 
