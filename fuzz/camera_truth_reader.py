@@ -33,7 +33,7 @@ if __name__ == "__main__":
 
 with harness.instrumented(__name__ == "__main__"):
     from drivers.dataset.euroc import DatasetError, read_camera, read_camera_truth
-    from fuzz import euroc_reader  # after the reader, so that the fuzzer instruments it
+    from fuzz import euroc_reader
 
 TARGET = "camera_truth_reader"
 TRUTH = ("mav0/cam0/truth.csv", "mav0/cam0/truth.yaml")

@@ -104,6 +104,8 @@ def named(error: DatasetError, root: Path) -> str:
 
 
 def check_times(t_ns: np.ndarray) -> None:
+    """Times as the readers promise them: int64 nanoseconds, at least one, strictly
+    increasing."""
     assert t_ns.dtype == np.int64 and t_ns.ndim == 1 and len(t_ns) > 0, t_ns
     assert (np.diff(t_ns) > 0).all(), f"timestamps not increasing: {t_ns}"
 

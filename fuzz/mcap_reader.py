@@ -105,6 +105,7 @@ def _vins_error(said: list[str]) -> None:
     times = [sample.t for sample in samples]
     assert times == sorted(times), times
     assert all(math.isfinite(sample.error_m) and math.isfinite(sample.heading_deg)
+               and math.isfinite(sample.pitch_deg) and math.isfinite(sample.roll_deg)
                and (sample.map_scale is None or not math.isnan(sample.map_scale))
                for sample in samples), samples
 

@@ -410,6 +410,10 @@ def test_log_vins_scores_the_vins_against_where_the_simulator_had_the_vehicle(re
     # the tilt errors are in the table's row beside the heading's, and small in 12 s
     assert all(abs(s["pitch_deg"]) < 2.0 and abs(s["roll_deg"]) < 2.0 for s in samples)
     assert "   pitch     roll  state" in table.splitlines()[4]
+    first_row = table.splitlines()[5].split()
+    assert [float(word.rstrip("°")) for word in first_row[4:6]] == [
+        pytest.approx(samples[0]["pitch_deg"], abs=0.006),
+        pytest.approx(samples[0]["roll_deg"], abs=0.006)]
     # the estimate beside the truth is the error's other end
     for sample in samples[::50]:
         assert np.linalg.norm(np.subtract(sample["estimate_position"], sample["truth_position"])) \
@@ -513,8 +517,9 @@ def test_a_tilt_error_is_split_about_the_true_heading(yaw_deg):
     tilt = so3_exp(math.radians(0.8) * left + math.radians(0.3) * forward)
     pitch, roll = tilt_error_deg(tilt @ R_truth, R_truth)
     assert (pitch, roll) == (pytest.approx(0.8, abs=1e-3), pytest.approx(0.3, abs=1e-3))
-    # nose down: the estimate's body x points lower than the truth's
-    assert (tilt @ R_truth)[2, 0] < R_truth[2, 0]
+    # nose down: the estimate's body x points lower than the truth's; right side down: its
+    # body y (left) higher
+    assert (tilt @ R_truth)[2, 0] < R_truth[2, 0] and (tilt @ R_truth)[2, 1] > R_truth[2, 1]
     assert tilt_error_deg(so3_exp([0.0, 0.0, 0.01]) @ R_truth, R_truth) == (
         pytest.approx(0.0, abs=1e-9), pytest.approx(0.0, abs=1e-9))
 

@@ -169,6 +169,11 @@ def _length_line(accrued: dict) -> str:
     return "path length by speed: " + "; ".join(bands)
 
 
+def _degrees(angle: float | None) -> str:
+    """A table cell of ``angle`` degrees, signed; ``-`` where there is none."""
+    return "      -" if angle is None else f"{angle:+6.2f}°"
+
+
 def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
     """The rows every ``every`` seconds and at each change of the VINS's state, under lines
     with the error at the end, the largest and the median, the heading error's accrual, the
@@ -202,7 +207,7 @@ def _vins_table(path: Path, samples: list, every: float, with_map: bool) -> str:
             scale = ("" if not with_map else "          -" if sample.map_scale is None
                      else f"      {sample.map_scale:.3f}")
             lines.append(f"{sample.t:7.2f}  {sample.error_m:6.2f} m  {sample.heading_deg:+6.2f}°  "
-                         f"{sample.pitch_deg:+6.2f}°  {sample.roll_deg:+6.2f}°  "
+                         f"{_degrees(sample.pitch_deg)}  {_degrees(sample.roll_deg)}  "
                          f"{sample.state:<12} {sample.landmarks:4d}{scale}")
         if due:
             next_row = sample.t + every

@@ -762,7 +762,8 @@ class VinsErrorSample:
 
 def tilt_error_deg(R_estimate: np.ndarray, R_truth: np.ndarray) -> tuple[float, float]:
     """The estimated body attitude's tilt error against the truth's (both body to PX4's local
-    frame, z up), degrees: the rotation error ``log(R_estimate R_truth^T)`` about the true
+    frame, z up), degrees: the rotation error in the local frame, ``log(R_estimate
+    R_truth^T)``, about the true
     heading's left axis (``pitch``, positive: the estimate's nose lower) and its forward axis
     (``roll``, positive: its right side lower). A VINS's tilt error turns the path it reckons
     out of the horizontal: flying straight at ``v`` a pitch error ``e`` climbs ``-v sin e``

@@ -383,6 +383,10 @@ def _read_camera_yaml(path: Path):
     if not (rotation and T_B_C[3].tolist() == [0.0, 0.0, 0.0, 1.0]):
         raise DatasetError(f"{path}: T_BS is not a rigid transform (a rotation, and the last "
                            "row 0 0 0 1)")
+    # the nearest rotation (Procrustes): a mounting written to a few decimals is a rotation
+    # to within ROTATION_TOLERANCE, and the estimator takes it for an exact one
+    U, _, Vt = np.linalg.svd(R)
+    T_B_C[:3, :3] = U @ Vt
     try:
         camera = PinholeCamera(int(width), int(height), fu, fv, cu, cv)
     except ValueError as error:
