@@ -46,8 +46,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from autonomy.depth import metrics
 from autonomy.depth.stage import MetricDepthStage
 from autonomy.depth.synthetic import SyntheticNetwork
-from autonomy.geometry import (PinholeCamera, make_pose, quat_to_rot, so3_log, yaw_alignment,
-                               yaw_of)
+from autonomy.geometry import (PinholeCamera, make_pose, quat_to_rot, rot_z, so3_log,
+                               yaw_alignment, yaw_of)
 from autonomy.messages import Frame, ImuSample, RelativeDepth
 from autonomy.navigation.behaviours import FLOWN_GROUND_REASONS
 from autonomy.navigation.failsafes import BlindClock, Vitals, age, failsafe_reason
@@ -763,17 +763,15 @@ class VinsErrorSample:
 def tilt_error_deg(R_estimate: np.ndarray, R_truth: np.ndarray) -> tuple[float, float]:
     """The estimated body attitude's tilt error against the truth's (both body to PX4's local
     frame, z up), degrees: the rotation error in the local frame, ``log(R_estimate
-    R_truth^T)``, about the true
-    heading's left axis (``pitch``, positive: the estimate's nose lower) and its forward axis
-    (``roll``, positive: its right side lower). A VINS's tilt error turns the path it reckons
-    out of the horizontal: flying straight at ``v`` a pitch error ``e`` climbs ``-v sin e``
-    that the truth does not, which an accelerometer cannot show while the vehicle does not
-    turn (its bias takes the gravity the tilt puts along the body)."""
+    R_truth^T)``, about the true heading's left axis (``pitch``, positive: the estimate's nose
+    lower) and its forward axis (``roll``, positive: its right side lower). A VINS's tilt
+    error turns the path it reckons out of the horizontal: flying straight at ``v`` a pitch
+    error ``e`` climbs ``-v sin e`` that the truth does not, which an accelerometer cannot show
+    while the vehicle does not turn (its bias takes the gravity the tilt puts along the
+    body)."""
     rotation = so3_log(np.asarray(R_estimate) @ np.asarray(R_truth).T)
-    yaw = yaw_of(R_truth)
-    forward = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-    left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
-    return math.degrees(rotation @ left), math.degrees(rotation @ forward)
+    forward, left, _ = rot_z(yaw_of(R_truth)).T @ rotation  # in the true heading's axes
+    return math.degrees(left), math.degrees(forward)
 
 
 #: The true yaw rate above which `log vins` counts the vehicle as turning, degrees per second
