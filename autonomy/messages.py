@@ -17,12 +17,16 @@ class ImuSample:
     """One IMU sample at time ``t``: body-frame angular rate (rad/s) and specific force (m/s^2).
 
     The sample holds over ``[t, t_next)`` (zero-order hold), the convention of the
-    preintegration and of the simulator's recordings.
+    preintegration and of the simulator's recordings. ``pressure_pa`` is the static pressure
+    (Pa) of a barometer sample the flight controller published within the interval, None when
+    it published none (PX4's barometer runs at 20 Hz, its IMU at 200 Hz): the barometer's
+    time is the interval's, to within its length.
     """
 
     t: float
     gyro: np.ndarray
     accel: np.ndarray
+    pressure_pa: float | None = None
 
 
 @dataclass(frozen=True)

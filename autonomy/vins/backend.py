@@ -68,6 +68,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from autonomy.geometry import GRAVITY, PinholeCamera, invert_pose
+from autonomy.vins.barometer import BarometerChain
 from autonomy.vins.drag import MAX_INTERVAL_S, drag_factor
 from autonomy.vins.fixed_lag import FixedLagSmoother, UpdateListener
 from autonomy.vins.landmarks import (
@@ -253,6 +254,7 @@ class _Keyframe:
     normalised: np.ndarray
     interval_slots: tuple[int, ...] = ()
     airborne: bool = False
+    pressure_pa: float | None = None  # the barometer's sample matched to it, if any
 
 
 def imu_params(noise: ImuNoise, white_scale: float, walk_scale: float,
@@ -317,11 +319,6 @@ def _dimension(key: int) -> int:
     return _DIMENSIONS[chr(gtsam.Symbol(key).chr())]
 
 
-def _variables(k: int) -> tuple[int, int, int]:
-    """Keyframe ``k``'s pose, velocity and bias keys."""
-    return X(k), V(k), B(k)
-
-
 #: The camera's mounting ``T_B_C``, a variable of the window with ``estimate_camera_mounting``.
 MOUNTING = gtsam.symbol("c", 0)
 #: Its position's prior, metres: held where configured. A few millimetres of it move the
@@ -356,6 +353,9 @@ class SlidingWindowSmoother:
             gtsam.noiseModel.Diagonal.Sigmas(np.r_[[options.keyframe_prior_rotation_sigma] * 3,
                                                    [options.keyframe_prior_position_sigma] * 3])
         self._zero_velocity = gtsam.noiseModel.Isotropic.Sigma(3, options.zero_velocity_sigma)
+        self._barometer = (BarometerChain(options.barometer_sigma_m,
+                                          options.barometer_drift_m_per_sqrt_s)
+                           if options.barometer_sigma_m > 0.0 else None)
         focal = math.sqrt(camera.fx * camera.fy)
         self.gate = Gate(options.min_observations, math.radians(options.min_parallax_deg),
                          options.min_depth, options.max_depth, options.max_reprojection_px, focal)
@@ -436,10 +436,11 @@ class SlidingWindowSmoother:
         return gtsam.PreintegratedCombinedMeasurements(params, _bias(s.bias_g, s.bias_a))
 
     def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None,
-              anchor: GaugeAnchor | None = None) -> None:
+              anchor: GaugeAnchor | None = None, pressure_pa: float | None = None) -> None:
         """Begin a new smoother at ``state`` with priors ``sigmas``; ``ids``/``normalised`` are
         that keyframe's observations (kept for later triangulation); ``anchor``, what a
-        rebuild carries over of the old smoother's uncertainty (:class:`GaugeAnchor`)."""
+        rebuild carries over of the old smoother's uncertainty (:class:`GaugeAnchor`);
+        ``pressure_pa``, the barometer's sample at it (:mod:`autonomy.vins.barometer`)."""
         self._smoother = self._new_smoother()
         self._pose_covariance = self._covariances = None
         self._known_pose_covariance = np.full((6, 6), np.nan)
@@ -457,7 +458,11 @@ class SlidingWindowSmoother:
         bias_sigmas = np.r_[[sigmas.accel_bias] * 3, [sigmas.gyro_bias] * 3]
         graph.add(gtsam.PriorFactorConstantBias(B(k), _bias(state.bias_g, state.bias_a),
                                                 gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
-        stamps = {X(k): state.t, V(k): state.t, B(k): state.t}
+        if self._barometer is not None:
+            self._barometer.restart()
+            self._barometer.add(k, state.t, float(state.T_W_B[2, 3]), pressure_pa, graph,
+                                values)
+        stamps = dict.fromkeys(self._keys(k), state.t)
         if self.options.estimate_camera_mounting:
             mounting = gtsam.Pose3(self._T_B_C)
             values.insert(MOUNTING, mounting)
@@ -472,11 +477,14 @@ class SlidingWindowSmoother:
         self._landmarks = Landmarks.empty()
 
     def add_keyframe(self, t: float, pim: gtsam.PreintegratedCombinedMeasurements, ids,
-                     normalised, still: bool = False, airborne: bool = False) -> bool:
+                     normalised, still: bool = False, airborne: bool = False,
+                     pressure_pa: float | None = None) -> bool:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
         features it sees; ``still``: it stands still, and gets a zero-velocity prior
         (:mod:`autonomy.vins.stillness`); ``airborne``: it flies, and the interval gets the
-        rotor drag's factor (with ``drag_coefficient``; :mod:`autonomy.vins.drag`). Returns
+        rotor drag's factor (with ``drag_coefficient``; :mod:`autonomy.vins.drag`);
+        ``pressure_pa``: the barometer's sample at it (with ``barometer_sigma_m``;
+        :mod:`autonomy.vins.barometer`). Returns
         True when the update was used, False when it failed and the smoother was rebuilt (a
         reset; ``last_failure`` says why). Raises :class:`BackendError` when even the rebuilt
         smoother refuses the keyframe."""
@@ -485,7 +493,8 @@ class SlidingWindowSmoother:
         # taken before the update, which may leave the smoother unusable; not computed here
         # for callers that never read covariances
         good_covariance = self._known_pose_covariance
-        keyframe = self._keyframe(good.index + 1, t, ids, normalised, airborne and not still)
+        keyframe = replace(self._keyframe(good.index + 1, t, ids, normalised,
+                                          airborne and not still), pressure_pa=pressure_pa)
         try:
             self._update_with_vision(keyframe, pim, still)
             self._check_sane(self.latest)
@@ -560,7 +569,7 @@ class SlidingWindowSmoother:
             counts.append(len(factors))
             removed.extend(keyframe.interval_slots)
         for keyframe in moved:
-            stamps.update(dict.fromkeys(_variables(keyframe.index), keyframe.t))
+            stamps.update(dict.fromkeys(self._keys(keyframe.index), keyframe.t))
         try:
             # the retime moves the window, it does not slide it: keyframes moved earlier than
             # the lag (or a kept window's start) leave with the next keyframe, the gauge hold
@@ -675,6 +684,12 @@ class SlidingWindowSmoother:
         order = np.argsort(ids)
         return _Keyframe(index, float(t), ids[order], normalised[order], airborne=airborne)
 
+    def _keys(self, k: int) -> tuple[int, ...]:
+        """Keyframe ``k``'s keys: pose, velocity, biases and, where it has one, the
+        barometer's offset."""
+        keys = (X(k), V(k), B(k))
+        return keys if self._barometer is None else keys + self._barometer.keys(k)
+
     def _imu_step(self, keyframe: _Keyframe, pim, still: bool):
         """The new keyframe's variables at the IMU's prediction, its interval's factors first
         in the graph (their number is returned last), then its priors."""
@@ -693,8 +708,11 @@ class SlidingWindowSmoother:
             graph.add(gtsam.PriorFactorPose3(X(k), predicted.pose(), self._keyframe_prior))
         if still:
             graph.add(gtsam.PriorFactorVector(V(k), np.zeros(3), self._zero_velocity))
+        if self._barometer is not None:
+            self._barometer.add(k, keyframe.t, float(predicted.pose().z()),
+                                keyframe.pressure_pa, graph, values)
         self._poses[k] = predicted.pose().matrix()
-        stamps = {X(k): keyframe.t, V(k): keyframe.t, B(k): keyframe.t}
+        stamps = dict.fromkeys(self._keys(k), keyframe.t)
         if self.options.estimate_camera_mounting:
             stamps[MOUNTING] = keyframe.t  # never older than the lag: never marginalised
         return graph, values, stamps, len(interval)
@@ -717,7 +735,7 @@ class SlidingWindowSmoother:
         start hold is never named: the covariance does not take its prior out, and with
         ``hold_gauge`` false it outlives its keyframe, which the smoother would refuse to
         eliminate last."""
-        last = _variables(k)
+        last = self._keys(k)
         if self.options.estimate_camera_mounting:
             last = (*last, MOUNTING)
         if hold is not None and hold.moved:
@@ -922,6 +940,8 @@ class SlidingWindowSmoother:
             np.asarray(estimate.atConstantBias(B(k)).accelerometer()))
         if self.options.estimate_camera_mounting:
             self._T_B_C = estimate.atPose3(MOUNTING).matrix()
+        if self._barometer is not None:
+            self._barometer.read(k, estimate)
         keys = np.array(estimate.keys(), dtype=np.uint64)
         kept = set(_symbol_indices(keys, "x").tolist())
         self._window = [kf for kf in window if kf.index in kept]

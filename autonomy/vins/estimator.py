@@ -45,6 +45,9 @@ Gyro samples: with ``estimate_gyro_alignment`` the gyro's response to the yaw ra
 and every sample is corrected by it before use (:mod:`autonomy.vins.gyro_alignment`), starting
 from ``gyro_alignment``, a calibration carried over from an earlier flight (which alone is a
 fixed correction); the time-offset estimator keeps the raw samples.
+
+Barometer: with ``barometer_sigma_m``, an IMU sample's ``pressure_pa`` is kept, and each
+keyframe takes the sample nearest its exposure time as a height (:mod:`autonomy.vins.barometer`).
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera, distort_points, invert_pose, make_pose, yaw_of
 from autonomy.messages import ImuSample, Odometry, SparseMap
 from autonomy.vins.backend import BackendError, KeyframeState, PriorSigmas, SlidingWindowSmoother
+from autonomy.vins.barometer import PressureHistory, check_pressure
 from autonomy.vins.frontend import FeatureTracker, FrontendOptions, Tracks
 from autonomy.vins.gyro_alignment import GyroAlignment, GyroAlignmentEstimate
 from autonomy.vins.health import Health, HealthInputs, HealthState, assess
@@ -137,6 +141,7 @@ class Vins:
         self.static_init: StaticInit | None = None
         self.reinitialisations = 0
         self._imu = ImuBuffer()
+        self._pressures = PressureHistory()
         self._propagator = Propagator()
         self._anchor: _Anchor | None = None
         self._last_frame_t = -math.inf
@@ -195,13 +200,18 @@ class Vins:
         return None if self._alignment is None else self._alignment.estimate
 
     def add_imu(self, sample: ImuSample) -> None:
-        """One IMU sample, in time order; ValueError for a bad one (the sample is not used).
-        With ``estimate_gyro_alignment`` or a calibrated ``gyro_alignment`` its gyro is
-        corrected before use; the time-offset estimator gets it raw."""
+        """One IMU sample, in time order; ValueError for a bad one (the sample is not used; a
+        pressure no barometer reads refuses it too). With ``estimate_gyro_alignment`` or a
+        calibrated ``gyro_alignment`` its gyro is corrected before use; the time-offset
+        estimator gets it raw."""
         raw_gyro = np.asarray(sample.gyro, dtype=float).reshape(-1)
+        pressure = (None if sample.pressure_pa is None
+                    else check_pressure(sample.t, sample.pressure_pa))
         if self._alignment is not None and raw_gyro.shape == (3,):
             sample = replace(sample, gyro=self._alignment.correct(raw_gyro))
         self._imu.add(sample)
+        if pressure is not None and self.options.barometer_sigma_m > 0.0:
+            self._pressures.add(sample.t, pressure)
         if self._offset_estimator is not None:
             bias = self._anchor.bias_g if self._anchor is not None else np.zeros(3)
             if self._alignment is not None:
@@ -325,7 +335,8 @@ class Vins:
                                             o.gauge_position_sigma, velocity_sigma)
 
     def _start(self, state: KeyframeState, sigmas: PriorSigmas, tracks: Tracks) -> None:
-        self.backend.start(state, sigmas, tracks.ids, tracks.normalised)
+        self.backend.start(state, sigmas, tracks.ids, tracks.normalised,
+                           pressure_pa=self._pressures.take(state.t))
         self._keyframe_tracks = tracks
         self._filed_keyframe()
         self._set_anchor_from_backend()
@@ -456,7 +467,7 @@ class Vins:
         # start, so not waiting for the take-off (an armed vehicle just landed still counts)
         airborne = not self._on_ground and self._moved and not still
         if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still,
-                                         airborne):
+                                         airborne, self._pressures.take(t)):
             self._last_reset_t = t
         self.zero_velocity_keyframes += still
         self._keyframe_tracks = tracks

@@ -70,6 +70,12 @@ class VinsOptions:
     drag_noise: float = option(0.02, gt=0.0, le=10.0, doc="the drag factor's noise, m/s^2 "
                                "sqrt(s): its sigma over a keyframe interval dt is this over "
                                "sqrt(dt) (the rotors' vibration, averaged)")
+    barometer_sigma_m: float = option(0.0, ge=0.0, le=100.0, doc="the flight controller's "
+                                      "barometer as a height, one sample's noise in metres "
+                                      "(autonomy/vins/barometer.py; 0: not used)")
+    barometer_drift_m_per_sqrt_s: float = option(0.03, gt=0.0, le=10.0, doc="how fast the "
+                                                 "barometer's height offset may wander, "
+                                                 "m/sqrt(s)")
     keyframe_prior_position_sigma: float = option(0.0, ge=0.0, le=100.0, doc="loose prior "
                                                   "on each new keyframe's position at its IMU "
                                                   "prediction, metres (0: none; 0.1 keeps the "

@@ -203,7 +203,7 @@ def _sim_serve(args: argparse.Namespace, config: Config) -> int:
         summary = asyncio.run(sim_serve.serve(
             args.mavlink, world, seed=sim.seed, clock_mode=sim.clock,
             vehicle_options=config.vehicle, imu_options=config.imu.for_profile(sim.profile),
-            px4_options=config.px4,
+            px4_options=config.px4, baro_options=config.baro.for_profile(sim.profile),
             duration=args.duration, on_ready=ready))
     except KeyboardInterrupt:
         return common.EXIT_OK

@@ -344,7 +344,7 @@ class _Replayer:
             self._start()
         try:
             self.vins.add_imu(ImuSample(record["t"], np.array(record["gyro"]),
-                                        np.array(record["accel"])))
+                                        np.array(record["accel"]), record.get("pressure_pa")))
         except ValueError:
             pass  # refused in flight too (out of order, a gap): the VINS says why in debug
 

@@ -64,7 +64,7 @@ CAMERA_IMAGE = Topic("/camera/image", fm.CompressedImage.get_schema(), droppable
 CAMERA_CALIBRATION = Topic("/camera/calibration", fm.CameraCalibration.get_schema())
 TRANSFORMS = Topic("/tf", fm.FrameTransform.get_schema())
 IMU = Topic("/imu", _json_schema("companion.ImuSample", {
-    "t": _NUMBER, "gyro": _VECTOR, "accel": _VECTOR}))
+    "t": _NUMBER, "gyro": _VECTOR, "accel": _VECTOR, "pressure_pa": _NUMBER}))
 TIMESYNC = Topic("/mavlink/timesync", _json_schema("companion.Timesync", {
     "offset_s": _NUMBER, "rtt_s": _NUMBER, "used": _BOOL}))
 ODOMETRY = Topic("/vins/odometry", _json_schema("companion.Odometry", {
@@ -180,8 +180,12 @@ def encode_transform(t: float, parent: str, child: str, T_parent_child: np.ndarr
 
 
 def encode_imu(sample: ImuSample) -> bytes:
-    return _json({"t": sample.t, "gyro": np.asarray(sample.gyro),
-                  "accel": np.asarray(sample.accel)})
+    """The sample; its ``pressure_pa`` only where it has one (recordings made before the
+    barometer have none)."""
+    record = {"t": sample.t, "gyro": np.asarray(sample.gyro), "accel": np.asarray(sample.accel)}
+    if sample.pressure_pa is not None:
+        record["pressure_pa"] = sample.pressure_pa
+    return _json(record)
 
 
 def encode_timesync(offset_s: float | None, rtt_s: float | None, used: bool) -> bytes:

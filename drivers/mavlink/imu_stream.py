@@ -4,9 +4,11 @@ PX4 stamps a HIGHRES_IMU with the time its sample was taken, at the END of the i
 sensor integrated; our samples hold over ``[t, t_next)`` from their stamp (zero-order hold, the
 preintegration's convention). So message ``k`` (PX4 time ``τ_k``) becomes the sample
 
-    ImuSample(t = τ_{k-1} + θ, gyro = frd_to_flu(gyro_k), accel = frd_to_flu(accel_k)),
+    ImuSample(t = τ_{k-1} + θ, gyro = frd_to_flu(gyro_k), accel = frd_to_flu(accel_k),
+              pressure_pa = the barometer's pressure of message k, if new),
 
-covering ``[τ_{k-1}, τ_k)`` mapped by the TIMESYNC offset ``θ``. The first message of a chain
+covering ``[τ_{k-1}, τ_k)`` mapped by the TIMESYNC offset ``θ``. PX4 puts the air data it
+published since its last message into message ``k``, which closes the interval. The first message of a chain
 only starts it. A chain restarts (its message starting the new chain, not emitted) after
 
 - a gap longer than :data:`GAP_PERIODS` typical periods (the median of recent intervals, and
@@ -15,6 +17,9 @@ only starts it. A chain restarts (its message starting the new chain, not emitte
 - PX4 time not increasing (a reordered or repeated datagram, or a PX4 reboot), or a mapped
   time not after the last one emitted (the offset estimate jumped): counted as ``backwards``;
 - non-finite values (``invalid``), or no offset estimate yet (``no_time``).
+
+A pressure outside :data:`PRESSURE_RANGE_PA` (a sensor fault, or the zero PX4 sends before its
+first barometer sample) is left out of its sample, counted as ``bad_pressure``.
 """
 
 from __future__ import annotations
@@ -32,11 +37,23 @@ from drivers.mavlink.frames import frd_to_flu
 GAP_PERIODS = 3.0
 #: Recent intervals whose median is the typical period.
 INTERVAL_HISTORY = 21
+#: HIGHRES_IMU.fields_updated's abs_pressure bit: PX4 sets it in the first message after it
+#: published air data (src/modules/mavlink/streams/HIGHRES_IMU.hpp).
+ABS_PRESSURE_UPDATED = 1 << 9
+#: Static pressures a barometer on a flying vehicle can read, Pa: from about 9 km above sea
+#: level to the Dead Sea's shore in a deep low.
+PRESSURE_RANGE_PA = (30e3, 110e3)
+
+
+def updated_pressure_hpa(fields_updated: int, abs_pressure_hpa: float) -> float | None:
+    """A HIGHRES_IMU's ``abs_pressure`` (hPa) when the message marks it new, else None."""
+    return float(abs_pressure_hpa) if fields_updated & ABS_PRESSURE_UPDATED else None
 
 
 class ImuStamper:
     """Turns PX4's HIGHRES_IMU stream into zero-order-hold samples; ``counts`` says what was
-    dropped and why (``first``, ``gap``, ``backwards``, ``invalid``, ``no_time``)."""
+    dropped and why (``first``, ``gap``, ``backwards``, ``invalid``, ``no_time``,
+    ``bad_pressure``: module docstring)."""
 
     def __init__(self, nominal_rate_hz: float):
         self.nominal_period = 1.0 / nominal_rate_hz
@@ -56,11 +73,13 @@ class ImuStamper:
         typical = median(self._intervals) if self._intervals else self.nominal_period
         return GAP_PERIODS * max(typical, self.nominal_period)
 
-    def push(self, remote_t: float, gyro_FRD, accel_FRD,
-             offset: float | None) -> ImuSample | None:
-        """One HIGHRES_IMU (PX4 time in seconds, FRD vectors) with the offset estimate ``θ``;
-        the sample it completes, or None."""
+    def push(self, remote_t: float, gyro_FRD, accel_FRD, offset: float | None,
+             pressure_hpa: float | None = None) -> ImuSample | None:
+        """One HIGHRES_IMU (PX4 time in seconds, FRD vectors, its new barometer pressure in
+        hPa or None: :func:`updated_pressure_hpa`) with the offset estimate ``θ``; the sample
+        it completes, or None."""
         gyro, accel = np.asarray(gyro_FRD, dtype=float), np.asarray(accel_FRD, dtype=float)
+        pressure_pa = self._pressure_pa(pressure_hpa)
         reason = self._drop_reason(remote_t, gyro, accel, offset)
         previous = self._previous
         self._previous = remote_t if math.isfinite(remote_t) else None
@@ -69,7 +88,17 @@ class ImuStamper:
             return None
         self._intervals.append(remote_t - previous)
         self._last_emitted = previous + offset
-        return ImuSample(self._last_emitted, frd_to_flu(gyro), frd_to_flu(accel))
+        return ImuSample(self._last_emitted, frd_to_flu(gyro), frd_to_flu(accel), pressure_pa)
+
+    def _pressure_pa(self, pressure_hpa: float | None) -> float | None:
+        if pressure_hpa is None:
+            return None
+        pressure = 100.0 * pressure_hpa
+        low, high = PRESSURE_RANGE_PA
+        if not low <= pressure <= high:  # NaN fails too
+            self.counts["bad_pressure"] += 1
+            return None
+        return pressure
 
     def _drop_reason(self, remote_t, gyro, accel, offset) -> str | None:
         if not (math.isfinite(remote_t) and np.isfinite(gyro).all()

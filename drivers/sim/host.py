@@ -391,6 +391,7 @@ class Simulator:
                      vehicle_seed=c.sim.vehicle_for(self.mission.seed),
                      clock_mode=clock_mode, vehicle_options=c.vehicle,
                      imu_options=c.imu.for_profile(c.sim.profile),
+                     baro_options=c.baro.for_profile(c.sim.profile),
                      px4_options=c.px4, stop=stop, sim_clock=sim_clock, on_ready=on_ready,
                      start=self.start_pose[0], start_yaw=self.start_pose[1], faults=self.faults)
 

@@ -41,6 +41,7 @@ from drivers.mavlink.frames import (enu_to_ned, flu_to_frd, ned_to_enu,
 from drivers.mavlink.link import MavlinkLink, mavlink
 from drivers.mavlink.parameters import decode_value, encode_value
 from drivers.mavlink.signing import check_key_options, load_key
+from drivers.sim.baro import AirData
 from drivers.sim.quadrotor import ControlTarget, Quadrotor
 from drivers.sim.trajectory import AxisState, VelocitySmoothing, max_speed_from_distance
 
@@ -71,8 +72,11 @@ DEFAULT_STREAM_RATES_HZ = {
 #: Pixracer (STM32F4) takes from reset through NuttX and PX4's start scripts to MAVLink.
 BOOT_DURATION_S = 3.0
 
-#: HIGHRES_IMU.fields_updated: xacc..zgyro (bits 0-5) and temperature (bit 12).
-HIGHRES_IMU_FIELDS = 0b111111 | (1 << 12)
+#: HIGHRES_IMU.fields_updated: xacc..zgyro (bits 0-5), always; abs_pressure, pressure_alt and
+#: temperature (bits 9, 11, 12) when PX4 published air data since the last message
+#: (src/modules/mavlink/streams/HIGHRES_IMU.hpp, ``_air_data_sub.update``).
+HIGHRES_IMU_FIELDS = 0b111111
+HIGHRES_IMU_AIR_DATA_FIELDS = (1 << 9) | (1 << 11) | (1 << 12)
 
 #: PX4's AUTOPILOT_VERSION.capabilities (mavlink_main.cpp, send_autopilot_capabilities) less
 #: what the mock does not serve (FTP, flight termination, fence and rally missions).
@@ -365,6 +369,11 @@ class MockPx4:
         self._ev_time: float | None = None
         self._timesync_sent_ns: int | None = None
         self.timesync_offset_ns: int | None = None
+        #: The last air data and whether a HIGHRES_IMU has carried it yet: PX4 sends the last
+        #: values in every message (zero before the first), marked updated in the first after
+        #: they were published.
+        self._air_data = AirData(0.0, 0.0, 0.0)
+        self._air_data_fresh = False
         self._home = np.array(self.vehicle.state.position, dtype=float)
         self.estimate = self._estimate()
         self._enter_hold()
@@ -392,11 +401,15 @@ class MockPx4:
 
     # ---------------------------------------------------------------- the tick
 
-    def update(self, t: float, gyro_B=None, accel_B=None) -> None:
-        """One physics tick at time ``t`` (s since boot), with the IMU sample (FLU) ending at t."""
+    def update(self, t: float, gyro_B=None, accel_B=None, air_data: AirData | None = None
+               ) -> None:
+        """One physics tick at time ``t`` (s since boot), with the IMU sample (FLU) ending at t
+        and the barometer's sample when it took one in the tick."""
         self.time = float(t)
         if gyro_B is not None and accel_B is not None:
             self._imu = (np.asarray(gyro_B, dtype=float), np.asarray(accel_B, dtype=float))
+        if air_data is not None:
+            self._air_data, self._air_data_fresh = air_data, True
         if self._booting_until is not None and not self._booted():
             return
         self.estimate = self._estimate()
@@ -1158,10 +1171,17 @@ class MockPx4:
             self._boot_ns() // 1000)
 
     def _highres_imu(self):
+        """HIGHRES_IMU as PX4 fills it (src/modules/mavlink/streams/HIGHRES_IMU.hpp): the IMU
+        sample; the last air data (``abs_pressure`` in hPa, ``pressure_alt``,
+        ``temperature``), marked updated once; no magnetometer, no differential pressure."""
         gyro, accel = flu_to_frd(self._imu[0]), flu_to_frd(self._imu[1])
+        air, fields = self._air_data, HIGHRES_IMU_FIELDS
+        if self._air_data_fresh:
+            fields |= HIGHRES_IMU_AIR_DATA_FIELDS
+            self._air_data_fresh = False
         return self.link.mav.highres_imu_encode(
-            self._boot_ns() // 1000, *accel, *gyro, 0.0, 0.0, 0.0, 1013.25, 0.0, 0.0, 25.0,
-            HIGHRES_IMU_FIELDS)
+            self._boot_ns() // 1000, *accel, *gyro, 0.0, 0.0, 0.0, air.pressure_pa * 0.01, 0.0,
+            air.altitude_m, air.temperature_c, fields)
 
     def _attitude(self):
         """ATTITUDE: the estimate's roll, pitch and yaw (NED/FRD) as PX4's matrix::Eulerf of

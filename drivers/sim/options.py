@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from autonomy.options import option, validate
+from drivers.sim.baro import BaroOptions
 from drivers.sim.imu import ImuOptions
 from drivers.sim.mock_px4 import Px4Options
 from drivers.sim.quadrotor import VehicleOptions
@@ -102,5 +103,5 @@ class LatencyOptions:
 #: them after the flight's. The flight process reads none of them (the estimator's IMU noise
 #: model is ``[vins_imu]``, not the simulated IMU's ``[imu]``).
 CONFIG_SECTIONS = {"sim": SimOptions, "vehicle": VehicleOptions, "imu": ImuOptions,
-                   "sim_camera": SensorOptions, "sim_latency": LatencyOptions,
-                   "px4": Px4Options}
+                   "baro": BaroOptions, "sim_camera": SensorOptions,
+                   "sim_latency": LatencyOptions, "px4": Px4Options}

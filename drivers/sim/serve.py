@@ -24,9 +24,10 @@ from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
 from drivers.sim.faults import PACKET_LOSS, FaultSchedule, FaultyLink
+from drivers.sim.baro import Barometer, BaroOptions, baro_generator
 from drivers.sim.imu import ImuModel, ImuOptions, flight_generators
 from drivers.sim.options import CLOCK_MODES
-from drivers.sim.mock_px4 import MockPx4, Px4Options
+from drivers.sim.mock_px4 import HOME_ALTITUDE_M, MockPx4, Px4Options
 from drivers.sim.quadrotor import Collision, Quadrotor, VehicleOptions
 
 log = logging.getLogger(__name__)
@@ -69,13 +70,14 @@ class SimulatedVehicle:
     (link cut or lossy, IMU gap, repeated or reordered, TIMESYNC silent, a forced disarm, a
     reboot). The vehicle stands at ``start`` (x, y, z in the
     world frame; default :func:`start_position`) heading ``start_yaw``, radians. ``seed``
-    draws the IMU's noise and the link's losses; ``vehicle_seed`` (default ``seed``) the IMU's
+    draws the IMU's and the barometer's noise and the link's losses; ``vehicle_seed`` (default ``seed``) the IMU's
     scale and misalignment, which a vehicle keeps from flight to flight.
     """
 
     def __init__(self, link, world, *, seed: int = 0, vehicle_seed: int | None = None,
                  vehicle_options: VehicleOptions | None = None,
                  imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
+                 baro_options: BaroOptions | None = None,
                  start=None, start_yaw: float = 0.0, faults: FaultSchedule | None = None):
         self.imu_options = imu_options or ImuOptions().for_profile("ideal")
         self.dt = 1.0 / self.imu_options.rate_hz
@@ -92,6 +94,8 @@ class SimulatedVehicle:
         self.px4 = MockPx4(self.link, self.vehicle, px4_options or Px4Options(),
                            rng=np.random.default_rng(estimator_seed),
                            physics_rate_hz=self.imu_options.rate_hz)
+        self.barometer = Barometer(baro_options or BaroOptions().for_profile("ideal"),
+                                   baro_generator(seed), HOME_ALTITUDE_M)
         self.steps = 0
 
     @property
@@ -102,9 +106,11 @@ class SimulatedVehicle:
         """One physics step of dt, its IMU sample, then the flight controller at the new time."""
         truth = self.vehicle.step(self.dt)
         gyro, accel = self.imu.measure(truth, self.dt, thrust=self.vehicle.thrust)
+        state = self.vehicle.state
+        air_data = self.barometer.sample(state.time, state.position[2], state.velocity)
         self.steps += 1
         self._apply_faults()
-        self.px4.update(self.vehicle.state.time, gyro, accel)
+        self.px4.update(state.time, gyro, accel, air_data)
 
     def _apply_faults(self) -> None:
         state, faults, px4 = self.vehicle.state, self.faults, self.px4
@@ -132,7 +138,7 @@ async def serve(url: str, world=None, *, seed: int = 0, vehicle_seed: int | None
                 clock_mode: str = "realtime",
                 vehicle_options: VehicleOptions | None = None,
                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
-                duration: float | None = None, stop: StopSignal | None = None,
+                baro_options: BaroOptions | None = None, duration: float | None = None, stop: StopSignal | None = None,
                 sim_clock: SimClock | None = None, stop_on_collision: bool = False,
                 on_ready=None, start=None, start_yaw: float = 0.0,
                 faults: FaultSchedule | None = None) -> ServeSummary:
@@ -142,8 +148,8 @@ async def serve(url: str, world=None, *, seed: int = 0, vehicle_seed: int | None
     ``world`` is a ``drivers.sim.world.World`` (anything with ``obstacle_clearance`` and
     ``routes``) or None for open space. ``sim_clock`` is advanced in lockstep mode (one is made
     if not given). ``on_ready(sim)`` is called with the :class:`SimulatedVehicle` once the link
-    is open (e.g. to print the pty path). ``start``, ``start_yaw``, ``faults``, ``seed`` and
-    ``vehicle_seed`` go to the :class:`SimulatedVehicle`.
+    is open (e.g. to print the pty path). ``start``, ``start_yaw``, ``faults``, ``seed``,
+    ``vehicle_seed`` and the options go to the :class:`SimulatedVehicle`.
     """
     if clock_mode not in CLOCK_MODES:
         raise ValueError(f"clock_mode must be one of {', '.join(CLOCK_MODES)}, got {clock_mode!r}")
@@ -155,7 +161,7 @@ async def serve(url: str, world=None, *, seed: int = 0, vehicle_seed: int | None
         sim = SimulatedVehicle(link, world, seed=seed, vehicle_seed=vehicle_seed,
                                vehicle_options=vehicle_options,
                                imu_options=imu_options, px4_options=px4_options,
-                               start=start, start_yaw=start_yaw, faults=faults)
+                               baro_options=baro_options, start=start, start_yaw=start_yaw, faults=faults)
         if link.pty_path is not None:
             log.info("serving MAVLink on pseudo-terminal %s", link.pty_path)
         if on_ready is not None:
