@@ -27,14 +27,15 @@ from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.autopilot import (Autopilot, CommandDenied, CommandTimeout,
                                        CompanionStatus, MavlinkOptions, NotConnected)
-from drivers.mavlink.imu_stream import ImuStamper
+from drivers.mavlink.imu_stream import ImuStamper, updated_pressure_hpa
 from drivers.mavlink.link import mavlink, open_link
 from drivers.mavlink.odometry import pose_covariance_to_mavlink
 from drivers.mavlink.provision import ProvisionError, Provisioned, provision
 from drivers.mavlink.signing import load_key
 from drivers.mavlink.timesync import RESET_AFTER_OUTLIERS, TimesyncFilter
 from drivers.sim.imu import ImuOptions
-from drivers.sim.mock_px4 import Px4Options
+from drivers.sim.baro import isa_pressure
+from drivers.sim.mock_px4 import HOME_ALTITUDE_M, Px4Options
 from drivers.sim.serve import serve
 
 DT = 0.005  # the simulator's physics and IMU period
@@ -77,9 +78,9 @@ class Flight:
         self.sim = sim
         update = sim.px4.update
 
-        def recording_update(t, gyro=None, accel=None):
+        def recording_update(t, gyro=None, accel=None, air_data=None):
             self.truth.append((t, np.array(gyro), np.array(accel)))
-            update(t, gyro, accel)
+            update(t, gyro, accel, air_data)
         sim.px4.update = recording_update
 
     async def start_server(self) -> None:
@@ -207,6 +208,21 @@ def test_imu_stamper_holds_each_sample_from_the_previous_stamp_in_flu():
                                     "no_time": 1}
 
 
+def test_imu_stamper_passes_a_new_pressure_on_in_pascals_and_refuses_one_no_barometer_reads():
+    stamper = ImuStamper(200.0)
+    stamper.push(1.000, (0, 0, 0), (0, 0, 0), offset=0.0)
+    assert stamper.push(1.005, (0, 0, 0), (0, 0, 0), 0.0, 955.9).pressure_pa == \
+        pytest.approx(95590.0)
+    assert stamper.push(1.010, (0, 0, 0), (0, 0, 0), 0.0, None).pressure_pa is None
+    for k, bad in enumerate((0.0, math.nan, -955.9, 5000.0)):  # 0: PX4 before its first
+        assert stamper.push(1.015 + 0.005 * k, (0, 0, 0), (0, 0, 0), 0.0,  # sample
+                            bad).pressure_pa is None
+    assert stamper.counts["bad_pressure"] == 4
+    # HIGHRES_IMU's abs_pressure counts only where fields_updated marks it new
+    assert updated_pressure_hpa(0b111111 | (1 << 9), 955.9) == 955.9
+    assert updated_pressure_hpa(0b111111 | (1 << 12), 955.9) is None
+
+
 def test_pose_covariance_goes_to_ned_position_and_euler_angles():
     # q_L_B identity: level, facing east (x of frame L), so PX4's yaw is +90 degrees
     sigma = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])  # roll, pitch, yaw, forward, left, up
@@ -246,6 +262,10 @@ def test_connects_and_streams_imu_at_200hz_in_flu_on_the_companion_clock():
             np.testing.assert_allclose(sample.accel, accel, atol=1e-4)
         assert np.mean([s.accel[2] for s in samples]) == pytest.approx(GRAVITY, abs=0.05)
         assert autopilot.last_imu_t == samples[-1].t
+        # PX4's 20 Hz barometer rides along, in the samples whose interval it was sent in
+        pressures = [s.pressure_pa for s in samples if s.pressure_pa is not None]
+        assert len(pressures) == pytest.approx(20, abs=1)
+        assert np.mean(pressures) == pytest.approx(isa_pressure(HOME_ALTITUDE_M), abs=2.0)
         assert autopilot.landed and not autopilot.in_air and not autopilot.armed
         assert autopilot.mode == px4_protocol.AUTO_LOITER
     fly(body)

@@ -10,6 +10,7 @@ import pytest
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
 from drivers.mavlink.signing import signing_timestamp
+from drivers.sim.baro import AirData, isa_pressure, pressure_altitude
 from drivers.sim.mock_px4 import MockPx4, Px4Options, check_parameter
 from drivers.sim.quadrotor import Quadrotor
 
@@ -186,6 +187,25 @@ def test_highres_imu_rate_follows_set_message_interval(bench):
     assert bench.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                          mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, -1) == mavlink.MAV_RESULT_ACCEPTED
     assert not [m for m in bench.run(0.5) if m.get_type() == "HIGHRES_IMU"]
+
+
+def test_highres_imu_marks_air_data_in_the_first_message_after_it_and_repeats_it_after(bench):
+    """PX4's HIGHRES_IMU.hpp: every message carries the last air data (zero before any),
+    its fields (abs_pressure in hPa, pressure_alt, temperature: bits 9, 11, 12) marked
+    updated only in the first message after the barometer published."""
+    bench.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 5000)
+    before = bench.all("HIGHRES_IMU", bench.run(0.1))[-1]
+    assert before.abs_pressure == 0.0 and before.fields_updated == 0b111111
+    pressure = isa_pressure(489.0)
+    bench.px4.update(bench.time, air_data=AirData(pressure, pressure_altitude(pressure), 11.7))
+    first, *later = bench.all("HIGHRES_IMU", bench.run(0.05))
+    air_data_bits = (1 << 9) | (1 << 11) | (1 << 12)
+    assert first.fields_updated == 0b111111 | air_data_bits
+    assert first.abs_pressure == pytest.approx(pressure / 100.0)
+    assert first.pressure_alt == pytest.approx(pressure_altitude(pressure))
+    assert first.temperature == pytest.approx(11.7)
+    assert later and all(m.fields_updated == 0b111111 for m in later)
+    assert all(m.abs_pressure == first.abs_pressure for m in later)
 
 
 def test_request_message_sends_autopilot_version_with_capabilities(bench):

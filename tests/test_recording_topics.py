@@ -152,3 +152,15 @@ def test_the_vins_health_carries_the_time_offset_in_use():
     fixed = json.loads(topics.encode_vins_health(
         FrameUpdate(3.0, False, None, None, None, Health(HealthState.OK, ""))))
     assert fixed["time_offset_s"] == 0.0 and fixed["time_offset_sigma_s"] is None
+
+
+def test_an_imu_sample_keeps_its_barometer_pressure_where_it_has_one():
+    """A replay feeds the VINS the barometer the flight had (``companion replay``); a sample
+    without one records no pressure at all, as the recordings made before it."""
+    from autonomy.messages import ImuSample
+
+    with_pressure = json.loads(topics.encode_imu(ImuSample(1.5, np.zeros(3), np.ones(3),
+                                                           95590.25)))
+    assert with_pressure["pressure_pa"] == 95590.25 and with_pressure["accel"] == [1.0] * 3
+    assert "pressure_pa" not in json.loads(topics.encode_imu(ImuSample(1.5, np.zeros(3),
+                                                                       np.ones(3))))

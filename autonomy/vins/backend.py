@@ -98,6 +98,10 @@ REBUILD_VELOCITY_SIGMA = 0.1
 #: marginal, which :func:`released_covariance` takes back out.
 HOLD_YAW_SIGMA = 0.005
 HOLD_POSITION_SIGMA = 0.01
+#: The hold's height where the barometer holds it (its offset's chain runs through the held
+#: keyframe): negligible against the window's barometer samples, which a hold of
+#: ``HOLD_POSITION_SIGMA`` would overrule, keeping the height each move found.
+HOLD_BAROMETER_HEIGHT_SIGMA = 1.0
 
 #: Below this fraction of the hold's prior covariance, what the rest of the window knows of
 #: the held keyframe is lost in the marginal's rounding, and the covariance is unknown.
@@ -793,13 +797,16 @@ class SlidingWindowSmoother:
         (``HOLD_YAW_SIGMA``, ``HOLD_POSITION_SIGMA``), and its covariance. Pose3's tangent
         is the body's: world yaw is the rotation about ``u = R^T e_z``, information
         ``u u^T / sigma^2``; roll and pitch, which gravity observes, get a negligible one
-        (1 rad)."""
+        (1 rad). Where the barometer's offset runs through the keyframe, its height (along
+        ``u`` too) gets ``HOLD_BAROMETER_HEIGHT_SIGMA``: the barometer holds it."""
         T_W_B = self._poses[index]
-        up = T_W_B[2, :3]
+        up = np.outer(T_W_B[2, :3], T_W_B[2, :3])
+        height_sigma = (HOLD_BAROMETER_HEIGHT_SIGMA
+                        if self._barometer is not None and self._barometer.keys(index)
+                        else HOLD_POSITION_SIGMA)
         information = np.zeros((6, 6))
-        information[:3, :3] = (np.outer(up, up) / HOLD_YAW_SIGMA ** 2
-                               + np.eye(3) - np.outer(up, up))
-        information[3:, 3:] = np.eye(3) / HOLD_POSITION_SIGMA ** 2
+        information[:3, :3] = up / HOLD_YAW_SIGMA ** 2 + np.eye(3) - up
+        information[3:, 3:] = (np.eye(3) - up) / HOLD_POSITION_SIGMA ** 2 + up / height_sigma ** 2
         prior = gtsam.PriorFactorPose3(X(index), gtsam.Pose3(T_W_B),
                                        gtsam.noiseModel.Gaussian.Information(information))
         return prior, np.linalg.inv(information)

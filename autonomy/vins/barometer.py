@@ -118,11 +118,11 @@ class BarometerChain:
             if pressure_pa is None:
                 return
             self._first = k
-            start = barometric_height(pressure_pa) - height_m
-            graph.add(gtsam.PriorFactorDouble(offset_key(k), start,
+            self.offset = barometric_height(pressure_pa) - height_m
+            graph.add(gtsam.PriorFactorDouble(offset_key(k), self.offset,
                                               gtsam.noiseModel.Isotropic.Sigma(
                                                   1, OFFSET_PRIOR_SIGMA_M)))
-            values.insert(offset_key(k), start)
+            values.insert(offset_key(k), self.offset)
         else:
             i, t_i = self._last
             values.insert(offset_key(k), self.offset)
