@@ -12,6 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 
 
+#: Static pressures a barometer on a flying vehicle can read, Pa (:class:`ImuSample`
+#: ``pressure_pa``): from about 9 km above sea level to the Dead Sea's shore in a deep low.
+PRESSURE_RANGE_PA = (30e3, 110e3)
+
+
 @dataclass(frozen=True)
 class ImuSample:
     """One IMU sample at time ``t``: body-frame angular rate (rad/s) and specific force (m/s^2).

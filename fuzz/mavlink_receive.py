@@ -21,7 +21,7 @@ writes what the input says, step by step:
 
 The invariant, checked after every step: the poll task never ends and nothing escapes it;
 every IMU sample taken is finite (time, gyro, accel, three of each) and later than the one
-before; the TIMESYNC offset and round trip are None or finite; the vehicle state is None or
+before, its pressure None or one a barometer reads; the TIMESYNC offset and round trip are None or finite; the vehicle state is None or
 finite with a unit quaternion; the measured IMU rate, the last IMU time and home are finite;
 the RC channels are at most 18, each a pulse width under 65535 or None (the value 65535 says
 "unused"). Every handler error must be
@@ -49,6 +49,7 @@ if __name__ == "__main__":
 with harness.instrumented(__name__ == "__main__"):
     import numpy as np
 
+    from autonomy.messages import PRESSURE_RANGE_PA
     from drivers.clock import SimClock
     from drivers.mavlink.autopilot import Autopilot, MavlinkOptions
     from drivers.mavlink.link import mavlink
@@ -307,6 +308,9 @@ class Invariant:
         assert sample.t > self.last_imu_t, f"IMU sample at {sample.t} after {self.last_imu_t}"
         for vector in (sample.gyro, sample.accel):
             assert vector.shape == (3,) and np.isfinite(vector).all(), f"IMU sample {sample}"
+        low, high = PRESSURE_RANGE_PA
+        assert sample.pressure_pa is None or low <= sample.pressure_pa <= high, \
+            f"IMU sample {sample}"
         self.last_imu_t = sample.t
 
     @staticmethod

@@ -30,6 +30,8 @@ from collections import deque
 
 import gtsam
 
+from autonomy.messages import PRESSURE_RANGE_PA
+
 #: The offset's prior where its chain starts, metres: wide, so that the height stays the
 #: VINS's and the barometer holds only its changes.
 OFFSET_PRIOR_SIGMA_M = 10.0
@@ -38,9 +40,6 @@ MATCH_S = 0.05
 #: Samples kept waiting for a keyframe: 12 s of PX4's 20 Hz (on the ground before the
 #: go, no keyframe takes them).
 HISTORY_LENGTH = 240
-#: Static pressures a barometer on a flying vehicle can read, Pa (as the driver's
-#: ``drivers.mavlink.imu_stream.PRESSURE_RANGE_PA``).
-PRESSURE_RANGE_PA = (30e3, 110e3)
 
 
 def check_pressure(t: float, pressure_pa) -> float:

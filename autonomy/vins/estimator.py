@@ -47,7 +47,10 @@ from ``gyro_alignment``, a calibration carried over from an earlier flight (whic
 fixed correction); the time-offset estimator keeps the raw samples.
 
 Barometer: with ``barometer_sigma_m``, an IMU sample's ``pressure_pa`` is kept, and each
-keyframe takes the sample nearest its exposure time as a height (:mod:`autonomy.vins.barometer`).
+keyframe takes the sample nearest its exposure time as a height (:mod:`autonomy.vins.barometer`)
+once it is ``barometer_min_height_m`` above the ground the VINS started on: below, the rotors'
+wash off the ground moves the pressure (PX4's EKF2 expects its barometer to read low up to
+``EKF2_GND_MAX_HGT``, 0.5 m, by up to ``EKF2_GND_EFF_DZ``, 4 m).
 """
 
 from __future__ import annotations
@@ -336,7 +339,7 @@ class Vins:
 
     def _start(self, state: KeyframeState, sigmas: PriorSigmas, tracks: Tracks) -> None:
         self.backend.start(state, sigmas, tracks.ids, tracks.normalised,
-                           pressure_pa=self._pressures.take(state.t))
+                           pressure_pa=self._keyframe_pressure(state.t, state.T_W_B[2, 3]))
         self._keyframe_tracks = tracks
         self._filed_keyframe()
         self._set_anchor_from_backend()
@@ -466,14 +469,22 @@ class Vins:
         # the drag factor's free flight: off the ground (by the caller) and moved since the
         # start, so not waiting for the take-off (an armed vehicle just landed still counts)
         airborne = not self._on_ground and self._moved and not still
+        pressure = self._keyframe_pressure(t, predicted.position[2])
         if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still,
-                                         airborne, self._pressures.take(t)):
+                                         airborne, pressure):
             self._last_reset_t = t
         self.zero_velocity_keyframes += still
         self._keyframe_tracks = tracks
         self._filed_keyframe()
         self._set_anchor_from_backend()
         self._stillness.add(t, self._anchor.state.R_W_B, tracks)
+
+    def _keyframe_pressure(self, t: float, height: float) -> float | None:
+        """The barometer's sample for a keyframe at ``t``, ``height`` above the ground the
+        VINS started on (its world's z = 0); None below ``barometer_min_height_m``, in the
+        rotors' ground effect."""
+        pressure = self._pressures.take(t)
+        return pressure if height >= self.options.barometer_min_height_m else None
 
     def _preintegrate(self, t0: float, t1: float):
         """The IMU from ``t0`` to ``t1`` preintegrated at the latest keyframe's biases (its

@@ -73,9 +73,14 @@ class VinsOptions:
     barometer_sigma_m: float = option(0.0, ge=0.0, le=100.0, doc="the flight controller's "
                                       "barometer as a height, one sample's noise in metres "
                                       "(autonomy/vins/barometer.py; 0: not used)")
-    barometer_drift_m_per_sqrt_s: float = option(0.03, gt=0.0, le=10.0, doc="how fast the "
+    barometer_drift_m_per_sqrt_s: float = option(0.02, gt=0.0, le=10.0, doc="how fast the "
                                                  "barometer's height offset may wander, "
-                                                 "m/sqrt(s)")
+                                                 "m/sqrt(s) (the simulator's drift, 0.2 Pa/"
+                                                 "sqrt(s), is 0.017)")
+    barometer_min_height_m: float = option(1.0, ge=0.0, le=100.0, doc="the barometer is used "
+                                           "from this height above the ground the VINS "
+                                           "started on, metres: twice PX4's "
+                                           "EKF2_GND_MAX_HGT, the rotors' ground effect")
     keyframe_prior_position_sigma: float = option(0.0, ge=0.0, le=100.0, doc="loose prior "
                                                   "on each new keyframe's position at its IMU "
                                                   "prediction, metres (0: none; 0.1 keeps the "

@@ -30,7 +30,7 @@ from statistics import median
 
 import numpy as np
 
-from autonomy.messages import ImuSample
+from autonomy.messages import PRESSURE_RANGE_PA, ImuSample
 from drivers.mavlink.frames import frd_to_flu
 
 #: A gap longer than this many typical periods breaks the chain of samples.
@@ -40,9 +40,6 @@ INTERVAL_HISTORY = 21
 #: HIGHRES_IMU.fields_updated's abs_pressure bit: PX4 sets it in the first message after it
 #: published air data (src/modules/mavlink/streams/HIGHRES_IMU.hpp).
 ABS_PRESSURE_UPDATED = 1 << 9
-#: Static pressures a barometer on a flying vehicle can read, Pa: from about 9 km above sea
-#: level to the Dead Sea's shore in a deep low.
-PRESSURE_RANGE_PA = (30e3, 110e3)
 
 
 def updated_pressure_hpa(fields_updated: int, abs_pressure_hpa: float) -> float | None:
