@@ -21,11 +21,11 @@ writes what the input says, step by step:
 
 The invariant, checked after every step: the poll task never ends and nothing escapes it;
 every IMU sample taken is finite (time, gyro, accel, three of each) and later than the one
-before, its pressure None or one a barometer reads; the TIMESYNC offset and round trip are None or finite; the vehicle state is None or
-finite with a unit quaternion; the measured IMU rate, the last IMU time and home are finite;
-the RC channels are at most 18, each a pulse width under 65535 or None (the value 65535 says
-"unused"). Every handler error must be
-the one the driver documents (a PARAM_VALUE of a type that does not fit 4 bytes).
+before, its pressure None or one a barometer reads; the TIMESYNC offset and round trip are
+None or finite; the vehicle state is None or finite with a unit quaternion; the measured IMU
+rate, the last IMU time and home are finite; the RC channels are at most 18, each a pulse
+width under 65535 or None (the value 65535 says "unused"). Every handler error must be the one
+the driver documents (a PARAM_VALUE of a type that does not fit 4 bytes).
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.autopilot import (Autopilot, CommandDenied, CommandTimeout,
                                        CompanionStatus, MavlinkOptions, NotConnected)
-from drivers.mavlink.imu_stream import ImuStamper, updated_pressure_hpa
+from drivers.mavlink.imu_stream import ImuStamper, updated_pressure
 from drivers.mavlink.link import mavlink, open_link
 from drivers.mavlink.odometry import pose_covariance_to_mavlink
 from drivers.mavlink.provision import ProvisionError, Provisioned, provision
@@ -208,19 +208,22 @@ def test_imu_stamper_holds_each_sample_from_the_previous_stamp_in_flu():
                                     "no_time": 1}
 
 
-def test_imu_stamper_passes_a_new_pressure_on_in_pascals_and_refuses_one_no_barometer_reads():
+def test_imu_stamper_passes_a_new_pressure_on_in_pascals_and_leaves_out_one_no_barometer_reads():
+    """PX4 sends hPa (MAVLink's unit) since 2023, pascals before: the size says which. A
+    pressure neither can be is left out of its sample, which is kept."""
     stamper = ImuStamper(200.0)
     stamper.push(1.000, (0, 0, 0), (0, 0, 0), offset=0.0)
     assert stamper.push(1.005, (0, 0, 0), (0, 0, 0), 0.0, 955.9).pressure_pa == \
         pytest.approx(95590.0)
-    assert stamper.push(1.010, (0, 0, 0), (0, 0, 0), 0.0, None).pressure_pa is None
-    for k, bad in enumerate((0.0, math.nan, -955.9, 5000.0)):  # 0: PX4 before its first
-        assert stamper.push(1.015 + 0.005 * k, (0, 0, 0), (0, 0, 0), 0.0,  # sample
-                            bad).pressure_pa is None
-    assert stamper.counts["bad_pressure"] == 4
+    assert stamper.push(1.010, (0, 0, 0), (0, 0, 0), 0.0, 95590.0).pressure_pa == 95590.0
+    assert stamper.push(1.015, (0, 0, 0), (0, 0, 0), 0.0, None).pressure_pa is None
+    for k, bad in enumerate((0.0, math.nan, -955.9, 5000.0, 2e5)):
+        sample = stamper.push(1.020 + 0.005 * k, (0, 0, 0), (0, 0, 0), 0.0, bad)
+        assert sample is not None and sample.pressure_pa is None
+    assert stamper.counts["bad_pressure"] == 5
     # HIGHRES_IMU's abs_pressure counts only where fields_updated marks it new
-    assert updated_pressure_hpa(0b111111 | (1 << 9), 955.9) == 955.9
-    assert updated_pressure_hpa(0b111111 | (1 << 12), 955.9) is None
+    assert updated_pressure(0b111111 | (1 << 9), 955.9) == 955.9
+    assert updated_pressure(0b111111 | (1 << 12), 955.9) is None
 
 
 def test_pose_covariance_goes_to_ned_position_and_euler_angles():

@@ -476,7 +476,8 @@ class SlidingWindowSmoother:
                               eliminate_last=self._eliminated_last(k))
         self._latest = state
         self._hold = _GaugeHold(k)
-        self._window = [self._keyframe(k, state.t, ids, normalised)]
+        self._window = [replace(self._keyframe(k, state.t, ids, normalised),
+                                pressure_pa=pressure_pa)]
         self._poses = {k: np.asarray(state.T_W_B, float)}
         self._landmarks = Landmarks.empty()
 
@@ -599,7 +600,8 @@ class SlidingWindowSmoother:
         carried by ``anchor``), ``keyframe``'s observations kept for later landmarks."""
         sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
                                               REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
-        self.start(state, sigmas, keyframe.ids, keyframe.normalised, anchor)
+        self.start(state, sigmas, keyframe.ids, keyframe.normalised, anchor,
+                   keyframe.pressure_pa)
 
     def pose_covariance(self, max_age_s: float = 0.0) -> np.ndarray:
         """The latest keyframe pose's covariance (6x6, rotation then position, body frame):
@@ -788,22 +790,27 @@ class SlidingWindowSmoother:
         removed = [] if hold is None or hold.slot is None else [hold.slot]
         if not kept:
             return removed, None
-        prior, covariance = self._gauge_prior(kept[0].index)
+        prior, covariance = self._gauge_prior(kept[0].index, self._barometer_holds(kept))
         graph.add(prior)
         return removed, _GaugeHold(kept[0].index, covariance)
 
-    def _gauge_prior(self, index: int) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
+    def _barometer_holds(self, kept: list[_Keyframe]) -> bool:
+        """Whether the barometer holds the height of the window's ``kept`` keyframes: its
+        offset runs through the oldest, and a sample came with one of them."""
+        return (self._barometer is not None and bool(self._barometer.keys(kept[0].index))
+                and any(keyframe.pressure_pa is not None for keyframe in kept))
+
+    def _gauge_prior(self, index: int, barometer_holds: bool
+                     ) -> tuple[gtsam.PriorFactorPose3, np.ndarray]:
         """The prior holding keyframe ``index`` at its estimate in world yaw and position
         (``HOLD_YAW_SIGMA``, ``HOLD_POSITION_SIGMA``), and its covariance. Pose3's tangent
         is the body's: world yaw is the rotation about ``u = R^T e_z``, information
         ``u u^T / sigma^2``; roll and pitch, which gravity observes, get a negligible one
-        (1 rad). Where the barometer's offset runs through the keyframe, its height (along
-        ``u`` too) gets ``HOLD_BAROMETER_HEIGHT_SIGMA``: the barometer holds it."""
+        (1 rad). Where ``barometer_holds`` the height, the height (along ``u`` too) gets
+        ``HOLD_BAROMETER_HEIGHT_SIGMA``."""
         T_W_B = self._poses[index]
         up = np.outer(T_W_B[2, :3], T_W_B[2, :3])
-        height_sigma = (HOLD_BAROMETER_HEIGHT_SIGMA
-                        if self._barometer is not None and self._barometer.keys(index)
-                        else HOLD_POSITION_SIGMA)
+        height_sigma = HOLD_BAROMETER_HEIGHT_SIGMA if barometer_holds else HOLD_POSITION_SIGMA
         information = np.zeros((6, 6))
         information[:3, :3] = up / HOLD_YAW_SIGMA ** 2 + np.eye(3) - up
         information[3:, 3:] = (np.eye(3) - up) / HOLD_POSITION_SIGMA ** 2 + up / height_sigma ** 2

@@ -15,9 +15,11 @@ with ``z_k`` the body's height in the VINS world (z up), ``h`` GTSAM's ISA heigh
 (``BarometricFactor::heightOut``; only its differences matter, a metre per 12 Pa near sea
 level), ``sigma`` the option ``barometer_sigma_m`` and ``q`` ``barometer_drift_m_per_sqrt_s``.
 The offset's chain starts, with a wide prior (:data:`OFFSET_PRIOR_SIGMA_M`) at the value the
-first pressure gives, on the first keyframe of a smoother that has one: the height stays the
-VINS's own, the barometer holds only its changes. A keyframe takes at most one sample, the one
-nearest its time within :data:`MATCH_S`, and a sample serves one keyframe
+first pressure gives, on the first keyframe of a smoother that has one (the estimator gives
+none below ``barometer_min_height_m``, in the rotors' ground effect): the height stays the
+VINS's own, the barometer holds only its changes. The gauge hold then leaves the height to
+it (:mod:`autonomy.vins.backend`, ``HOLD_BAROMETER_HEIGHT_SIGMA``). A keyframe takes at most
+one sample, the one nearest its time within :data:`MATCH_S`, and a sample serves one keyframe
 (:class:`PressureHistory`): keyframes come every 45-100 ms, PX4's barometer every 50 ms, and a
 sample read twice would count its noise twice. A retimed window (:mod:`autonomy.vins.estimator`)
 keeps its pressures as matched: a few milliseconds move the height less than a millimetre.
@@ -42,18 +44,15 @@ MATCH_S = 0.05
 HISTORY_LENGTH = 240
 
 
-def check_pressure(t: float, pressure_pa) -> float:
-    """``pressure_pa`` as a float; ValueError for one no barometer reads."""
+def usable_pressure(pressure_pa) -> float | None:
+    """``pressure_pa`` as a float, or None where it is no pressure a barometer reads (not a
+    number, or outside ``PRESSURE_RANGE_PA``: a recording's damaged record)."""
     try:
         pressure = float(pressure_pa)
     except (TypeError, ValueError):
-        raise ValueError(f"IMU sample at t={t}: pressure must be a number of pascals, "
-                         f"got {pressure_pa!r}") from None
+        return None
     low, high = PRESSURE_RANGE_PA
-    if not low <= pressure <= high:
-        raise ValueError(f"IMU sample at t={t}: pressure {pressure} Pa is outside "
-                         f"{low:g}-{high:g} Pa")
-    return pressure
+    return pressure if low <= pressure <= high else None
 
 
 class PressureHistory:

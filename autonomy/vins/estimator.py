@@ -63,7 +63,7 @@ import numpy as np
 from autonomy.geometry import PinholeCamera, distort_points, invert_pose, make_pose, yaw_of
 from autonomy.messages import ImuSample, Odometry, SparseMap
 from autonomy.vins.backend import BackendError, KeyframeState, PriorSigmas, SlidingWindowSmoother
-from autonomy.vins.barometer import PressureHistory, check_pressure
+from autonomy.vins.barometer import PressureHistory, usable_pressure
 from autonomy.vins.frontend import FeatureTracker, FrontendOptions, Tracks
 from autonomy.vins.gyro_alignment import GyroAlignment, GyroAlignmentEstimate
 from autonomy.vins.health import Health, HealthInputs, HealthState, assess
@@ -143,6 +143,7 @@ class Vins:
         self.backend = SlidingWindowSmoother(camera, self.T_B_C, noise, self.options)
         self.static_init: StaticInit | None = None
         self.reinitialisations = 0
+        self.refused_pressures = 0
         self._imu = ImuBuffer()
         self._pressures = PressureHistory()
         self._propagator = Propagator()
@@ -203,23 +204,29 @@ class Vins:
         return None if self._alignment is None else self._alignment.estimate
 
     def add_imu(self, sample: ImuSample) -> None:
-        """One IMU sample, in time order; ValueError for a bad one (the sample is not used; a
-        pressure no barometer reads refuses it too). With ``estimate_gyro_alignment`` or a
-        calibrated ``gyro_alignment`` its gyro is corrected before use; the time-offset
-        estimator gets it raw."""
+        """One IMU sample, in time order; ValueError for a bad one (the sample is not used).
+        With ``estimate_gyro_alignment`` or a calibrated ``gyro_alignment`` its gyro is
+        corrected before use; the time-offset estimator gets it raw. With the barometer on, its
+        pressure is kept for the keyframes; one no barometer reads is left out and counted
+        (``refused_pressures``), the sample used."""
         raw_gyro = np.asarray(sample.gyro, dtype=float).reshape(-1)
-        pressure = (None if sample.pressure_pa is None
-                    else check_pressure(sample.t, sample.pressure_pa))
         if self._alignment is not None and raw_gyro.shape == (3,):
             sample = replace(sample, gyro=self._alignment.correct(raw_gyro))
         self._imu.add(sample)
-        if pressure is not None and self.options.barometer_sigma_m > 0.0:
-            self._pressures.add(sample.t, pressure)
+        if sample.pressure_pa is not None and self.options.barometer_sigma_m > 0.0:
+            self._keep_pressure(sample.t, sample.pressure_pa)
         if self._offset_estimator is not None:
             bias = self._anchor.bias_g if self._anchor is not None else np.zeros(3)
             if self._alignment is not None:
                 bias = self._alignment.uncorrect(bias)
             self._offset_estimator.add_imu(self._imu.last_time, raw_gyro, bias)
+
+    def _keep_pressure(self, t: float, pressure_pa) -> None:
+        pressure = usable_pressure(pressure_pa)
+        if pressure is None:
+            self.refused_pressures += 1
+        else:
+            self._pressures.add(t, pressure)
 
     def track(self, image) -> Tracks:
         """The front-end on one image (uint8 grey or RGB, the camera's size)."""

@@ -50,7 +50,7 @@ from drivers.clock import Clock
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.frames import (enu_to_ned, frd_to_flu, ned_to_enu,
                                     quat_ned_frd_to_enu_flu)
-from drivers.mavlink.imu_stream import ImuStamper, updated_pressure_hpa
+from drivers.mavlink.imu_stream import ImuStamper, updated_pressure
 from drivers.mavlink.link import LinkLost, MavlinkLink, mavlink, open_link, parse_url
 from drivers.mavlink.odometry import odometry_fields, pose_covariance_to_mavlink
 from drivers.mavlink.parameters import ParameterReader
@@ -642,8 +642,7 @@ class Autopilot:
         sample = self._imu.push(message.time_usec * 1e-6,
                                 (message.xgyro, message.ygyro, message.zgyro),
                                 (message.xacc, message.yacc, message.zacc), self.timesync.offset,
-                                updated_pressure_hpa(message.fields_updated,
-                                                     message.abs_pressure))
+                                updated_pressure(message.fields_updated, message.abs_pressure))
         if sample is None:
             return
         if len(self._imu_queue) == self._imu_queue.maxlen:

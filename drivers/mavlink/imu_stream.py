@@ -8,8 +8,9 @@ preintegration's convention). So message ``k`` (PX4 time ``τ_k``) becomes the s
               pressure_pa = the barometer's pressure of message k, if new),
 
 covering ``[τ_{k-1}, τ_k)`` mapped by the TIMESYNC offset ``θ``. PX4 puts the air data it
-published since its last message into message ``k``, which closes the interval. The first message of a chain
-only starts it. A chain restarts (its message starting the new chain, not emitted) after
+published since its last message into message ``k``, which closes the interval. The first
+message of a chain only starts it. A chain restarts (its message starting the new chain, not
+emitted) after
 
 - a gap longer than :data:`GAP_PERIODS` typical periods (the median of recent intervals, and
   never less than that many periods of the requested rate): the previous sample does not
@@ -18,8 +19,12 @@ only starts it. A chain restarts (its message starting the new chain, not emitte
   time not after the last one emitted (the offset estimate jumped): counted as ``backwards``;
 - non-finite values (``invalid``), or no offset estimate yet (``no_time``).
 
-A pressure outside :data:`PRESSURE_RANGE_PA` (a sensor fault, or the zero PX4 sends before its
-first barometer sample) is left out of its sample, counted as ``bad_pressure``.
+``abs_pressure`` is in hPa, as MAVLink defines it and PX4 fills it since 2023
+(``HIGHRES_IMU.hpp``: ``air_data.baro_pressure_pa * 0.01f``); earlier PX4 sent pascals
+(``msg.abs_pressure = air_data.baro_pressure_pa``). A barometer's pressures in the two units
+are a hundred times apart, so its size says which (:func:`pressure_pa`). A pressure no
+barometer reads in either (a sensor fault) is left out of its sample, counted as
+``bad_pressure``; the sample itself is kept.
 """
 
 from __future__ import annotations
@@ -42,9 +47,19 @@ INTERVAL_HISTORY = 21
 ABS_PRESSURE_UPDATED = 1 << 9
 
 
-def updated_pressure_hpa(fields_updated: int, abs_pressure_hpa: float) -> float | None:
-    """A HIGHRES_IMU's ``abs_pressure`` (hPa) when the message marks it new, else None."""
-    return float(abs_pressure_hpa) if fields_updated & ABS_PRESSURE_UPDATED else None
+def updated_pressure(fields_updated: int, abs_pressure: float) -> float | None:
+    """A HIGHRES_IMU's ``abs_pressure`` when the message marks it new, else None."""
+    return float(abs_pressure) if fields_updated & ABS_PRESSURE_UPDATED else None
+
+
+def pressure_pa(abs_pressure: float) -> float | None:
+    """HIGHRES_IMU's ``abs_pressure`` in pascals, read as hPa or as Pa by its size (module
+    docstring); None for one no barometer reads in either."""
+    low, high = PRESSURE_RANGE_PA
+    for scale in (100.0, 1.0):
+        if low <= abs_pressure * scale <= high:  # NaN fails both
+            return abs_pressure * scale
+    return None
 
 
 class ImuStamper:
@@ -71,12 +86,12 @@ class ImuStamper:
         return GAP_PERIODS * max(typical, self.nominal_period)
 
     def push(self, remote_t: float, gyro_FRD, accel_FRD, offset: float | None,
-             pressure_hpa: float | None = None) -> ImuSample | None:
-        """One HIGHRES_IMU (PX4 time in seconds, FRD vectors, its new barometer pressure in
-        hPa or None: :func:`updated_pressure_hpa`) with the offset estimate ``θ``; the sample
-        it completes, or None."""
+             abs_pressure: float | None = None) -> ImuSample | None:
+        """One HIGHRES_IMU (PX4 time in seconds, FRD vectors, its new barometer pressure or
+        None: :func:`updated_pressure`) with the offset estimate ``θ``; the sample it
+        completes, or None."""
         gyro, accel = np.asarray(gyro_FRD, dtype=float), np.asarray(accel_FRD, dtype=float)
-        pressure_pa = self._pressure_pa(pressure_hpa)
+        pressure = self._pressure(abs_pressure)
         reason = self._drop_reason(remote_t, gyro, accel, offset)
         previous = self._previous
         self._previous = remote_t if math.isfinite(remote_t) else None
@@ -85,16 +100,14 @@ class ImuStamper:
             return None
         self._intervals.append(remote_t - previous)
         self._last_emitted = previous + offset
-        return ImuSample(self._last_emitted, frd_to_flu(gyro), frd_to_flu(accel), pressure_pa)
+        return ImuSample(self._last_emitted, frd_to_flu(gyro), frd_to_flu(accel), pressure)
 
-    def _pressure_pa(self, pressure_hpa: float | None) -> float | None:
-        if pressure_hpa is None:
+    def _pressure(self, abs_pressure: float | None) -> float | None:
+        if abs_pressure is None:
             return None
-        pressure = 100.0 * pressure_hpa
-        low, high = PRESSURE_RANGE_PA
-        if not low <= pressure <= high:  # NaN fails too
+        pressure = pressure_pa(abs_pressure)
+        if pressure is None:
             self.counts["bad_pressure"] += 1
-            return None
         return pressure
 
     def _drop_reason(self, remote_t, gyro, accel, offset) -> str | None:

@@ -135,16 +135,20 @@ class Barometer:
         self._home_altitude = float(home_altitude_m)
         self._drift_pa = 0.0
         self._last_t: float | None = None
+        self._due: float | None = None
 
     def sample(self, t: float, height_m: float, velocity_W) -> AirData | None:
         """The sample due at simulated time ``t`` (s) for a vehicle ``height_m`` above the
         world's origin moving at ``velocity_W`` (m/s, world frame, z up); None when no sample
         is due yet (or the barometer is off)."""
         o = self.options
-        if not o.enabled:
+        if not o.enabled or (self._due is not None and t < self._due - 1e-9):
             return None
-        if self._last_t is not None and t < self._last_t + 1.0 / o.rate_hz - 1e-9:
-            return None
+        period = 1.0 / o.rate_hz
+        # on the rate's own grid, so that a tick that does not divide the period keeps the
+        # rate; after a gap longer than the period, a new grid from now
+        on_grid = None if self._due is None else self._due + period
+        self._due = on_grid if on_grid is not None and on_grid > t else t + period
         dt = 0.0 if self._last_t is None else t - self._last_t
         self._last_t = t
         self._drift_pa += o.drift_pa_per_sqrt_s * math.sqrt(dt) * self._rng.standard_normal()

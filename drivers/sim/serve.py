@@ -68,9 +68,9 @@ class SimulatedVehicle:
 
     ``faults`` injects the link and flight-controller faults of :mod:`drivers.sim.faults`
     (link cut or lossy, IMU gap, repeated or reordered, TIMESYNC silent, a forced disarm, a
-    reboot). The vehicle stands at ``start`` (x, y, z in the
-    world frame; default :func:`start_position`) heading ``start_yaw``, radians. ``seed``
-    draws the IMU's and the barometer's noise and the link's losses; ``vehicle_seed`` (default ``seed``) the IMU's
+    reboot). The vehicle stands at ``start`` (x, y, z in the world frame; default
+    :func:`start_position`) heading ``start_yaw``, radians. ``seed`` draws the IMU's and the
+    barometer's noise and the link's losses; ``vehicle_seed`` (default ``seed``) the IMU's
     scale and misalignment, which a vehicle keeps from flight to flight.
     """
 
@@ -138,7 +138,8 @@ async def serve(url: str, world=None, *, seed: int = 0, vehicle_seed: int | None
                 clock_mode: str = "realtime",
                 vehicle_options: VehicleOptions | None = None,
                 imu_options: ImuOptions | None = None, px4_options: Px4Options | None = None,
-                baro_options: BaroOptions | None = None, duration: float | None = None, stop: StopSignal | None = None,
+                baro_options: BaroOptions | None = None, duration: float | None = None,
+                stop: StopSignal | None = None,
                 sim_clock: SimClock | None = None, stop_on_collision: bool = False,
                 on_ready=None, start=None, start_yaw: float = 0.0,
                 faults: FaultSchedule | None = None) -> ServeSummary:
@@ -161,7 +162,8 @@ async def serve(url: str, world=None, *, seed: int = 0, vehicle_seed: int | None
         sim = SimulatedVehicle(link, world, seed=seed, vehicle_seed=vehicle_seed,
                                vehicle_options=vehicle_options,
                                imu_options=imu_options, px4_options=px4_options,
-                               baro_options=baro_options, start=start, start_yaw=start_yaw, faults=faults)
+                               baro_options=baro_options, start=start, start_yaw=start_yaw,
+                               faults=faults)
         if link.pty_path is not None:
             log.info("serving MAVLink on pseudo-terminal %s", link.pty_path)
         if on_ready is not None:
