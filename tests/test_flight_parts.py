@@ -412,6 +412,29 @@ def test_the_summary_ends_with_the_estimated_time_offset_and_how_to_start_from_i
     assert offset_line(TimeOffset(seconds=0.0, estimating=True)) == []
 
 
+def test_the_summary_says_what_the_vins_made_of_the_barometer_where_it_used_it():
+    import math
+
+    import numpy as np
+
+    from autonomy.geometry import PinholeCamera
+    from autonomy.vins import ImuNoise, Vins, VinsOptions
+    from companion.flight.app import barometer_summary, format_flight
+
+    def vins(sigma: float) -> Vins:
+        estimator = Vins(PinholeCamera.from_hfov(64, 48, math.radians(90.0)), (), np.eye(4),
+                         ImuNoise.icm42688p(), VinsOptions(barometer_sigma_m=sigma))
+        estimator.barometer_keyframes, estimator.refused_pressures = 412, 2
+        return estimator
+
+    assert barometer_summary(vins(0.0)) is None
+    assert barometer_summary(vins(0.2)) == {"keyframes": 412, "refused": 2}
+    lines = format_flight({**FLIGHT, "vins_barometer": barometer_summary(vins(0.2))})
+    assert "  VINS barometer    a height on 412 keyframes, 2 pressures refused" in \
+        lines.splitlines()
+    assert "barometer" not in format_flight(FLIGHT)
+
+
 def test_the_summary_ends_with_the_estimated_gyro_alignment_and_how_to_start_from_it():
     from autonomy.vins.gyro_alignment import GyroAlignmentEstimate
     from companion.flight.app import format_flight, gyro_alignment_summary

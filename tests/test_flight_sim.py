@@ -255,6 +255,17 @@ def test_an_offset_swing_that_shows_nothing_times_out_and_navigation_goes_on():
     assert seconds == pytest.approx(2.5, abs=0.05)
 
 
+def test_with_the_barometer_on_the_vins_takes_its_height_over_the_ground_effect_only():
+    """PX4's barometer reaches the VINS through HIGHRES_IMU: with ``barometer_sigma_m`` the
+    keyframes take its height once 1 m up (``barometer_min_height_m``), none refused."""
+    summary = fly("dome", goal=SHORT_DOME_GOAL, overrides=["vins.barometer_sigma_m=0.2"])
+    assert_safe_landing(summary)
+    assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
+    barometer = summary["vins_barometer"]
+    assert barometer["keyframes"] > 20 and barometer["refused"] == 0
+    assert summary["vins_resets"] == 0
+
+
 # ---------------------------------------------------------------- the command
 
 def test_sim_fly_standing_facing_away_turns_glides_for_parallax_and_flies_on(capsys, tmp_path):

@@ -144,6 +144,7 @@ class Vins:
         self.static_init: StaticInit | None = None
         self.reinitialisations = 0
         self.refused_pressures = 0
+        self.barometer_keyframes = 0  # keyframes given the barometer's height
         self._imu = ImuBuffer()
         self._pressures = PressureHistory()
         self._propagator = Propagator()
@@ -477,6 +478,7 @@ class Vins:
         # start, so not waiting for the take-off (an armed vehicle just landed still counts)
         airborne = not self._on_ground and self._moved and not still
         pressure = self._keyframe_pressure(t, predicted.position[2])
+        self.barometer_keyframes += pressure is not None
         if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still,
                                          airborne, pressure):
             self._last_reset_t = t

@@ -214,6 +214,7 @@ class FlightApp:
             "vins_still_keyframes": (self.perception.vins.zero_velocity_keyframes
                                      if s.vins_still_keyframes_at_takeoff is None
                                      else s.vins_still_keyframes_at_takeoff),
+            "vins_barometer": barometer_summary(self.perception.vins),
             "vins_time_offset": time_offset_summary(self.perception.vins.time_offset),
             "vins_gyro_alignment": gyro_alignment_summary(self.perception.vins.gyro_alignment),
             "vins_correction_m": correction_summary(s.vins_corrections_m),
@@ -226,6 +227,15 @@ class FlightApp:
             # what the autopilot driver dropped and why: IMU samples, TIMESYNC samples, ...
             "autopilot_counters": c.autopilot.stats(),
         }
+
+
+def barometer_summary(vins) -> dict | None:
+    """What the VINS made of the flight controller's barometer (None when it was not used:
+    ``[vins] barometer_sigma_m`` 0): the keyframes it gave a height, and the pressures it
+    left out as no barometer's (docs/vins.md, "The barometer")."""
+    if vins.options.barometer_sigma_m <= 0.0:
+        return None
+    return {"keyframes": vins.barometer_keyframes, "refused": vins.refused_pressures}
 
 
 def percentiles_ms(seconds: list, percents=(50, 95)) -> dict:
@@ -287,6 +297,7 @@ def _flight_lines(summary: dict) -> list[str]:
         f"  planning rounds   {summary['planning_rounds']} ({summary['stop_rounds']} stops, "
         f"{summary['backoffs']} backings-off)",
         f"  VINS resets       {summary['vins_resets']}{_still_keyframes(summary)}",
+        *_barometer_lines(summary.get("vins_barometer")),
         *_time_offset_lines(summary.get("vins_time_offset")),
         *_gyro_alignment_lines(summary.get("vins_gyro_alignment")),
         *_signing_lines(summary.get("mavlink_signing")),
@@ -309,6 +320,13 @@ def _still_keyframes(summary: dict) -> str:
     """The keyframes given a zero-velocity prior (absent from recordings made before it)."""
     still = summary.get("vins_still_keyframes")
     return "" if still is None else f" ({still} keyframes standing still before the take-off)"
+
+
+def _barometer_lines(barometer: dict | None) -> list[str]:
+    if barometer is None:
+        return []
+    return [f"  VINS barometer    a height on {barometer['keyframes']} keyframes, "
+            f"{barometer['refused']} pressures refused"]
 
 
 def _signing_lines(signing: dict | None) -> list[str]:
