@@ -33,8 +33,8 @@ from drivers.mavlink.odometry import pose_covariance_to_mavlink
 from drivers.mavlink.provision import ProvisionError, Provisioned, provision
 from drivers.mavlink.signing import load_key
 from drivers.mavlink.timesync import RESET_AFTER_OUTLIERS, TimesyncFilter
-from drivers.sim.imu import ImuOptions
 from drivers.sim.baro import isa_pressure
+from drivers.sim.imu import ImuOptions
 from drivers.sim.mock_px4 import HOME_ALTITUDE_M, Px4Options
 from drivers.sim.serve import serve
 

@@ -23,8 +23,8 @@ import numpy as np
 from drivers.clock import MonotonicClock, SimClock
 from drivers.mavlink import px4_protocol
 from drivers.mavlink.link import mavlink, open_link
-from drivers.sim.faults import PACKET_LOSS, FaultSchedule, FaultyLink
 from drivers.sim.baro import Barometer, BaroOptions, baro_generator
+from drivers.sim.faults import PACKET_LOSS, FaultSchedule, FaultyLink
 from drivers.sim.imu import ImuModel, ImuOptions, flight_generators
 from drivers.sim.options import CLOCK_MODES
 from drivers.sim.mock_px4 import HOME_ALTITUDE_M, MockPx4, Px4Options
