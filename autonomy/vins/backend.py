@@ -810,10 +810,13 @@ class SlidingWindowSmoother:
         ``HOLD_BAROMETER_HEIGHT_SIGMA``."""
         T_W_B = self._poses[index]
         up = np.outer(T_W_B[2, :3], T_W_B[2, :3])
-        height_sigma = HOLD_BAROMETER_HEIGHT_SIGMA if barometer_holds else HOLD_POSITION_SIGMA
         information = np.zeros((6, 6))
         information[:3, :3] = up / HOLD_YAW_SIGMA ** 2 + np.eye(3) - up
-        information[3:, 3:] = (np.eye(3) - up) / HOLD_POSITION_SIGMA ** 2 + up / height_sigma ** 2
+        information[3:, 3:] = np.eye(3) / HOLD_POSITION_SIGMA ** 2
+        if barometer_holds:  # apart, so that without it the matrix keeps its bits (and a
+            # flight its digits)
+            information[3:, 3:] += up * (HOLD_BAROMETER_HEIGHT_SIGMA ** -2
+                                         - HOLD_POSITION_SIGMA ** -2)
         prior = gtsam.PriorFactorPose3(X(index), gtsam.Pose3(T_W_B),
                                        gtsam.noiseModel.Gaussian.Information(information))
         return prior, np.linalg.inv(information)
