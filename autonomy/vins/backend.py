@@ -476,8 +476,7 @@ class SlidingWindowSmoother:
                               eliminate_last=self._eliminated_last(k))
         self._latest = state
         self._hold = _GaugeHold(k)
-        self._window = [replace(self._keyframe(k, state.t, ids, normalised),
-                                pressure_pa=pressure_pa)]
+        self._window = [self._keyframe(k, state.t, ids, normalised, pressure_pa=pressure_pa)]
         self._poses = {k: np.asarray(state.T_W_B, float)}
         self._landmarks = Landmarks.empty()
 
@@ -498,8 +497,8 @@ class SlidingWindowSmoother:
         # taken before the update, which may leave the smoother unusable; not computed here
         # for callers that never read covariances
         good_covariance = self._known_pose_covariance
-        keyframe = replace(self._keyframe(good.index + 1, t, ids, normalised,
-                                          airborne and not still), pressure_pa=pressure_pa)
+        keyframe = self._keyframe(good.index + 1, t, ids, normalised, airborne and not still,
+                                  pressure_pa)
         try:
             self._update_with_vision(keyframe, pim, still)
             self._check_sane(self.latest)
@@ -683,12 +682,14 @@ class SlidingWindowSmoother:
         return smoother
 
     @staticmethod
-    def _keyframe(index: int, t: float, ids, normalised, airborne: bool = False) -> _Keyframe:
+    def _keyframe(index: int, t: float, ids, normalised, airborne: bool = False,
+                  pressure_pa: float | None = None) -> _Keyframe:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         normalised = (np.zeros((0, 2)) if normalised is None
                       else np.asarray(normalised, dtype=float).reshape(-1, 2))
         order = np.argsort(ids)
-        return _Keyframe(index, float(t), ids[order], normalised[order], airborne=airborne)
+        return _Keyframe(index, float(t), ids[order], normalised[order], airborne=airborne,
+                         pressure_pa=pressure_pa)
 
     def _keys(self, k: int) -> tuple[int, ...]:
         """Keyframe ``k``'s keys: pose, velocity, biases and, where it has one, the

@@ -76,13 +76,10 @@ class PressureHistory:
             samples.popleft()
         if not samples or samples[0][0] > t + MATCH_S:
             return None
-        best = min(range(len(samples)), key=lambda i: abs(samples[i][0] - t))
-        if abs(samples[best][0] - t) > MATCH_S:
-            return None
-        pressure = samples[best][1]
-        for _ in range(best + 1):
+        # in time order, the distance to t falls to its least and rises again
+        while len(samples) > 1 and abs(samples[1][0] - t) < abs(samples[0][0] - t):
             samples.popleft()
-        return pressure
+        return samples.popleft()[1]
 
 
 def offset_key(k: int) -> int:

@@ -38,6 +38,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from autonomy.geometry import GRAVITY
 from autonomy.options import option, validate
 
 #: ISA sea-level pressure (Pa) and temperature (K), and the troposphere's lapse rate (K/m),
@@ -69,7 +70,7 @@ def pressure_altitude(pressure_pa: float, qnh_hpa: float = DEFAULT_QNH_HPA) -> f
     (``VehicleAirData::PressureToAltitude``: ``((p / p1) ^ (-a R / g) T1 - T1) / a``, ``T1``
     288.15 K, ``a`` -6.5 K/km), metres."""
     t1, a = 288.15, -0.0065
-    return ((pressure_pa / (qnh_hpa * 100.0)) ** (-a * AIR_GAS_CONSTANT / 9.80665) * t1 - t1) / a
+    return ((pressure_pa / (qnh_hpa * 100.0)) ** (-a * AIR_GAS_CONSTANT / GRAVITY) * t1 - t1) / a
 
 
 @dataclass(frozen=True)
