@@ -130,8 +130,8 @@ def drag_factors_of(still: bool, airborne: bool, seconds: float = 0.1) -> int:
     for _ in range(int(round(seconds / IMU_DT))):
         pim.integrateMeasurement(so3_exp(np.radians([3.0, 0.0, 0.0])).T @ [0, 0, GRAVITY],
                                  np.zeros(3), IMU_DT)
-    graph, *_ = smoother._imu_step(smoother._keyframe(1, seconds, [], None, airborne), pim,
-                                   still)
+    keyframe = smoother._keyframe(1, seconds, [], None, airborne=airborne)
+    graph, *_ = smoother._imu_step(keyframe, pim, still)
     return sum(isinstance(graph.at(i), gtsam.CustomFactor) for i in range(graph.size()))
 
 

@@ -248,7 +248,8 @@ class BackendError(RuntimeError):
 
 @dataclass(frozen=True)
 class _Keyframe:
-    """A keyframe's observations, ``ids`` sorted, ``normalised`` undistorted in the same order;
+    """A keyframe's observations, ``ids`` sorted, ``normalised`` undistorted and
+    ``noise_scale`` (each one's noise as a share of ``pixel_sigma``) in the same order;
     the iSAM2 slots of the factors made of the IMU since the keyframe before it
     (``interval_slots``: the preintegrated factor, the drag's), and whether it flew then."""
 
@@ -256,6 +257,7 @@ class _Keyframe:
     t: float
     ids: np.ndarray
     normalised: np.ndarray
+    noise_scale: np.ndarray
     interval_slots: tuple[int, ...] = ()
     airborne: bool = False
     pressure_pa: float | None = None  # the barometer's sample matched to it, if any
@@ -350,9 +352,7 @@ class SlidingWindowSmoother:
             [math.radians(options.mounting_rotation_sigma_deg)] * 3,
             [MOUNTING_POSITION_SIGMA_M] * 3])
         self._K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
-        self._pixel_noise = gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k),
-            gtsam.noiseModel.Isotropic.Sigma(2, options.pixel_sigma))
+        self._pixel_noises = {1.0: self._robust_pixel_noise(1.0)}
         self._keyframe_prior = None if options.keyframe_prior_position_sigma == 0.0 else \
             gtsam.noiseModel.Diagonal.Sigmas(np.r_[[options.keyframe_prior_rotation_sigma] * 3,
                                                    [options.keyframe_prior_position_sigma] * 3])
@@ -440,9 +440,11 @@ class SlidingWindowSmoother:
         return gtsam.PreintegratedCombinedMeasurements(params, _bias(s.bias_g, s.bias_a))
 
     def start(self, state: KeyframeState, sigmas: PriorSigmas, ids=(), normalised=None,
-              anchor: GaugeAnchor | None = None, pressure_pa: float | None = None) -> None:
+              anchor: GaugeAnchor | None = None, pressure_pa: float | None = None,
+              noise_scale=None) -> None:
         """Begin a new smoother at ``state`` with priors ``sigmas``; ``ids``/``normalised`` are
-        that keyframe's observations (kept for later triangulation); ``anchor``, what a
+        that keyframe's observations (kept for later triangulation), ``noise_scale`` their
+        noise as a share of ``pixel_sigma`` (None: each 1); ``anchor``, what a
         rebuild carries over of the old smoother's uncertainty (:class:`GaugeAnchor`);
         ``pressure_pa``, the barometer's sample at it (:mod:`autonomy.vins.barometer`)."""
         self._smoother = self._new_smoother()
@@ -476,15 +478,17 @@ class SlidingWindowSmoother:
                               eliminate_last=self._eliminated_last(k))
         self._latest = state
         self._hold = _GaugeHold(k)
-        self._window = [self._keyframe(k, state.t, ids, normalised, pressure_pa=pressure_pa)]
+        self._window = [self._keyframe(k, state.t, ids, normalised, noise_scale,
+                                       pressure_pa=pressure_pa)]
         self._poses = {k: np.asarray(state.T_W_B, float)}
         self._landmarks = Landmarks.empty()
 
     def add_keyframe(self, t: float, pim: gtsam.PreintegratedCombinedMeasurements, ids,
                      normalised, still: bool = False, airborne: bool = False,
-                     pressure_pa: float | None = None) -> bool:
+                     pressure_pa: float | None = None, noise_scale=None) -> bool:
         """Add a keyframe at ``t`` with the IMU preintegrated since the last one and the
-        features it sees; ``still``: it stands still, and gets a zero-velocity prior
+        features it sees (``noise_scale``: their noise as a share of ``pixel_sigma``, None
+        for each 1); ``still``: it stands still, and gets a zero-velocity prior
         (:mod:`autonomy.vins.stillness`); ``airborne``: it flies, and the interval gets the
         rotor drag's factor (with ``drag_coefficient``; :mod:`autonomy.vins.drag`);
         ``pressure_pa``: the barometer's sample at it (with ``barometer_sigma_m``;
@@ -497,8 +501,8 @@ class SlidingWindowSmoother:
         # taken before the update, which may leave the smoother unusable; not computed here
         # for callers that never read covariances
         good_covariance = self._known_pose_covariance
-        keyframe = self._keyframe(good.index + 1, t, ids, normalised, airborne and not still,
-                                  pressure_pa)
+        keyframe = self._keyframe(good.index + 1, t, ids, normalised, noise_scale,
+                                  airborne and not still, pressure_pa)
         try:
             self._update_with_vision(keyframe, pim, still)
             self._check_sane(self.latest)
@@ -600,7 +604,7 @@ class SlidingWindowSmoother:
         sigmas = PriorSigmas.with_bias_priors(self.options, REBUILD_ROTATION_SIGMAS,
                                               REBUILD_POSITION_SIGMA, REBUILD_VELOCITY_SIGMA)
         self.start(state, sigmas, keyframe.ids, keyframe.normalised, anchor,
-                   keyframe.pressure_pa)
+                   keyframe.pressure_pa, keyframe.noise_scale)
 
     def pose_covariance(self, max_age_s: float = 0.0) -> np.ndarray:
         """The latest keyframe pose's covariance (6x6, rotation then position, body frame):
@@ -682,14 +686,19 @@ class SlidingWindowSmoother:
         return smoother
 
     @staticmethod
-    def _keyframe(index: int, t: float, ids, normalised, airborne: bool = False,
-                  pressure_pa: float | None = None) -> _Keyframe:
+    def _keyframe(index: int, t: float, ids, normalised, noise_scale=None,
+                  airborne: bool = False, pressure_pa: float | None = None) -> _Keyframe:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         normalised = (np.zeros((0, 2)) if normalised is None
                       else np.asarray(normalised, dtype=float).reshape(-1, 2))
+        noise_scale = (np.ones(len(ids)) if noise_scale is None
+                       else np.asarray(noise_scale, dtype=float).reshape(-1))
+        if len(noise_scale) != len(ids) or not (noise_scale > 0.0).all():
+            raise ValueError(f"a positive noise scale for each of the {len(ids)} observations, "
+                             f"got {noise_scale}")
         order = np.argsort(ids)
-        return _Keyframe(index, float(t), ids[order], normalised[order], airborne=airborne,
-                         pressure_pa=pressure_pa)
+        return _Keyframe(index, float(t), ids[order], normalised[order], noise_scale[order],
+                         airborne=airborne, pressure_pa=pressure_pa)
 
     def _keys(self, k: int) -> tuple[int, ...]:
         """Keyframe ``k``'s keys: pose, velocity, biases and, where it has one, the
@@ -753,10 +762,10 @@ class SlidingWindowSmoother:
         graph, values, stamps, interval = self._imu_step(keyframe, pim, still)
         window = self._window + [keyframe]
         seen = _in_sorted(keyframe.ids, self._landmarks.ids)
-        tracks, xy = self._consistent_observations(keyframe, seen)
+        tracks, xy, scales = self._consistent_observations(keyframe, seen)
         observed_pixels = self._pixels(xy)
-        for track, pixel in zip(tracks, observed_pixels):
-            graph.add(self._projection(keyframe.index, int(track), pixel))
+        for track, pixel, scale in zip(tracks, observed_pixels, scales):
+            graph.add(self._projection(keyframe.index, int(track), pixel, scale))
             stamps[L(int(track))] = keyframe.t
         fresh = ~seen & ~_in_sorted(keyframe.ids, self._retired)
         self._add_new_landmarks(window, keyframe.ids[fresh], observed_pixels, graph, values,
@@ -825,10 +834,11 @@ class SlidingWindowSmoother:
     def _consistent_observations(self, keyframe: _Keyframe, seen: np.ndarray):
         """The observations of known landmarks that reproject near their landmark at the
         IMU-predicted pose, within :func:`observation_limit_px` of ``max_observation_px``:
-        their ``tracks`` (N,) and ``xy`` (N, 2). A landmark seen further away (a track that slid
+        their ``tracks`` (N,), ``xy`` (N, 2) and noise scales (N,). A landmark seen further away (a track that slid
         off its point, or onto another surface) takes no observation from this keyframe, and is
         retired: once marginalised, no track of its id becomes a landmark again."""
-        tracks, xy = keyframe.ids[seen], keyframe.normalised[seen]
+        tracks, xy, scales = keyframe.ids[seen], keyframe.normalised[seen], \
+            keyframe.noise_scale[seen]
         rows = np.searchsorted(self._landmarks.ids, tracks)
         T_C_W = invert_pose(self._poses[keyframe.index] @ self._T_B_C)
         p_C = self._landmarks.points_W[rows] @ T_C_W[:3, :3].T + T_C_W[:3, 3]
@@ -838,22 +848,42 @@ class SlidingWindowSmoother:
         limit = observation_limit_px(error_px[in_front], self.options.max_observation_px)
         good = in_front & (error_px <= limit)
         self._retire(tracks[~good])
-        return tracks[good], xy[good]
+        return tracks[good], xy[good], scales[good]
 
     def _retire(self, tracks: np.ndarray) -> None:
         """No track of these ids becomes a landmark again (``_retired`` stays sorted)."""
         if len(tracks):
             self._retired = np.union1d(self._retired, tracks)
 
-    def _projection(self, index: int, track: int, pixel: np.ndarray):
+    def _projection(self, index: int, track: int, pixel: np.ndarray, scale: float):
         """The factor of keyframe ``index`` seeing landmark ``track`` at ideal-pinhole
-        ``pixel``: through the mounting's estimate with ``estimate_camera_mounting``."""
+        ``pixel`` with a noise of ``scale`` times ``pixel_sigma``: through the mounting's
+        estimate with ``estimate_camera_mounting``."""
+        noise = self._pixel_noise(scale)
         if self.options.estimate_camera_mounting:
-            return gtsam_unstable.ProjectionFactorPPPCal3_S2(pixel, self._pixel_noise, X(index),
+            return gtsam_unstable.ProjectionFactorPPPCal3_S2(pixel, noise, X(index),
                                                              MOUNTING, L(track), self._K)
-        return gtsam.GenericProjectionFactorCal3_S2(pixel, self._pixel_noise, X(index),
+        return gtsam.GenericProjectionFactorCal3_S2(pixel, noise, X(index),
                                                     L(track), self._K, False, False,
                                                     self._body_P_camera)
+
+    #: Noise scales are rounded to this step, so that observations share their noise models.
+    NOISE_SCALE_STEP = 0.01
+
+    def _pixel_noise(self, scale: float):
+        """The observations' noise model at ``scale`` times ``pixel_sigma`` (rounded to
+        :data:`NOISE_SCALE_STEP`), made once."""
+        key = round(float(scale) / self.NOISE_SCALE_STEP) * self.NOISE_SCALE_STEP
+        if key not in self._pixel_noises:
+            self._pixel_noises[key] = self._robust_pixel_noise(key)
+        return self._pixel_noises[key]
+
+    def _robust_pixel_noise(self, scale: float):
+        """Huber's loss (``huber_k`` in whitened units) on an isotropic pixel noise of
+        ``scale`` times ``pixel_sigma``."""
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(self.options.huber_k),
+            gtsam.noiseModel.Isotropic.Sigma(2, scale * self.options.pixel_sigma))
 
     @staticmethod
     def _observed(window: list[_Keyframe], tracks: np.ndarray):
@@ -876,12 +906,14 @@ class SlidingWindowSmoother:
 
     @classmethod
     def _observations(cls, window: list[_Keyframe], tracks: np.ndarray):
-        """The window's observations of ``tracks``: ``mask`` (M, K) and ``normalised``
-        (M, K, 2)."""
+        """The window's observations of ``tracks``: ``mask`` (M, K), ``normalised``
+        (M, K, 2) and their noise scales (M, K)."""
         mask, row, column, picked = cls._observed(window, tracks)
         normalised = np.zeros((len(tracks), len(window), 2))
         normalised[row, column] = np.concatenate([kf.normalised for kf in window])[picked]
-        return mask, normalised
+        scales = np.ones((len(tracks), len(window)))
+        scales[row, column] = np.concatenate([kf.noise_scale for kf in window])[picked]
+        return mask, normalised, scales
 
     def _cameras(self, window: list[_Keyframe], count: int):
         """The window's cameras ``R_W_C`` (count, K, 3, 3) and centres (count, K, 3): the same
@@ -906,11 +938,12 @@ class SlidingWindowSmoother:
         room = self._landmark_room(len(observed_pixels))
         if room <= 0 or len(candidates) == 0:
             return
-        mask, normalised = self._observations(window, candidates)
+        mask, normalised, scales = self._observations(window, candidates)
         ready = mask.sum(axis=1) >= self.gate.min_observations
         if not ready.any():
             return
         candidates, mask, normalised = candidates[ready], mask[ready], normalised[ready]
+        scales = scales[ready]
         R_W_C, centres = self._cameras(window, len(candidates))
         result = gate_candidates(R_W_C, centres, normalised, mask, self.gate)
         accepted = np.flatnonzero(result.accepted)
@@ -925,7 +958,8 @@ class SlidingWindowSmoother:
             values.insert(L(track), result.points[m])
             stamps[L(track)] = newest.t
             for j in np.flatnonzero(mask[m]):
-                graph.add(self._projection(window[j].index, track, track_pixels[j]))
+                graph.add(self._projection(window[j].index, track, track_pixels[j],
+                                           scales[m, j]))
 
     def _landmark_room(self, observed: int) -> int:
         """New landmarks this keyframe may add: what is left of the budget ``n``; with

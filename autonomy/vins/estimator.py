@@ -347,7 +347,8 @@ class Vins:
 
     def _start(self, state: KeyframeState, sigmas: PriorSigmas, tracks: Tracks) -> None:
         self.backend.start(state, sigmas, tracks.ids, tracks.normalised,
-                           pressure_pa=self._keyframe_pressure(state.t, state.T_W_B[2, 3]))
+                           pressure_pa=self._keyframe_pressure(state.t, state.T_W_B[2, 3]),
+                           noise_scale=tracks.noise_scale)
         self._keyframe_tracks = tracks
         self._filed_keyframe()
         self._set_anchor_from_backend()
@@ -480,7 +481,7 @@ class Vins:
         pressure = self._keyframe_pressure(t, predicted.position[2])
         self.barometer_keyframes += pressure is not None
         if not self.backend.add_keyframe(t, pim, tracks.ids, tracks.normalised, still,
-                                         airborne, pressure):
+                                         airborne, pressure, tracks.noise_scale):
             self._last_reset_t = t
         self.zero_velocity_keyframes += still
         self._keyframe_tracks = tracks

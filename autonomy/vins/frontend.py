@@ -36,6 +36,7 @@ from autonomy.geometry import PinholeCamera, undistort_points
 from autonomy.options import OptionError, option, validate
 from autonomy.vins.affine_refine import WARP_PARAMETERS, SampledImage, refine_affine
 from autonomy.vins.anchored_tracks import Anchors
+from autonomy.vins.track_precision import noise_scales
 
 
 @dataclass(frozen=True)
@@ -88,6 +89,11 @@ class FrontendOptions:
                                            "derivative at its centre strays further than "
                                            "this from the identity in any entry is given "
                                            "up and the track anchored again")
+    # Off until measured in navigation (docs/vins.md, "Observations weighed by their texture").
+    texture_weights: bool = option(False, doc="give each track's observations a noise in "
+                                   "proportion to how precisely its patch's texture can be "
+                                   "found (track_precision.py), the frame's typical track "
+                                   "keeping [vins] pixel_sigma")
     ransac: bool = option(True, doc="reject tracks that break the epipolar geometry "
                           "(fundamental-matrix RANSAC)")
     ransac_threshold: float = option(1.0, gt=0.0, doc="RANSAC epipolar distance limit, "
@@ -121,7 +127,9 @@ class Tracks:
     for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
     of new features; ``reanchored``, the anchors given up (their tracks kept Lucas-Kanade's
     answer, to be anchored again on this frame where they survive and their patch is usable;
-    0 without ``anchor_age``).
+    0 without ``anchor_age``). ``noise_scale``, with ``texture_weights``, each feature's
+    position noise as a share of the frame's typical feature's (``track_precision.py``); None
+    without: every feature alike.
     """
 
     frame: int
@@ -134,6 +142,7 @@ class Tracks:
     crowded: int = 0
     detected: int = 0
     reanchored: int = 0
+    noise_scale: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -347,4 +356,13 @@ class FeatureTracker:
         return Tracks(frame=self._frame, ids=ids.copy(), pixels=pixels.astype(float),
                       normalised=normalised.copy(), ages=ages.copy(), lost=lost,
                       rejected=rejected, crowded=crowded, detected=detected,
-                      reanchored=reanchored)
+                      reanchored=reanchored, noise_scale=self._noise_scales(gray, pixels))
+
+    def _noise_scales(self, gray: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
+        """With ``texture_weights``, each feature's noise relative to the frame's typical one,
+        over the window it is fitted in (an anchor's where tracks are anchored)."""
+        o = self.options
+        if not o.texture_weights:
+            return None
+        window = o.anchor_window if o.anchor_age else o.lk_window
+        return noise_scales(gray, pixels, window // 2)

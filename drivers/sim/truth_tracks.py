@@ -106,8 +106,10 @@ class TruthTracks:
             normalised = (pixels - (self.camera.cx, self.camera.cy)) / (self.camera.fx,
                                                                          self.camera.fy)
         pixels, normalised = pixels[visible], normalised[visible]
+        scale = None if tracks.noise_scale is None else tracks.noise_scale[keep]
         return dataclasses.replace(tracks, ids=tracks.ids[keep], pixels=pixels,
-                                   normalised=normalised, ages=tracks.ages[keep])
+                                   normalised=normalised, ages=tracks.ages[keep],
+                                   noise_scale=scale)
 
     def _with_tracker_error(self, ids, ages, tracker: np.ndarray,
                             truth: np.ndarray) -> np.ndarray:
