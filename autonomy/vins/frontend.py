@@ -19,7 +19,9 @@ The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracke
    (``anchored_tracks.py``);
 4. features are ranked by age; walking from the oldest, each one that is not within
    ``min_distance`` of an older kept feature is kept and masks a disc of that radius;
-5. Shi-Tomasi corners fill the unmasked image up to ``max_features``, each with a new id.
+5. Shi-Tomasi corners fill the unmasked image up to ``max_features``, each with a new id;
+6. with ``texture_weights`` (off by default; not VINS-Mono's) each feature is given a position
+   noise in proportion to how precisely its patch can be found (``track_precision.py``).
 
 Ids are integers that increase and are never reused within one tracker. Pixel coordinates
 follow OpenCV (pixel centres at integers).
@@ -143,6 +145,13 @@ class Tracks:
     detected: int = 0
     reanchored: int = 0
     noise_scale: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        scale = self.noise_scale
+        if scale is not None and (np.shape(scale) != (len(self.ids),)
+                                  or not np.all(np.isfinite(scale) & (np.asarray(scale) > 0))):
+            raise ValueError(f"noise_scale must be a positive number for each of the "
+                             f"{len(self.ids)} features, got {scale}")
 
     def __len__(self) -> int:
         return len(self.ids)
