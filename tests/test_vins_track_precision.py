@@ -10,7 +10,8 @@ import pytest
 
 from autonomy.geometry import PinholeCamera
 from autonomy.vins import FeatureTracker, FrontendOptions
-from autonomy.vins.track_precision import SCALE_RANGE, least_eigenvalues, noise_scales
+from autonomy.vins.track_precision import (SCALE_RANGE, BirthTextures, least_eigenvalues,
+                                           relative_noise)
 
 CAMERA = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
 
@@ -69,15 +70,30 @@ def test_the_frames_typical_track_keeps_its_noise_and_faint_ones_get_more():
     rng = np.random.default_rng(1)
     strong = np.column_stack([rng.uniform(20, 300, 21), rng.uniform(20, 460, 21)])
     faint = np.column_stack([rng.uniform(340, 620, 20), rng.uniform(20, 460, 20)])
-    scales = noise_scales(gray, np.vstack([strong, faint]), 7)
+    scales = relative_noise(least_eigenvalues(gray, np.vstack([strong, faint]), 7))
     assert np.median(scales) == pytest.approx(1.0, rel=0.3)
     assert (scales[:21] < 1.5).all() and (scales[21:] == SCALE_RANGE[1]).mean() > 0.5
     assert (scales >= SCALE_RANGE[0]).all() and (scales <= SCALE_RANGE[1]).all()
 
 
 def test_a_flat_frame_or_no_tracks_give_plain_weights():
-    assert (noise_scales(np.full((480, 640), 90.0), np.array([[10.0, 10.0]]), 7) == 1.0).all()
-    assert noise_scales(texture(100.0), np.zeros((0, 2)), 7).shape == (0,)
+    flat = least_eigenvalues(np.full((480, 640), 90.0), np.array([[10.0, 10.0]]), 7)
+    assert (relative_noise(flat) == 1.0).all()
+    assert relative_noise(np.zeros(0)).shape == (0,)
+
+
+def test_a_track_keeps_the_texture_it_was_born_on():
+    """Its error is what it inherits from its first frames, so its weight is its birth
+    patch's: a track born on a faint patch stays faint where the patch has since grown
+    strong, and a new track is measured in its own frame."""
+    textures = BirthTextures(7)
+    faint, strong = texture(20.0), texture(200.0)
+    points = np.array([[100.0, 100.0], [300.0, 200.0]])
+    first = textures.update(faint, np.array([3, 8]), points, np.array([True, True]))
+    np.testing.assert_allclose(first, least_eigenvalues(faint, points, 7))
+    later = textures.update(strong, np.array([8, 12]), points, np.array([False, True]))
+    assert later[0] == first[1]
+    assert later[1] == pytest.approx(least_eigenvalues(strong, points[1:], 7)[0])
 
 
 GRID = np.stack(np.meshgrid(np.arange(60, 580, 40), np.arange(60, 420, 40)), -1).reshape(-1, 2)

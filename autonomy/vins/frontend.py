@@ -38,7 +38,7 @@ from autonomy.geometry import PinholeCamera, undistort_points
 from autonomy.options import OptionError, option, validate
 from autonomy.vins.affine_refine import WARP_PARAMETERS, SampledImage, refine_affine
 from autonomy.vins.anchored_tracks import Anchors
-from autonomy.vins.track_precision import noise_scales
+from autonomy.vins.track_precision import BirthTextures, relative_noise
 
 
 @dataclass(frozen=True)
@@ -106,6 +106,12 @@ class FrontendOptions:
     clahe: bool = option(False, doc="equalise contrast with CLAHE before tracking")
     clahe_clip_limit: float = option(3.0, gt=0.0, doc="CLAHE contrast limit")
     clahe_tiles: int = option(8, ge=1, le=64, doc="CLAHE tiles along each image side")
+
+    @property
+    def fit_window(self) -> int:
+        """The side of the patch a track is found by, pixels: an anchor's where tracks are
+        anchored, else Lucas-Kanade's window."""
+        return self.anchor_window if self.anchor_age else self.lk_window
 
     def __post_init__(self) -> None:
         validate(self)
@@ -234,6 +240,8 @@ class FeatureTracker:
                                  max_deformation=o.anchor_max_deformation, border=o.border,
                                  warp=o.anchor_warp)
                          if o.anchor_age else None)
+        self._birth_textures = (BirthTextures(o.fit_window // 2) if o.texture_weights
+                                else None)
         if not hasattr(self, "_next_id"):
             self._next_id = 0
             self._frame = -1
@@ -365,13 +373,14 @@ class FeatureTracker:
         return Tracks(frame=self._frame, ids=ids.copy(), pixels=pixels.astype(float),
                       normalised=normalised.copy(), ages=ages.copy(), lost=lost,
                       rejected=rejected, crowded=crowded, detected=detected,
-                      reanchored=reanchored, noise_scale=self._noise_scales(gray, pixels))
+                      reanchored=reanchored,
+                      noise_scale=self._noise_scales(gray, ids, pixels, ages == 1))
 
-    def _noise_scales(self, gray: np.ndarray, pixels: np.ndarray) -> np.ndarray | None:
-        """With ``texture_weights``, each feature's noise relative to the frame's typical one,
-        over the window it is fitted in (an anchor's where tracks are anchored)."""
-        o = self.options
-        if not o.texture_weights:
+    def _noise_scales(self, gray: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
+                      born: np.ndarray) -> np.ndarray | None:
+        """With ``texture_weights``, each feature's noise relative to the frame's typical one
+        by the texture it was born on, over the window it is fitted in (an anchor's where
+        tracks are anchored)."""
+        if self._birth_textures is None:
             return None
-        window = o.anchor_window if o.anchor_age else o.lk_window
-        return noise_scales(gray, pixels, window // 2)
+        return relative_noise(self._birth_textures.update(gray, ids, pixels, born))

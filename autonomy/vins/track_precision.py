@@ -15,7 +15,7 @@ the worst, the median error past 20 frames is 0.15, 0.24, 0.33, 0.43 and 0.51 px
 0.08 to 0.18 px (rank correlation 0.46; docs/vins.md, "Observations weighed by their
 texture").
 
-:func:`noise_scales` gives each track its standard deviation relative to the frame's median
+:func:`relative_noise` gives each track its standard deviation relative to the frame's median
 track, ``sqrt(median lambda_min / lambda_min)``, within :data:`SCALE_RANGE`: the frame's
 typical track keeps ``pixel_sigma``, so the weight of vision against the IMU is as before and
 only the tracks' weights among themselves change. The noise ``s_n`` is the same for every
@@ -50,14 +50,37 @@ def least_eigenvalues(gray: np.ndarray, pixels: np.ndarray, half: int) -> np.nda
     return 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
 
 
-def noise_scales(gray: np.ndarray, pixels: np.ndarray, half: int) -> np.ndarray:
-    """Each track's standard deviation relative to the frame's median track,
-    ``sqrt(median lambda_min / lambda_min)`` within :data:`SCALE_RANGE` (module docstring);
-    (N,) float, ones where there is no texture to compare."""
-    eigenvalues = least_eigenvalues(gray, pixels, half)
+def relative_noise(eigenvalues: np.ndarray) -> np.ndarray:
+    """``sqrt(median lambda_min / lambda_min)`` of each of ``eigenvalues`` within
+    :data:`SCALE_RANGE` (module docstring); ones where there is no texture to compare."""
+    eigenvalues = np.asarray(eigenvalues, float)
     median = float(np.median(eigenvalues)) if len(eigenvalues) else 0.0
     if median <= 0.0:
         return np.ones(len(eigenvalues))
     with np.errstate(divide="ignore"):
         scales = np.sqrt(median / np.maximum(eigenvalues, 0.0))
     return np.clip(scales, *SCALE_RANGE)
+
+
+class BirthTextures:
+    """Each track's least eigenvalue in the frame it was born in, kept for its life: a track's
+    error is mostly what it inherits from its first frames (its anchor is cut at the second),
+    carried into later frames as the patch grows, so the texture it was found on predicts its
+    error at every age and the texture it has now does not past twenty frames (docs/vins.md,
+    "Observations weighed by their texture")."""
+
+    def __init__(self, half: int):
+        self.half = half
+        self._ids = np.zeros(0, np.int64)
+        self._eigenvalues = np.zeros(0)
+
+    def update(self, gray: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
+               born: np.ndarray) -> np.ndarray:
+        """The eigenvalues of the tracks ``ids`` (ascending, as the tracker keeps them), those
+        ``born`` in this frame ``gray`` measured at their ``pixels``, the others as kept."""
+        eigenvalues = np.empty(len(ids))
+        old = ~born
+        eigenvalues[old] = self._eigenvalues[np.searchsorted(self._ids, ids[old])]
+        eigenvalues[born] = least_eigenvalues(gray, pixels[born], self.half)
+        self._ids, self._eigenvalues = ids.copy(), eigenvalues
+        return eigenvalues

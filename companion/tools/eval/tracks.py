@@ -38,13 +38,22 @@ mean (-0.60, -0.42) px past 20 frames; with the mounting exact 0.28, 0.36, 0.52 
 with the stamps exact too 0.17, 0.19, 0.22 and 0.30 px, and no mean. So on a recording without
 the camera's truth, a realistic camera's track errors past ten frames are mostly its
 calibration's.
+
+Given each frame's grey image, each error is also filed under the track's texture: its noise
+relative to the frame's median track as its patch's structure tensor in its birth frame
+predicts it, ``sqrt(median lambda_min / lambda_min)`` over the window the tracker fits
+(:mod:`autonomy.vins.track_precision`, unclipped), and the errors are summarised by its
+quintiles: whether faint patches err more, as the texture weights assume.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+from scipy.stats import spearmanr
 
 from autonomy.geometry import PinholeCamera, distort_points
+from autonomy.vins.track_precision import least_eigenvalues
 
 #: Track ages (frames seen, the birth frame being 1) over which errors are summarised:
 #: ``[low, high)``; ``None`` is no upper bound.
@@ -58,23 +67,33 @@ GROSS_ERROR_PX = 5.0
 #: share of the pixel's own) for the track to be named: off a depth edge.
 DEPTH_SPREAD = 0.05
 
+#: How many bins of equal count the errors are summarised in by their predicted noise.
+TEXTURE_BINS = 5
+
 
 class TrackErrors:
     """The track error of every frame of a run, gathered frame by frame (module docstring);
-    ``camera``, ``distortion`` and ``T_B_C`` are the dataset's calibration."""
+    ``camera``, ``distortion`` and ``T_B_C`` are the dataset's calibration, ``fit_window``
+    the side of the patch the tracker fits (for the texture's prediction)."""
 
-    def __init__(self, camera: PinholeCamera, distortion, T_B_C: np.ndarray):
+    def __init__(self, camera: PinholeCamera, distortion, T_B_C: np.ndarray,
+                 fit_window: int = 11):
         self.camera, self.distortion = camera, tuple(distortion)
         self.T_B_C = np.asarray(T_B_C, dtype=float)
+        self.fit_window = int(fit_window)
         self._births: dict[int, np.ndarray] = {}  # track id -> world point
         self.errors_xy: list[tuple[float, float]] = []  # each error, x right and y down
         self.outward_px: list[float] = []  # each error along the outward radius (NaN: centre)
         self.ages: list[int] = []
+        self.predicted_noise: list[float] = []  # with images: relative, by the texture
+        self._textures: dict[int, float] = {}  # track id -> least eigenvalue at its birth
 
-    def observe(self, tracks, T_W_B: np.ndarray, depth: np.ndarray | None) -> None:
+    def observe(self, tracks, T_W_B: np.ndarray, depth: np.ndarray | None,
+                image: np.ndarray | None = None) -> None:
         """Score one frame's ``tracks`` (:class:`~autonomy.vins.frontend.Tracks`) at the true
         body pose ``T_W_B``; ``depth``, the frame's true z-depth image (the camera's size, NaN
-        unknown) or None, names the points of the tracks born in it."""
+        unknown) or None, names the points of the tracks born in it; ``image``, the frame
+        (grey or RGB), files each error under its track's texture too (module docstring)."""
         if depth is not None and depth.shape != (self.camera.height, self.camera.width):
             raise ValueError(f"a depth image of {depth.shape[1]}x{depth.shape[0]} for a "
                              f"{self.camera.width}x{self.camera.height} camera")
@@ -88,8 +107,28 @@ class TrackErrors:
             self._name_points(ids[born], pixels[born], np.asarray(tracks.normalised)[born],
                               T_W_C, depth)
         named = np.array([i in self._births for i in ids.tolist()], dtype=bool) & ~born
+        noise = None
+        if image is not None:
+            noise = self._predicted_noise(image, ids, pixels, born)[named]
         if named.any():
-            self._score(ids[named], pixels[named], ages[named], T_W_C)
+            self._score(ids[named], pixels[named], ages[named], T_W_C, noise)
+
+    def _predicted_noise(self, image: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
+                         born: np.ndarray) -> np.ndarray:
+        """Each track's noise relative to the frame's median track by the texture it was born
+        on (measured in ``image`` for those ``born`` in it), unclipped (infinite on a flat
+        patch; NaN for a track whose birth was not seen)."""
+        if born.any():
+            gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+            fresh = least_eigenvalues(gray, pixels[born], self.fit_window // 2)
+            self._textures.update(zip(ids[born].tolist(), fresh.tolist()))
+        alive = set(ids.tolist())
+        self._textures = {i: v for i, v in self._textures.items() if i in alive}
+        eigenvalues = np.array([self._textures.get(i, np.nan) for i in ids.tolist()])
+        if np.isnan(eigenvalues).all():
+            return eigenvalues
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.sqrt(np.nanmedian(eigenvalues) / np.maximum(eigenvalues, 0.0))
 
     def _name_points(self, ids, pixels, normalised, T_W_C, depth) -> None:
         """The world points of the tracks born on ``pixels`` (module docstring)."""
@@ -106,9 +145,9 @@ class TrackErrors:
         points_W = points_C @ T_W_C[:3, :3].T + T_W_C[:3, 3]
         self._births.update(zip(ids[known].tolist(), points_W))
 
-    def _score(self, ids, pixels, ages, T_W_C) -> None:
+    def _score(self, ids, pixels, ages, T_W_C, noise=None) -> None:
         """Each named track's distance from its point seen through the true pose and the
-        lens (points behind the camera are skipped)."""
+        lens (points behind the camera are skipped), with its predicted ``noise`` if any."""
         points_W = np.array([self._births[i] for i in ids.tolist()])
         points_C = (points_W - T_W_C[:3, 3]) @ T_W_C[:3, :3]
         ahead = points_C[:, 2] > 0.0
@@ -122,6 +161,8 @@ class TrackErrors:
         self.errors_xy.extend(map(tuple, error.tolist()))
         self.outward_px.extend(outward.tolist())
         self.ages.extend(ages[ahead].tolist())
+        if noise is not None:
+            self.predicted_noise.extend(noise[ahead].tolist())
 
     @property
     def errors_px(self) -> list[float]:
@@ -129,8 +170,31 @@ class TrackErrors:
         return np.linalg.norm(np.reshape(self.errors_xy, (-1, 2)), axis=1).tolist()
 
     def summary(self) -> dict:
-        """:func:`track_error_summary` of every observation scored so far."""
-        return track_error_summary(self.errors_xy, self.outward_px, self.ages)
+        """:func:`track_error_summary` of every observation scored so far, and
+        ``track_error_by_texture`` (:func:`texture_summary`; None unless every frame came
+        with its image)."""
+        by_texture = (texture_summary(self.errors_px, self.predicted_noise)
+                      if self.predicted_noise and len(self.predicted_noise) == len(self.ages)
+                      else None)
+        return {**track_error_summary(self.errors_xy, self.outward_px, self.ages),
+                "track_error_by_texture": by_texture}
+
+
+def texture_summary(errors_px, predicted_noise) -> dict | None:
+    """The errors (pixels) by their tracks' predicted relative noise: its rank correlation
+    with the error (Spearman's) and, for each of :data:`TEXTURE_BINS` bins of equal count
+    from the best textured, the predicted noise's median and the error's median and 90th
+    percentile. None with fewer observations than twice the bins."""
+    errors, noise = np.asarray(errors_px, float), np.asarray(predicted_noise, float)
+    errors, noise = errors[~np.isnan(noise)], noise[~np.isnan(noise)]
+    if len(errors) < 2 * TEXTURE_BINS:
+        return None
+    order = np.argsort(noise, kind="stable")
+    bins = [{"predicted_median": float(np.median(noise[rows])),
+             "median_px": float(np.median(errors[rows])),
+             "p90_px": float(np.percentile(errors[rows], 90))}
+            for rows in np.array_split(order, TEXTURE_BINS)]
+    return {"spearman": float(spearmanr(noise, errors).statistic), "bins": bins}
 
 
 def track_error_summary(errors_xy, outward_px, ages) -> dict:

@@ -179,6 +179,7 @@ class VioTrace:
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
     track_errors: dict = field(default_factory=lambda: {**track_error_summary([], [], []),
+                                                        "track_error_by_texture": None,
                                                         "track_error_reference": None})
 
 
@@ -290,7 +291,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     # the tracks are measured through the camera's truth where the recording holds it
     camera_truth = data.camera_truth
     tracking = TrackErrors(stream.camera, stream.distortion,
-                           stream.T_B_C if camera_truth is None else camera_truth.T_B_C)
+                           stream.T_B_C if camera_truth is None else camera_truth.T_B_C,
+                           vins.tracker.options.fit_window)
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     for frame in vio_frames(data, max_frames):
         imu.before_frame(vins, frame.t)
@@ -317,7 +319,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
                 and (born or update.sparse_map is not None)):
             depth = read_frame_depth(frame.depth_path, data)
         if truth_known:  # the body's pose when the frame was exposed
-            tracking.observe(tracks, _true_pose(frame.exposure_t, truth_t, data.truth), depth)
+            tracking.observe(tracks, _true_pose(frame.exposure_t, truth_t, data.truth), depth,
+                             frame.image)
         if update.sparse_map is not None and depth is not None:
             trace.depth_errors.append(depth_relative_errors(update.sparse_map, depth))
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
@@ -808,6 +811,16 @@ def _alignment_text(alignment: dict | None) -> str:
     return f"{column} over {alignment['pairs']} frame pairs"
 
 
+def _texture_text(by_texture: dict | None) -> str:
+    """The track errors by their predicted noise, a line (:func:`~companion.tools.eval.tracks.texture_summary`)."""
+    if by_texture is None:
+        return "none scored"
+    bins = ", ".join(f"{b['predicted_median']:.2f}: {b['median_px']:.2f} px"
+                     for b in by_texture["bins"])
+    return (f"median error by fifths of the predicted relative noise ({bins}); rank "
+            f"correlation {by_texture['spearman']:.2f}")
+
+
 def _gyro_bias_text(bias: dict | None) -> str:
     """The gyro bias's line: its mean and RMS error per axis and the heading they turn."""
     if bias is None:
@@ -874,6 +887,7 @@ def format_vio_report(result: dict) -> str:
         + ", ".join(f"{bin_['ages']} frames old {show(bin_['median_px'], '.2f', ' px')}, "
                     f"outward {show(bin_['outward_mean_px'], '+.2f', ' px')} mean"
                     for bin_ in result["track_error_by_age"]) + ")",
+        "tracks by texture: " + _texture_text(result.get("track_error_by_texture")),
         "init: none" if init is None else
         f"init at t={init['t']:.2f} s: gravity error "
         f"{show(init['gravity_err_deg'], '.2f', ' deg')}, gyro bias error "
