@@ -8,7 +8,8 @@ import pytest
 
 from autonomy.geometry import PinholeCamera, distort_points, make_pose, rot_z, undistort_points
 from autonomy.vins.frontend import Tracks
-from companion.tools.eval.tracks import AGE_BINS, TrackErrors, track_error_summary
+from companion.tools.eval.tracks import (AGE_BINS, TEXTURE_BINS, TrackErrors, texture_summary,
+                                         track_error_summary)
 
 CAMERA = PinholeCamera.from_hfov(160, 120, math.radians(90.0))
 RADTAN = (-0.28, 0.07, 2e-4, 2e-5)
@@ -188,3 +189,46 @@ def test_a_gross_mistrack_is_left_out_of_the_means_not_the_median():
     assert bin_["observations"] == 2 and bin_["median_px"] == pytest.approx(5.15)
     assert bin_["mean_px"] == pytest.approx([0.3, 0.0])
     assert bin_["outward_mean_px"] == pytest.approx(0.3)
+
+
+def two_textures() -> np.ndarray:
+    """The camera's image, textured: the left half at a tenth of the right half's contrast."""
+    rng = np.random.default_rng(0)
+    image = 128.0 + 100.0 * (rng.uniform(size=(CAMERA.height, CAMERA.width)) - 0.5)
+    image[:, :CAMERA.width // 2] = 128.0 + 0.1 * (image[:, :CAMERA.width // 2] - 128.0)
+    return image.astype(np.uint8)
+
+
+def test_each_error_is_filed_under_the_texture_its_track_was_born_on():
+    """Two tracks born on the faint half and two on the strong half; later frames are flat,
+    so only the birth frame can tell them apart: the faint ones are predicted about ten
+    times the noise of the strong ones, in every frame."""
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C, fit_window=7)
+    pose = body_pose(0)
+    points_W = np.array([wall_point(p, pose) for p in BIRTH_PIXELS])
+    flat = np.full((CAMERA.height, CAMERA.width), 128, np.uint8)
+    for k in range(6):
+        pose = body_pose(k)
+        errors.observe(tracks_of(points_W, pose, np.full(4, k + 1), np.arange(4)), pose,
+                       wall_depth(pose) if k == 0 else None, two_textures() if k == 0 else flat)
+    noise = np.reshape(errors.predicted_noise, (5, 4))  # BIRTH_PIXELS: x 40, 80 | 120, 20
+    faint, strong = noise[:, [0, 3]], noise[:, [2]]
+    assert (faint > 5.0 * strong.max()).all()
+    summary = errors.summary()["track_error_by_texture"]
+    assert len(summary["bins"]) == TEXTURE_BINS
+
+
+def test_without_images_there_is_no_texture_summary():
+    assert fly(6).summary()["track_error_by_texture"] is None
+
+
+def test_errors_that_grow_with_the_predicted_noise_rank_with_it():
+    noise = np.linspace(0.5, 2.0, 100)
+    summary = texture_summary(0.1 * noise, noise)
+    assert summary["spearman"] == pytest.approx(1.0)
+    medians = [b["median_px"] for b in summary["bins"]]
+    assert medians == sorted(medians) and medians[-1] > 2.5 * medians[0]  # 0.19 and 0.064
+    assert texture_summary([0.1] * 9, [1.0] * 9) is None  # too few for five bins
+    # a track whose birth was not seen has no prediction and is left out
+    assert texture_summary([0.1] * 12, [np.nan, np.nan] + [1.0] * 10) is not None
+    assert texture_summary([0.1] * 11, [np.nan, np.nan] + [1.0] * 9) is None
