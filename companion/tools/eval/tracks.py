@@ -182,7 +182,7 @@ class TrackErrors:
 
 def texture_summary(errors_px, predicted_noise) -> dict | None:
     """The errors (pixels) by their tracks' predicted relative noise: its rank correlation
-    with the error (Spearman's) and, for each of :data:`TEXTURE_BINS` bins of equal count
+    with the error (Spearman's; None where either is constant) and, for each of :data:`TEXTURE_BINS` bins of equal count
     from the best textured, the predicted noise's median and the error's median and 90th
     percentile. None with fewer observations than twice the bins."""
     errors, noise = np.asarray(errors_px, float), np.asarray(predicted_noise, float)
@@ -194,7 +194,9 @@ def texture_summary(errors_px, predicted_noise) -> dict | None:
              "median_px": float(np.median(errors[rows])),
              "p90_px": float(np.percentile(errors[rows], 90))}
             for rows in np.array_split(order, TEXTURE_BINS)]
-    return {"spearman": float(spearmanr(noise, errors).statistic), "bins": bins}
+    constant = np.ptp(noise) == 0.0 or np.ptp(errors) == 0.0  # no rank to correlate
+    return {"spearman": None if constant else float(spearmanr(noise, errors).statistic),
+            "bins": bins}
 
 
 def track_error_summary(errors_xy, outward_px, ages) -> dict:

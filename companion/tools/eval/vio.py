@@ -818,7 +818,7 @@ def _texture_text(by_texture: dict | None) -> str:
     bins = ", ".join(f"{b['predicted_median']:.2f}: {b['median_px']:.2f} px"
                      for b in by_texture["bins"])
     return (f"median error by fifths of the predicted relative noise ({bins}); rank "
-            f"correlation {by_texture['spearman']:.2f}")
+            f"correlation {show(by_texture['spearman'], '.2f')}")
 
 
 def _gyro_bias_text(bias: dict | None) -> str:
