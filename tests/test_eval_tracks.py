@@ -17,6 +17,7 @@ RADTAN = (-0.28, 0.07, 2e-4, 2e-5)
 T_B_C = np.array([[0.0, 0.0, 1.0, 0.1], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.05],
                   [0.0, 0.0, 0.0, 1.0]])
 WALL_X = 6.0  # a wall across the way, in the world, 6 m ahead of the start
+FIT_WINDOW = 11  # the side of the patch the tracker fits (for the texture's prediction)
 
 
 def body_pose(k: int) -> np.ndarray:
@@ -58,7 +59,7 @@ BIRTH_PIXELS = np.array([[40.0, 30.0], [80.0, 60.0], [120.0, 90.0], [20.0, 100.0
 
 def fly(frames: int, shift=(0.0, 0.0)) -> TrackErrors:
     """Four tracks born in frame 0 on the wall, followed for ``frames`` frames."""
-    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C, FIT_WINDOW)
     points_W = np.array([wall_point(p, body_pose(0)) for p in BIRTH_PIXELS])
     for k in range(frames):
         ages = np.full(len(points_W), k + 1)
@@ -93,7 +94,7 @@ def creeping_errors(frames: int, creep: complex) -> TrackErrors:
     """Four tracks followed for ``frames`` frames, each moved ``k`` times ``creep`` pixels in
     frame ``k`` from where the lens puts its point: along the outward radius for a real
     ``creep``, across it for an imaginary one (a quarter turn)."""
-    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C, FIT_WINDOW)
     points_W = np.array([wall_point(p, body_pose(0)) for p in BIRTH_PIXELS])
     centre = np.array([CAMERA.cx, CAMERA.cy])
     for k in range(frames):
@@ -123,7 +124,7 @@ def test_a_track_creeping_outward_shows_in_the_outward_mean_and_one_sliding_acro
 
 
 def test_tracks_born_on_unknown_depth_or_without_a_depth_image_are_not_scored():
-    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C, FIT_WINDOW)
     pose0, pose1 = body_pose(0), body_pose(1)
     points_W = np.array([wall_point(p, pose0) for p in BIRTH_PIXELS])
     depth = wall_depth(pose0)
@@ -139,7 +140,7 @@ def test_tracks_born_on_unknown_depth_or_without_a_depth_image_are_not_scored():
 
 def test_a_track_born_on_a_depth_edge_is_not_scored():
     """A corner on the edge of a near surface may read the far one's depth: not named."""
-    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C, FIT_WINDOW)
     pose = body_pose(0)
     depth = wall_depth(pose)
     depth[:, 81:] *= 3.0  # a step in depth between columns 80 and 81
@@ -151,7 +152,7 @@ def test_a_track_born_on_a_depth_edge_is_not_scored():
 
 
 def test_a_depth_image_of_another_size_is_refused():
-    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C, FIT_WINDOW)
     pose = body_pose(0)
     points_W = np.array([wall_point(p, pose) for p in BIRTH_PIXELS])
     with pytest.raises(ValueError, match="depth image of 80x60 for a 160x120 camera"):
@@ -160,7 +161,7 @@ def test_a_depth_image_of_another_size_is_refused():
 
 
 def test_an_ended_track_is_forgotten_and_a_point_behind_the_camera_is_skipped():
-    errors = TrackErrors(CAMERA, RADTAN, T_B_C)
+    errors = TrackErrors(CAMERA, RADTAN, T_B_C, FIT_WINDOW)
     pose = body_pose(0)
     points_W = np.array([wall_point(p, pose) for p in BIRTH_PIXELS])
     errors.observe(tracks_of(points_W, pose, [1, 1, 1, 1], [0, 1, 2, 3]), pose, wall_depth(pose))
@@ -200,9 +201,10 @@ def two_textures() -> np.ndarray:
 
 
 def test_each_error_is_filed_under_the_texture_its_track_was_born_on():
-    """Two tracks born on the faint half and two on the strong half; later frames are flat,
-    so only the birth frame can tell them apart: the faint ones are predicted about ten
-    times the noise of the strong ones, in every frame."""
+    """Tracks born on the faint half (x 40 and 20) and on the strong half (x 120; the one at
+    x 80 is on the boundary); later frames are flat, so only the birth frame can tell them
+    apart: the faint ones are predicted several times the noise of the strong one, in every
+    frame."""
     errors = TrackErrors(CAMERA, RADTAN, T_B_C, fit_window=7)
     pose = body_pose(0)
     points_W = np.array([wall_point(p, pose) for p in BIRTH_PIXELS])

@@ -10,6 +10,7 @@ import pytest
 
 from autonomy.geometry import PinholeCamera
 from autonomy.vins import FeatureTracker, FrontendOptions
+from autonomy.vins.backend import SlidingWindowSmoother
 from autonomy.vins.track_precision import (SCALE_RANGE, BirthTextures, least_eigenvalues,
                                            relative_noise)
 
@@ -94,6 +95,8 @@ def test_a_track_keeps_the_texture_it_was_born_on():
     later = textures.update(strong, np.array([8, 12]), points, np.array([False, True]))
     assert later[0] == first[1]
     assert later[1] == pytest.approx(least_eigenvalues(strong, points[1:], 7)[0])
+    with pytest.raises(ValueError, match="frame before"):  # 13 was never given
+        textures.update(strong, np.array([8, 13]), points, np.array([False, False]))
 
 
 GRID = np.stack(np.meshgrid(np.arange(60, 580, 40), np.arange(60, 420, 40)), -1).reshape(-1, 2)
@@ -144,10 +147,45 @@ def test_the_tracker_gives_each_track_a_noise_only_when_asked():
     assert weighed.noise_scale.std() > 0.05  # corners differ, and the weights say so
 
 
-@pytest.mark.parametrize("scale", [np.ones(3), np.array([1.0, 0.0]), np.array([1.0, np.nan])])
+@pytest.mark.parametrize("scale", [np.ones(3), np.array([1.0, 0.0]), np.array([1.0, np.nan]),
+                                   np.array([1.0, -2.0]), np.array([np.inf, 1.0])])
 def test_tracks_refuse_a_noise_that_is_not_one_positive_number_per_feature(scale):
     tracks = FeatureTracker(CAMERA).track(texture(200.0).astype(np.uint8))
     two = dataclasses.replace(tracks, ids=tracks.ids[:2], pixels=tracks.pixels[:2],
                               normalised=tracks.normalised[:2], ages=tracks.ages[:2])
     with pytest.raises(ValueError, match="noise_scale"):
         dataclasses.replace(two, noise_scale=scale)
+
+
+@pytest.mark.parametrize("anchor_age", [0, 2])
+def test_the_tracker_weighs_each_track_by_its_birth_patch_over_a_sequence(anchor_age):
+    """A texture panned over eight frames (one jump of 25 px, past the small window): every
+    track's weight is its birth frame's texture, relative to the frame's tracks, in every
+    frame, with anchors or without."""
+    options = FrontendOptions(texture_weights=True, anchor_age=anchor_age)
+    tracker = FeatureTracker(CAMERA, options=options)
+    big = texture(150.0, seed=4, shape=(600, 800))
+    births = {}
+    x = 0.0
+    for step in (0.0, 1.5, 1.5, 25.0, 1.5, 1.5, 1.5, 1.5):
+        x += step
+        frame = np.ascontiguousarray(cv2.warpAffine(
+            big, np.array([[1.0, 0.0, -x], [0.0, 1.0, 0.0]]), (800, 600),
+            flags=cv2.INTER_CUBIC)[60:540, 80:720]).astype(np.uint8)
+        tracks = tracker.track(frame)
+        born = tracks.ages == 1
+        births.update(zip(tracks.ids[born].tolist(), least_eigenvalues(
+            frame, tracks.pixels[born], options.fit_window // 2).tolist()))
+        expected = relative_noise(np.array([births[i] for i in tracks.ids.tolist()]))
+        np.testing.assert_allclose(tracks.noise_scale, expected)
+    assert (tracks.ages > 5).sum() > 20  # the sequence did carry tracks through
+
+
+def test_a_keyframe_keeps_each_observation_with_its_noise():
+    """The back-end sorts a keyframe's observations by id: each keeps its own noise."""
+    keyframe = SlidingWindowSmoother._keyframe(0, 0.0, [9, 2, 5], np.zeros((3, 2)),
+                                               [3.0, 1.0, 2.0])
+    assert keyframe.ids.tolist() == [2, 5, 9]
+    assert keyframe.noise_scale.tolist() == [1.0, 2.0, 3.0]
+    with pytest.raises(ValueError, match="noise scale"):
+        SlidingWindowSmoother._keyframe(0, 0.0, [9, 2], np.zeros((2, 2)), [1.0, np.inf])

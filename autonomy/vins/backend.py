@@ -693,7 +693,8 @@ class SlidingWindowSmoother:
                       else np.asarray(normalised, dtype=float).reshape(-1, 2))
         noise_scale = (np.ones(len(ids)) if noise_scale is None
                        else np.asarray(noise_scale, dtype=float).reshape(-1))
-        if len(noise_scale) != len(ids) or not (noise_scale > 0.0).all():
+        if len(noise_scale) != len(ids) or not (np.isfinite(noise_scale)
+                                                & (noise_scale > 0.0)).all():
             raise ValueError(f"a positive noise scale for each of the {len(ids)} observations, "
                              f"got {noise_scale}")
         order = np.argsort(ids)
@@ -834,11 +835,12 @@ class SlidingWindowSmoother:
     def _consistent_observations(self, keyframe: _Keyframe, seen: np.ndarray):
         """The observations of known landmarks that reproject near their landmark at the
         IMU-predicted pose, within :func:`observation_limit_px` of ``max_observation_px``:
-        their ``tracks`` (N,), ``xy`` (N, 2) and noise scales (N,). A landmark seen further away (a track that slid
-        off its point, or onto another surface) takes no observation from this keyframe, and is
-        retired: once marginalised, no track of its id becomes a landmark again."""
-        tracks, xy, scales = keyframe.ids[seen], keyframe.normalised[seen], \
-            keyframe.noise_scale[seen]
+        their ``tracks`` (N,), ``xy`` (N, 2) and noise scales (N,). A landmark seen further
+        away (a track that slid off its point, or onto another surface) takes no observation
+        from this keyframe, and is retired: once marginalised, no track of its id becomes a
+        landmark again."""
+        tracks, xy = keyframe.ids[seen], keyframe.normalised[seen]
+        scales = keyframe.noise_scale[seen]
         rows = np.searchsorted(self._landmarks.ids, tracks)
         T_C_W = invert_pose(self._poses[keyframe.index] @ self._T_B_C)
         p_C = self._landmarks.points_W[rows] @ T_C_W[:3, :3].T + T_C_W[:3, 3]
@@ -872,8 +874,9 @@ class SlidingWindowSmoother:
 
     def _pixel_noise(self, scale: float):
         """The observations' noise model at ``scale`` times ``pixel_sigma`` (rounded to
-        :data:`NOISE_SCALE_STEP`), made once."""
-        key = round(float(scale) / self.NOISE_SCALE_STEP) * self.NOISE_SCALE_STEP
+        :data:`NOISE_SCALE_STEP`, at least one step), made once."""
+        step = self.NOISE_SCALE_STEP
+        key = max(round(float(scale) / step) * step, step)
         if key not in self._pixel_noises:
             self._pixel_noises[key] = self._robust_pixel_noise(key)
         return self._pixel_noises[key]

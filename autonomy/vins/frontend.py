@@ -21,7 +21,8 @@ The recipe is VINS-Mono's (Qin, Li, Shen, "VINS-Mono", T-RO 2018, feature_tracke
    ``min_distance`` of an older kept feature is kept and masks a disc of that radius;
 5. Shi-Tomasi corners fill the unmasked image up to ``max_features``, each with a new id;
 6. with ``texture_weights`` (off by default; not VINS-Mono's) each feature is given a position
-   noise in proportion to how precisely its patch can be found (``track_precision.py``).
+   noise by how precisely the patch it was born on can be found: the fainter, the more
+   (``track_precision.py``).
 
 Ids are integers that increase and are never reused within one tracker. Pixel coordinates
 follow OpenCV (pixel centres at integers).
@@ -92,10 +93,10 @@ class FrontendOptions:
                                            "this from the identity in any entry is given "
                                            "up and the track anchored again")
     # Off until measured in navigation (docs/vins.md, "Observations weighed by their texture").
-    texture_weights: bool = option(False, doc="give each track's observations a noise in "
-                                   "proportion to how precisely its patch's texture can be "
-                                   "found (track_precision.py), the frame's typical track "
-                                   "keeping [vins] pixel_sigma")
+    texture_weights: bool = option(False, doc="give each track's observations a noise by how "
+                                   "precisely the patch it was born on can be found, the "
+                                   "fainter the more (track_precision.py), the frame's "
+                                   "median track keeping [vins] pixel_sigma")
     ransac: bool = option(True, doc="reject tracks that break the epipolar geometry "
                           "(fundamental-matrix RANSAC)")
     ransac_threshold: float = option(1.0, gt=0.0, doc="RANSAC epipolar distance limit, "
@@ -153,11 +154,13 @@ class Tracks:
     noise_scale: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        scale = self.noise_scale
-        if scale is not None and (np.shape(scale) != (len(self.ids),)
-                                  or not np.all(np.isfinite(scale) & (np.asarray(scale) > 0))):
+        if self.noise_scale is None:
+            return
+        scale = np.asarray(self.noise_scale, dtype=float)
+        if scale.shape != (len(self.ids),) or not np.all(np.isfinite(scale) & (scale > 0)):
             raise ValueError(f"noise_scale must be a positive number for each of the "
-                             f"{len(self.ids)} features, got {scale}")
+                             f"{len(self.ids)} features, got {self.noise_scale}")
+        object.__setattr__(self, "noise_scale", scale)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -365,6 +368,7 @@ class FeatureTracker:
             due = (ages >= o.anchor_age) & ~self._anchors.anchored
             self._anchors.anchor(sampled, pixels, np.flatnonzero(due))
 
+        noise_scale = self._noise_scales(gray, ids, pixels, ages == 1)
         self._previous = gray
         self._previous_sampled = sampled
         self._pixels = np.ascontiguousarray(pixels, dtype=np.float32)
@@ -373,8 +377,7 @@ class FeatureTracker:
         return Tracks(frame=self._frame, ids=ids.copy(), pixels=pixels.astype(float),
                       normalised=normalised.copy(), ages=ages.copy(), lost=lost,
                       rejected=rejected, crowded=crowded, detected=detected,
-                      reanchored=reanchored,
-                      noise_scale=self._noise_scales(gray, ids, pixels, ages == 1))
+                      reanchored=reanchored, noise_scale=noise_scale)
 
     def _noise_scales(self, gray: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
                       born: np.ndarray) -> np.ndarray | None:

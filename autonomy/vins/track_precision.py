@@ -9,18 +9,19 @@ along its weakest direction a track errs by ``s_n sqrt(2 / lambda_min)`` pixels.
 corner is found to a few hundredths of a pixel, a faint one in a dark, noisy image to a few
 tenths, and the VINS weighed both alike (``[vins] pixel_sigma``).
 
-On the realistic mine's seed-0 recording (anchored tracks under a homography, the camera's
-truth) the tracks' error grows with this prediction: by its quintiles, from the best fifth to
-the worst, the median error past 20 frames is 0.15, 0.24, 0.33, 0.43 and 0.51 px for predicted
-0.08 to 0.18 px (rank correlation 0.46; docs/vins.md, "Observations weighed by their
-texture").
+A track's error is mostly what it inherits from its first frames (its anchor is cut at the
+second) and carries on as its patch grows, so it is the texture a track was born on that
+predicts its error: on the realistic mine's seed-0 recording (anchored tracks under a
+homography, through the camera's truth) the median error rises 0.15 → 0.37 px over the fifths
+of the birth texture's prediction (rank correlation 0.36), where the texture the track has in
+the frame predicts it hardly at all past 20 frames (docs/vins.md, "Observations weighed by
+their texture").
 
 :func:`relative_noise` gives each track its standard deviation relative to the frame's median
-track, ``sqrt(median lambda_min / lambda_min)``, within :data:`SCALE_RANGE`: the frame's
-typical track keeps ``pixel_sigma``, so the weight of vision against the IMU is as before and
-only the tracks' weights among themselves change. The noise ``s_n`` is the same for every
-track of a frame and cancels. The isotropic bound (the weakest direction's) is kept rather than
-the whole matrix so that the smoother's noise models can be shared between observations.
+track, ``sqrt(median lambda_min / lambda_min)``, within :data:`SCALE_RANGE`: the frame's median
+track keeps ``pixel_sigma``. The noise ``s_n`` is the same for every track of a frame and
+cancels. The isotropic bound (the weakest direction's) is kept rather than the whole matrix so
+that the smoother's noise models can be shared between observations.
 """
 
 from __future__ import annotations
@@ -35,9 +36,11 @@ SCALE_RANGE = (0.5, 3.0)
 
 def least_eigenvalues(gray: np.ndarray, pixels: np.ndarray, half: int) -> np.ndarray:
     """The least eigenvalue of the structure tensor ``sum g g^T`` over the ``2 half + 1``
-    square window round each of ``pixels`` (N, 2; rounded to whole pixels, clamped inside the
-    image), ``g`` the central difference of ``gray`` (grey levels per pixel). (N,)."""
-    gray = np.asarray(gray, np.float32)
+    square window round each of ``pixels`` (N, 2; rounded to whole pixels, the image's edge
+    replicated where a window passes it), ``g`` the central difference of ``gray`` (grey
+    levels per pixel). (N,). In float64: the least eigenvalue of an edge-like patch is a
+    small difference of large sums."""
+    gray = np.asarray(gray, np.float64)
     h, w = gray.shape
     centres = np.rint(np.asarray(pixels, float).reshape(-1, 2)).astype(np.int64)
     offsets = np.arange(-half - 1, half + 2)
@@ -50,16 +53,18 @@ def least_eigenvalues(gray: np.ndarray, pixels: np.ndarray, half: int) -> np.nda
     return 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
 
 
-def relative_noise(eigenvalues: np.ndarray) -> np.ndarray:
-    """``sqrt(median lambda_min / lambda_min)`` of each of ``eigenvalues`` within
-    :data:`SCALE_RANGE` (module docstring); ones where there is no texture to compare."""
+def relative_noise(eigenvalues: np.ndarray, clip: bool = True) -> np.ndarray:
+    """``sqrt(median lambda_min / lambda_min)`` of each of ``eigenvalues`` (module docstring),
+    within :data:`SCALE_RANGE` with ``clip``; ones where there is no texture to compare. A NaN
+    eigenvalue (unknown) is left out of the median and gives NaN."""
     eigenvalues = np.asarray(eigenvalues, float)
-    median = float(np.median(eigenvalues)) if len(eigenvalues) else 0.0
+    known = eigenvalues[~np.isnan(eigenvalues)]
+    median = float(np.median(known)) if len(known) else 0.0
     if median <= 0.0:
-        return np.ones(len(eigenvalues))
+        return np.where(np.isnan(eigenvalues), np.nan, 1.0)
     with np.errstate(divide="ignore"):
         scales = np.sqrt(median / np.maximum(eigenvalues, 0.0))
-    return np.clip(scales, *SCALE_RANGE)
+    return np.clip(scales, *SCALE_RANGE) if clip else scales
 
 
 class BirthTextures:
@@ -80,7 +85,11 @@ class BirthTextures:
         ``born`` in this frame ``gray`` measured at their ``pixels``, the others as kept."""
         eigenvalues = np.empty(len(ids))
         old = ~born
-        eigenvalues[old] = self._eigenvalues[np.searchsorted(self._ids, ids[old])]
+        rows = np.minimum(np.searchsorted(self._ids, ids[old]), max(len(self._ids) - 1, 0))
+        if not np.array_equal(self._ids[rows] if len(self._ids) else rows, ids[old]):
+            raise ValueError("tracks not born in this frame must have been given in the frame "
+                             "before, ids ascending")
+        eigenvalues[old] = self._eigenvalues[rows]
         eigenvalues[born] = least_eigenvalues(gray, pixels[born], self.half)
         self._ids, self._eigenvalues = ids.copy(), eigenvalues
         return eigenvalues

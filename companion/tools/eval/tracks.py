@@ -53,7 +53,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from autonomy.geometry import PinholeCamera, distort_points
-from autonomy.vins.track_precision import least_eigenvalues
+from autonomy.vins.track_precision import least_eigenvalues, relative_noise
 
 #: Track ages (frames seen, the birth frame being 1) over which errors are summarised:
 #: ``[low, high)``; ``None`` is no upper bound.
@@ -76,8 +76,7 @@ class TrackErrors:
     ``camera``, ``distortion`` and ``T_B_C`` are the dataset's calibration, ``fit_window``
     the side of the patch the tracker fits (for the texture's prediction)."""
 
-    def __init__(self, camera: PinholeCamera, distortion, T_B_C: np.ndarray,
-                 fit_window: int = 11):
+    def __init__(self, camera: PinholeCamera, distortion, T_B_C: np.ndarray, fit_window: int):
         self.camera, self.distortion = camera, tuple(distortion)
         self.T_B_C = np.asarray(T_B_C, dtype=float)
         self.fit_window = int(fit_window)
@@ -125,10 +124,7 @@ class TrackErrors:
         alive = set(ids.tolist())
         self._textures = {i: v for i, v in self._textures.items() if i in alive}
         eigenvalues = np.array([self._textures.get(i, np.nan) for i in ids.tolist()])
-        if np.isnan(eigenvalues).all():
-            return eigenvalues
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.sqrt(np.nanmedian(eigenvalues) / np.maximum(eigenvalues, 0.0))
+        return relative_noise(eigenvalues, clip=False)
 
     def _name_points(self, ids, pixels, normalised, T_W_C, depth) -> None:
         """The world points of the tracks born on ``pixels`` (module docstring)."""
@@ -182,9 +178,10 @@ class TrackErrors:
 
 def texture_summary(errors_px, predicted_noise) -> dict | None:
     """The errors (pixels) by their tracks' predicted relative noise: its rank correlation
-    with the error (Spearman's; None where either is constant) and, for each of :data:`TEXTURE_BINS` bins of equal count
-    from the best textured, the predicted noise's median and the error's median and 90th
-    percentile. None with fewer observations than twice the bins."""
+    with the error (Spearman's; None where either is constant) and, for each of
+    :data:`TEXTURE_BINS` bins of equal count from the best textured, the predicted noise's
+    median and the error's median and 90th percentile. None with fewer observations than
+    twice the bins."""
     errors, noise = np.asarray(errors_px, float), np.asarray(predicted_noise, float)
     errors, noise = errors[~np.isnan(noise)], noise[~np.isnan(noise)]
     if len(errors) < 2 * TEXTURE_BINS:

@@ -812,13 +812,14 @@ def _alignment_text(alignment: dict | None) -> str:
 
 
 def _texture_text(by_texture: dict | None) -> str:
-    """The track errors by their predicted noise, a line (:func:`~companion.tools.eval.tracks.texture_summary`)."""
+    """The track errors by their predicted noise, a line
+    (:func:`~companion.tools.eval.tracks.texture_summary`)."""
     if by_texture is None:
         return "none scored"
     bins = ", ".join(f"{b['predicted_median']:.2f}: {b['median_px']:.2f} px"
                      for b in by_texture["bins"])
-    return (f"median error by fifths of the predicted relative noise ({bins}); rank "
-            f"correlation {show(by_texture['spearman'], '.2f')}")
+    return (f"median error in {len(by_texture['bins'])} bins of the predicted relative noise "
+            f"({bins}); rank correlation {show(by_texture['spearman'], '.2f')}")
 
 
 def _gyro_bias_text(bias: dict | None) -> str:
