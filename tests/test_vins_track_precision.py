@@ -127,7 +127,7 @@ def lucas_kanade_errors(contrast: float, noise: float, trials: int) -> np.ndarra
 def test_real_tracking_errors_under_image_noise_are_the_bounds(contrast):
     """The premise: under white noise ``s_n`` a track errs by about ``s_n sqrt(2 /
     lambda_min)``. Measured (median error against the bound at the grid's median eigenvalue):
-    contrast 160, 120, 80, 40 and 20 grey levels give 1.09, 1.04, 1.04, 1.17 and 1.16 times
+    contrast 160, 120, 80, 40 and 20 grey levels give 1.09, 1.04, 1.04, 1.18 and 1.16 times
     the bound (the faintest a little over it: Lucas-Kanade is not linear that far)."""
     noise = 4.0
     errors = lucas_kanade_errors(contrast, noise, trials=6)
