@@ -428,10 +428,14 @@ def test_the_summary_says_what_the_vins_made_of_the_barometer_where_it_used_it()
         return estimator
 
     assert barometer_summary(vins(0.0)) is None
-    assert barometer_summary(vins(0.2)) == {"keyframes": 412, "refused": 2}
+    assert barometer_summary(vins(0.2)) == {"keyframes": 412, "refused": 2, "steps": 0}
     lines = format_flight({**FLIGHT, "vins_barometer": barometer_summary(vins(0.2))})
+    assert ("  VINS barometer    a height on 412 keyframes, 2 pressures refused, 0 steps of "
+            "pressure taken out") in lines.splitlines()
+    # a recording made before the steps were counted
+    older = format_flight({**FLIGHT, "vins_barometer": {"keyframes": 412, "refused": 2}})
     assert "  VINS barometer    a height on 412 keyframes, 2 pressures refused" in \
-        lines.splitlines()
+        older.splitlines()
     assert "barometer" not in format_flight(FLIGHT)
 
 

@@ -257,12 +257,14 @@ def test_an_offset_swing_that_shows_nothing_times_out_and_navigation_goes_on():
 
 def test_with_the_barometer_on_the_vins_takes_its_height_over_the_ground_effect_only():
     """PX4's barometer reaches the VINS through HIGHRES_IMU: with ``barometer_sigma_m`` the
-    keyframes take its height once 1 m up (``barometer_min_height_m``), none refused."""
+    keyframes take its height once 1 m up (``barometer_min_height_m``), none refused, and no
+    sample of a steady flight is mistaken for a step of pressure."""
     summary = fly("dome", goal=SHORT_DOME_GOAL, overrides=["vins.barometer_sigma_m=0.2"])
     assert_safe_landing(summary)
     assert summary["reached_goal"] and summary["failsafes"] == [], summary["failsafes"]
     barometer = summary["vins_barometer"]
     assert barometer["keyframes"] > 20 and barometer["refused"] == 0
+    assert barometer["steps"] == 0
     assert summary["vins_resets"] == 0
 
 

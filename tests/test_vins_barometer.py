@@ -9,6 +9,7 @@ from autonomy.geometry import GRAVITY, PinholeCamera, make_pose
 from autonomy.messages import ImuSample
 from autonomy.vins import VinsOptions
 from autonomy.vins.backend import KeyframeState, PriorSigmas, SlidingWindowSmoother
+from autonomy.vins import barometer
 from autonomy.vins.barometer import MATCH_S, PressureHistory, usable_pressure
 from autonomy.vins.estimator import Vins
 
@@ -21,17 +22,18 @@ BAROMETER = dict(barometer_sigma_m=0.2, barometer_drift_m_per_sqrt_s=0.02)
 
 def hovering(options: VinsOptions, bias_z: float, seconds: float = 8.0,
              start_height: float = 0.0, pressure_every: int = 1,
-             seed: int = 0) -> SlidingWindowSmoother:
+             seed: int = 0, step_pa: float = 0.0) -> SlidingWindowSmoother:
     """A smoother with no landmark, started at ``start_height``, fed keyframes every 0.1 s of
     a body hovering level, its accelerometer reading ``bias_z`` more than gravity (a bias it
     is not told of), and the barometer's pressure (2 Pa of noise, drawn apart from the IMU's)
-    on every ``pressure_every``-th keyframe."""
+    on every ``pressure_every``-th keyframe, ``step_pa`` more from 4 s on (a door opened)."""
     smoother = SlidingWindowSmoother(PinholeCamera.from_hfov(640, 480, math.radians(90.0)),
                                      np.eye(4), NOISE, options)
     rng, barometer_rng = np.random.default_rng(seed), np.random.default_rng(seed + 100)
 
     def pressure(k: int) -> float | None:
-        return None if k % pressure_every else HOME_PA + barometer_rng.normal(0.0, 2.0)
+        step = step_pa if k >= 40 else 0.0
+        return None if k % pressure_every else HOME_PA + step + barometer_rng.normal(0.0, 2.0)
 
     start = make_pose(np.eye(3), [0.0, 0.0, start_height])
     smoother.start(KeyframeState(0, 0.0, start, np.zeros(3), np.zeros(3), np.zeros(3)),
@@ -69,6 +71,22 @@ def test_the_barometer_keeps_a_hover_level_through_an_accelerometer_bias_it_find
     assert held.resets == 0
     # a barometer every third keyframe holds it too
     assert abs(height(hovering(VinsOptions(**BAROMETER), 0.05, pressure_every=3))) < 0.25
+
+
+@pytest.mark.parametrize("step_pa", [-48.0, 30.0])
+def test_a_step_of_pressure_moves_the_offset_not_the_height(step_pa, monkeypatch):
+    """A door opened at 4 s: 48 Pa down reads as a 4 m climb, 30 Pa up as a 2.5 m descent, in
+    a moment. Taken as a climb the hover would end 4.6 m up or 3.4 m down; taken as a step
+    (one), the offset takes it and the hover ends within 0.25 m (measured 0.24 m both ways:
+    the height the barometer had at the step is kept, where without a step it ends 0.04 m
+    off). A hover without a door has no step."""
+    held = hovering(VinsOptions(**BAROMETER), 0.05, step_pa=step_pa)
+    assert held.barometer_steps == 1 and held.resets == 0
+    assert abs(height(held)) < 0.3
+    assert hovering(VinsOptions(**BAROMETER), 0.05).barometer_steps == 0
+    monkeypatch.setattr(barometer, "STEP_M", math.inf)  # every sample a climb
+    dragged = hovering(VinsOptions(**BAROMETER), 0.05, step_pa=step_pa)
+    assert abs(height(dragged)) > 2.0
 
 
 def test_the_barometer_gives_height_changes_not_the_height():

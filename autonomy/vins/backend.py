@@ -408,6 +408,12 @@ class SlidingWindowSmoother:
         return self._landmarks
 
     @property
+    def barometer_steps(self) -> int:
+        """Barometer samples taken as steps of pressure, not climbs, since this smoother was
+        made (:mod:`autonomy.vins.barometer`); 0 without the barometer."""
+        return 0 if self._barometer is None else self._barometer.steps
+
+    @property
     def camera_mounting(self) -> np.ndarray:
         """``T_B_C``: the configured mounting, or with ``estimate_camera_mounting`` its latest
         estimate."""

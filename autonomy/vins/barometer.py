@@ -23,6 +23,13 @@ one sample, the one nearest its time within :data:`MATCH_S`, and a sample serves
 (:class:`PressureHistory`): keyframes come every 45-100 ms, PX4's barometer every 50 ms, and a
 sample read twice would count its noise twice. A retimed window (:mod:`autonomy.vins.estimator`)
 keeps its pressures as matched: a few milliseconds move the height less than a millimetre.
+
+A step of pressure that is not a climb (a door, a fan, a change of room: tens of pascals, metres
+of ISA height, in a moment) would drag the height with it, the offset's walk allowing it
+centimetres a keyframe. A sample whose height lies further than :data:`STEP_M` from the
+keyframe's predicted height and the offset's estimate is taken as such a step: the offset's
+link to the keyframe before is made as wide as its starting prior, so the offset takes the step
+and the height keeps the IMU's (``steps`` counts them).
 """
 
 from __future__ import annotations
@@ -42,6 +49,10 @@ MATCH_S = 0.05
 #: Samples kept waiting for a keyframe: 12 s of PX4's 20 Hz (on the ground before the
 #: go, no keyframe takes them).
 HISTORY_LENGTH = 240
+#: A sample this far from the keyframe's predicted height and offset is a step of pressure,
+#: not a climb, metres: five times the simulator's barometer noise (0.17 m) and more than a
+#: keyframe's climb can be mispredicted by the IMU over 0.1 s.
+STEP_M = 1.0
 
 
 def usable_pressure(pressure_pa) -> float | None:
@@ -96,6 +107,7 @@ class BarometerChain:
         self._first: int | None = None
         self._last: tuple[int, float] | None = None
         self.offset: float | None = None  # the newest keyframe's offset's estimate, metres
+        self.steps = 0  # samples taken as steps of pressure (module docstring)
 
     def restart(self) -> None:
         """A new smoother: the chain starts again at its first keyframe with a pressure."""
@@ -120,8 +132,12 @@ class BarometerChain:
             values.insert(offset_key(k), self.offset)
         else:
             i, t_i = self._last
-            values.insert(offset_key(k), self.offset)
             walk = self._drift * math.sqrt(max(t - t_i, 0.0))
+            if pressure_pa is not None and abs(self._innovation(height_m, pressure_pa)) > STEP_M:
+                self.steps += 1
+                self.offset = barometric_height(pressure_pa) - height_m
+                walk = OFFSET_PRIOR_SIGMA_M
+            values.insert(offset_key(k), self.offset)
             graph.add(gtsam.BetweenFactorDouble(offset_key(i), offset_key(k), 0.0,
                                                 gtsam.noiseModel.Isotropic.Sigma(
                                                     1, max(walk, 1e-6))))
@@ -129,6 +145,10 @@ class BarometerChain:
             graph.add(gtsam.BarometricFactor(gtsam.symbol("x", k), offset_key(k),
                                              pressure_pa * 1e-3, self._height_noise))
         self._last = (k, t)
+
+    def _innovation(self, height_m: float, pressure_pa: float) -> float:
+        """How far the pressure's height lies from the predicted height and offset, metres."""
+        return barometric_height(pressure_pa) - height_m - self.offset
 
     def read(self, k: int, estimate: gtsam.Values) -> None:
         """The offset's estimate at the newest keyframe ``k``."""

@@ -231,11 +231,13 @@ class FlightApp:
 
 def barometer_summary(vins) -> dict | None:
     """What the VINS made of the flight controller's barometer (None when it was not used:
-    ``[vins] barometer_sigma_m`` 0): the keyframes it gave a height, and the pressures it
-    left out as no barometer's (docs/vins.md, "The barometer")."""
+    ``[vins] barometer_sigma_m`` 0): the keyframes it gave a height, the pressures it left out
+    as no barometer's, and the samples it took as steps of pressure, not climbs (docs/vins.md,
+    "The barometer")."""
     if vins.options.barometer_sigma_m <= 0.0:
         return None
-    return {"keyframes": vins.barometer_keyframes, "refused": vins.refused_pressures}
+    return {"keyframes": vins.barometer_keyframes, "refused": vins.refused_pressures,
+            "steps": vins.backend.barometer_steps}
 
 
 def percentiles_ms(seconds: list, percents=(50, 95)) -> dict:
@@ -325,8 +327,10 @@ def _still_keyframes(summary: dict) -> str:
 def _barometer_lines(barometer: dict | None) -> list[str]:
     if barometer is None:
         return []
+    steps = barometer.get("steps")  # absent from recordings made before it was counted
     return [f"  VINS barometer    a height on {barometer['keyframes']} keyframes, "
-            f"{barometer['refused']} pressures refused"]
+            f"{barometer['refused']} pressures refused"
+            + ("" if steps is None else f", {steps} steps of pressure taken out")]
 
 
 def _signing_lines(signing: dict | None) -> list[str]:
