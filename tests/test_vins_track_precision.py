@@ -189,3 +189,13 @@ def test_a_keyframe_keeps_each_observation_with_its_noise():
     assert keyframe.noise_scale.tolist() == [1.0, 2.0, 3.0]
     with pytest.raises(ValueError, match="noise scale"):
         SlidingWindowSmoother._keyframe(0, 0.0, [9, 2], np.zeros((2, 2)), [1.0, np.inf])
+
+
+def test_an_evaluation_that_skips_frames_gets_no_texture_for_a_birth_it_did_not_see():
+    textures = BirthTextures(7, strict=False)
+    gray = texture(100.0)
+    points = np.array([[100.0, 100.0], [300.0, 200.0]])
+    first = textures.update(gray, np.array([3, 8]), points, np.array([True, False]))
+    assert np.isfinite(first[0]) and np.isnan(first[1])  # 8 was born in a frame not given
+    later = textures.update(gray, np.array([3, 8]), points, np.array([False, False]))
+    assert later[0] == first[0] and np.isnan(later[1])

@@ -76,6 +76,7 @@ from autonomy.vins.landmarks import (
 )
 from autonomy.vins.options import VinsOptions
 from autonomy.vins.preintegration import ImuNoise, about_vertical, gyro_axes_density
+from autonomy.vins.track_precision import checked_noise_scale
 
 #: Floors under the IMU densities, so a noiseless recording still gives a well-posed problem.
 #: The bias walks' are 1.9 and 30 times under EuRoC's (1.9e-5, 3e-3), the presets' figures; a
@@ -698,11 +699,7 @@ class SlidingWindowSmoother:
         normalised = (np.zeros((0, 2)) if normalised is None
                       else np.asarray(normalised, dtype=float).reshape(-1, 2))
         noise_scale = (np.ones(len(ids)) if noise_scale is None
-                       else np.asarray(noise_scale, dtype=float).reshape(-1))
-        if len(noise_scale) != len(ids) or not (np.isfinite(noise_scale)
-                                                & (noise_scale > 0.0)).all():
-            raise ValueError(f"a positive noise scale for each of the {len(ids)} observations, "
-                             f"got {noise_scale}")
+                       else checked_noise_scale(noise_scale, len(ids)))
         order = np.argsort(ids)
         return _Keyframe(index, float(t), ids[order], normalised[order], noise_scale[order],
                          airborne=airborne, pressure_pa=pressure_pa)

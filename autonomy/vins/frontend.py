@@ -39,7 +39,7 @@ from autonomy.geometry import PinholeCamera, undistort_points
 from autonomy.options import OptionError, option, validate
 from autonomy.vins.affine_refine import WARP_PARAMETERS, SampledImage, refine_affine
 from autonomy.vins.anchored_tracks import Anchors
-from autonomy.vins.track_precision import BirthTextures, relative_noise
+from autonomy.vins.track_precision import BirthTextures, checked_noise_scale, relative_noise
 
 
 @dataclass(frozen=True)
@@ -154,13 +154,9 @@ class Tracks:
     noise_scale: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if self.noise_scale is None:
-            return
-        scale = np.asarray(self.noise_scale, dtype=float)
-        if scale.shape != (len(self.ids),) or not np.all(np.isfinite(scale) & (scale > 0)):
-            raise ValueError(f"noise_scale must be a positive number for each of the "
-                             f"{len(self.ids)} features, got {self.noise_scale}")
-        object.__setattr__(self, "noise_scale", scale)
+        if self.noise_scale is not None:
+            object.__setattr__(self, "noise_scale",
+                               checked_noise_scale(self.noise_scale, len(self.ids)))
 
     def __len__(self) -> int:
         return len(self.ids)

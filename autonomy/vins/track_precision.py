@@ -34,6 +34,16 @@ import numpy as np
 SCALE_RANGE = (0.5, 3.0)
 
 
+def checked_noise_scale(scale, count: int) -> np.ndarray:
+    """``scale`` as one positive, finite noise scale (a share of ``pixel_sigma``) for each of
+    ``count`` features, float; ValueError naming what it got otherwise."""
+    checked = np.asarray(scale, dtype=float)
+    if checked.shape != (count,) or not np.all(np.isfinite(checked) & (checked > 0.0)):
+        raise ValueError(f"noise_scale must be one positive noise scale for each of the "
+                         f"{count} features, got {scale}")
+    return checked
+
+
 def least_eigenvalues(gray: np.ndarray, pixels: np.ndarray, half: int) -> np.ndarray:
     """The least eigenvalue of the structure tensor ``sum g g^T`` over the ``2 half + 1``
     square window round each of ``pixels`` (N, 2; rounded to whole pixels, the image's edge
@@ -72,10 +82,12 @@ class BirthTextures:
     error is mostly what it inherits from its first frames (its anchor is cut at the second),
     carried into later frames as the patch grows, so the texture it was found on predicts its
     error at every age and the texture it has now does not past twenty frames (docs/vins.md,
-    "Observations weighed by their texture")."""
+    "Observations weighed by their texture"). ``strict``: every track not born in a frame was
+    given in the frame before (the tracker's, which sees every frame), else ValueError; not
+    strict, such a track's texture is unknown, NaN (an evaluation that skips frames)."""
 
-    def __init__(self, half: int):
-        self.half = half
+    def __init__(self, half: int, strict: bool = True):
+        self.half, self.strict = half, strict
         self._ids = np.zeros(0, np.int64)
         self._eigenvalues = np.zeros(0)
 
@@ -86,10 +98,12 @@ class BirthTextures:
         eigenvalues = np.empty(len(ids))
         old = ~born
         rows = np.minimum(np.searchsorted(self._ids, ids[old]), max(len(self._ids) - 1, 0))
-        if not np.array_equal(self._ids[rows] if len(self._ids) else rows, ids[old]):
+        kept = self._ids[rows] == ids[old] if len(self._ids) else np.zeros(len(rows), bool)
+        if self.strict and not kept.all():
             raise ValueError("tracks not born in this frame must have been given in the frame "
                              "before, ids ascending")
-        eigenvalues[old] = self._eigenvalues[rows]
+        eigenvalues[old] = np.where(kept, self._eigenvalues[rows] if len(self._ids) else 0.0,
+                                    np.nan)
         eigenvalues[born] = least_eigenvalues(gray, pixels[born], self.half)
         self._ids, self._eigenvalues = ids.copy(), eigenvalues
         return eigenvalues

@@ -53,7 +53,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from autonomy.geometry import PinholeCamera, distort_points
-from autonomy.vins.track_precision import least_eigenvalues, relative_noise
+from autonomy.vins.track_precision import BirthTextures, relative_noise
 
 #: Track ages (frames seen, the birth frame being 1) over which errors are summarised:
 #: ``[low, high)``; ``None`` is no upper bound.
@@ -79,13 +79,12 @@ class TrackErrors:
     def __init__(self, camera: PinholeCamera, distortion, T_B_C: np.ndarray, fit_window: int):
         self.camera, self.distortion = camera, tuple(distortion)
         self.T_B_C = np.asarray(T_B_C, dtype=float)
-        self.fit_window = int(fit_window)
         self._births: dict[int, np.ndarray] = {}  # track id -> world point
         self.errors_xy: list[tuple[float, float]] = []  # each error, x right and y down
         self.outward_px: list[float] = []  # each error along the outward radius (NaN: centre)
         self.ages: list[int] = []
         self.predicted_noise: list[float] = []  # with images: relative, by the texture
-        self._textures: dict[int, float] = {}  # track id -> least eigenvalue at its birth
+        self._textures = BirthTextures(int(fit_window) // 2, strict=False)
 
     def observe(self, tracks, T_W_B: np.ndarray, depth: np.ndarray | None,
                 image: np.ndarray | None = None) -> None:
@@ -117,14 +116,8 @@ class TrackErrors:
         """Each track's noise relative to the frame's median track by the texture it was born
         on (measured in ``image`` for those ``born`` in it), unclipped (infinite on a flat
         patch; NaN for a track whose birth was not seen)."""
-        if born.any():
-            gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-            fresh = least_eigenvalues(gray, pixels[born], self.fit_window // 2)
-            self._textures.update(zip(ids[born].tolist(), fresh.tolist()))
-        alive = set(ids.tolist())
-        self._textures = {i: v for i, v in self._textures.items() if i in alive}
-        eigenvalues = np.array([self._textures.get(i, np.nan) for i in ids.tolist()])
-        return relative_noise(eigenvalues, clip=False)
+        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+        return relative_noise(self._textures.update(gray, ids, pixels, born), clip=False)
 
     def _name_points(self, ids, pixels, normalised, T_W_C, depth) -> None:
         """The world points of the tracks born on ``pixels`` (module docstring)."""
