@@ -162,7 +162,8 @@ def test_rgb_and_grey_give_the_same_tracks():
     assert np.array_equal(a.pixels, b.pixels)
 
 
-ANCHORS = [{}, {"anchor_age": 2}, {"anchor_age": 2, "anchor_warp": "homography"}]
+ANCHORS = [{}, {"anchor_age": 2}, {"anchor_age": 2, "anchor_warp": "homography"},
+           {"anchor_age": 2, "anchor_warp": "homography", "anchor_given_up": "end"}]
 
 
 @pytest.mark.parametrize("anchors", ANCHORS)
@@ -338,6 +339,33 @@ def test_anchored_tracks_keep_their_anchors_down_a_tunnel(warp):
             anchored += int((tracks.ages > 2).sum())  # anchored at two frames old
     assert anchored > 3000
     assert given_up < 0.08 * anchored, (given_up, anchored)
+
+
+@pytest.mark.parametrize("given_up", ["reanchor", "end"])
+def test_a_track_whose_anchor_is_given_up_is_ended_or_kept_as_configured(given_up):
+    """Frame by frame down the tunnel with a band of it painted over from frame 20 on (the
+    anchors under it no longer fit), the counters account for every track: the previous
+    frame's, less those lost, rejected and crowded out, and with ``anchor_given_up = "end"``
+    those whose anchor was given up, plus those detected. Anchored again, such a track keeps
+    its id; ended, it does not come back."""
+    tunnel = Tunnel(2)
+    tracker = FeatureTracker(TUNNEL_CAMERA, options=FrontendOptions(
+        anchor_age=2, anchor_warp="homography", anchor_given_up=given_up))
+    previous, given_up_total = None, 0
+    for k in range(30):
+        image = tunnel.render(k * 0.075)
+        if k >= 20:
+            image[200:280] = np.roll(image[200:280], 3 * (k - 19), axis=1) // 2
+        tracks = tracker.track(image)
+        if previous is not None:
+            ended = tracks.reanchored if given_up == "end" else 0
+            assert len(tracks) == (len(previous) - tracks.lost - tracks.rejected - ended
+                                   - tracks.crowded + tracks.detected)
+            kept = np.isin(previous.ids, tracks.ids).sum()
+            assert kept == len(previous) - tracks.lost - tracks.rejected - ended - tracks.crowded
+        given_up_total += tracks.reanchored
+        previous = tracks
+    assert given_up_total > 10
 
 
 @pytest.mark.skipif(not (EUROC / "mav0" / "cam0").is_dir(),

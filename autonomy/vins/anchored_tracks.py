@@ -17,9 +17,13 @@ the track is where the anchor fits under the warp gathered since (``affine_refin
 from Lucas-Kanade's position and the last frame's warp). The error is then the fit's in this
 frame, not a sum over frames. A fit that does not converge, lands further than ``max_shift``
 from Lucas-Kanade's answer or deforms the patch beyond ``max_deformation`` keeps Lucas-Kanade's
-answer, and the track is anchored again on this frame: an anchor is given up where its patch
-no longer looks like itself (an occlusion, a change of view the warp does not describe), never
-followed into a wrong match.
+answer (``given_up``), and the tracker anchors the track again on this frame or ends it
+(``FrontendOptions.anchor_given_up``): an anchor is given up where its patch no longer looks
+like itself (an occlusion, a change of view the warp does not describe), never followed into a
+wrong match. Anchored again, a track carries on from Lucas-Kanade's answer with the offset it
+had gathered; ended, its landmark keeps the observations that agree with each other, as Shi
+and Tomasi discard a feature whose dissimilarity grows (docs/vins.md, "Tracks whose anchor is
+given up").
 
 The warp is the affine map ``u -> c + A u`` or a homography (``warp``). A patch on a wall seen
 at a slant grows more on its near side than on its far one as the camera nears it: the view's
@@ -65,7 +69,7 @@ class Anchors:
         self._patches = self._none(0)
         self._warps = np.zeros((0, 3, 3))
         self.anchored = np.zeros(0, bool)
-        self.reanchored = 0  # anchors given up at the last follow()
+        self.given_up = np.zeros(0, bool)  # each row's anchor given up at the last follow()
 
     def __len__(self) -> int:
         return len(self.anchored)
@@ -94,7 +98,7 @@ class Anchors:
         each anchored track moved to where its anchor fits; the failed anchors given up, and
         those that fit closer than ``border`` pixels to the image's edge."""
         rows = np.flatnonzero(self.anchored)
-        self.reanchored = 0
+        self.given_up = np.zeros(len(self.anchored), bool)
         if not len(rows):
             return found
         centre, warps, converged = fit_warp(self._patches.take(rows), gray, found[rows],
@@ -114,7 +118,7 @@ class Anchors:
         found[rows[good]] = centre[good]
         self._warps[rows[good]] = warps[good]
         self.anchored[rows[~good]] = False
-        self.reanchored = int((~good).sum())
+        self.given_up[rows[~good]] = True
         return found
 
     def anchor(self, gray: SampledImage, pixels: np.ndarray, rows: np.ndarray) -> None:

@@ -86,12 +86,17 @@ class FrontendOptions:
                               "anchor's patch is fitted under: affine, or a homography (a "
                               "wall seen at a slant, which an affine map fits off its centre)")
     anchor_max_shift: float = option(1.0, gt=0.0, doc="an anchor fitting further than this "
-                                     "from Lucas-Kanade's answer is given up and the track "
-                                     "anchored again, pixels")
+                                     "from Lucas-Kanade's answer is given up "
+                                     "(anchor_given_up), pixels")
     anchor_max_deformation: float = option(1.0, gt=0.0, doc="an anchor whose warp's "
                                            "derivative at its centre strays further than "
                                            "this from the identity in any entry is given "
-                                           "up and the track anchored again")
+                                           "up (anchor_given_up)")
+    # "reanchor" until measured in navigation (docs/vins.md, "Tracks whose anchor is given up").
+    anchor_given_up: str = option("reanchor", choices=("reanchor", "end"), doc="a track whose "
+                                  "anchor is given up: anchored again where Lucas-Kanade puts "
+                                  "it (reanchor), or ended, as Shi and Tomasi's monitoring "
+                                  "discards a feature that no longer looks like itself (end)")
     # Off until measured in navigation (docs/vins.md, "Observations weighed by their texture").
     texture_weights: bool = option(False, doc="give each track's observations a noise by how "
                                    "precisely the patch it was born on can be found, the "
@@ -135,8 +140,8 @@ class Tracks:
     where that was made), rejected by RANSAC, dropped
     for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
     of new features; ``reanchored``, the anchors given up (their tracks kept Lucas-Kanade's
-    answer, to be anchored again on this frame where they survive and their patch is usable;
-    0 without ``anchor_age``). ``noise_scale``, with ``texture_weights``, each feature's
+    answer, to be anchored again on this frame where they survive and their patch is usable,
+    or ended with ``anchor_given_up = "end"``; 0 without ``anchor_age``). ``noise_scale``, with ``texture_weights``, each feature's
     position noise as a share of the frame's typical feature's (``track_precision.py``); None
     without: every feature alike.
     """
@@ -315,7 +320,10 @@ class FeatureTracker:
             if self._anchors is not None:
                 self._anchors.keep(judged)
                 forward[judged] = self._anchors.follow(sampled, forward[judged])
-                reanchored = self._anchors.reanchored
+                reanchored = int(self._anchors.given_up.sum())
+                if o.anchor_given_up == "end":
+                    judged[np.flatnonzero(judged)[self._anchors.given_up]] = False
+                    self._anchors.keep(~self._anchors.given_up)
                 normalised[judged] = undistort_points(self.camera, self.distortion,
                                                       forward[judged])
             pixels, ids, ages = forward[judged], ids[judged], ages[judged] + 1
