@@ -9,8 +9,9 @@ cv2.setNumThreads(1). Baseline in the same run:
 goodFeaturesToTrack alone (150 corners, 30 px apart) on the same frames, and, interleaved
 on the same frames, the default tracker with the affine refinement of its tracks
 (``affine_refinement``), with anchored tracks (``anchor_age = 2``, under the affine map and
-under a homography, ``anchor_warp``; the latter with each track's noise from its texture,
-``texture_weights``) and the tracker of before
+under a homography, ``anchor_warp``; the latter also with each track's noise from its
+texture, ``texture_weights``, and with a track ended where its anchor is given up,
+``anchor_given_up = "end"``) and the tracker of before
 2026-11-28 (VINS-Mono's 21 px Lucas-Kanade window, no second try on a deeper pyramid;
 docs/vins.md); for the anchored trackers also the anchors given up per frame. Prints one JSON
 object.
@@ -62,6 +63,9 @@ def main() -> None:
         "anchored_homography_texture_weights": FeatureTracker(
             camera, stream.distortion, FrontendOptions(anchor_age=2, anchor_warp="homography",
                                                        texture_weights=True)),
+        "anchored_homography_ended": FeatureTracker(
+            camera, stream.distortion, FrontendOptions(anchor_age=2, anchor_warp="homography",
+                                                       anchor_given_up="end")),
         "lk21": FeatureTracker(camera, stream.distortion,
                                FrontendOptions(lk_window=21, retry_pyramid_levels=0)),
     }
