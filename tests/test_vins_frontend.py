@@ -163,6 +163,7 @@ def test_rgb_and_grey_give_the_same_tracks():
 
 
 ANCHORS = [{}, {"anchor_age": 2}, {"anchor_age": 2, "anchor_warp": "homography"},
+           {"anchor_age": 2, "anchor_warp": "homography", "anchor_given_up": "restart"},
            {"anchor_age": 2, "anchor_warp": "homography", "anchor_given_up": "end"}]
 
 
@@ -341,13 +342,14 @@ def test_anchored_tracks_keep_their_anchors_down_a_tunnel(warp):
     assert given_up < 0.08 * anchored, (given_up, anchored)
 
 
-@pytest.mark.parametrize("given_up", ["reanchor", "end"])
-def test_a_track_whose_anchor_is_given_up_is_ended_or_kept_as_configured(given_up):
+@pytest.mark.parametrize("given_up", ["reanchor", "restart", "end"])
+def test_a_track_whose_anchor_is_given_up_is_kept_restarted_or_ended_as_configured(given_up):
     """Frame by frame down the tunnel with a band of it painted over from frame 20 on (the
     anchors under it no longer fit), the counters account for every track: the previous
-    frame's, less those lost, rejected and crowded out, and with ``anchor_given_up = "end"``
-    those whose anchor was given up, plus those detected. Anchored again, such a track keeps
-    its id; ended, it does not come back."""
+    frame's, less those lost, rejected and crowded out, and unless anchored again those whose
+    anchor was given up, plus those detected (and restarted, born in the frame). Anchored
+    again, such a track keeps its id; restarted, it carries on from its pixel under a new id;
+    ended, it does not come back."""
     tunnel = Tunnel(2)
     tracker = FeatureTracker(TUNNEL_CAMERA, options=FrontendOptions(
         anchor_age=2, anchor_warp="homography", anchor_given_up=given_up))
@@ -358,11 +360,17 @@ def test_a_track_whose_anchor_is_given_up_is_ended_or_kept_as_configured(given_u
             image[200:280] = np.roll(image[200:280], 3 * (k - 19), axis=1) // 2
         tracks = tracker.track(image)
         if previous is not None:
-            ended = tracks.reanchored if given_up == "end" else 0
-            assert len(tracks) == (len(previous) - tracks.lost - tracks.rejected - ended
-                                   - tracks.crowded + tracks.detected)
+            gone = 0 if given_up == "reanchor" else tracks.reanchored
+            restarted = tracks.reanchored if given_up == "restart" else 0
+            assert len(tracks) == (len(previous) - tracks.lost - tracks.rejected - gone
+                                   - tracks.crowded + tracks.detected + restarted)
+            # the crowded out may be restarted tracks as well as old ones
             kept = np.isin(previous.ids, tracks.ids).sum()
-            assert kept == len(previous) - tracks.lost - tracks.rejected - ended - tracks.crowded
+            most = len(previous) - tracks.lost - tracks.rejected - gone
+            assert most - tracks.crowded <= kept <= most
+            born = (tracks.ages == 1).sum()
+            assert tracks.detected + restarted - tracks.crowded <= born
+            assert born <= tracks.detected + restarted
         given_up_total += tracks.reanchored
         previous = tracks
     assert given_up_total > 10

@@ -93,10 +93,12 @@ class FrontendOptions:
                                            "this from the identity in any entry is given "
                                            "up (anchor_given_up)")
     # "reanchor" until measured in navigation (docs/vins.md, "Tracks whose anchor is given up").
-    anchor_given_up: str = option("reanchor", choices=("reanchor", "end"), doc="a track whose "
-                                  "anchor is given up: anchored again where Lucas-Kanade puts "
-                                  "it (reanchor), or ended, as Shi and Tomasi's monitoring "
-                                  "discards a feature that no longer looks like itself (end)")
+    anchor_given_up: str = option("reanchor", choices=("reanchor", "restart", "end"),
+                                  doc="a track whose anchor is given up: anchored again "
+                                  "where Lucas-Kanade puts it (reanchor), restarted there as "
+                                  "a new track, under a new id (restart), or ended, as Shi "
+                                  "and Tomasi's monitoring discards a feature that no longer "
+                                  "looks like itself (end)")
     # Off until measured in navigation (docs/vins.md, "Observations weighed by their texture").
     texture_weights: bool = option(False, doc="give each track's observations a noise by how "
                                    "precisely the patch it was born on can be found, the "
@@ -134,16 +136,16 @@ class Tracks:
     """The features of one frame, row ``i`` of every array describing feature ``ids[i]``.
 
     ``ages[i]`` is how many frames the feature has been seen in, this one included (1 for a
-    feature detected in this frame). ``pixels`` are distorted image positions, ``normalised``
+    feature detected, or restarted, in this frame). ``pixels`` are distorted image positions, ``normalised``
     the undistorted ``(X/Z, Y/Z)``. The counters say what happened to the previous frame's
     features: lost by Lucas-Kanade or the forward-backward check (on the deeper pyramid's try
     where that was made), rejected by RANSAC, dropped
     for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
     of new features; ``reanchored``, the anchors given up (their tracks kept Lucas-Kanade's
-    answer, to be anchored again on this frame where they survive and their patch is usable,
-    or ended with ``anchor_given_up = "end"``; 0 without ``anchor_age``). ``noise_scale``, with ``texture_weights``, each feature's
-    position noise as a share of the frame's typical feature's (``track_precision.py``); None
-    without: every feature alike.
+    answer, to be anchored again on this frame where they survive and their patch is usable;
+    restarted or ended instead as ``anchor_given_up`` says; 0 without ``anchor_age``).
+    ``noise_scale``, with ``texture_weights``, each feature's position noise as a share of the
+    frame's typical feature's (``track_precision.py``); None without: every feature alike.
     """
 
     frame: int
@@ -328,6 +330,8 @@ class FeatureTracker:
                                                       forward[judged])
             pixels, ids, ages = forward[judged], ids[judged], ages[judged] + 1
             normalised = normalised[judged]
+            if self._anchors is not None and o.anchor_given_up == "restart":
+                self._restart(ids, ages, self._anchors.given_up)
         else:
             pixels = np.zeros((0, 2), np.float32)
             ids = np.zeros(0, np.int64)
@@ -382,6 +386,14 @@ class FeatureTracker:
                       normalised=normalised.copy(), ages=ages.copy(), lost=lost,
                       rejected=rejected, crowded=crowded, detected=detected,
                       reanchored=reanchored, noise_scale=noise_scale)
+
+    def _restart(self, ids: np.ndarray, ages: np.ndarray, rows: np.ndarray) -> None:
+        """The tracks of ``rows`` (a mask) made new ones, born in this frame: fresh ids and
+        age 1 (in place)."""
+        n = int(rows.sum())
+        ids[rows] = np.arange(self._next_id, self._next_id + n)
+        ages[rows] = 1
+        self._next_id += n
 
     def _noise_scales(self, gray: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
                       born: np.ndarray) -> np.ndarray | None:
