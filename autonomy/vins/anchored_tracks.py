@@ -17,13 +17,13 @@ the track is where the anchor fits under the warp gathered since (``affine_refin
 from Lucas-Kanade's position and the last frame's warp). The error is then the fit's in this
 frame, not a sum over frames. A fit that does not converge, lands further than ``max_shift``
 from Lucas-Kanade's answer or deforms the patch beyond ``max_deformation`` keeps Lucas-Kanade's
-answer (``given_up``), and the tracker anchors the track again on this frame or ends it
-(``FrontendOptions.anchor_given_up``): an anchor is given up where its patch no longer looks
-like itself (an occlusion, a change of view the warp does not describe), never followed into a
-wrong match. Anchored again, a track carries on from Lucas-Kanade's answer with the offset it
-had gathered; ended, its landmark keeps the observations that agree with each other, as Shi
-and Tomasi discard a feature whose dissimilarity grows (docs/vins.md, "Tracks whose anchor is
-given up").
+answer (``given_up``), and the tracker anchors the track again on this frame, restarts it
+as a new track or ends it (``FrontendOptions.anchor_given_up``): an anchor is given up where
+its patch no longer looks like itself (an occlusion, a change of view the warp does not
+describe), never followed into a wrong match. Anchored again, a track carries on from
+Lucas-Kanade's answer with the offset it had gathered; restarted or ended, its landmark keeps
+the observations that agree with each other, as Shi and Tomasi discard a feature whose
+dissimilarity grows (docs/vins.md, "Tracks whose anchor is given up").
 
 The warp is the affine map ``u -> c + A u`` or a homography (``warp``). A patch on a wall seen
 at a slant grows more on its near side than on its far one as the camera nears it: the view's

@@ -92,7 +92,8 @@ class FrontendOptions:
                                            "derivative at its centre strays further than "
                                            "this from the identity in any entry is given "
                                            "up (anchor_given_up)")
-    # "reanchor" until measured in navigation (docs/vins.md, "Tracks whose anchor is given up").
+    # "reanchor": restarted or ended, the tracks lose a quarter of their error but the flights
+    # come out long and no nearer (docs/vins.md, "Tracks whose anchor is given up").
     anchor_given_up: str = option("reanchor", choices=("reanchor", "restart", "end"),
                                   doc="a track whose anchor is given up: anchored again "
                                   "where Lucas-Kanade puts it (reanchor), restarted there as "
@@ -136,16 +137,16 @@ class Tracks:
     """The features of one frame, row ``i`` of every array describing feature ``ids[i]``.
 
     ``ages[i]`` is how many frames the feature has been seen in, this one included (1 for a
-    feature detected, or restarted, in this frame). ``pixels`` are distorted image positions, ``normalised``
-    the undistorted ``(X/Z, Y/Z)``. The counters say what happened to the previous frame's
-    features: lost by Lucas-Kanade or the forward-backward check (on the deeper pyramid's try
-    where that was made), rejected by RANSAC, dropped
-    for crowding (closer than ``min_distance`` to an older feature); ``detected`` is the number
-    of new features; ``reanchored``, the anchors given up (their tracks kept Lucas-Kanade's
-    answer, to be anchored again on this frame where they survive and their patch is usable;
-    restarted or ended instead as ``anchor_given_up`` says; 0 without ``anchor_age``).
-    ``noise_scale``, with ``texture_weights``, each feature's position noise as a share of the
-    frame's typical feature's (``track_precision.py``); None without: every feature alike.
+    feature detected, or restarted, in this frame). ``pixels`` are distorted image positions,
+    ``normalised`` the undistorted ``(X/Z, Y/Z)``. The counters say what happened to the
+    previous frame's features: lost by Lucas-Kanade or the forward-backward check (on the
+    deeper pyramid's try where that was made), rejected by RANSAC, dropped for crowding
+    (closer than ``min_distance`` to an older feature); ``detected`` is the number of new
+    features; ``reanchored``, the anchors given up (their tracks kept Lucas-Kanade's answer, to
+    be anchored again on this frame where they survive and their patch is usable; restarted or
+    ended instead as ``anchor_given_up`` says; 0 without ``anchor_age``). ``noise_scale``, with
+    ``texture_weights``, each feature's position noise as a share of the frame's typical
+    feature's (``track_precision.py``); None without: every feature alike.
     """
 
     frame: int
