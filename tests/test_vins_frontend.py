@@ -344,8 +344,8 @@ def test_anchored_tracks_keep_their_anchors_down_a_tunnel(warp):
 
 @pytest.mark.parametrize("given_up", ["reanchor", "restart", "end"])
 def test_a_track_whose_anchor_is_given_up_is_kept_restarted_or_ended_as_configured(given_up):
-    """Frame by frame down the tunnel with a band of it painted over from frame 20 on (the
-    anchors under it no longer fit), the counters account for every track: the previous
+    """Frame by frame down the tunnel with a band of it slid sideways and darkened from frame
+    20 on (the anchors under it no longer fit), the counters account for every track: the previous
     frame's, less those lost, rejected and crowded out, and unless anchored again those whose
     anchor was given up, plus those detected (and restarted, born in the frame). Anchored
     again, such a track keeps its id; restarted, it carries on from its pixel under a new id;
@@ -353,7 +353,7 @@ def test_a_track_whose_anchor_is_given_up_is_kept_restarted_or_ended_as_configur
     tunnel = Tunnel(2)
     tracker = FeatureTracker(TUNNEL_CAMERA, options=FrontendOptions(
         anchor_age=2, anchor_warp="homography", anchor_given_up=given_up))
-    previous, given_up_total = None, 0
+    previous, given_up_total, restarted_seen = None, 0, 0
     for k in range(30):
         image = tunnel.render(k * 0.075)
         if k >= 20:
@@ -371,9 +371,11 @@ def test_a_track_whose_anchor_is_given_up_is_kept_restarted_or_ended_as_configur
             born = (tracks.ages == 1).sum()
             assert tracks.detected + restarted - tracks.crowded <= born
             assert born <= tracks.detected + restarted
+            restarted_seen += born - tracks.detected
         given_up_total += tracks.reanchored
         previous = tracks
     assert given_up_total > 10
+    assert (restarted_seen > 0) == (given_up == "restart")  # born in a frame, not detected
 
 
 @pytest.mark.skipif(not (EUROC / "mav0" / "cam0").is_dir(),

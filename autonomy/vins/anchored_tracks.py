@@ -70,6 +70,7 @@ class Anchors:
         self._warps = np.zeros((0, 3, 3))
         self.anchored = np.zeros(0, bool)
         self.given_up = np.zeros(0, bool)  # each row's anchor given up at the last follow()
+        # (rows kept and added since follow along)
 
     def __len__(self) -> int:
         return len(self.anchored)
@@ -85,6 +86,7 @@ class Anchors:
         self._patches = self._patches.take(rows)
         self._warps = self._warps[rows]
         self.anchored = self.anchored[rows]
+        self.given_up = self.given_up[rows]
 
     def extend(self, n: int) -> None:
         """Add ``n`` rows for new tracks, not anchored."""
@@ -92,6 +94,7 @@ class Anchors:
         self._warps = np.concatenate([self._warps, identity_warps(np.zeros((n, 2)),
                                                                   half=self.half)])
         self.anchored = np.concatenate([self.anchored, np.zeros(n, bool)])
+        self.given_up = np.concatenate([self.given_up, np.zeros(n, bool)])
 
     def follow(self, gray: SampledImage, found: np.ndarray) -> np.ndarray:
         """``found`` (Lucas-Kanade's positions of the tracks in ``gray``, one per row) with

@@ -92,8 +92,8 @@ class FrontendOptions:
                                            "derivative at its centre strays further than "
                                            "this from the identity in any entry is given "
                                            "up (anchor_given_up)")
-    # "reanchor": restarted or ended, the tracks lose a quarter of their error but the flights
-    # come out long and no nearer (docs/vins.md, "Tracks whose anchor is given up").
+    # "reanchor": restarted or ended, the old tracks' median error falls by a fifth but the
+    # flights come out long and no nearer (docs/vins.md, "Tracks whose anchor is given up").
     anchor_given_up: str = option("reanchor", choices=("reanchor", "restart", "end"),
                                   doc="a track whose anchor is given up: anchored again "
                                   "where Lucas-Kanade puts it (reanchor), restarted there as "
