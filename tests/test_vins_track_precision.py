@@ -191,6 +191,18 @@ def test_a_keyframe_keeps_each_observation_with_its_noise():
         SlidingWindowSmoother._keyframe(0, 0.0, [9, 2], np.zeros((2, 2)), [1.0, np.inf])
 
 
+def test_a_track_keeps_its_texture_whatever_the_order_of_the_ids():
+    """A track restarted where it stands (``anchor_given_up = "restart"``) takes a new id in
+    the middle of the frame's tracks: the others still find their birth textures."""
+    textures = BirthTextures(7)
+    gray = texture(100.0)
+    points = np.array([[100.0, 100.0], [300.0, 200.0], [500.0, 300.0]])
+    first = textures.update(gray, np.array([3, 8, 5]), points, np.array([True, True, True]))
+    later = textures.update(texture(20.0), np.array([5, 9, 3]), points,
+                            np.array([False, True, False]))
+    assert later[0] == first[2] and later[2] == first[0]
+
+
 def test_an_evaluation_that_skips_frames_gets_no_texture_for_a_birth_it_did_not_see():
     textures = BirthTextures(7, strict=False)
     gray = texture(100.0)

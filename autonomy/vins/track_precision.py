@@ -93,17 +93,20 @@ class BirthTextures:
 
     def update(self, gray: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
                born: np.ndarray) -> np.ndarray:
-        """The eigenvalues of the tracks ``ids`` (ascending, as the tracker keeps them), those
-        ``born`` in this frame ``gray`` measured at their ``pixels``, the others as kept."""
-        eigenvalues = np.empty(len(ids))
-        old = ~born
-        rows = np.minimum(np.searchsorted(self._ids, ids[old]), max(len(self._ids) - 1, 0))
-        kept = self._ids[rows] == ids[old] if len(self._ids) else np.zeros(len(rows), bool)
+        """The eigenvalues of the tracks ``ids`` (in any order: a restarted track takes a new
+        id where it stands), those ``born`` in this frame ``gray`` measured at their
+        ``pixels``, the others as kept."""
+        eigenvalues = np.full(len(ids), np.nan)
+        old = np.flatnonzero(~born)
+        kept = np.zeros(len(old), bool)
+        if len(self._ids):  # the kept ids are sorted, for the lookup
+            rows = np.minimum(np.searchsorted(self._ids, ids[old]), len(self._ids) - 1)
+            kept = self._ids[rows] == ids[old]
+            eigenvalues[old[kept]] = self._eigenvalues[rows[kept]]
         if self.strict and not kept.all():
             raise ValueError("tracks not born in this frame must have been given in the frame "
-                             "before, ids ascending")
-        eigenvalues[old] = np.where(kept, self._eigenvalues[rows] if len(self._ids) else 0.0,
-                                    np.nan)
+                             "before")
         eigenvalues[born] = least_eigenvalues(gray, pixels[born], self.half)
-        self._ids, self._eigenvalues = ids.copy(), eigenvalues
+        order = np.argsort(ids, kind="stable")
+        self._ids, self._eigenvalues = ids[order], eigenvalues[order]
         return eigenvalues
