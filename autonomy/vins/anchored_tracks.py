@@ -69,8 +69,8 @@ class Anchors:
         self._patches = self._none(0)
         self._warps = np.zeros((0, 3, 3))
         self.anchored = np.zeros(0, bool)
-        self.given_up = np.zeros(0, bool)  # each row's anchor given up at the last follow()
-        # (rows kept and added since follow along)
+        # each row's anchor given up at the last follow(), kept row for row by keep() and extend()
+        self.given_up = np.zeros(0, bool)
 
     def __len__(self) -> int:
         return len(self.anchored)
