@@ -46,6 +46,11 @@ and every sample is corrected by it before use (:mod:`autonomy.vins.gyro_alignme
 from ``gyro_alignment``, a calibration carried over from an earlier flight (which alone is a
 fixed correction); the time-offset estimator keeps the raw samples.
 
+Accelerometer samples: with ``rest_accel_scale_share``, that share of the specific force's
+excess over gravity in the static window is taken as the z axis's sensitivity error and
+divided out of every sample from then on, the window's included
+(:mod:`autonomy.vins.accel_scale`).
+
 Barometer: with ``barometer_sigma_m``, an IMU sample's ``pressure_pa`` is kept, and each
 keyframe takes the sample nearest its exposure time as a height (:mod:`autonomy.vins.barometer`)
 once it is ``barometer_min_height_m`` above the ground the VINS started on: below, the rotors'
@@ -62,6 +67,7 @@ import numpy as np
 
 from autonomy.geometry import PinholeCamera, distort_points, invert_pose, make_pose, yaw_of
 from autonomy.messages import ImuSample, Odometry, SparseMap
+from autonomy.vins.accel_scale import RestAccelScale
 from autonomy.vins.backend import BackendError, KeyframeState, PriorSigmas, SlidingWindowSmoother
 from autonomy.vins.barometer import PressureHistory, usable_pressure
 from autonomy.vins.frontend import FeatureTracker, FrontendOptions, Tracks
@@ -174,6 +180,7 @@ class Vins:
         self._window_kept_done = False
         self._gap: ImuGap | None = None
         self._stillness = ZeroVelocityDetector(self.options, math.sqrt(camera.fx * camera.fy))
+        self._accel_scale: RestAccelScale | None = None
         self._on_ground = False
         self.zero_velocity_keyframes = 0
 
@@ -204,6 +211,12 @@ class Vins:
         estimate, the calibration with no pairs): :mod:`autonomy.vins.gyro_alignment`."""
         return None if self._alignment is None else self._alignment.estimate
 
+    @property
+    def rest_accel_scale(self) -> RestAccelScale | None:
+        """The accelerometer's z sensitivity read at rest that samples are corrected by (None
+        before the static initialisation, or without ``rest_accel_scale_share``)."""
+        return self._accel_scale
+
     def add_imu(self, sample: ImuSample) -> None:
         """One IMU sample, in time order; ValueError for a bad one (the sample is not used).
         With ``estimate_gyro_alignment`` or a calibrated ``gyro_alignment`` its gyro is
@@ -213,6 +226,8 @@ class Vins:
         raw_gyro = np.asarray(sample.gyro, dtype=float).reshape(-1)
         if self._alignment is not None and raw_gyro.shape == (3,):
             sample = replace(sample, gyro=self._alignment.correct(raw_gyro))
+        if self._accel_scale is not None:
+            sample = replace(sample, accel=self._accel_scale.correct(sample.accel))
         self._imu.add(sample)
         if sample.pressure_pa is not None and self.options.barometer_sigma_m > 0.0:
             self._keep_pressure(sample.t, sample.pressure_pa)
@@ -327,6 +342,8 @@ class Vins:
         result = (static_initialise(*window, o) if len(window[0]) >= 2
                   else NotStill("waiting for IMU samples", t, t))
         self._imu.discard_before(t - o.window_s * 2.0)
+        if isinstance(result, StaticInit) and self.options.rest_accel_scale_share > 0.0:
+            result = self._correct_accel_scale(result, window)
         if isinstance(result, NotStill):
             return FrameUpdate(t, False, None, None, None, Health(
                 HealthState.INITIALISING, f"static initialisation: {result.reason}",
@@ -336,6 +353,19 @@ class Vins:
         state = KeyframeState(0, t, make_pose(result.R_W_B, zero), zero, result.gyro_bias, zero)
         self._start(state, self._start_sigmas(self.options.prior_velocity_sigma), tracks)
         return self._result(t, tracks, True, self._anchor.state)
+
+    def _correct_accel_scale(self, result: StaticInit, window) -> StaticInit | NotStill:
+        """The static window judged again with the z sensitivity it reads divided out
+        (:mod:`autonomy.vins.accel_scale`): its gravity direction and norm move with it. Still
+        so, the correction applies to the buffered samples and every one after."""
+        scale = RestAccelScale.from_rest(result.accel_norm, self.options.rest_accel_scale_share)
+        t, gyro, accel = window
+        corrected = static_initialise(t, gyro, np.array([scale.correct(a) for a in accel]),
+                                      self.static_options)
+        if isinstance(corrected, StaticInit):
+            self._accel_scale = scale
+            self._imu.correct_accel(scale.correct)
+        return corrected
 
     def _start_sigmas(self, velocity_sigma: float, tilt: float | None = None) -> PriorSigmas:
         """Priors of a (re)start: ``tilt`` (radians; default the options' tilt), the world's

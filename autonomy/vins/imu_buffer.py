@@ -84,6 +84,10 @@ class ImuBuffer:
         if keep_from:
             del self._t[:keep_from], self._gyro[:keep_from], self._accel[:keep_from]
 
+    def correct_accel(self, correct) -> None:
+        """Every buffered specific force replaced by ``correct(accel)``."""
+        self._accel = [np.asarray(correct(accel), dtype=float) for accel in self._accel]
+
     @property
     def last_gyro(self) -> np.ndarray | None:
         return self._gyro[-1] if self._gyro else None

@@ -70,6 +70,13 @@ class VinsOptions:
     drag_noise: float = option(0.02, gt=0.0, le=10.0, doc="the drag factor's noise, m/s^2 "
                                "sqrt(s): its sigma over a keyframe interval dt is this over "
                                "sqrt(dt) (the rotors' vibration, averaged)")
+    rest_accel_scale_share: float = option(0.0, ge=0.0, le=1.0, doc="the share of the "
+                                           "specific force's excess over gravity at the static "
+                                           "initialisation taken as the accelerometer's z "
+                                           "sensitivity error, divided out of every sample "
+                                           "after it; the rest is the bias "
+                                           "(autonomy/vins/accel_scale.py: 0.71 for a vehicle "
+                                           "PX4 calibrated by hand; 0: all bias)")
     barometer_sigma_m: float = option(0.0, ge=0.0, le=100.0, doc="the flight controller's "
                                       "barometer as a height, one sample's noise in metres "
                                       "(autonomy/vins/barometer.py; 0: not used)")
