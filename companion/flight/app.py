@@ -217,6 +217,9 @@ class FlightApp:
             "vins_barometer": barometer_summary(self.perception.vins),
             "vins_time_offset": time_offset_summary(self.perception.vins.time_offset),
             "vins_gyro_alignment": gyro_alignment_summary(self.perception.vins.gyro_alignment),
+            # the accelerometer's z sensitivity error read at rest and divided out (a fraction;
+            # None unless [vins] rest_accel_scale_share: autonomy/vins/accel_scale.py)
+            "vins_rest_accel_scale_error": rest_accel_scale_error(self.perception.vins),
             "vins_correction_m": correction_summary(s.vins_corrections_m),
             "watchdog_setpoints": self.command.watchdog.fired,
             "loop_lag_ms_p99": percentiles_ms(s.loop_lag_s, (99,))["p99"],
@@ -265,6 +268,12 @@ def time_offset_summary(offset) -> dict:
     return {"seconds": offset.seconds, "sigma_s": offset.sigma, "estimated": offset.estimating}
 
 
+def rest_accel_scale_error(vins) -> float | None:
+    """The accelerometer's z sensitivity error ``vins`` read at rest (None when it reads
+    none)."""
+    return None if vins.rest_accel_scale is None else vins.rest_accel_scale.error
+
+
 def gyro_alignment_summary(estimate) -> dict | None:
     """The gyro's misalignment the VINS ended on (a
     :class:`~autonomy.vins.gyro_alignment.GyroAlignmentEstimate`, None when it corrects none):
@@ -302,6 +311,7 @@ def _flight_lines(summary: dict) -> list[str]:
         *_barometer_lines(summary.get("vins_barometer")),
         *_time_offset_lines(summary.get("vins_time_offset")),
         *_gyro_alignment_lines(summary.get("vins_gyro_alignment")),
+        *_rest_accel_scale_lines(summary.get("vins_rest_accel_scale_error")),
         *_signing_lines(summary.get("mavlink_signing")),
     ]
 
@@ -359,6 +369,12 @@ def _gyro_alignment_lines(alignment: dict | None) -> list[str]:
     return [f"  gyro {what} [{numbers}] (sigma at most {sigma:.4f}, "
             f"{alignment['pairs']} frame pairs); to start the next flight from it: "
             f"--set 'vins.gyro_alignment=[{numbers}]'"]
+
+
+def _rest_accel_scale_lines(error: float | None) -> list[str]:
+    return [] if error is None else [
+        f"  accel z at rest   {error:+.3%} sensitivity error, divided out "
+        "([vins] rest_accel_scale_share)"]
 
 
 def _time_offset_lines(offset: dict | None) -> list[str]:

@@ -152,6 +152,8 @@ class VioTrace:
     offset at the end; ``gyro_alignment``: the gyro's response to the yaw rate it was
     corrected by at the end (None when none); ``camera_mounting``: the mounting ``T_B_C`` the
     smoother estimated, at the end (None unless ``estimate_camera_mounting``);
+    ``rest_accel_scale_error``: the accelerometer's z sensitivity error read at rest and divided
+    out (None unless ``rest_accel_scale_share``: :mod:`autonomy.vins.accel_scale`);
     ``corrections_m``: each keyframe's correction
     (:attr:`~autonomy.vins.estimator.FrameUpdate.correction_m`); ``keyframes``: each
     keyframe's estimate with its covariances, taken when it was the newest; ``rebuilds``:
@@ -175,6 +177,7 @@ class VioTrace:
     time_offset: TimeOffset = field(default_factory=TimeOffset)
     gyro_alignment: GyroAlignmentEstimate | None = None
     camera_mounting: np.ndarray | None = None
+    rest_accel_scale_error: float | None = None
     corrections_m: list[float] = field(default_factory=list)
     keyframes: list[KeyframeEstimate] = field(default_factory=list)
     rebuilds: list[Rebuild] = field(default_factory=list)
@@ -326,6 +329,8 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
     trace.time_offset = vins.time_offset
     trace.gyro_alignment = vins.gyro_alignment
+    if vins.rest_accel_scale is not None:
+        trace.rest_accel_scale_error = vins.rest_accel_scale.error
     if options.estimate_camera_mounting:
         trace.camera_mounting = vins.backend.camera_mounting
     trace.track_errors = {**tracking.summary(), "track_error_reference":
@@ -427,6 +432,8 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
     ``camera_mounting``: the mounting the smoother estimated, as its offset from the configured
     one in the configured camera's frame (``rotation_deg``, a rotation vector, and
     ``translation_mm``; None unless ``estimate_camera_mounting``).
+    ``rest_accel_scale_error``: the accelerometer's z sensitivity error the VINS read at rest
+    and divided out (a fraction; None unless ``rest_accel_scale_share``).
     """
     truth_t = _seconds(data.truth.t_ns, data.imu.t_ns[0])
     backend = [ms for ms, key in zip(trace.backend_ms, trace.keyframe) if key]
@@ -460,6 +467,7 @@ def score_vio(trace: VioTrace, data: VioDataset) -> dict:
         else trace.gyro_alignment.as_dict(),
         "camera_mounting": None if trace.camera_mounting is None
         else _mounting_offset(data.camera.T_B_C, trace.camera_mounting),
+        "rest_accel_scale_error": trace.rest_accel_scale_error,
     }
 
 
@@ -902,6 +910,10 @@ def format_vio_report(result: dict) -> str:
            else f" (sigma {result['time_offset_sigma_ms']:.2f} ms)"),
         "gyro's response to the yaw rate (x, y, z): " + _alignment_text(result["gyro_alignment"]),
         "camera mounting off the configured one: " + _mounting_text(result["camera_mounting"]),
+        "accelerometer's z sensitivity read at rest: " + (
+            "not read ([vins] rest_accel_scale_share 0)"
+            if result.get("rest_accel_scale_error") is None
+            else f"{result['rest_accel_scale_error']:+.3%}, divided out"),
         "rotor drag fitted on the estimate: " + (
             "too few keyframes in flight" if result["drag_fit"] is None else
             f"{result['drag_fit']['coefficient_per_s']:.3f} 1/s over "
