@@ -165,6 +165,7 @@ SIMULATOR_DEFAULTS = (
     "vins.estimate_gyro_alignment=true",
     "vins.gyro_alignment_rates=all",
     "vins.gyro_noise_scale=10",
+    "vins.rest_accel_scale_share=0.71",
     "vins_frontend.anchor_age=2",
     "vins_frontend.anchor_warp=homography",
     "sim_latency.vins_s=0.024",

@@ -333,8 +333,8 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
     """config/sim-realistic.toml flies the simulator's realistic vehicle as the Orin presets fly
     a real one: valid, the realistic profile, the camera's time offset estimated as the presets
     estimate it, the gyro's misalignment, all of it, estimated as a preset's first flight (none
-    kept yet) estimates it (docs/operations.md, section 6), the near tail counted as theirs, and
-    the tracks anchored as theirs are."""
+    kept yet) estimates it (docs/operations.md, section 6), the near tail counted as theirs, the
+    tracks anchored as theirs are, and the accelerometer's z read at rest as theirs is."""
     from companion.cli import main
     from companion.launch.learned_calibration import start_from_learned
 
@@ -351,6 +351,8 @@ def test_the_realistic_preset_estimates_what_the_vehicle_presets_estimate(capsys
         assert realistic.vins.estimate_gyro_alignment == first_flight.estimate_gyro_alignment \
             is True
         assert realistic.vins.gyro_alignment_rates == first_flight.gyro_alignment_rates == "all"
+        assert realistic.vins.rest_accel_scale_share == \
+            first_flight.rest_accel_scale_share > 0.0
         assert realistic.planner.near_tail_share == vehicle.planner.near_tail_share > 0.0
         assert realistic.planner.far_tail_share == vehicle.planner.far_tail_share > 0.0
         for key in ("anchor_age", "anchor_warp"):
