@@ -17,11 +17,11 @@ mean and of spreads ``s_e`` and ``s_b``, the least-squares split of the excess i
 and ``e - e_hat`` has the variance ``s_e^2 s_b^2 / (s_e^2 + s_b^2)``: a share ``1 - k`` of the
 scale's variance, at the price of the bias's share ``k`` read as scale. ``k`` is
 ``[vins] rest_accel_scale_share`` (0, the default: all bias, as before). For a vehicle PX4
-calibrated by hand, ``s_e`` is its six-orientation fit's scale error, 0.46 % at 3 degree
-placements (``drivers/sim/imu.py``, ``_px4_calibrated``; ASSUMED placements), and ``s_b`` the
-bias its learned calibration leaves, 0.05 / sqrt(3) m/s^2 of ``g``, 0.29 %
-(``VehicleIMU::AccelCalibrationUpdate``'s dead band): ``k = 0.71``. A vehicle calibrated on a
-level jig has ``s_e`` near 0.06 %: ``k`` near 0.04, so 0.
+calibrated by hand, ``s_e`` is its six-orientation fit's scale error, 0.465 % at 3 degree
+placements (``drivers/sim/imu.py``, ``_px4_calibrated``, over 2,000 of its vehicles; ASSUMED
+placements), and ``s_b`` the bias its learned calibration leaves, 0.05 / sqrt(3) m/s^2 of
+``g``, 0.294 % (``VehicleIMU::AccelCalibrationUpdate``'s dead band): ``k = 0.71``. A vehicle
+calibrated on a level jig has ``s_e`` near 0.06 %: ``k`` near 0.04, so 0.
 
 ``g`` is the smoother's gravity (:data:`autonomy.geometry.GRAVITY`), so that the corrected
 reading at rest is the one the smoother expects but for the bias's share.
