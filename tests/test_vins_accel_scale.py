@@ -29,6 +29,8 @@ def test_the_z_axis_alone_is_divided_by_its_read_sensitivity():
     # at rest, a vehicle whose z reads 1 % long with share 1 reads gravity again
     at_rest = RestAccelScale.from_rest(1.01 * GRAVITY, 1.0).correct([0.0, 0.0, 1.01 * GRAVITY])
     assert at_rest[2] == pytest.approx(GRAVITY)
+    # a window of samples, row by row
+    np.testing.assert_allclose(scale.correct(np.tile(force, (4, 1))), np.tile(corrected, (4, 1)))
 
 
 @pytest.mark.parametrize("norm, share, message", [

@@ -521,9 +521,9 @@ def test_an_accelerometer_z_read_long_at_rest_is_divided_out_of_the_flight(fligh
         updates = [u for u in fly(long_z, vins, SECONDS) if u.T_W_B is not None]
         errors[share] = max(position_errors(long_z, updates))
         if share == 0.0:
-            assert vins.rest_accel_scale is None
+            assert vins.rest_accel_scale_error is None
             assert vins.static_init.accel_norm == pytest.approx(1.02 * GRAVITY, abs=0.01)
-    assert vins.rest_accel_scale.error == pytest.approx(0.02, abs=1e-3)
+    assert vins.rest_accel_scale_error == pytest.approx(0.02, abs=1e-3)
     assert vins.static_init.accel_norm == pytest.approx(GRAVITY, abs=0.01)
     assert errors[1.0] < MAX_POSITION_ERROR_M, errors
     assert errors[0.0] > 2.0 * errors[1.0], errors

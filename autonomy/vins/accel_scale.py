@@ -55,7 +55,8 @@ class RestAccelScale:
         return cls(share * (accel_norm / GRAVITY - 1.0))
 
     def correct(self, accel) -> np.ndarray:
-        """The specific force ``accel`` (body, m/s^2) with its z divided by ``1 + error``."""
+        """The specific force ``accel`` (body, m/s^2; one ``(3,)`` or rows ``(N, 3)``) with its
+        z divided by ``1 + error``."""
         corrected = np.array(accel, dtype=float)
-        corrected[2] /= 1.0 + self.error
+        corrected[..., 2] /= 1.0 + self.error
         return corrected

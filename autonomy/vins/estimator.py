@@ -212,10 +212,11 @@ class Vins:
         return None if self._alignment is None else self._alignment.estimate
 
     @property
-    def rest_accel_scale(self) -> RestAccelScale | None:
-        """The accelerometer's z sensitivity read at rest that samples are corrected by (None
-        before the static initialisation, or without ``rest_accel_scale_share``)."""
-        return self._accel_scale
+    def rest_accel_scale_error(self) -> float | None:
+        """The accelerometer's z sensitivity error read at rest that samples are corrected by,
+        a fraction (None before the static initialisation, or without
+        ``rest_accel_scale_share``)."""
+        return None if self._accel_scale is None else self._accel_scale.error
 
     def add_imu(self, sample: ImuSample) -> None:
         """One IMU sample, in time order; ValueError for a bad one (the sample is not used).
@@ -360,8 +361,7 @@ class Vins:
         so, the correction applies to the buffered samples and every one after."""
         scale = RestAccelScale.from_rest(result.accel_norm, self.options.rest_accel_scale_share)
         t, gyro, accel = window
-        corrected = static_initialise(t, gyro, np.array([scale.correct(a) for a in accel]),
-                                      self.static_options)
+        corrected = static_initialise(t, gyro, scale.correct(accel), self.static_options)
         if isinstance(corrected, StaticInit):
             self._accel_scale = scale
             self._imu.correct_accel(scale.correct)

@@ -219,7 +219,7 @@ class FlightApp:
             "vins_gyro_alignment": gyro_alignment_summary(self.perception.vins.gyro_alignment),
             # the accelerometer's z sensitivity error read at rest and divided out (a fraction;
             # None unless [vins] rest_accel_scale_share: autonomy/vins/accel_scale.py)
-            "vins_rest_accel_scale_error": rest_accel_scale_error(self.perception.vins),
+            "vins_rest_accel_scale_error": self.perception.vins.rest_accel_scale_error,
             "vins_correction_m": correction_summary(s.vins_corrections_m),
             "watchdog_setpoints": self.command.watchdog.fired,
             "loop_lag_ms_p99": percentiles_ms(s.loop_lag_s, (99,))["p99"],
@@ -266,12 +266,6 @@ def time_offset_summary(offset) -> dict:
     :class:`~autonomy.vins.time_offset.TimeOffset`): ``seconds``, ``sigma_s`` (None while
     nothing showed it, or fixed), ``estimated`` (online, ``[vins] estimate_time_offset``)."""
     return {"seconds": offset.seconds, "sigma_s": offset.sigma, "estimated": offset.estimating}
-
-
-def rest_accel_scale_error(vins) -> float | None:
-    """The accelerometer's z sensitivity error ``vins`` read at rest (None when it reads
-    none)."""
-    return None if vins.rest_accel_scale is None else vins.rest_accel_scale.error
 
 
 def gyro_alignment_summary(estimate) -> dict | None:

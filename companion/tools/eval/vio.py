@@ -329,8 +329,7 @@ def run_vins(data: VioDataset, options: VinsOptions, *, frontend: FrontendOption
     trace.static_init, trace.resets = vins.static_init, int(vins.resets)
     trace.time_offset = vins.time_offset
     trace.gyro_alignment = vins.gyro_alignment
-    if vins.rest_accel_scale is not None:
-        trace.rest_accel_scale_error = vins.rest_accel_scale.error
+    trace.rest_accel_scale_error = vins.rest_accel_scale_error
     if options.estimate_camera_mounting:
         trace.camera_mounting = vins.backend.camera_mounting
     trace.track_errors = {**tracking.summary(), "track_error_reference":
